@@ -1,0 +1,268 @@
+"""Batched pinhole cameras in the OpenCV convention.
+
+Conventions used everywhere in the library:
+
+* camera frame: x right, y down, +z forward (the viewing direction);
+* extrinsics are camera-to-world 4x4 matrices (``c2w``), metres;
+* intrinsics are in pixels; continuous image coordinates put the *centre* of pixel
+  ``(row i, column j)`` at ``(u, v) = (j + 0.5, i + 0.5)``, so a principal point at the
+  image centre is ``(W / 2, H / 2)`` (the MuJoCo / gsplat convention).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+# OpenGL / nerfstudio / MuJoCo cameras look along -z with y up: flip y and z.
+_GL_TO_CV = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
+
+
+@dataclass
+class Cameras:
+    """A batch of B pinhole cameras that share one image size.
+
+    Attributes:
+        K: (B, 3, 3) pixel intrinsics.
+        c2w: (B, 4, 4) camera-to-world transforms, OpenCV convention.
+        width, height: image size in pixels.
+    """
+
+    K: torch.Tensor
+    c2w: torch.Tensor
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        if self.K.ndim == 2:
+            self.K = self.K[None]
+        if self.c2w.ndim == 2:
+            self.c2w = self.c2w[None]
+        if self.K.shape[-2:] != (3, 3) or self.c2w.shape[-2:] != (4, 4):
+            raise ValueError(
+                f"Cameras: K must be (B,3,3) and c2w (B,4,4), got {tuple(self.K.shape)} "
+                f"and {tuple(self.c2w.shape)}"
+            )
+        if self.K.shape[0] != self.c2w.shape[0]:
+            raise ValueError(f"Cameras: {self.K.shape[0]} intrinsics but {self.c2w.shape[0]} poses")
+        if int(self.width) <= 0 or int(self.height) <= 0:
+            raise ValueError(f"Cameras: image size must be positive, got {self.width}x{self.height}")
+        self.width, self.height = int(self.width), int(self.height)
+        for name in ("K", "c2w"):
+            if not torch.isfinite(getattr(self, name)).all():
+                raise ValueError(f"Cameras: {name} contains NaN or Inf")
+
+    # ------------------------------------------------------------------ constructors
+    @classmethod
+    def from_intrinsics(
+        cls,
+        fx: float | torch.Tensor,
+        fy: float | torch.Tensor,
+        cx: float | torch.Tensor,
+        cy: float | torch.Tensor,
+        c2w: torch.Tensor,
+        width: int,
+        height: int,
+    ) -> Cameras:
+        """Build from focal lengths and principal points (scalars or (B,) tensors)."""
+        c2w = c2w if c2w.ndim == 3 else c2w[None]
+        b = c2w.shape[0]
+
+        def col(x):
+            return torch.as_tensor(x, dtype=c2w.dtype, device=c2w.device).expand(b)
+
+        K = torch.zeros(b, 3, 3, dtype=c2w.dtype, device=c2w.device)
+        K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2] = col(fx), col(fy), col(cx), col(cy)
+        K[:, 2, 2] = 1.0
+        return cls(K, c2w, width, height)
+
+    @classmethod
+    def from_opengl(cls, K: torch.Tensor, c2w_gl: torch.Tensor, width: int, height: int) -> Cameras:
+        """From OpenGL / nerfstudio / Blender camera-to-world (x right, y up, looks along -z)."""
+        return cls(K, opengl_to_opencv(c2w_gl), width, height)
+
+    from_nerfstudio = from_opengl
+
+    @classmethod
+    def from_mujoco(
+        cls,
+        cam_xpos: torch.Tensor,
+        cam_xmat: torch.Tensor,
+        fovy_deg: float | torch.Tensor,
+        width: int,
+        height: int,
+    ) -> Cameras:
+        """From MuJoCo ``data.cam_xpos`` (B,3) and ``data.cam_xmat`` (B,9) or (B,3,3).
+
+        MuJoCo's ``fovy`` is the vertical field of view: f = (H / 2) / tan(fovy / 2),
+        square pixels, principal point at the image centre.
+        """
+        xpos = torch.as_tensor(cam_xpos, dtype=torch.float64).reshape(-1, 3)
+        xmat = torch.as_tensor(cam_xmat, dtype=torch.float64).reshape(-1, 3, 3)
+        c2w_gl = torch.eye(4, dtype=torch.float64).repeat(xpos.shape[0], 1, 1)
+        c2w_gl[:, :3, :3], c2w_gl[:, :3, 3] = xmat, xpos
+        fovy = torch.as_tensor(fovy_deg, dtype=torch.float64)
+        f = (height / 2) / torch.tan(torch.deg2rad(fovy) / 2)
+        return cls.from_intrinsics(f, f, width / 2, height / 2, opengl_to_opencv(c2w_gl), width, height)
+
+    # ------------------------------------------------------------------ properties
+    def __len__(self) -> int:
+        return self.c2w.shape[0]
+
+    def __getitem__(self, idx) -> Cameras:
+        if isinstance(idx, int):
+            idx = slice(idx, idx + 1 if idx != -1 else None)
+        return Cameras(self.K[idx], self.c2w[idx], self.width, self.height)
+
+    @property
+    def device(self) -> torch.device:
+        return self.c2w.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.c2w.dtype
+
+    @property
+    def centers(self) -> torch.Tensor:
+        """(B, 3) camera centres in world coordinates."""
+        return self.c2w[:, :3, 3]
+
+    @property
+    def forward(self) -> torch.Tensor:
+        """(B, 3) unit viewing directions (+z of the camera) in world coordinates."""
+        return self.c2w[:, :3, 2]
+
+    def w2c(self) -> torch.Tensor:
+        """(B, 4, 4) world-to-camera transforms (rigid inverse, differentiable)."""
+        return rigid_inverse(self.c2w)
+
+    def to(self, device=None, dtype=None) -> Cameras:
+        return Cameras(self.K.to(device, dtype), self.c2w.to(device, dtype), self.width, self.height)
+
+    def with_c2w(self, c2w: torch.Tensor) -> Cameras:
+        """Same intrinsics and size, new poses."""
+        return Cameras(self.K.expand(c2w.shape[0], 3, 3), c2w, self.width, self.height)
+
+    @staticmethod
+    def cat(cameras: list[Cameras]) -> Cameras:
+        sizes = {(c.width, c.height) for c in cameras}
+        if len(sizes) != 1:
+            raise ValueError(f"Cameras.cat: all cameras must share one image size, got {sorted(sizes)}")
+        w, h = sizes.pop()
+        return Cameras(torch.cat([c.K for c in cameras]), torch.cat([c.c2w for c in cameras]), w, h)
+
+    # ------------------------------------------------------------------ geometry
+    def project(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Project world points into every camera.
+
+        Args:
+            points: (B, N, 3) or (N, 3) world points.
+        Returns:
+            uv: (B, N, 2) continuous pixel coordinates (pixel centres at +0.5);
+            depth: (B, N) camera-frame z. Points with z <= 0 get uv from |z| clamped away
+            from zero and should be masked by the caller with ``depth > 0``.
+        """
+        pts = points if points.ndim == 3 else points[None].expand(len(self), -1, -1)
+        w2c = self.w2c().to(pts.dtype)
+        cam = pts @ w2c[:, :3, :3].transpose(1, 2) + w2c[:, None, :3, 3]
+        z = cam[..., 2]
+        zs = torch.where(z.abs() < 1e-12, torch.full_like(z, 1e-12), z)
+        K = self.K.to(pts.dtype)
+        u = K[:, None, 0, 0] * cam[..., 0] / zs + K[:, None, 0, 2]
+        v = K[:, None, 1, 1] * cam[..., 1] / zs + K[:, None, 1, 2]
+        return torch.stack([u, v], -1), z
+
+    def unproject(self, uv: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+        """Lift pixels to world points.
+
+        Args:
+            uv: (B, N, 2) continuous pixel coordinates.
+            depth: (B, N) camera-frame z (metric depth, not ray length).
+        Returns:
+            (B, N, 3) world points.
+        """
+        K = self.K.to(uv.dtype)
+        x = (uv[..., 0] - K[:, None, 0, 2]) / K[:, None, 0, 0] * depth
+        y = (uv[..., 1] - K[:, None, 1, 2]) / K[:, None, 1, 1] * depth
+        cam = torch.stack([x, y, depth], -1)
+        c2w = self.c2w.to(uv.dtype)
+        return cam @ c2w[:, :3, :3].transpose(1, 2) + c2w[:, None, :3, 3]
+
+    def pixel_centers(self) -> torch.Tensor:
+        """(H*W, 2) continuous coordinates of every pixel centre, row-major."""
+        v, u = torch.meshgrid(
+            torch.arange(self.height, dtype=self.dtype, device=self.device) + 0.5,
+            torch.arange(self.width, dtype=self.dtype, device=self.device) + 0.5,
+            indexing="ij",
+        )
+        return torch.stack([u.reshape(-1), v.reshape(-1)], -1)
+
+    # ------------------------------------------------------------------ image ops
+    def resize(self, width: int, height: int) -> Cameras:
+        """Intrinsics for the image resized to ``width x height`` (pixel-area scaling)."""
+        sx, sy = width / self.width, height / self.height
+        K = self.K.clone()
+        K[:, 0] *= sx
+        K[:, 1] *= sy
+        return Cameras(K, self.c2w, width, height)
+
+    def crop(self, left: int, top: int, width: int, height: int) -> Cameras:
+        """Intrinsics for the sub-image ``[top:top+height, left:left+width]``."""
+        if left < 0 or top < 0 or left + width > self.width or top + height > self.height:
+            raise ValueError(
+                f"Cameras.crop: window ({left},{top},{width},{height}) leaves the "
+                f"{self.width}x{self.height} image"
+            )
+        K = self.K.clone()
+        K[:, 0, 2] -= left
+        K[:, 1, 2] -= top
+        return Cameras(K, self.c2w, width, height)
+
+    def fov_deg(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Horizontal and vertical fields of view in degrees, each (B,)."""
+        fovx = 2 * torch.atan(self.width / (2 * self.K[:, 0, 0]))
+        fovy = 2 * torch.atan(self.height / (2 * self.K[:, 1, 1]))
+        return torch.rad2deg(fovx), torch.rad2deg(fovy)
+
+
+def rigid_inverse(T: torch.Tensor) -> torch.Tensor:
+    """Inverse of (..., 4, 4) rigid transforms via R^T (differentiable, no matrix solve)."""
+    R, t = T[..., :3, :3], T[..., :3, 3:]
+    Rt = R.transpose(-1, -2)
+    out = torch.zeros_like(T)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3:] = -Rt @ t
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def opengl_to_opencv(c2w_gl: torch.Tensor) -> torch.Tensor:
+    """Convert (..., 4, 4) OpenGL camera-to-world to OpenCV: R_cv = R_gl diag(1,-1,-1)."""
+    return c2w_gl @ _GL_TO_CV.to(c2w_gl)
+
+
+opencv_to_opengl = opengl_to_opencv  # the flip is its own inverse
+
+
+def look_at(eye, target, up=(0.0, 0.0, 1.0), dtype=torch.float64) -> torch.Tensor:
+    """OpenCV camera-to-world (4, 4) at ``eye`` looking at ``target`` with world ``up``."""
+    eye = torch.as_tensor(eye, dtype=dtype)
+    target = torch.as_tensor(target, dtype=dtype)
+    up = torch.as_tensor(up, dtype=dtype)
+    z = target - eye
+    z = z / z.norm()
+    x = torch.linalg.cross(z, up)
+    if x.norm() < 1e-9:
+        raise ValueError("look_at: viewing direction is parallel to 'up'")
+    x = x / x.norm()
+    y = torch.linalg.cross(z, x)
+    c2w = torch.eye(4, dtype=dtype)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = x, y, z, eye
+    return c2w
+
+
+def focal_from_fov(fov_deg: float, size: int) -> float:
+    """Focal length in pixels for a field of view across ``size`` pixels."""
+    return (size / 2) / math.tan(math.radians(fov_deg) / 2)

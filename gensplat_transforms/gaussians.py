@@ -1,0 +1,236 @@
+"""A container for N 3D Gaussians, with safetensors and 3DGS-PLY input/output."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors.torch import load_file, save_file
+
+from .sh import num_sh_bases, sh_degree_from_bases
+
+FORMAT_NAME = "gensplat-gaussians"
+FORMAT_VERSION = 1
+_FIELDS = ("means", "quats", "scales", "opacities", "sh")
+
+
+@dataclass
+class Gaussians:
+    """N Gaussians in world coordinates (metres).
+
+    Attributes:
+        means: (N, 3) centres.
+        quats: (N, 4) orientations, w-x-y-z; need not be normalised (zero = identity).
+        scales: (N, 3) standard deviations along the rotated axes, >= 0.
+        opacities: (N,) in [0, 1].
+        sh: (N, K, 3) spherical-harmonic colour coefficients, K = (degree+1)^2, degree <= 4.
+
+    Construction validates shapes and finiteness and raises ``ValueError`` naming the
+    offending field. Pass ``validate=False`` only for tensors already checked.
+    """
+
+    means: torch.Tensor
+    quats: torch.Tensor
+    scales: torch.Tensor
+    opacities: torch.Tensor
+    sh: torch.Tensor
+    validate: bool = True
+
+    def __post_init__(self) -> None:
+        if self.validate:
+            self.check()
+
+    def check(self) -> Gaussians:
+        n = self.means.shape[0] if self.means.ndim == 2 else -1
+        expected = {"means": (n, 3), "quats": (n, 4), "scales": (n, 3), "opacities": (n,)}
+        for name, shape in expected.items():
+            t = getattr(self, name)
+            if tuple(t.shape) != shape:
+                raise ValueError(f"Gaussians.{name}: expected shape {shape}, got {tuple(t.shape)}")
+        if self.sh.ndim != 3 or self.sh.shape[0] != n or self.sh.shape[2] != 3:
+            raise ValueError(f"Gaussians.sh: expected shape ({n}, K, 3), got {tuple(self.sh.shape)}")
+        sh_degree_from_bases(self.sh.shape[1])
+        for name in _FIELDS:
+            t = getattr(self, name)
+            if not t.is_floating_point():
+                raise ValueError(f"Gaussians.{name}: expected a floating-point tensor, got {t.dtype}")
+            if not torch.isfinite(t).all():
+                bad = int((~torch.isfinite(t)).reshape(n, -1).any(-1).sum())
+                raise ValueError(f"Gaussians.{name}: {bad} Gaussian(s) have NaN or Inf values")
+        if (self.scales < 0).any():
+            raise ValueError("Gaussians.scales: scales must be >= 0")
+        if ((self.opacities < 0) | (self.opacities > 1)).any():
+            raise ValueError("Gaussians.opacities: opacities must lie in [0, 1]")
+        return self
+
+    # ------------------------------------------------------------------ basics
+    def __len__(self) -> int:
+        return self.means.shape[0]
+
+    @property
+    def sh_degree(self) -> int:
+        return sh_degree_from_bases(self.sh.shape[1])
+
+    @property
+    def device(self) -> torch.device:
+        return self.means.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.means.dtype
+
+    def tensors(self) -> dict[str, torch.Tensor]:
+        return {name: getattr(self, name) for name in _FIELDS}
+
+    def _new(self, **tensors) -> Gaussians:
+        return Gaussians(**tensors, validate=False)
+
+    def to(self, device=None, dtype=None) -> Gaussians:
+        return self._new(**{k: v.to(device, dtype) for k, v in self.tensors().items()})
+
+    def __getitem__(self, index) -> Gaussians:
+        """Select Gaussians with a boolean mask, index tensor or slice."""
+        return self._new(**{k: v[index] for k, v in self.tensors().items()})
+
+    def with_sh_degree(self, degree: int) -> Gaussians:
+        """Truncate or zero-pad the SH coefficients to ``degree``."""
+        k, have = num_sh_bases(degree), self.sh.shape[1]
+        sh = self.sh[:, :k] if k <= have else torch.cat([self.sh, self.sh.new_zeros(len(self), k - have, 3)], 1)
+        return self._new(**{**self.tensors(), "sh": sh})
+
+    @staticmethod
+    def cat(items: list[Gaussians]) -> Gaussians:
+        """Concatenate; SH is zero-padded to the highest degree present."""
+        if not items:
+            raise ValueError("Gaussians.cat: nothing to concatenate")
+        degree = max(g.sh_degree for g in items)
+        items = [g.with_sh_degree(degree) for g in items]
+        return Gaussians(**{k: torch.cat([getattr(g, k) for g in items]) for k in _FIELDS}, validate=False)
+
+    @staticmethod
+    def empty(sh_degree: int = 0, dtype=torch.float32, device=None) -> Gaussians:
+        z = lambda *s: torch.zeros(*s, dtype=dtype, device=device)  # noqa: E731
+        return Gaussians(z(0, 3), z(0, 4), z(0, 3), z(0), z(0, num_sh_bases(sh_degree), 3))
+
+    def prune(self, min_opacity: float = 1 / 255) -> Gaussians:
+        """Drop Gaussians whose opacity is below ``min_opacity`` (they can never reach the
+        renderer's alpha threshold when ``min_opacity`` is 1/255)."""
+        return self[self.opacities >= min_opacity]
+
+    # ------------------------------------------------------------------ safetensors
+    def save(self, path: str | Path, metadata: dict[str, str] | None = None) -> None:
+        """Write a safetensors file with a format name/version header (atomic)."""
+        path = Path(path)
+        meta = {"format": FORMAT_NAME, "format_version": str(FORMAT_VERSION), **(metadata or {})}
+        tmp = path.with_name(f".{path.name}.tmp")
+        save_file({k: v.detach().contiguous().cpu() for k, v in self.tensors().items()}, str(tmp), metadata=meta)
+        tmp.replace(path)
+
+    @staticmethod
+    def load(path: str | Path, device="cpu") -> tuple[Gaussians, dict[str, str]]:
+        """Read a file written by :meth:`save`; returns the Gaussians and the metadata."""
+        from safetensors import safe_open
+
+        path = Path(path)
+        try:
+            with safe_open(str(path), "pt") as f:
+                meta = f.metadata() or {}
+        except Exception as e:  # safetensors raises its own error types
+            raise ValueError(f"{path}: not a readable safetensors file ({e})") from e
+        if meta.get("format") != FORMAT_NAME:
+            raise ValueError(f"{path}: not a Gaussians file (format={meta.get('format')!r})")
+        if int(meta.get("format_version", -1)) != FORMAT_VERSION:
+            raise ValueError(
+                f"{path}: Gaussians format version {meta.get('format_version')} is not the "
+                f"supported version {FORMAT_VERSION}"
+            )
+        tensors = load_file(str(path), device=str(device))
+        missing = [k for k in _FIELDS if k not in tensors]
+        if missing:
+            raise ValueError(f"{path}: missing tensors {missing}")
+        return Gaussians(**{k: tensors[k] for k in _FIELDS}), meta
+
+    # ------------------------------------------------------------------ PLY (3DGS layout)
+    def to_ply(self, path: str | Path) -> None:
+        """Write the standard 3DGS binary PLY (x y z nx ny nz f_dc_* f_rest_* opacity
+        scale_* rot_*): opacity as a logit, scales as logs, rotation w-x-y-z, f_rest
+        channel-major. Opens in common splat viewers."""
+        n = len(self)
+        eps = 1e-7
+        op = self.opacities.detach().double().clamp(eps, 1 - eps)
+        cols = {
+            "x": self.means[:, 0], "y": self.means[:, 1], "z": self.means[:, 2],
+            "nx": torch.zeros(n), "ny": torch.zeros(n), "nz": torch.zeros(n),
+        }  # fmt: skip
+        for c in range(3):
+            cols[f"f_dc_{c}"] = self.sh[:, 0, c]
+        rest = self.sh[:, 1:].transpose(1, 2).reshape(n, -1)  # (N, 3*(K-1)) channel-major
+        for i in range(rest.shape[1]):
+            cols[f"f_rest_{i}"] = rest[:, i]
+        cols["opacity"] = torch.log(op / (1 - op))
+        log_s = torch.log(self.scales.detach().double().clamp_min(1e-30))
+        for i in range(3):
+            cols[f"scale_{i}"] = log_s[:, i]
+        for i in range(4):
+            cols[f"rot_{i}"] = self.quats[:, i]
+        arr = np.empty(n, dtype=[(name, "<f4") for name in cols])
+        for name, v in cols.items():
+            arr[name] = v.detach().cpu().double().numpy()
+        header = "ply\nformat binary_little_endian 1.0\n"
+        header += f"element vertex {n}\n" + "".join(f"property float {name}\n" for name in cols)
+        header += "end_header\n"
+        Path(path).write_bytes(header.encode("ascii") + arr.tobytes())
+
+    @staticmethod
+    def from_ply(path: str | Path) -> Gaussians:
+        """Read a 3DGS binary little-endian PLY (float properties)."""
+        data = Path(path).read_bytes()
+        end = data.find(b"end_header\n")
+        if not data.startswith(b"ply") or end < 0:
+            raise ValueError(f"{path}: not a PLY file")
+        header = data[:end].decode("ascii").splitlines()
+        if "format binary_little_endian 1.0" not in header:
+            raise ValueError(f"{path}: only binary_little_endian PLY is supported")
+        n, props = 0, []
+        types = {"float": "<f4", "double": "<f8", "uchar": "u1", "int": "<i4", "uint": "<u4"}
+        for line in header:
+            parts = line.split()
+            if parts[:2] == ["element", "vertex"]:
+                n = int(parts[2])
+            elif parts and parts[0] == "property":
+                if parts[1] not in types:
+                    raise ValueError(f"{path}: unsupported PLY property type {parts[1]!r}")
+                props.append((parts[2], types[parts[1]]))
+        dtype = np.dtype(props)
+        body = data[end + len(b"end_header\n") :]
+        if len(body) < n * dtype.itemsize:
+            raise ValueError(f"{path}: truncated PLY ({len(body)} bytes for {n} vertices)")
+        arr = np.frombuffer(body, dtype=dtype, count=n)
+        names = set(dtype.names)
+        need = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"] + [f"scale_{i}" for i in range(3)]
+        need += [f"rot_{i}" for i in range(4)]
+        missing = [p for p in need if p not in names]
+        if missing:
+            raise ValueError(f"{path}: PLY lacks 3DGS properties {missing}")
+
+        def col(*ps):
+            return torch.from_numpy(np.stack([arr[p].astype(np.float32) for p in ps], -1))
+
+        n_rest = sum(1 for p in names if p.startswith("f_rest_"))
+        k = 1 + n_rest // 3
+        sh_degree_from_bases(k)
+        dc = col("f_dc_0", "f_dc_1", "f_dc_2")[:, None]
+        if n_rest:
+            rest = col(*[f"f_rest_{i}" for i in range(n_rest)]).reshape(n, 3, k - 1).transpose(1, 2)
+            sh = torch.cat([dc, rest], 1)
+        else:
+            sh = dc
+        return Gaussians(
+            means=col("x", "y", "z"),
+            quats=col("rot_0", "rot_1", "rot_2", "rot_3"),
+            scales=torch.exp(col("scale_0", "scale_1", "scale_2")),
+            opacities=torch.sigmoid(col("opacity")[:, 0]),
+            sh=sh.contiguous(),
+        )

@@ -1,0 +1,100 @@
+"""Rendering Gaussians into cameras: one entry point, :func:`render`, several backends."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+
+from ..cameras import Cameras
+from ..gaussians import Gaussians
+from .projection import Projected, project
+from .reference import rasterize_reference
+
+__all__ = ["RenderOutput", "render", "BACKENDS", "project", "Projected"]
+
+
+@dataclass
+class RenderOutput:
+    """Images for B cameras.
+
+    Attributes:
+        rgb: (B, 3, H, W) colour including the background.
+        depth: (B, 1, H, W) expected depth sum(w z) / sum(w); 0 where nothing was hit.
+        alpha: (B, 1, H, W) accumulated opacity in [0, 1].
+    """
+
+    rgb: torch.Tensor
+    depth: torch.Tensor | None = None
+    alpha: torch.Tensor | None = None
+
+
+def _render_reference(gaussians: Gaussians, camera: Cameras, *, background: torch.Tensor, near: float,
+                      sh_degree: int | None, out_dtype: torch.dtype, return_depth: bool,
+                      max_pairs: int = 1 << 22) -> tuple:
+    proj = project(gaussians, camera, near=near, sh_degree=sh_degree, out_dtype=out_dtype)
+    return rasterize_reference(proj, camera.width, camera.height, background, max_pairs=max_pairs)
+
+
+#: Backend registry. Each entry is called for one camera as
+#: ``fn(gaussians, camera, *, background, near, sh_degree, out_dtype, return_depth, **options)``
+#: and returns ``(rgb (H*W, 3), depth_sum (H*W,) or None, alpha (H*W,))`` where depth_sum is
+#: sum_i w_i z_i (it may be None when ``return_depth`` is False).
+BACKENDS: dict[str, Callable] = {"reference": _render_reference}
+
+
+def render(
+    gaussians: Gaussians,
+    cameras: Cameras,
+    *,
+    background: tuple[float, float, float] | torch.Tensor = (0.0, 0.0, 0.0),
+    near: float = 0.01,
+    sh_degree: int | None = None,
+    backend: str = "reference",
+    return_depth: bool = True,
+    return_alpha: bool = True,
+    **options,
+) -> RenderOutput:
+    """Render Gaussians from each camera with EWA splatting and front-to-back compositing.
+
+    Args:
+        gaussians: the scene (any float dtype; half precision is computed in float32).
+        cameras: B cameras (OpenCV convention) sharing one image size.
+        background: RGB added where the splats leave transmittance.
+        near: splats whose centre is not beyond this camera-space z are culled.
+        sh_degree: evaluate colour only up to this SH degree (default: all carried).
+        backend: one of ``BACKENDS``; "reference" is differentiable pure PyTorch.
+        return_depth, return_alpha: skip these outputs when False.
+        options: backend-specific settings (reference: ``max_pairs`` per chunk).
+    Returns:
+        RenderOutput with (B, C, H, W) images, float32 (float64 for float64 inputs).
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown render backend {backend!r}; available: {sorted(BACKENDS)}")
+    gaussians.check()
+    if not torch.isfinite(torch.as_tensor(near)) or near <= 0:
+        raise ValueError(f"render: near must be a positive finite number, got {near}")
+    out_dtype = torch.float64 if gaussians.dtype == torch.float64 else torch.float32
+    bg = torch.as_tensor(background, dtype=out_dtype, device=gaussians.device).reshape(3)
+    if not torch.isfinite(bg).all():
+        raise ValueError(f"render: background must be finite, got {background}")
+    fn = BACKENDS[backend]
+    H, W = cameras.height, cameras.width
+    rgbs, depths, alphas = [], [], []
+    for i in range(len(cameras)):
+        rgb, depth_sum, alpha = fn(
+            gaussians, cameras[i], background=bg, near=near, sh_degree=sh_degree,
+            out_dtype=out_dtype, return_depth=return_depth, **options,
+        )
+        rgbs.append(rgb.T.reshape(3, H, W))
+        if return_depth:
+            depth = torch.where(alpha > 0, depth_sum / alpha.clamp_min(1e-10), torch.zeros_like(depth_sum))
+            depths.append(depth.reshape(1, H, W))
+        if return_alpha:
+            alphas.append(alpha.reshape(1, H, W))
+    return RenderOutput(
+        rgb=torch.stack(rgbs),
+        depth=torch.stack(depths) if return_depth else None,
+        alpha=torch.stack(alphas) if return_alpha else None,
+    )

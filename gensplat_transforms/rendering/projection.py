@@ -1,0 +1,133 @@
+"""EWA projection of 3D Gaussians to screen-space splats, shared by every CPU backend.
+
+Rules (reference 3DGS / gsplat): cull Gaussians whose centre is not beyond the near plane
+or whose opacity is below 1/255; clamp the Jacobian's x/z, y/z to 1.3x the field of view;
+add 0.3 px^2 to the 2D covariance diagonal. The footprint is the 3-sigma ellipse
+(Mahalanobis q <= 9); a pixel receives a splat when it lies inside that ellipse and
+alpha = min(0.99, o exp(-q/2)) >= 1/255. Backends visit the tight pixel box of that region.
+
+The projection runs in float64 (cheap: O(N)) so that huge, tiny and very anisotropic
+Gaussians keep an exact, positive determinant: with M = J W R S (2x3),
+det(M M^T + 0.3 I) = 0.09 + 0.3 tr(M M^T) + |m_1 x m_2|^2 (Cauchy-Binet) has no
+cancellation, so no splat is lost or made NaN by round-off.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..cameras import Cameras
+from ..gaussians import Gaussians
+from ..rotations import quat_to_rotmat
+from ..sh import eval_sh
+
+ALPHA_MIN = 1.0 / 255.0
+ALPHA_MAX = 0.99
+T_MIN = 1e-4
+DILATION = 0.3
+SIGMA_EXTENT = 3.0
+FOV_CLAMP = 1.3
+MAX_SCALE = 1e3  # metres; larger scales are clamped (covers any image anyway)
+
+
+@dataclass
+class Projected:
+    """M visible splats, sorted front to back (by camera-space z).
+
+    Attributes:
+        ids: (M,) indices into the input Gaussians.
+        means2d: (M, 2) pixel coordinates of the centres.
+        conics: (M, 3) inverse 2D covariance (A, B, C): q = A dx^2 + 2 B dx dy + C dy^2.
+        depths: (M,) camera-space z.
+        opacities: (M,).
+        colors: (M, 3) view-dependent RGB.
+        boxes: (M, 4) inclusive pixel bounds (x0, y0, x1, y1) of the 3-sigma ellipse,
+            clipped to the image.
+    """
+
+    ids: torch.Tensor
+    means2d: torch.Tensor
+    conics: torch.Tensor
+    depths: torch.Tensor
+    opacities: torch.Tensor
+    colors: torch.Tensor
+    boxes: torch.Tensor
+
+    def __len__(self) -> int:
+        return self.ids.shape[0]
+
+
+def project(
+    gaussians: Gaussians,
+    camera: Cameras,
+    near: float = 0.01,
+    sh_degree: int | None = None,
+    out_dtype: torch.dtype = torch.float32,
+) -> Projected:
+    """Project Gaussians into one camera (``len(camera) == 1``); differentiable w.r.t. the
+    Gaussians and ``camera.c2w``. Returns only splats that can touch the image."""
+    f64 = torch.float64
+    W, H = camera.width, camera.height
+    K = camera.K[0].to(f64)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    w2c = camera.w2c()[0].to(f64)
+    Rwc, twc = w2c[:3, :3], w2c[:3, 3]
+
+    means = gaussians.means.to(f64)
+    z_all = means @ Rwc[2] + twc[2]
+    keep = (z_all > near) & (gaussians.opacities >= ALPHA_MIN)
+    idx = keep.nonzero().squeeze(1)
+    cam = means[idx] @ Rwc.T + twc
+    x, y, z = cam.unbind(-1)
+
+    # Jacobian of the perspective map with 3DGS's field-of-view clamp.
+    lim_xp, lim_xn = (W - cx) / fx + (FOV_CLAMP - 1) * W / fx, cx / fx + (FOV_CLAMP - 1) * W / fx
+    lim_yp, lim_yn = (H - cy) / fy + (FOV_CLAMP - 1) * H / fy, cy / fy + (FOV_CLAMP - 1) * H / fy
+    tx = torch.minimum(torch.maximum(x / z, -lim_xn), lim_xp)
+    ty = torch.minimum(torch.maximum(y / z, -lim_yn), lim_yp)
+    zero = torch.zeros_like(z)
+    J = torch.stack(
+        [torch.stack([fx / z, zero, -fx * tx / z], -1), torch.stack([zero, fy / z, -fy * ty / z], -1)], -2
+    )  # (M, 2, 3)
+    scales = gaussians.scales[idx].to(f64).clamp(max=MAX_SCALE)
+    M = J @ Rwc @ quat_to_rotmat(gaussians.quats[idx].to(f64)) * scales[:, None, :]  # (M, 2, 3)
+    m1, m2 = M[:, 0], M[:, 1]
+    a = (m1 * m1).sum(-1) + DILATION
+    b = (m1 * m2).sum(-1)
+    c = (m2 * m2).sum(-1) + DILATION
+    det = DILATION**2 + DILATION * ((m1 * m1).sum(-1) + (m2 * m2).sum(-1))
+    det = det + torch.linalg.cross(m1, m2).square().sum(-1)
+    conics = torch.stack([c / det, -b / det, a / det], -1)
+
+    u = fx * x / z + cx
+    v = fy * y / z + cy
+    # Box of the ellipse q <= min(9, 2 ln(255 o)): beyond it alpha < 1/255 or q > 9, so
+    # these pixels can never receive this splat (opacity-aware, exact culling).
+    opac = gaussians.opacities[idx].to(f64).detach()
+    ext = (2 * torch.log(opac / ALPHA_MIN)).clamp(0, SIGMA_EXTENT**2).sqrt()
+    # Pixel (row i, col j) has its centre at (j + 0.5, i + 0.5).
+    rx, ry = ext * a.sqrt(), ext * c.sqrt()
+    x0 = torch.ceil((u - rx - 0.5).clamp(-1, W)).long().clamp_min(0)
+    x1 = torch.floor((u + rx - 0.5).clamp(-1, W)).long().clamp_max(W - 1)
+    y0 = torch.ceil((v - ry - 0.5).clamp(-1, H)).long().clamp_min(0)
+    y1 = torch.floor((v + ry - 0.5).clamp(-1, H)).long().clamp_max(H - 1)
+    on_image = (x0 <= x1) & (y0 <= y1)
+
+    sel = on_image.nonzero().squeeze(1)
+    sel = sel[torch.argsort(z[sel].detach(), stable=True)]
+    ids = idx[sel]
+    colors = eval_sh(
+        gaussians.sh[ids].to(f64), means[ids] - camera.centers[0].to(f64), sh_degree
+    )
+    boxes = torch.stack([x0, y0, x1, y1], -1)[sel]
+    return Projected(
+        ids=ids,
+        means2d=torch.stack([u, v], -1)[sel].to(out_dtype),
+        conics=conics[sel].to(out_dtype),
+        depths=z[sel].to(out_dtype),
+        opacities=gaussians.opacities[ids].to(out_dtype),
+        colors=colors.to(out_dtype),
+        boxes=boxes,
+    )
