@@ -40,7 +40,7 @@ class Cameras:
             self.K = self.K[None]
         if self.c2w.ndim == 2:
             self.c2w = self.c2w[None]
-        if self.K.shape[-2:] != (3, 3) or self.c2w.shape[-2:] != (4, 4):
+        if tuple(self.K.shape[1:]) != (3, 3) or tuple(self.c2w.shape[1:]) != (4, 4):
             raise ValueError(
                 f"Cameras: K must be (B,3,3) and c2w (B,4,4), got {tuple(self.K.shape)} "
                 f"and {tuple(self.c2w.shape)}"
@@ -113,7 +113,9 @@ class Cameras:
 
     def __getitem__(self, idx) -> Cameras:
         if isinstance(idx, int):
-            idx = slice(idx, idx + 1 if idx != -1 else None)
+            if not -len(self) <= idx < len(self):
+                raise IndexError(f"Cameras index {idx} out of range for {len(self)} cameras")
+            idx = slice(idx % len(self), idx % len(self) + 1)
         return Cameras(self.K[idx], self.c2w[idx], self.width, self.height)
 
     @property
@@ -161,8 +163,8 @@ class Cameras:
             points: (B, N, 3) or (N, 3) world points.
         Returns:
             uv: (B, N, 2) continuous pixel coordinates (pixel centres at +0.5);
-            depth: (B, N) camera-frame z. Points with z <= 0 get uv from |z| clamped away
-            from zero and should be masked by the caller with ``depth > 0``.
+            depth: (B, N) camera-frame z. Points with z <= 0 get meaningless (mirrored) uv;
+            the caller must mask them with ``depth > 0``.
         """
         pts = points if points.ndim == 3 else points[None].expand(len(self), -1, -1)
         w2c = self.w2c().to(pts.dtype)
@@ -252,6 +254,8 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0), dtype=torch.float64) -> torch.Tenso
     target = torch.as_tensor(target, dtype=dtype)
     up = torch.as_tensor(up, dtype=dtype)
     z = target - eye
+    if z.norm() < 1e-12:
+        raise ValueError("look_at: eye and target coincide")
     z = z / z.norm()
     x = torch.linalg.cross(z, up)
     if x.norm() < 1e-9:

@@ -9,11 +9,18 @@ import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
 
-from .sh import num_sh_bases, sh_degree_from_bases
+from .sh import MAX_DEGREE, num_sh_bases, sh_degree_from_bases
 
 FORMAT_NAME = "gensplat-gaussians"
 FORMAT_VERSION = 1
 _FIELDS = ("means", "quats", "scales", "opacities", "sh")
+# PLY scalar types (both the classic and the sized spellings) -> numpy little-endian dtypes.
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "<i2", "int16": "<i2", "ushort": "<u2", "uint16": "<u2",
+    "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4",
+    "float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8",
+}  # fmt: skip
 
 
 @dataclass
@@ -43,7 +50,9 @@ class Gaussians:
             self.check()
 
     def check(self) -> Gaussians:
-        n = self.means.shape[0] if self.means.ndim == 2 else -1
+        if self.means.ndim != 2 or self.means.shape[1] != 3:
+            raise ValueError(f"Gaussians.means: expected shape (N, 3), got {tuple(self.means.shape)}")
+        n = self.means.shape[0]
         expected = {"means": (n, 3), "quats": (n, 4), "scales": (n, 3), "opacities": (n,)}
         for name, shape in expected.items():
             t = getattr(self, name)
@@ -51,7 +60,10 @@ class Gaussians:
                 raise ValueError(f"Gaussians.{name}: expected shape {shape}, got {tuple(t.shape)}")
         if self.sh.ndim != 3 or self.sh.shape[0] != n or self.sh.shape[2] != 3:
             raise ValueError(f"Gaussians.sh: expected shape ({n}, K, 3), got {tuple(self.sh.shape)}")
-        sh_degree_from_bases(self.sh.shape[1])
+        try:
+            sh_degree_from_bases(self.sh.shape[1])
+        except ValueError as e:
+            raise ValueError(f"Gaussians.sh: {e}") from None
         for name in _FIELDS:
             t = getattr(self, name)
             if not t.is_floating_point():
@@ -91,13 +103,23 @@ class Gaussians:
         return self._new(**{k: v.to(device, dtype) for k, v in self.tensors().items()})
 
     def __getitem__(self, index) -> Gaussians:
-        """Select Gaussians with a boolean mask, index tensor or slice."""
+        """Select Gaussians with a boolean mask, index tensor or slice (an int keeps one)."""
+        if isinstance(index, int):
+            if not -len(self) <= index < len(self):
+                raise IndexError(f"Gaussians index {index} out of range for {len(self)} Gaussians")
+            index = slice(index % len(self), index % len(self) + 1)
         return self._new(**{k: v[index] for k, v in self.tensors().items()})
 
     def with_sh_degree(self, degree: int) -> Gaussians:
         """Truncate or zero-pad the SH coefficients to ``degree``."""
+        if not 0 <= degree <= MAX_DEGREE:
+            raise ValueError(f"Gaussians.with_sh_degree: degree must be in 0..{MAX_DEGREE}, got {degree}")
         k, have = num_sh_bases(degree), self.sh.shape[1]
-        sh = self.sh[:, :k] if k <= have else torch.cat([self.sh, self.sh.new_zeros(len(self), k - have, 3)], 1)
+        sh = (
+            self.sh[:, :k]
+            if k <= have
+            else torch.cat([self.sh, self.sh.new_zeros(len(self), k - have, 3)], 1)
+        )
         return self._new(**{**self.tensors(), "sh": sh})
 
     @staticmethod
@@ -111,7 +133,9 @@ class Gaussians:
 
     @staticmethod
     def empty(sh_degree: int = 0, dtype=torch.float32, device=None) -> Gaussians:
-        z = lambda *s: torch.zeros(*s, dtype=dtype, device=device)  # noqa: E731
+        def z(*shape):
+            return torch.zeros(*shape, dtype=dtype, device=device)
+
         return Gaussians(z(0, 3), z(0, 4), z(0, 3), z(0), z(0, num_sh_bases(sh_degree), 3))
 
     def prune(self, min_opacity: float = 1 / 255) -> Gaussians:
@@ -121,11 +145,20 @@ class Gaussians:
 
     # ------------------------------------------------------------------ safetensors
     def save(self, path: str | Path, metadata: dict[str, str] | None = None) -> None:
-        """Write a safetensors file with a format name/version header (atomic)."""
+        """Write a safetensors file with a format name/version header (atomic).
+
+        ``metadata`` values must be strings; its ``format`` / ``format_version`` keys are
+        ignored (the file's own format header always wins, so the file stays loadable)."""
         path = Path(path)
-        meta = {"format": FORMAT_NAME, "format_version": str(FORMAT_VERSION), **(metadata or {})}
+        metadata = dict(metadata or {})
+        for k, v in metadata.items():
+            if not isinstance(k, str) or not isinstance(v, str):
+                raise TypeError(f"Gaussians.save: metadata keys and values must be str, got {k!r}: {v!r}")
+        meta = {**metadata, "format": FORMAT_NAME, "format_version": str(FORMAT_VERSION)}
         tmp = path.with_name(f".{path.name}.tmp")
-        save_file({k: v.detach().contiguous().cpu() for k, v in self.tensors().items()}, str(tmp), metadata=meta)
+        save_file(
+            {k: v.detach().contiguous().cpu() for k, v in self.tensors().items()}, str(tmp), metadata=meta
+        )
         tmp.replace(path)
 
     @staticmethod
@@ -134,6 +167,8 @@ class Gaussians:
         from safetensors import safe_open
 
         path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no such Gaussians file")
         try:
             with safe_open(str(path), "pt") as f:
                 meta = f.metadata() or {}
@@ -141,12 +176,15 @@ class Gaussians:
             raise ValueError(f"{path}: not a readable safetensors file ({e})") from e
         if meta.get("format") != FORMAT_NAME:
             raise ValueError(f"{path}: not a Gaussians file (format={meta.get('format')!r})")
-        if int(meta.get("format_version", -1)) != FORMAT_VERSION:
+        if meta.get("format_version") != str(FORMAT_VERSION):
             raise ValueError(
                 f"{path}: Gaussians format version {meta.get('format_version')} is not the "
                 f"supported version {FORMAT_VERSION}"
             )
-        tensors = load_file(str(path), device=str(device))
+        try:
+            tensors = load_file(str(path), device=str(device))
+        except Exception as e:
+            raise ValueError(f"{path}: could not read the tensors ({e})") from e
         missing = [k for k in _FIELDS if k not in tensors]
         if missing:
             raise ValueError(f"{path}: missing tensors {missing}")
@@ -193,16 +231,19 @@ class Gaussians:
         header = data[:end].decode("ascii").splitlines()
         if "format binary_little_endian 1.0" not in header:
             raise ValueError(f"{path}: only binary_little_endian PLY is supported")
-        n, props = 0, []
-        types = {"float": "<f4", "double": "<f8", "uchar": "u1", "int": "<i4", "uint": "<u4"}
+        n, props, elements = 0, [], []
         for line in header:
             parts = line.split()
-            if parts[:2] == ["element", "vertex"]:
-                n = int(parts[2])
-            elif parts and parts[0] == "property":
-                if parts[1] not in types:
-                    raise ValueError(f"{path}: unsupported PLY property type {parts[1]!r}")
-                props.append((parts[2], types[parts[1]]))
+            if parts and parts[0] == "element":
+                elements.append(parts[1])
+                if parts[1] == "vertex":
+                    n = int(parts[2])
+            elif parts and parts[0] == "property" and elements[-1:] == ["vertex"]:
+                if parts[1] not in _PLY_TYPES:
+                    raise ValueError(f"{path}: unsupported PLY vertex property type {parts[1]!r}")
+                props.append((parts[2], _PLY_TYPES[parts[1]]))
+        if not elements or elements[0] != "vertex":
+            raise ValueError(f"{path}: PLY must start with a 'vertex' element, got {elements}")
         dtype = np.dtype(props)
         body = data[end + len(b"end_header\n") :]
         if len(body) < n * dtype.itemsize:
@@ -220,7 +261,15 @@ class Gaussians:
 
         n_rest = sum(1 for p in names if p.startswith("f_rest_"))
         k = 1 + n_rest // 3
-        sh_degree_from_bases(k)
+        try:
+            if n_rest % 3:
+                raise ValueError(f"{n_rest} f_rest properties is not a multiple of 3")
+            sh_degree_from_bases(k)
+            missing = [f"f_rest_{i}" for i in range(n_rest) if f"f_rest_{i}" not in names]
+            if missing:
+                raise ValueError(f"f_rest properties are not numbered 0..{n_rest - 1}: missing {missing}")
+        except ValueError as e:
+            raise ValueError(f"{path}: bad 3DGS SH layout: {e}") from None
         dc = col("f_dc_0", "f_dc_1", "f_dc_2")[:, None]
         if n_rest:
             rest = col(*[f"f_rest_{i}" for i in range(n_rest)]).reshape(n, 3, k - 1).transpose(1, 2)

@@ -40,6 +40,11 @@ class PerturbationRange:
             lo, hi = getattr(self, name)
             if not (math.isfinite(lo) and math.isfinite(hi)) or lo > hi:
                 raise ValueError(f"PerturbationRange.{name}: need finite low <= high, got {(lo, hi)}")
+        if self.random_sign and self.theta_deg[0] < 0:
+            raise ValueError(
+                "PerturbationRange.theta_deg: with random_sign=True it is a magnitude range and "
+                f"needs low >= 0, got {self.theta_deg}"
+            )
 
 
 #: Named levels of the paper. "train" is the augmentation range used while training.
@@ -174,6 +179,8 @@ class PerturbationSampler:
         bad = [a for a in axes if a not in AXES]
         if bad or not axes:
             raise ValueError(f"PerturbationSampler.axes must be a non-empty subset of {AXES}, got {axes}")
+        if int(seed) < 0:
+            raise ValueError(f"PerturbationSampler.seed must be >= 0, got {seed}")
         self.range = get_range(level)
         self.mode = mode
         self.seed = int(seed)
@@ -182,7 +189,9 @@ class PerturbationSampler:
     def sample(self, episode_index: int, frame_index: int = 0, view: int = 0) -> Perturbation:
         key = [self.seed, int(episode_index), int(frame_index) if self.mode == "frame" else 0, int(view)]
         if min(key) < 0:
-            raise ValueError(f"PerturbationSampler.sample: indices must be >= 0, got {key[1:]}")
+            raise ValueError(
+                f"PerturbationSampler.sample: episode/frame/view indices must be >= 0, got {key[1:]}"
+            )
         rng = np.random.default_rng(key)
         axis = self.axes[int(rng.integers(len(self.axes)))]
         theta = float(rng.uniform(*self.range.theta_deg))

@@ -9,6 +9,7 @@ import torch
 
 from ..cameras import Cameras
 from ..gaussians import Gaussians
+from .fast import render_fast
 from .projection import Projected, project
 from .reference import rasterize_reference
 
@@ -41,7 +42,7 @@ def _render_reference(gaussians: Gaussians, camera: Cameras, *, background: torc
 #: ``fn(gaussians, camera, *, background, near, sh_degree, out_dtype, return_depth, **options)``
 #: and returns ``(rgb (H*W, 3), depth_sum (H*W,) or None, alpha (H*W,))`` where depth_sum is
 #: sum_i w_i z_i (it may be None when ``return_depth`` is False).
-BACKENDS: dict[str, Callable] = {"reference": _render_reference}
+BACKENDS: dict[str, Callable] = {"reference": _render_reference, "fast": render_fast}
 
 
 def render(

@@ -1,0 +1,44 @@
+"""Saving images and labelled image grids (PNG) for previews."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from PIL import Image, ImageDraw
+
+
+def to_uint8(image: torch.Tensor) -> torch.Tensor:
+    """(3, H, W) float in [0, 1] -> (H, W, 3) uint8."""
+    return (image.detach().float().clamp(0, 1) * 255 + 0.5).to(torch.uint8).permute(1, 2, 0).cpu()
+
+
+def save_image(image: torch.Tensor, path: str | Path) -> None:
+    Image.fromarray(to_uint8(image).numpy()).save(path)
+
+
+def save_grid(
+    rows: list[list[torch.Tensor]],
+    path: str | Path,
+    row_labels: list[str] | None = None,
+    col_labels: list[str] | None = None,
+    pad: int = 4,
+) -> None:
+    """Save a grid of (3, H, W) images (all the same size) with optional text labels."""
+    h, w = rows[0][0].shape[-2:]
+    left = 110 if row_labels else 0
+    top = 18 if col_labels else 0
+    ncol = max(len(r) for r in rows)
+    canvas = Image.new("RGB", (left + ncol * (w + pad) + pad, top + len(rows) * (h + pad) + pad), "white")
+    draw = ImageDraw.Draw(canvas)
+    for j, label in enumerate(col_labels or []):
+        draw.text((left + pad + j * (w + pad), 3), label, fill="black")
+    for i, row in enumerate(rows):
+        y = top + pad + i * (h + pad)
+        if row_labels:
+            for k, line in enumerate(row_labels[i].split("\n")):
+                draw.text((4, y + 4 + 12 * k), line, fill="black")
+        for j, img in enumerate(row):
+            canvas.paste(Image.fromarray(to_uint8(img).numpy()), (left + pad + j * (w + pad), y))
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    canvas.save(path)

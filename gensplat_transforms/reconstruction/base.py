@@ -1,0 +1,81 @@
+"""The reconstructor interface: several views of one timestep in, one set of Gaussians out."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+import torch
+
+from ..cameras import Cameras
+from ..gaussians import Gaussians
+
+
+@dataclass
+class Views:
+    """The camera images of one timestep.
+
+    Attributes:
+        images: (V, 3, H, W) float in [0, 1].
+        cameras: V calibrated cameras, or None for uncalibrated input.
+        depths: (V, 1, H, W) metric camera-z depth, or None. Zero, negative or non-finite
+            values mark pixels without depth.
+    """
+
+    images: torch.Tensor
+    cameras: Cameras | None = None
+    depths: torch.Tensor | None = None
+
+    def __post_init__(self) -> None:
+        if self.images.ndim != 4 or self.images.shape[1] != 3:
+            raise ValueError(f"Views.images: expected (V, 3, H, W), got {tuple(self.images.shape)}")
+        if not self.images.is_floating_point():
+            raise ValueError(f"Views.images: expected float images in [0, 1], got {self.images.dtype}")
+        if not torch.isfinite(self.images).all():
+            raise ValueError("Views.images: contains NaN or Inf")
+        v, _, h, w = self.images.shape
+        if self.cameras is not None:
+            if len(self.cameras) != v or (self.cameras.height, self.cameras.width) != (h, w):
+                raise ValueError(
+                    f"Views.cameras: need {v} cameras of size {w}x{h}, got {len(self.cameras)} of "
+                    f"{self.cameras.width}x{self.cameras.height}"
+                )
+        if self.depths is not None and tuple(self.depths.shape) != (v, 1, h, w):
+            raise ValueError(f"Views.depths: expected shape {(v, 1, h, w)}, got {tuple(self.depths.shape)}")
+
+    def __len__(self) -> int:
+        return self.images.shape[0]
+
+
+@dataclass
+class Reconstruction:
+    """Gaussians of one timestep and the source cameras expressed in their frame (the given
+    calibration, or the poses a feed-forward model predicted)."""
+
+    gaussians: Gaussians
+    cameras: Cameras
+
+
+class Reconstructor(ABC):
+    """Turns the views of one timestep into Gaussians.
+
+    Subclasses set ``name`` and implement :meth:`reconstruct` and :meth:`config`; the
+    identity string (name + hash of the config) tells caches when their content is stale.
+    """
+
+    name: str = "reconstructor"
+
+    @abstractmethod
+    def reconstruct(self, views: Views) -> Reconstruction: ...
+
+    @abstractmethod
+    def config(self) -> dict: ...
+
+    def identity(self) -> str:
+        blob = json.dumps({"name": self.name, **self.config()}, sort_keys=True).encode()
+        return f"{self.name}-{hashlib.sha256(blob).hexdigest()[:16]}"
+
+    def __call__(self, views: Views) -> Reconstruction:
+        return self.reconstruct(views)
