@@ -23,6 +23,11 @@ from gensplat_transforms.sh import (
 DTYPE = torch.float64
 
 
+@pytest.fixture(autouse=True)
+def _seed():
+    torch.manual_seed(0)  # the few tests that draw from the global generator stay reproducible
+
+
 def sphere_quadrature(n_theta: int = 10, n_phi: int = 18) -> tuple[torch.Tensor, torch.Tensor]:
     """Directions and weights that integrate every spherical polynomial of degree <= 2*n_theta - 1
     (and azimuthal order < n_phi) exactly: Gauss-Legendre in cos(theta) x uniform in phi."""

@@ -341,7 +341,7 @@ def _raster_tile(tile, rec, boxes, start, ids, width, height, ntx, bg, want_dept
 
     k: constants in the compute dtype: 0.99, 1/255, 1e-4, -0.5, 9, 0, 1, then the Taylor
         coefficients 1/9!, ..., 1/1!, 1 of exp, then 1/8 and -5 (the exponential's range).
-    buf: (6, 256) scratch: transmittance, r, g, b, depth, pixel-centre coordinates.
+    buf: (6, 16, 16) scratch: transmittance, r, g, b, depth, pixel-centre coordinates.
     """
     amax, amin, tmin, mhalf, nine, zero, one = k[0], k[1], k[2], k[3], k[4], k[5], k[6]
     p9, p8, p7, p6, p5, p4, p3, p2, p1, p0 = k[7], k[8], k[9], k[10], k[11], k[12], k[13], k[14], k[15], k[16]
@@ -350,7 +350,7 @@ def _raster_tile(tile, rec, boxes, start, ids, width, height, ntx, bg, want_dept
     x_org, y_org = tx * TILE, ty * TILE
     nx, ny = min(TILE, width - x_org), min(TILE, height - y_org)
     trans, acc_r, acc_g, acc_b, acc_d = buf[0], buf[1], buf[2], buf[3], buf[4]
-    xs, ys = buf[5, :TILE], buf[5, TILE : 2 * TILE]
+    xs, ys = buf[5, 0], buf[5, 1]
     trans[:] = one
     acc_r[:] = zero
     acc_g[:] = zero
@@ -377,7 +377,6 @@ def _raster_tile(tile, rec, boxes, start, ids, width, height, ntx, bg, want_dept
                 continue
             dy = ys[ly] - v
             cq = cc * (dy * dy)
-            row = ly * TILE
             stopped = 0
             for lx in range(TILE):  # branch-free: one SIMD row
                 dx = xs[lx] - u
@@ -389,18 +388,18 @@ def _raster_tile(tile, rec, boxes, start, ids, width, height, ntx, bg, want_dept
                 p = p * p
                 p = p * p
                 a = min(o * p, amax)
-                t = trans[row + lx]
+                t = trans[ly, lx]
                 t_next = t * (one - a)
                 hit = (((live >> lx) & 1) == 1) & (q <= nine) & (a >= amin)
                 take = hit & (t_next >= tmin)
                 stop = hit & (t_next < tmin)
                 w = a * t if take else zero
-                acc_r[row + lx] += w * cr
-                acc_g[row + lx] += w * cg
-                acc_b[row + lx] += w * cbl
+                acc_r[ly, lx] += w * cr
+                acc_g[ly, lx] += w * cg
+                acc_b[ly, lx] += w * cbl
                 if want_depth:
-                    acc_d[row + lx] += w * cz
-                trans[row + lx] = t_next if take else t
+                    acc_d[ly, lx] += w * cz
+                trans[ly, lx] = t_next if take else t
                 stopped |= np.int64(stop) << lx
             if stopped:
                 rowmask[ly] &= ~stopped
@@ -411,14 +410,14 @@ def _raster_tile(tile, rec, boxes, start, ids, width, height, ntx, bg, want_dept
 
     for ly in range(ny):
         for lx in range(nx):
-            i, p = ly * TILE + lx, (y_org + ly) * width + x_org + lx
-            t = trans[i]
-            rgb[p, 0] = acc_r[i] + t * bg[0]
-            rgb[p, 1] = acc_g[i] + t * bg[1]
-            rgb[p, 2] = acc_b[i] + t * bg[2]
+            p = (y_org + ly) * width + x_org + lx
+            t = trans[ly, lx]
+            rgb[p, 0] = acc_r[ly, lx] + t * bg[0]
+            rgb[p, 1] = acc_g[ly, lx] + t * bg[1]
+            rgb[p, 2] = acc_b[ly, lx] + t * bg[2]
             alpha[p] = one - t
             if want_depth:
-                depth[p] = acc_d[i]
+                depth[p] = acc_d[ly, lx]
 
 
 @_jit()
@@ -514,7 +513,7 @@ def render_fast(
         alpha = torch.empty(H * W, dtype=compute)
         depth = torch.empty(H * W if return_depth else 0, dtype=compute)
         bg = arr(background)
-        buf = np.empty((threads, 6, TILE * TILE), dtype)
+        buf = np.empty((threads, 6, TILE, TILE), dtype)
         raster = _raster_parallel if parallel else _raster_serial
         raster(rec, boxes, start, ids, W, H, ntx, bg, return_depth, _constants(dtype), buf,
                rgb.numpy(), depth.numpy(), alpha.numpy())
