@@ -53,6 +53,8 @@ TILE = 16  # tile side in pixels: one tile row is one 16-lane vector
 # packed per-splat record (float): u, v, A, 2B, C, opacity, r, g, b, depth
 _U, _V, _A, _B2, _C, _O, _R, _G, _BL, _Z = range(10)
 _REC = 10
+# above this opacity the box extent is 3 sigma: 2 ln(255 o) > 9 (0.353 < 0.36)
+_OPAC_FULL_EXTENT = 0.36
 
 
 def _jit(parallel: bool = False):
@@ -69,11 +71,14 @@ def _jit(parallel: bool = False):
 
 # --------------------------------------------------------------------------- projection
 @_jit()
-def _project_one(i, means, quats, scales, opacities, cam, near, opac_min, width, height, geom, boxes, keys):
-    """Project Gaussian i (projection.py's rules, float64); keys[i] = depth or inf if culled.
+def _project_one(i, means, quats, scales, opacities, sh, degree, cam, near, opac_min, width, height, rec, boxes, keys):
+    """Project Gaussian i with projection.py's rules in float64 (up to rounding: products
+    with reciprocals instead of some divisions). Culled: keys[i] = inf. Otherwise keys[i] is
+    its depth, boxes[i] its pixel box (x0, y0, x1, y1) and rec[i] its record, rounded to
+    rec's dtype as ``.to(out_dtype)`` does.
 
-    cam: (17,) float64: w2c rows (12), fx, fy, cx, cy, unused.
-    geom: (N, 5) out: u, v, conic A, B, C.  boxes: (N, 4) int32 out.
+    cam: (23,) float64: world-to-camera rows (12), fx, fy, cx, cy, the field-of-view clamp
+        limits for x/z (+, -) and y/z (+, -), camera centre (3).
     """
     keys[i] = np.inf
     o = np.float64(opacities[i])
@@ -84,52 +89,43 @@ def _project_one(i, means, quats, scales, opacities, cam, near, opac_min, width,
     x = cam[0] * mx + cam[1] * my + cam[2] * mz + cam[3]
     y = cam[4] * mx + cam[5] * my + cam[6] * mz + cam[7]
     fx, fy, cx, cy = cam[12], cam[13], cam[14], cam[15]
+    iz = 1.0 / z
 
-    # Jacobian with the field-of-view clamp, times the camera rotation: JW (2x3)
-    lim_xp = (width - cx) / fx + (FOV_CLAMP - 1) * width / fx
-    lim_xn = cx / fx + (FOV_CLAMP - 1) * width / fx
-    lim_yp = (height - cy) / fy + (FOV_CLAMP - 1) * height / fy
-    lim_yn = cy / fy + (FOV_CLAMP - 1) * height / fy
-    tx = min(max(x / z, -lim_xn), lim_xp)
-    ty = min(max(y / z, -lim_yn), lim_yp)
-    j00, j02 = fx / z, -fx * tx / z
-    j11, j12 = fy / z, -fy * ty / z
-    jw = np.empty((2, 3))
-    for c in range(3):
-        jw[0, c] = j00 * cam[c] + j02 * cam[8 + c]
-        jw[1, c] = j11 * cam[4 + c] + j12 * cam[8 + c]
+    # rows of J W (2x3): J = [[fx/z, 0, -fx tx/z], [0, fy/z, -fy ty/z]] with the field-of-view
+    # clamp on tx = x/z, ty = y/z; W = camera rotation
+    tx = min(max(x * iz, -cam[17]), cam[16])
+    ty = min(max(y * iz, -cam[19]), cam[18])
+    j00, j02, j11, j12 = fx * iz, -fx * tx * iz, fy * iz, -fy * ty * iz
+    a0, a1, a2 = j00 * cam[0] + j02 * cam[8], j00 * cam[1] + j02 * cam[9], j00 * cam[2] + j02 * cam[10]
+    b0, b1, b2 = j11 * cam[4] + j12 * cam[8], j11 * cam[5] + j12 * cam[9], j11 * cam[6] + j12 * cam[10]
 
-    # rotation from the (normalised; zero = identity) quaternion
+    # rotation R from the quaternion (normalised; zero = identity)
     qw, qx, qy, qz = np.float64(quats[i, 0]), np.float64(quats[i, 1]), np.float64(quats[i, 2]), np.float64(quats[i, 3])
     qn = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
     if qn > 1e-8:
-        qw, qx, qy, qz = qw / qn, qx / qn, qy / qn, qz / qn
+        iq = 1.0 / qn
+        qw, qx, qy, qz = qw * iq, qx * iq, qy * iq, qz * iq
     else:
         qw, qx, qy, qz = 1.0, 0.0, 0.0, 0.0
-    rot = np.empty((3, 3))
-    rot[0, 0], rot[0, 1], rot[0, 2] = 1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy)
-    rot[1, 0], rot[1, 1], rot[1, 2] = 2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx)
-    rot[2, 0], rot[2, 1], rot[2, 2] = 2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)
+    r00, r01, r02 = 1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy)
+    r10, r11, r12 = 2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx)
+    r20, r21, r22 = 2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)
 
-    # M = J W R S (2x3); 2D covariance M M^T + 0.3 I and its exact determinant (Cauchy-Binet)
-    m = np.empty((2, 3))
-    for c in range(3):
-        s = min(np.float64(scales[i, c]), MAX_SCALE)
-        m[0, c] = (jw[0, 0] * rot[0, c] + jw[0, 1] * rot[1, c] + jw[0, 2] * rot[2, c]) * s
-        m[1, c] = (jw[1, 0] * rot[0, c] + jw[1, 1] * rot[1, c] + jw[1, 2] * rot[2, c]) * s
-    n1 = m[0, 0] * m[0, 0] + m[0, 1] * m[0, 1] + m[0, 2] * m[0, 2]
-    n2 = m[1, 0] * m[1, 0] + m[1, 1] * m[1, 1] + m[1, 2] * m[1, 2]
-    b = m[0, 0] * m[1, 0] + m[0, 1] * m[1, 1] + m[0, 2] * m[1, 2]
-    a, c = n1 + DILATION, n2 + DILATION
-    k0 = m[0, 1] * m[1, 2] - m[0, 2] * m[1, 1]
-    k1 = m[0, 2] * m[1, 0] - m[0, 0] * m[1, 2]
-    k2 = m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
-    det = DILATION**2 + DILATION * (n1 + n2) + (k0 * k0 + k1 * k1 + k2 * k2)
+    # M = J W R S (2x3), rows m and n; 2D covariance M M^T + 0.3 I, exact determinant
+    s0 = min(np.float64(scales[i, 0]), MAX_SCALE)
+    s1 = min(np.float64(scales[i, 1]), MAX_SCALE)
+    s2 = min(np.float64(scales[i, 2]), MAX_SCALE)
+    m0, m1, m2 = (a0 * r00 + a1 * r10 + a2 * r20) * s0, (a0 * r01 + a1 * r11 + a2 * r21) * s1, (a0 * r02 + a1 * r12 + a2 * r22) * s2
+    n0, n1, n2 = (b0 * r00 + b1 * r10 + b2 * r20) * s0, (b0 * r01 + b1 * r11 + b2 * r21) * s1, (b0 * r02 + b1 * r12 + b2 * r22) * s2
+    mm, nn, mn = m0 * m0 + m1 * m1 + m2 * m2, n0 * n0 + n1 * n1 + n2 * n2, m0 * n0 + m1 * n1 + m2 * n2
+    k0, k1, k2 = m1 * n2 - m2 * n1, m2 * n0 - m0 * n2, m0 * n1 - m1 * n0
+    det = DILATION**2 + DILATION * (mm + nn) + (k0 * k0 + k1 * k1 + k2 * k2)
+    a, c = mm + DILATION, nn + DILATION
 
     # pixel box of the ellipse q <= min(9, 2 ln(255 o)); pixel centres at (j + 0.5, i + 0.5)
-    u = fx * x / z + cx
-    v = fy * y / z + cy
-    ext = math.sqrt(min(max(2 * math.log(o / ALPHA_MIN), 0.0), SIGMA_EXTENT**2))
+    u = fx * x * iz + cx
+    v = fy * y * iz + cy
+    ext = SIGMA_EXTENT if o > _OPAC_FULL_EXTENT else math.sqrt(min(max(2 * math.log(o / ALPHA_MIN), 0.0), SIGMA_EXTENT**2))
     rx, ry = ext * math.sqrt(a), ext * math.sqrt(c)
     x0 = max(math.ceil(min(max(u - rx - 0.5, -1.0), width)), 0)
     x1 = min(math.floor(min(max(u + rx - 0.5, -1.0), width)), width - 1)
@@ -137,68 +133,58 @@ def _project_one(i, means, quats, scales, opacities, cam, near, opac_min, width,
     y1 = min(math.floor(min(max(v + ry - 0.5, -1.0), height)), height - 1)
     if x0 > x1 or y0 > y1:
         return
-    geom[i, 0], geom[i, 1] = u, v
-    geom[i, 2], geom[i, 3], geom[i, 4] = c / det, -b / det, a / det
-    boxes[i, 0], boxes[i, 1], boxes[i, 2], boxes[i, 3] = x0, y0, x1, y1
     keys[i] = z
+    boxes[i, 0], boxes[i, 1], boxes[i, 2], boxes[i, 3] = x0, y0, x1, y1
+    idet = 1.0 / det
+    red, green, blue = _sh_rgb(sh, i, mx - cam[20], my - cam[21], mz - cam[22], degree)
+    rec[i, _U], rec[i, _V] = u, v  # the stores round to rec's dtype; rounding commutes with 2x
+    rec[i, _A], rec[i, _B2], rec[i, _C] = c * idet, -2 * mn * idet, a * idet
+    rec[i, _O] = opacities[i]
+    rec[i, _R], rec[i, _G], rec[i, _BL] = red, green, blue
+    rec[i, _Z] = z
 
 
 @_jit()
-def _sh_rgb(sh, g, dx, dy, dz, degree, out):
-    """out[:] = max(0, sum_k sh[g, k] Y_k(d) + 0.5), basis as in ``sh.sh_basis`` (float64)."""
-    nb = (degree + 1) * (degree + 1)
-    basis = np.empty(nb)
-    basis[0] = 0.28209479177387814
+def _sh_add(sh, g, k, basis, r, gr, bl):
+    return r + basis * sh[g, k, 0], gr + basis * sh[g, k, 1], bl + basis * sh[g, k, 2]
+
+
+@_jit()
+def _sh_rgb(sh, g, dx, dy, dz, degree):
+    """max(0, sum_k sh[g, k] Y_k(d) + 0.5) in float64 with the basis of ``sh.sh_basis``."""
+    r, gr, bl = _sh_add(sh, g, 0, 0.28209479177387814, 0.0, 0.0, 0.0)
     if degree >= 1:
         n = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
         x, y, z = dx / n, dy / n, dz / n
-        basis[1], basis[2], basis[3] = -0.4886025119029199 * y, 0.4886025119029199 * z, -0.4886025119029199 * x
-        if degree >= 2:
-            xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-            basis[4] = 1.0925484305920792 * xy
-            basis[5] = -1.0925484305920792 * yz
-            basis[6] = 0.31539156525252005 * (2 * zz - xx - yy)
-            basis[7] = -1.0925484305920792 * xz
-            basis[8] = 0.5462742152960396 * (xx - yy)
-            if degree >= 3:
-                basis[9] = -0.5900435899266435 * y * (3 * xx - yy)
-                basis[10] = 2.890611442640554 * xy * z
-                basis[11] = -0.4570457994644658 * y * (4 * zz - xx - yy)
-                basis[12] = 0.3731763325901154 * z * (2 * zz - 3 * xx - 3 * yy)
-                basis[13] = -0.4570457994644658 * x * (4 * zz - xx - yy)
-                basis[14] = 1.445305721320277 * z * (xx - yy)
-                basis[15] = -0.5900435899266435 * x * (xx - 3 * yy)
-                if degree >= 4:
-                    basis[16] = 2.5033429417967046 * xy * (xx - yy)
-                    basis[17] = -1.7701307697799304 * yz * (3 * xx - yy)
-                    basis[18] = 0.9461746957575601 * xy * (7 * zz - 1)
-                    basis[19] = -0.6690465435572892 * yz * (7 * zz - 3)
-                    basis[20] = 0.10578554691520431 * (zz * (35 * zz - 30) + 3)
-                    basis[21] = -0.6690465435572892 * xz * (7 * zz - 3)
-                    basis[22] = 0.47308734787878004 * (xx - yy) * (7 * zz - 1)
-                    basis[23] = -1.7701307697799304 * xz * (xx - 3 * yy)
-                    basis[24] = 0.6258357354491761 * (xx * (xx - 3 * yy) - yy * (3 * xx - yy))
-    for ch in range(3):
-        acc = 0.0
-        for k in range(nb):
-            acc += basis[k] * np.float64(sh[g, k, ch])
-        out[ch] = max(acc + 0.5, 0.0)
-
-
-@_jit()
-def _pack_one(r, g, means, opacities, sh, degree, center, geom, keys, rec, boxes_in, boxes_out):
-    """Write the packed record of the r-th splat in depth order (Gaussian g)."""
-    rgb = np.empty(3)
-    _sh_rgb(sh, g, np.float64(means[g, 0]) - center[0], np.float64(means[g, 1]) - center[1],
-            np.float64(means[g, 2]) - center[2], degree, rgb)
-    # stores round to rec's dtype, like ``.to(out_dtype)``; rounding commutes with 2x
-    rec[r, _U], rec[r, _V] = geom[g, 0], geom[g, 1]
-    rec[r, _A], rec[r, _B2], rec[r, _C] = geom[g, 2], 2 * geom[g, 3], geom[g, 4]
-    rec[r, _O] = opacities[g]
-    rec[r, _R], rec[r, _G], rec[r, _BL] = rgb[0], rgb[1], rgb[2]
-    rec[r, _Z] = keys[g]
-    for k in range(4):
-        boxes_out[r, k] = boxes_in[g, k]
+        r, gr, bl = _sh_add(sh, g, 1, -0.4886025119029199 * y, r, gr, bl)
+        r, gr, bl = _sh_add(sh, g, 2, 0.4886025119029199 * z, r, gr, bl)
+        r, gr, bl = _sh_add(sh, g, 3, -0.4886025119029199 * x, r, gr, bl)
+    if degree >= 2:
+        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+        r, gr, bl = _sh_add(sh, g, 4, 1.0925484305920792 * xy, r, gr, bl)
+        r, gr, bl = _sh_add(sh, g, 5, -1.0925484305920792 * yz, r, gr, bl)
+        r, gr, bl = _sh_add(sh, g, 6, 0.31539156525252005 * (2 * zz - xx - yy), r, gr, bl)
+        r, gr, bl = _sh_add(sh, g, 7, -1.0925484305920792 * xz, r, gr, bl)
+        r, gr, bl = _sh_add(sh, g, 8, 0.5462742152960396 * (xx - yy), r, gr, bl)
+    if degree >= 3:
+        r, gr, bl = _sh_add(sh, g, 9, -0.5900435899266435 * y * (3 * xx - yy), r, gr, bl)
+        r, gr, bl = _sh_add(sh, g, 10, 2.890611442640554 * xy * z, r, gr, bl)
+        r, gr, bl = _sh_add(sh, g, 11, -0.4570457994644658 * y * (4 * zz - xx - yy), r, gr, bl)
+        r, gr, bl = _sh_add(sh, g, 12, 0.3731763325901154 * z * (2 * zz - 3 * xx - 3 * yy), r, gr, bl)
+        r, gr, bl = _sh_add(sh, g, 13, -0.4570457994644658 * x * (4 * zz - xx - yy), r, gr, bl)
+        r, gr, bl = _sh_add(sh, g, 14, 1.445305721320277 * z * (xx - yy), r, gr, bl)
+        r, gr, bl = _sh_add(sh, g, 15, -0.5900435899266435 * x * (xx - 3 * yy), r, gr, bl)
+    if degree >= 4:
+        r, gr, bl = _sh_add(sh, g, 16, 2.5033429417967046 * xy * (xx - yy), r, gr, bl)
+        r, gr, bl = _sh_add(sh, g, 17, -1.7701307697799304 * yz * (3 * xx - yy), r, gr, bl)
+        r, gr, bl = _sh_add(sh, g, 18, 0.9461746957575601 * xy * (7 * zz - 1), r, gr, bl)
+        r, gr, bl = _sh_add(sh, g, 19, -0.6690465435572892 * yz * (7 * zz - 3), r, gr, bl)
+        r, gr, bl = _sh_add(sh, g, 20, 0.10578554691520431 * (zz * (35 * zz - 30) + 3), r, gr, bl)
+        r, gr, bl = _sh_add(sh, g, 21, -0.6690465435572892 * xz * (7 * zz - 3), r, gr, bl)
+        r, gr, bl = _sh_add(sh, g, 22, 0.47308734787878004 * (xx - yy) * (7 * zz - 1), r, gr, bl)
+        r, gr, bl = _sh_add(sh, g, 23, -1.7701307697799304 * xz * (xx - 3 * yy), r, gr, bl)
+        r, gr, bl = _sh_add(sh, g, 24, 0.6258357354491761 * (xx * (xx - 3 * yy) - yy * (3 * xx - yy)), r, gr, bl)
+    return max(r + 0.5, 0.0), max(gr + 0.5, 0.0), max(bl + 0.5, 0.0)
 
 
 @_jit()
@@ -246,35 +232,44 @@ def _compact(keys):
 
 
 @_jit()
-def _project_serial(means, quats, scales, opacities, sh, degree, cam, center, near, opac_min, width, height, rec):
+def _compact(keys):
+    """Indices of the Gaussians that survived projection, ascending."""
+    count = 0
+    for i in range(keys.shape[0]):
+        count += keys[i] < np.inf
+    idx = np.empty(count, np.int32)
+    count = 0
+    for i in range(keys.shape[0]):
+        if keys[i] < np.inf:
+            idx[count] = i
+            count += 1
+    return idx
+
+
+@_jit()
+def _project_serial(means, quats, scales, opacities, sh, degree, cam, near, opac_min, width, height, dtype_of):
+    """Projected splats in depth order: (M, 10) records and (M, 4) int32 boxes."""
     n = means.shape[0]
-    geom = np.empty((n, 5))
-    boxes = np.empty((n, 4), np.int32)
-    keys = np.empty(n)
+    rec, boxes, keys = np.empty((n, _REC), dtype_of.dtype), np.empty((n, 4), np.int32), np.empty(n)
     for i in range(n):
-        _project_one(i, means, quats, scales, opacities, cam, near, opac_min, width, height, geom, boxes, keys)
+        _project_one(i, means, quats, scales, opacities, sh, degree, cam, near, opac_min, width, height, rec, boxes, keys)
     ids = _argsort_depth(keys, _compact(keys))
-    m = ids.shape[0]
-    out, boxes_out = rec[:m], np.empty((m, 4), np.int32)
-    for r in range(m):
-        _pack_one(r, ids[r], means, opacities, sh, degree, center, geom, keys, out, boxes, boxes_out)
-    return ids, boxes_out
+    return rec[ids], boxes[ids]
 
 
 @_jit(parallel=True)
-def _project_parallel(means, quats, scales, opacities, sh, degree, cam, center, near, opac_min, width, height, rec):
+def _project_parallel(means, quats, scales, opacities, sh, degree, cam, near, opac_min, width, height, dtype_of):
     n = means.shape[0]
-    geom = np.empty((n, 5))
-    boxes = np.empty((n, 4), np.int32)
-    keys = np.empty(n)
+    rec, boxes, keys = np.empty((n, _REC), dtype_of.dtype), np.empty((n, 4), np.int32), np.empty(n)
     for i in prange(n):
-        _project_one(i, means, quats, scales, opacities, cam, near, opac_min, width, height, geom, boxes, keys)
+        _project_one(i, means, quats, scales, opacities, sh, degree, cam, near, opac_min, width, height, rec, boxes, keys)
     ids = _argsort_depth(keys, _compact(keys))
     m = ids.shape[0]
-    out, boxes_out = rec[:m], np.empty((m, 4), np.int32)
+    rec_sorted, boxes_sorted = np.empty((m, _REC), rec.dtype), np.empty((m, 4), np.int32)
     for r in prange(m):
-        _pack_one(r, ids[r], means, opacities, sh, degree, center, geom, keys, out, boxes, boxes_out)
-    return ids, boxes_out
+        rec_sorted[r] = rec[ids[r]]
+        boxes_sorted[r] = boxes[ids[r]]
+    return rec_sorted, boxes_sorted
 
 
 # --------------------------------------------------------------------------- binning
@@ -497,14 +492,14 @@ def render_fast(
     # the opacity cull compares in the opacities' own dtype, as project() does
     opac_min = torch.tensor(ALPHA_MIN, dtype=gaussians.opacities.dtype).item()
     w2c = camera.w2c()[0].to(f64)
-    K = camera.K[0].to(f64)
-    cam = arr(torch.cat([w2c[:3].reshape(-1), K[0, 0:1], K[1, 1:2], K[0, 2:3], K[1, 2:3], K.new_zeros(1)]), f64)
-    center = arr(camera.centers[0], f64)
-    rec = np.empty((means.shape[0], _REC), dtype)
+    fx, fy, cx, cy = (float(v) for v in camera.K[0].to(f64)[[0, 1, 0, 1], [0, 1, 2, 2]])
+    fov = FOV_CLAMP - 1  # as in project()
+    lims = [(W - cx) / fx + fov * W / fx, cx / fx + fov * W / fx, (H - cy) / fy + fov * H / fy, cy / fy + fov * H / fy]
+    cam = np.array([*w2c[:3].reshape(-1).tolist(), fx, fy, cx, cy, *lims, *camera.centers[0].tolist()])
     parallel = threads > 1
     with _numba_threads(threads) if parallel else nullcontext():
         project = _project_parallel if parallel else _project_serial
-        _, boxes = project(means, quats, scales, opacities, sh, degree, cam, center, float(near), opac_min, W, H, rec)
+        rec, boxes = project(means, quats, scales, opacities, sh, degree, cam, float(near), opac_min, W, H, np.empty(0, dtype))
         tock = time.perf_counter()
         ntx, nty = -(-W // TILE), -(-H // TILE)
         start, ids = _bin_parallel(boxes, ntx, nty, threads) if parallel else _bin_serial(boxes, ntx, nty)
