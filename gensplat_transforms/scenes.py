@@ -286,6 +286,13 @@ class TabletopScene:
         self.objects = _sample_objects(self.seed)
         self._build_primitives()
 
+    def with_objects(self, objects: tuple[SceneObject, ...]) -> TabletopScene:
+        """The same room and table with other objects (e.g. moved ones, for an episode)."""
+        scene = object.__new__(TabletopScene)
+        scene.seed, scene.objects = self.seed, tuple(objects)
+        scene._build_primitives()
+        return scene
+
     def _build_primitives(self) -> None:
         """Stack primitive parameters per kind and remember the label of every column."""
         f64 = dict(dtype=torch.float64)

@@ -52,10 +52,15 @@ class Views:
 @dataclass
 class Reconstruction:
     """Gaussians of one timestep and the source cameras expressed in their frame (the given
-    calibration, or the poses a feed-forward model predicted)."""
+    calibration, or the poses a feed-forward model predicted).
+
+    ``pixel_ids`` (N,) tells pixel-aligned Gaussians' source pixel, ``v * H * W + row * W +
+    col``; caches use it to store the static part of a scene once.
+    """
 
     gaussians: Gaussians
     cameras: Cameras
+    pixel_ids: torch.Tensor | None = None
 
 
 class Reconstructor(ABC):

@@ -79,9 +79,11 @@ class RGBDReconstructor(Reconstructor):
             missing = [n for n in ("cameras", "depths") if getattr(views, n) is None]
             raise ValueError(f"RGBDReconstructor needs calibrated cameras and depth; missing: {missing}")
         parts = [self._one_view(views, i) for i in range(len(views))]
-        return Reconstruction(Gaussians.cat(parts), views.cameras)
+        gaussians = Gaussians.cat([g for g, _ in parts])
+        return Reconstruction(gaussians, views.cameras, torch.cat([ids for _, ids in parts]))
 
-    def _one_view(self, views: Views, i: int) -> Gaussians:
+    def _one_view(self, views: Views, i: int) -> tuple[Gaussians, torch.Tensor]:
+        """Gaussians of view i and their pixel ids."""
         cfg = self.cfg
         cam = views.cameras[i].to(dtype=torch.float32)
         H, W = cam.height, cam.width
@@ -99,29 +101,38 @@ class RGBDReconstructor(Reconstructor):
         s = cfg.stride
         sel = (slice(s // 2, None, s), slice(s // 2, None, s))
         keep = valid[sel].reshape(-1)
+        pixel_ids = (torch.arange(H * W).reshape(H, W)[sel].reshape(-1) + i * H * W)[keep]
         a, b = a[sel].reshape(-1, 3)[keep] * s, b[sel].reshape(-1, 3)[keep] * s
         means = pts[sel].reshape(-1, 3)[keep]
         rgb = views.images[i].float().permute(1, 2, 0)[sel].reshape(-1, 3)[keep]
 
-        n = torch.linalg.cross(a, b)
-        n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-20)
-        thick = cfg.thickness * cfg.sigma_px * torch.minimum(a.norm(dim=-1), b.norm(dim=-1))
-        cov = cfg.sigma_px**2 * (_outer(a) + _outer(b)) + thick[:, None, None] ** 2 * _outer(n)
-        evals, evecs = torch.linalg.eigh(cov.double())
-        evecs[:, :, 0] *= torch.sign(torch.linalg.det(evecs))[:, None]  # proper rotation
+        quats, scales = _disc_shape(a, b, cfg.sigma_px, cfg.thickness)
         sh = torch.zeros(means.shape[0], num_sh_bases(cfg.sh_degree), 3)
         sh[:, 0] = rgb_to_sh_dc(rgb)
-        return Gaussians(
-            means=means,
-            quats=rotmat_to_quat(evecs).float(),
-            scales=evals.clamp_min(0).sqrt().float(),
-            opacities=torch.full((means.shape[0],), cfg.opacity),
-            sh=sh,
-        )
+        g = Gaussians(means, quats, scales, torch.full((means.shape[0],), cfg.opacity), sh)
+        return g, pixel_ids
 
 
-def _outer(v: torch.Tensor) -> torch.Tensor:
-    return v[:, :, None] * v[:, None, :]
+def _disc_shape(a: torch.Tensor, b: torch.Tensor, k: float, t: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Quaternions (N, 4) and scales (N, 3) of the covariance in the module docstring.
+
+    Closed form (no eigen-solver): n = a x b is an exact eigenvector (eigenvalue
+    (t k min(|a|, |b|))^2); the in-plane 2x2 block is diagonalised by one angle.
+    """
+    n = torch.linalg.cross(a, b)
+    n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-20)
+    la = a.norm(dim=-1).clamp_min(1e-20)
+    e1 = a / la[:, None]
+    e2 = torch.linalg.cross(n, e1)
+    b1, b2 = (b * e1).sum(-1), (b * e2).sum(-1)
+    g11, g12, g22 = la**2 + b1**2, b1 * b2, b2**2  # (aa^T + bb^T) in the (e1, e2) basis
+    phi = 0.5 * torch.atan2(2 * g12, g11 - g22)
+    mid, rad = 0.5 * (g11 + g22), torch.sqrt((0.5 * (g11 - g22)) ** 2 + g12**2)
+    c, s = torch.cos(phi)[:, None], torch.sin(phi)[:, None]
+    R = torch.stack([c * e1 + s * e2, c * e2 - s * e1, n], -1)  # columns; det = +1
+    thick = t * k * torch.minimum(la, b.norm(dim=-1))
+    scales = torch.stack([k * (mid + rad).sqrt(), k * (mid - rad).clamp_min(0).sqrt(), thick], -1)
+    return rotmat_to_quat(R), scales
 
 
 def _surface_step(pts, valid, footprint, axis, max_stretch, dim):

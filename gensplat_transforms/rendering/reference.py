@@ -47,6 +47,7 @@ def rasterize_reference(
     rgb = torch.zeros(npix, 3, dtype=dtype, device=device)
     depth = torch.zeros(npix, dtype=dtype, device=device)
     log_t = torch.zeros(npix, dtype=torch.float64, device=device)  # log transmittance
+    stopped = torch.zeros(npix, dtype=torch.bool, device=device)  # stop rule met in a chunk
 
     x0, y0, x1, y1 = proj.boxes.unbind(-1)
     bw, bh = x1 - x0 + 1, y1 - y0 + 1
@@ -80,7 +81,8 @@ def rasterize_reference(
         seg_id = torch.cumsum(seg_start.long(), 0) - 1
         excl = incl - log1m - before[seg_id] + log_t[pix]
         # Stop rule: a pixel takes a splat only if its transmittance stays >= T_MIN after it.
-        take = (excl + log1m) >= torch.log(torch.tensor(T_MIN, dtype=torch.float64))
+        take = ((excl + log1m) >= torch.log(torch.tensor(T_MIN, dtype=torch.float64))) & ~stopped[pix]
+        stopped[pix[~take]] = True
         w = (alpha * torch.exp(excl).to(dtype)) * take
         rgb = rgb.index_add(0, pix, w[:, None] * proj.colors[gid])
         depth = depth.index_add(0, pix, w * proj.depths[gid])

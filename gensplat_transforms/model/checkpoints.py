@@ -1,0 +1,89 @@
+"""Weights on disk: GenSplat checkpoints (config.json + model.safetensors), Pi3 checkpoints, hub ids."""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from safetensors.torch import load_file
+from torch import nn
+
+FORMAT_NAME = "gensplat-model"
+FORMAT_VERSION = 1
+CONFIG_FILE = "config.json"
+WEIGHTS_FILE = "model.safetensors"
+GAUSSIAN_PREFIX = "gaussian_head."  # the only keys a Pi3 checkpoint lacks
+
+_HUB_ID = re.compile(r"[A-Za-z0-9][\w.-]*/[\w.-]+")
+
+
+@dataclass
+class LoadReport:
+    """What a non-strict load did: keys the model kept at their initial values (``missing``) and
+    checkpoint keys it had no place for (``unexpected``)."""
+
+    loaded: int
+    missing: list[str]
+    unexpected: list[str]
+
+    @property
+    def missing_outside_gaussian_head(self) -> list[str]:
+        return [k for k in self.missing if not k.startswith(GAUSSIAN_PREFIX)]
+
+    def __str__(self) -> str:
+        def short(keys):
+            return ", ".join(keys[:5]) + (f", ... ({len(keys)} in all)" if len(keys) > 5 else "")
+
+        gs = len(self.missing) - len(self.missing_outside_gaussian_head)
+        lines = [f"loaded {self.loaded} tensors; {gs} Gaussian-head tensors keep their initial values"]
+        if self.missing_outside_gaussian_head:
+            lines.append(f"missing: {short(self.missing_outside_gaussian_head)}")
+        if self.unexpected:
+            lines.append(f"unexpected: {short(self.unexpected)}")
+        return "; ".join(lines)
+
+
+def load_pi3_weights(model: nn.Module, path: str | Path) -> LoadReport:
+    """Load a Pi3 ``model.safetensors`` (or any partial state dict) into ``model`` non-strictly.
+
+    Raises ``ValueError`` when a shared key has another shape (wrong model size) or when the
+    file shares no key with the model. Returns what was missing and unexpected.
+    """
+    path = Path(path)
+    if path.is_dir():
+        path = path / WEIGHTS_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such checkpoint file")
+    state = load_file(str(path))
+    own = model.state_dict()
+    shared = [k for k in state if k in own]
+    if not shared:
+        raise ValueError(f"{path}: shares no key with the model (not a Pi3 / GenSplat checkpoint?)")
+    wrong = [f"{k}: file {tuple(state[k].shape)} vs model {tuple(own[k].shape)}"
+             for k in shared if state[k].shape != own[k].shape]  # fmt: skip
+    if wrong:
+        raise ValueError(f"{path}: {len(wrong)} shape mismatches (another model size?): " + "; ".join(wrong[:5]))
+    result = model.load_state_dict(state, strict=False)
+    return LoadReport(len(shared), list(result.missing_keys), list(result.unexpected_keys))
+
+
+def resolve(source: str | Path) -> Path:
+    """A local checkpoint directory, or a hub id ``owner/name`` fetched with huggingface_hub
+    (config and weights only) when that package is installed."""
+    path = Path(source).expanduser()
+    if path.is_dir():
+        return path
+    if path.exists():
+        raise ValueError(f"{path}: expected a directory holding {CONFIG_FILE} and {WEIGHTS_FILE}")
+    if not _HUB_ID.fullmatch(str(source)):
+        raise FileNotFoundError(f"{source}: no such directory, and not a hub id of the form 'owner/name'")
+    try:
+        from huggingface_hub import snapshot_download
+    except ImportError:
+        raise ImportError(
+            f"{source!r} is not a local directory; fetching it from the Hugging Face hub needs the "
+            "huggingface_hub package (pip install huggingface_hub), or download it yourself and pass "
+            "the directory"
+        ) from None
+    return Path(snapshot_download(str(source), allow_patterns=[CONFIG_FILE, WEIGHTS_FILE]))

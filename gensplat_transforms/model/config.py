@@ -1,0 +1,109 @@
+"""Sizes of the GenSplat model: ``full`` loads the official Pi3 checkpoint, ``small`` runs on a CPU."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+
+PATCH_SIZE = 14  # ViT/14: input height and width must be multiples of this
+
+
+@dataclass(frozen=True)
+class GenSplatConfig:
+    """Architecture hyper-parameters. The defaults are the full (Pi3-compatible) size.
+
+    Attributes:
+        dim: token width of the encoder and the main decoder (Pi3 has no projection between them).
+        mlp_ratio: MLP hidden width / token width, in every transformer block.
+        enc_depth, enc_heads: DINOv2 encoder blocks and attention heads.
+        enc_registers: DINOv2 register tokens (dropped from the encoder output).
+        enc_pos_grid: side of the learned position-embedding grid (37 = 518 / 14 for DINOv2);
+            other patch grids interpolate it bicubically.
+        enc_layerscale: LayerScale initial value in the encoder.
+        dec_depth, dec_heads: main decoder blocks (even: within a frame, odd: across frames).
+        dec_registers: register tokens shared by every frame (Pi3's ``register_token``).
+        dec_layerscale: LayerScale initial value in the main decoder.
+        rope_freq: RoPE-2D base frequency.
+        head_dim, head_depth, head_heads: the point / confidence / camera decoders.
+        head_out_dim: output width of the point and confidence decoders.
+        camera_dim: output width of the camera decoder, width of the camera head.
+        gs_taps: four main-decoder block indices whose outputs feed the Gaussian head.
+        gs_features: DPT feature channels of the Gaussian head.
+        gs_rgb_features: channels of the shallow full-resolution RGB features.
+        sh_degree: spherical-harmonics degree of the predicted colour (0..4).
+    """
+
+    dim: int = 1024
+    mlp_ratio: float = 4.0
+    enc_depth: int = 24
+    enc_heads: int = 16
+    enc_registers: int = 4
+    enc_pos_grid: int = 37
+    enc_layerscale: float = 1.0
+    dec_depth: int = 36
+    dec_heads: int = 16
+    dec_registers: int = 5
+    dec_layerscale: float = 0.01
+    rope_freq: float = 100.0
+    head_dim: int = 1024
+    head_depth: int = 5
+    head_heads: int = 16
+    head_out_dim: int = 1024
+    camera_dim: int = 512
+    gs_taps: tuple[int, ...] = (11, 19, 27, 35)
+    gs_features: int = 256
+    gs_rgb_features: int = 32
+    sh_degree: int = 1
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "gs_taps", tuple(int(t) for t in self.gs_taps))
+        problems = []
+        for name, width, heads in (("dim/enc_heads", self.dim, self.enc_heads),
+                                   ("dim/dec_heads", self.dim, self.dec_heads),
+                                   ("head_dim/head_heads", self.head_dim, self.head_heads)):  # fmt: skip
+            if heads <= 0 or width % heads:
+                problems.append(f"{name}: {width} is not divisible by {heads} heads")
+        for name, width, heads in (("dim/dec_heads", self.dim, self.dec_heads),
+                                   ("head_dim/head_heads", self.head_dim, self.head_heads)):  # fmt: skip
+            if heads > 0 and (width // heads) % 4:
+                problems.append(f"{name}: RoPE-2D needs a per-head width divisible by 4, got {width // heads}")
+        if self.dec_depth < 2 or self.dec_depth % 2:
+            problems.append(f"dec_depth must be even and >= 2 (frame/global pairs), got {self.dec_depth}")
+        if len(self.gs_taps) != 4 or len(set(self.gs_taps)) != 4:
+            problems.append(f"gs_taps must be 4 distinct block indices, got {self.gs_taps}")
+        if any(not 0 <= t < self.dec_depth for t in self.gs_taps):
+            problems.append(f"gs_taps {self.gs_taps} out of range for dec_depth {self.dec_depth}")
+        if not 0 <= self.sh_degree <= 4:
+            problems.append(f"sh_degree must be in 0..4, got {self.sh_degree}")
+        for name in ("enc_depth", "enc_registers", "enc_pos_grid", "dec_registers", "head_depth",
+                     "head_out_dim", "camera_dim", "gs_features", "gs_rgb_features"):  # fmt: skip
+            if getattr(self, name) < (0 if name.endswith("registers") else 1):
+                problems.append(f"{name} must be positive, got {getattr(self, name)}")
+        if problems:
+            raise ValueError("GenSplatConfig: " + "; ".join(problems))
+
+    @classmethod
+    def full(cls) -> GenSplatConfig:
+        """Pi3 size (ViT-L encoder, 36 decoder blocks, about 0.96 B parameters + Gaussian head)."""
+        return cls()
+
+    @classmethod
+    def small(cls) -> GenSplatConfig:
+        """CPU size: the same architecture, 128 wide, 4 + 4 blocks, 16 x 16 position grid (224 px)."""
+        return cls(
+            dim=128, enc_depth=4, enc_heads=4, enc_pos_grid=16, dec_depth=4, dec_heads=4,
+            head_dim=128, head_depth=2, head_heads=4, head_out_dim=128, camera_dim=128,
+            gs_taps=(0, 1, 2, 3), gs_features=48, gs_rgb_features=16, sh_degree=1,
+        )  # fmt: skip
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["gs_taps"] = list(self.gs_taps)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> GenSplatConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ValueError(f"GenSplatConfig: unknown fields {unknown}")
+        return cls(**d)

@@ -1,0 +1,165 @@
+"""The online GenSplat transform: replace camera images by views rendered from perturbed
+poses, from cached Gaussians, inside dataloader workers."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn.functional as F
+
+from .cache import GaussianCache
+from .episodes import EpisodeSource
+from .perturbation import AXES, PerturbationRange, PerturbationSampler, pivot_point
+from .reconstruction import Reconstructor
+from .rendering import BACKENDS, render
+
+
+@dataclass
+class GenSplatConfig:
+    """Settings of :class:`GenSplatTransform`.
+
+    Attributes:
+        cameras: the reconstructed (external) cameras, in the order the cache stores them.
+            The first two define the pivot. A wrist camera never belongs here.
+        replace: cameras whose image is replaced (default: all of ``cameras``).
+        image_key: item key of a camera's image; ``{name}`` is replaced by the camera name.
+        probability: chance that a sample is augmented.
+        level: a named level (see ``perturbation.LEVELS``) or a ``PerturbationRange``.
+        mode: "episode" (one perturbation per trajectory, the paper's default) or "frame".
+        views_per_source: distinct perturbed cameras per trajectory (the paper: ~3).
+        seed: fixes the set of perturbations; which one a sample gets is drawn from torch's
+            RNG, which DataLoader seeds per worker and per epoch.
+        frame_offsets: frames of a temporal stack (T, C, H, W) relative to the item's frame
+            (default: the T frames ending at it, clamped at the episode start).
+        backend, render_options: renderer and its options (e.g. ``{"threads": 1}``).
+        background: RGB where nothing was reconstructed.
+        report: add ``gensplat.*`` keys describing the perturbation to the item.
+    """
+
+    cameras: tuple[str, ...] = ("left", "right")
+    replace: tuple[str, ...] | None = None
+    image_key: str = "observation.images.{name}"
+    probability: float = 0.5
+    level: str | PerturbationRange = "train"
+    mode: str = "episode"
+    views_per_source: int = 3
+    seed: int = 0
+    frame_offsets: tuple[int, ...] | None = None
+    backend: str = "reference"
+    render_options: dict = field(default_factory=dict)
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    report: bool = False
+
+    def __post_init__(self) -> None:
+        self.cameras = tuple(self.cameras)
+        self.replace = tuple(self.cameras if self.replace is None else self.replace)
+        if len(self.cameras) < 2:
+            raise ValueError("GenSplatConfig.cameras: need the two external cameras that define the pivot")
+        unknown = [c for c in self.replace if c not in self.cameras]
+        if unknown:
+            raise ValueError(f"GenSplatConfig.replace: {unknown} are not reconstructed cameras {self.cameras}")
+        if not 0 <= self.probability <= 1:
+            raise ValueError(f"GenSplatConfig.probability must be in [0, 1], got {self.probability}")
+        if self.views_per_source < 1:
+            raise ValueError(f"GenSplatConfig.views_per_source must be >= 1, got {self.views_per_source}")
+        if self.backend not in BACKENDS:
+            raise ValueError(f"GenSplatConfig.backend: unknown {self.backend!r}; available {sorted(BACKENDS)}")
+
+
+class GenSplatTransform:
+    """Callable on a dataset item (a dict); returns a new dict, never modifies its input.
+
+    Gaussians come from ``cache``; episodes missing from it are built on first use from
+    ``source`` with ``reconstructor`` (safe with several workers), or raise if those are
+    not given. Picklable (spawn workers); nothing touches CUDA.
+    """
+
+    def __init__(
+        self,
+        config: GenSplatConfig,
+        cache: GaussianCache,
+        source: EpisodeSource | None = None,
+        reconstructor: Reconstructor | None = None,
+    ) -> None:
+        self.cfg = config
+        self.cache = cache
+        self.source = source
+        self.reconstructor = reconstructor
+        if (source is None) != (reconstructor is None):
+            raise ValueError("GenSplatTransform: pass both source and reconstructor, or neither")
+        if source is not None and tuple(source.camera_names) != config.cameras:
+            raise ValueError(
+                f"GenSplatTransform: the source reconstructs {tuple(source.camera_names)}, "
+                f"the config names {config.cameras}"
+            )
+        self.sampler = PerturbationSampler(config.level, mode=config.mode, seed=config.seed)
+
+    # ------------------------------------------------------------------ per item
+    def __call__(self, item: dict) -> dict:
+        for key in ("episode_index", "frame_index"):
+            if key not in item:
+                raise KeyError(f"GenSplatTransform: item has no {key!r}; keys: {sorted(item)}")
+        keys = [self.cfg.image_key.format(name=n) for n in self.cfg.replace]
+        missing = [k for k in keys if k not in item]
+        if missing:
+            raise KeyError(f"GenSplatTransform: item lacks camera image(s) {missing}; keys: {sorted(item)}")
+        episode, frame = int(item["episode_index"]), int(item["frame_index"])
+        out = dict(item)
+        applied = bool(torch.rand(()) < self.cfg.probability)
+        view = int(torch.randint(self.cfg.views_per_source, ()))
+        report = []
+        for ci, (name, key) in enumerate(zip(self.cfg.replace, keys)):
+            p = self.sampler.sample(episode, frame, view=view * len(self.cfg.replace) + ci)
+            if applied:
+                out[key] = self._render_like(item[key], episode, frame, name, p)
+            report.append([float(applied), float(AXES.index(p.axis)), p.theta_deg, p.mu_m])
+        if self.cfg.report:
+            r = torch.tensor(report) if applied else torch.zeros(len(report), 4)
+            out["gensplat.applied"] = r[:, 0].bool()
+            out["gensplat.axis"] = r[:, 1].long()
+            out["gensplat.theta_deg"] = r[:, 2]
+            out["gensplat.mu_m"] = r[:, 3]
+        return out
+
+    def _render_like(self, image: torch.Tensor, episode: int, frame: int, name: str, p) -> torch.Tensor:
+        """Rendered replacement with the shape, dtype and value range of ``image``."""
+        if image.ndim not in (3, 4) or image.shape[-3] != 3:
+            raise ValueError(f"GenSplatTransform: expected (3, H, W) or (T, 3, H, W) images, got {tuple(image.shape)}")
+        stack = image if image.ndim == 4 else image[None]
+        offsets = self.cfg.frame_offsets or tuple(range(1 - stack.shape[0], 1))
+        if len(offsets) != stack.shape[0]:
+            raise ValueError(f"GenSplatTransform: {len(offsets)} frame_offsets for a stack of {stack.shape[0]}")
+        frames = [self._render(episode, max(frame + o, 0), name, p) for o in offsets]
+        rgb = torch.stack(frames)
+        if rgb.shape[-2:] != stack.shape[-2:]:
+            rgb = F.interpolate(rgb, size=stack.shape[-2:], mode="bilinear", antialias=True, align_corners=False)
+        rgb = rgb.clamp(0, 1)
+        if stack.dtype == torch.uint8:
+            rgb = (rgb * 255 + 0.5).to(torch.uint8)
+        else:
+            rgb = rgb.to(stack.dtype)
+        return rgb if image.ndim == 4 else rgb[0]
+
+    def _render(self, episode: int, frame: int, name: str, p) -> torch.Tensor:
+        """(3, h, w) view of camera ``name`` moved by perturbation ``p``."""
+        rec = self._reconstruction(episode, frame)
+        i = self.cfg.cameras.index(name)
+        cams = rec.cameras
+        pivot = pivot_point(cams.c2w[0], cams.c2w[1])
+        target = cams[i].with_c2w(p.apply(cams.c2w[i : i + 1], pivot))
+        out = render(rec.gaussians, target, background=self.cfg.background, backend=self.cfg.backend,
+                     return_depth=False, **self.cfg.render_options)  # fmt: skip
+        return out.rgb[0]
+
+    def _reconstruction(self, episode: int, frame: int):
+        status = self.cache.status(episode)
+        if status != "ok":
+            if self.source is None:
+                raise FileNotFoundError(
+                    f"GenSplatTransform: episode {episode} is {status} in the cache at {self.cache.root} "
+                    "and no source/reconstructor was given to build it; run the cache command first"
+                )
+            src, rec = self.source, self.reconstructor
+            self.cache.ensure(episode, lambda: [rec(src.views(episode, t)) for t in range(src.num_frames(episode))])
+        return self.cache.read(episode, frame)
