@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 
 import torch
 import torch.nn.functional as F
+from torch.utils.data import Dataset
 
 from .cache import GaussianCache
 from .episodes import EpisodeSource
@@ -163,3 +164,19 @@ class GenSplatTransform:
             src, rec = self.source, self.reconstructor
             self.cache.ensure(episode, lambda: [rec(src.views(episode, t)) for t in range(src.num_frames(episode))])
         return self.cache.read(episode, frame)
+
+
+class AugmentedDataset(Dataset):
+    """Wrap any map-style dataset whose items are dicts: ``item = transform(dataset[i])``.
+
+    The way to use GenSplat in a custom PyTorch DataLoader (works with spawn workers)."""
+
+    def __init__(self, dataset, transform: GenSplatTransform) -> None:
+        self.dataset = dataset
+        self.transform = transform
+
+    def __len__(self) -> int:
+        return len(self.dataset)
+
+    def __getitem__(self, index: int) -> dict:
+        return self.transform(self.dataset[index])

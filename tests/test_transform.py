@@ -1,0 +1,149 @@
+"""The online transform: identity, determinism, dtypes, stacks, workers, bad inputs."""
+
+import pickle
+
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+from gensplat_transforms import render
+from gensplat_transforms.cache import GaussianCache
+from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
+from gensplat_transforms.metrics import psnr
+from gensplat_transforms.reconstruction import RGBDReconstructor
+from gensplat_transforms.transform import AugmentedDataset, GenSplatConfig, GenSplatTransform
+
+LEFT = "observation.images.left"
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    source = SceneEpisodes(num_episodes=2, num_frames=3, size=48)
+    rec = RGBDReconstructor()
+    cache = GaussianCache(tmp_path_factory.mktemp("cache"), rec.identity(), source.fingerprint)
+    build_cache(cache, source, rec, range(2), progress=False)
+    return source, rec, cache, SceneDataset(source)
+
+
+def make(cache, **kw):
+    return GenSplatTransform(GenSplatConfig(**{"probability": 1.0, **kw}), cache)
+
+
+def test_identity_perturbation_reproduces_the_source_image(setup):
+    source, rec, cache, ds = setup
+    item = ds[4]
+    out = make(cache, level="none")(item)
+    direct = rec(source.views(1, 1))
+    expected = render(direct.gaussians, direct.cameras[:1]).rgb[0]
+    # Same camera, same Gaussians: only the cache quantisation differs (> 45 dB, see
+    # test_cache), and the reconstruction reproduces the source as in test_reconstruction.
+    assert psnr(out[LEFT], expected) > 45.0
+    assert psnr(out[LEFT], item[LEFT]) > 24.0
+    assert out[LEFT].shape == item[LEFT].shape and out[LEFT].dtype == item[LEFT].dtype
+
+
+def test_input_item_is_not_modified_and_wrist_is_untouched(setup):
+    *_, cache, ds = setup
+    item = ds[0]
+    before = {k: v.clone() for k, v in item.items()}
+    out = make(cache, level="large", replace=("left",))(item)
+    for k in before:
+        assert torch.equal(item[k], before[k])
+    assert torch.equal(out["observation.images.front"], item["observation.images.front"])
+    assert torch.equal(out["observation.images.right"], item["observation.images.right"])
+    assert not torch.equal(out[LEFT], item[LEFT])
+
+
+def test_deterministic_under_torch_seed_and_reports_perturbation(setup):
+    *_, cache, ds = setup
+    tf = make(cache, level="large", report=True, views_per_source=3)
+    torch.manual_seed(0)
+    a = [tf(ds[i]) for i in range(3)]
+    torch.manual_seed(0)
+    b = [tf(ds[i]) for i in range(3)]
+    for x, y in zip(a, b):
+        assert torch.equal(x[LEFT], y[LEFT])
+        assert torch.equal(x["gensplat.theta_deg"], y["gensplat.theta_deg"])
+    th = a[0]["gensplat.theta_deg"].abs()
+    assert ((th >= 18) & (th <= 30)).all() and a[0]["gensplat.applied"].all()
+
+
+def test_episode_mode_gives_one_camera_per_trajectory_view(setup):
+    *_, cache, ds = setup
+    tf = make(cache, level="large", report=True, views_per_source=1)
+    thetas = {tuple(tf(ds[i])["gensplat.theta_deg"].tolist()) for i in range(3)}  # episode 0
+    assert len(thetas) == 1
+    other = tuple(tf(ds[3])["gensplat.theta_deg"].tolist())  # episode 1
+    assert other not in thetas
+
+
+def test_probability_zero_returns_originals(setup):
+    *_, cache, ds = setup
+    out = GenSplatTransform(GenSplatConfig(probability=0.0, report=True), cache)(ds[1])
+    assert torch.equal(out[LEFT], ds[1][LEFT]) and not out["gensplat.applied"].any()
+
+
+def test_uint8_and_temporal_stacks_keep_shape_dtype_and_range(setup):
+    *_, cache, ds = setup
+    item = ds[2]
+    u8 = {**item, LEFT: (item[LEFT] * 255).round().to(torch.uint8)}
+    out = make(cache, level="small", replace=("left",))(u8)
+    assert out[LEFT].dtype == torch.uint8 and out[LEFT].shape == u8[LEFT].shape
+    stack = {**item, LEFT: torch.stack([ds[0][LEFT], ds[1][LEFT], item[LEFT]])}  # frames 0,1,2
+    one_view = make(cache, level="small", replace=("left",), views_per_source=1)
+    out = one_view(stack)
+    assert out[LEFT].shape == (3, 3, 48, 48)
+    # frame 0 of the stack is the render of frame 0 with the same perturbation
+    first = one_view(ds[0])[LEFT]
+    torch.testing.assert_close(out[LEFT][0], first)
+    half = {**item, LEFT: item[LEFT].half()}
+    assert make(cache, level="small", replace=("left",))(half)[LEFT].dtype == torch.float16
+
+
+def test_output_resized_to_the_item_image_size(setup):
+    *_, cache, ds = setup
+    item = ds[0]
+    big = {**item, LEFT: torch.nn.functional.interpolate(item[LEFT][None], size=(64, 80))[0]}
+    out = make(cache, level="none", replace=("left",))(big)
+    assert out[LEFT].shape == (3, 64, 80)
+
+
+def test_bad_inputs_raise_clear_errors(setup, tmp_path):
+    source, rec, cache, ds = setup
+    item = ds[0]
+    with pytest.raises(KeyError, match="observation.images.left"):
+        make(cache)({k: v for k, v in item.items() if k != LEFT})
+    with pytest.raises(KeyError, match="episode_index"):
+        make(cache)({k: v for k, v in item.items() if k != "episode_index"})
+    with pytest.raises(ValueError, match=r"\(3, H, W\)"):
+        make(cache, replace=("left",))({**item, LEFT: item[LEFT][:2]})
+    empty = GaussianCache(tmp_path, cache.reconstructor, cache.dataset)
+    with pytest.raises(FileNotFoundError, match="no source/reconstructor"):
+        make(empty)(item)
+    with pytest.raises(ValueError, match="replace"):
+        GenSplatConfig(replace=("wrist",))
+    with pytest.raises(ValueError, match="level"):
+        make(cache, level="huge")
+    with pytest.raises(ValueError, match="backend"):
+        GenSplatConfig(backend="nope")
+
+
+def test_lazy_build_in_the_transform(setup, tmp_path):
+    source, rec, _, ds = setup
+    cache = GaussianCache(tmp_path, rec.identity(), source.fingerprint)
+    tf = GenSplatTransform(GenSplatConfig(probability=1.0, level="small"), cache, source, rec)
+    out = tf(ds[0])
+    assert cache.status(0) == "ok" and cache.status(1) == "missing"
+    assert torch.isfinite(out[LEFT]).all()
+
+
+def test_spawn_workers(setup):
+    *_, cache, ds = setup
+    tf = make(cache, level="medium", report=True)
+    pickle.loads(pickle.dumps(tf))
+
+    loader = DataLoader(AugmentedDataset(ds, tf), batch_size=2, num_workers=2, multiprocessing_context="spawn")
+    batches = list(loader)
+    assert sum(b[LEFT].shape[0] for b in batches) == len(ds)
+    assert all(b["gensplat.applied"].all() for b in batches)
+    assert all(torch.isfinite(b[LEFT]).all() for b in batches)
