@@ -32,7 +32,7 @@ class GenSplatConfig:
         seed: fixes the set of perturbations; which one a sample gets is drawn from torch's
             RNG, which DataLoader seeds per worker and per epoch.
         frame_offsets: frames of a temporal stack (T, C, H, W) relative to the item's frame
-            (default: the T frames ending at it, clamped at the episode start).
+            (default: the T frames ending at it); clamped to the episode, as LeRobot pads.
         backend, render_options: renderer and its options (e.g. ``{"threads": 1}``).
         background: RGB where nothing was reconstructed.
         report: add ``gensplat.*`` keys describing the perturbation to the item.
@@ -128,10 +128,11 @@ class GenSplatTransform:
         if image.ndim not in (3, 4) or image.shape[-3] != 3:
             raise ValueError(f"GenSplatTransform: expected (3, H, W) or (T, 3, H, W) images, got {tuple(image.shape)}")
         stack = image if image.ndim == 4 else image[None]
-        offsets = self.cfg.frame_offsets or tuple(range(1 - stack.shape[0], 1))
+        offsets = (0,) if image.ndim == 3 else self.cfg.frame_offsets or tuple(range(1 - stack.shape[0], 1))
         if len(offsets) != stack.shape[0]:
             raise ValueError(f"GenSplatTransform: {len(offsets)} frame_offsets for a stack of {stack.shape[0]}")
-        frames = [self._render(episode, max(frame + o, 0), name, p) for o in offsets]
+        last = self._num_frames(episode) - 1
+        frames = [self._render(episode, min(max(frame + o, 0), last), name, p) for o in offsets]
         rgb = torch.stack(frames)
         if rgb.shape[-2:] != stack.shape[-2:]:
             rgb = F.interpolate(rgb, size=stack.shape[-2:], mode="bilinear", antialias=True, align_corners=False)
@@ -153,7 +154,15 @@ class GenSplatTransform:
                      return_depth=False, **self.cfg.render_options)  # fmt: skip
         return out.rgb[0]
 
+    def _num_frames(self, episode: int) -> int:
+        self._ensure(episode)
+        return self.cache.num_frames(episode)
+
     def _reconstruction(self, episode: int, frame: int):
+        self._ensure(episode)
+        return self.cache.read(episode, frame)
+
+    def _ensure(self, episode: int) -> None:
         status = self.cache.status(episode)
         if status != "ok":
             if self.source is None:
@@ -163,7 +172,6 @@ class GenSplatTransform:
                 )
             src, rec = self.source, self.reconstructor
             self.cache.ensure(episode, lambda: [rec(src.views(episode, t)) for t in range(src.num_frames(episode))])
-        return self.cache.read(episode, frame)
 
 
 class AugmentedDataset(Dataset):

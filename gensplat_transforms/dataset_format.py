@@ -1,0 +1,126 @@
+"""How a LeRobot dataset carries what GenSplat needs: calibration and depth.
+
+LeRobot has no calibration fields, so they go into each image feature's ``info`` dict,
+which LeRobot keeps in ``meta/info.json``:
+
+* ``"camera.intrinsics"``: 3x3 nested list, pixels (pixel centres at +0.5);
+* ``"camera.extrinsics"``: 4x4 nested list, OpenCV camera-to-world (static cameras);
+* ``"camera.mount"``: ``"external"`` or ``"wrist"`` (a wrist camera moves with the robot
+  and is never reconstructed or perturbed).
+
+Metric depth of the external cameras is a sidecar beside the dataset (depth as a LeRobot
+image feature would be fed to the policy as an extra camera):
+``<root>/depth/<camera>/episode_<index:06d>.safetensors`` with one float16 tensor
+``"depth"`` (T, H, W) in metres (camera z, 0 = invalid) and metadata ``format``,
+``format_version``, ``camera``, ``episode_index``, ``num_frames``.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from safetensors import safe_open
+from safetensors.torch import save_file
+
+from .cameras import Cameras
+
+DEPTH_FORMAT = "gensplat-depth"
+DEPTH_FORMAT_VERSION = "1"
+IMAGE_KEY_PREFIX = "observation.images."
+
+
+@dataclass
+class CameraCalibration:
+    """Calibration of one named camera: K (3, 3), c2w (4, 4) or None, mount."""
+
+    name: str
+    K: torch.Tensor
+    c2w: torch.Tensor | None
+    mount: str
+
+
+def camera_info(K: torch.Tensor, c2w: torch.Tensor | None, mount: str) -> dict:
+    """The ``info`` entries to put in an image feature (see the module docstring)."""
+    if mount not in ("external", "wrist"):
+        raise ValueError(f"camera.mount must be 'external' or 'wrist', got {mount!r}")
+    info = {"camera.intrinsics": torch.as_tensor(K).tolist(), "camera.mount": mount}
+    if c2w is not None:
+        info["camera.extrinsics"] = torch.as_tensor(c2w).tolist()
+    return info
+
+
+def load_calibration(features: dict) -> dict[str, CameraCalibration]:
+    """Calibrated cameras from LeRobot ``meta.features`` (name -> calibration)."""
+    out = {}
+    for key, ft in features.items():
+        info = ft.get("info") or {}
+        if not key.startswith(IMAGE_KEY_PREFIX) or "camera.intrinsics" not in info:
+            continue
+        name = key[len(IMAGE_KEY_PREFIX) :]
+        ext = info.get("camera.extrinsics")
+        out[name] = CameraCalibration(
+            name=name,
+            K=torch.tensor(info["camera.intrinsics"], dtype=torch.float64),
+            c2w=None if ext is None else torch.tensor(ext, dtype=torch.float64),
+            mount=info.get("camera.mount", "external"),
+        )
+    return out
+
+
+def calibrated_cameras(calib: dict[str, CameraCalibration], names, width: int, height: int) -> Cameras:
+    """Stack the named external cameras into one :class:`Cameras` batch."""
+    missing = [n for n in names if n not in calib]
+    if missing:
+        raise ValueError(f"no calibration for camera(s) {missing}; calibrated: {sorted(calib)}")
+    moving = [n for n in names if calib[n].c2w is None or calib[n].mount != "external"]
+    if moving:
+        raise ValueError(f"camera(s) {moving} are not static external cameras and cannot be reconstructed")
+    return Cameras(torch.stack([calib[n].K for n in names]), torch.stack([calib[n].c2w for n in names]),
+                   width, height)  # fmt: skip
+
+
+def depth_path(root: str | Path, camera: str, episode: int) -> Path:
+    return Path(root) / "depth" / camera / f"episode_{int(episode):06d}.safetensors"
+
+
+def save_depth(root: str | Path, camera: str, episode: int, depth: torch.Tensor) -> Path:
+    """Write a (T, H, W) metric depth sidecar atomically."""
+    if depth.ndim != 3:
+        raise ValueError(f"save_depth: expected (T, H, W) depth, got {tuple(depth.shape)}")
+    path = depth_path(root, camera, episode)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    meta = {"format": DEPTH_FORMAT, "format_version": DEPTH_FORMAT_VERSION, "camera": camera,
+            "episode_index": str(int(episode)), "num_frames": str(depth.shape[0])}  # fmt: skip
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        d = torch.nan_to_num(depth.float(), nan=0.0, posinf=0.0, neginf=0.0).clamp(0, 6e4)
+        save_file({"depth": d.to(torch.float16).contiguous()}, tmp, metadata=meta)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def load_depth(root: str | Path, camera: str, episode: int, frame: int | None = None) -> torch.Tensor:
+    """Metric depth, float32: (T, 1, H, W), or (1, H, W) for one ``frame`` (memory-mapped)."""
+    path = depth_path(root, camera, episode)
+    if not path.exists():
+        raise FileNotFoundError(f"no depth for camera {camera!r}, episode {episode}: {path} is missing")
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            meta = f.metadata() or {}
+            if meta.get("format") != DEPTH_FORMAT:
+                raise ValueError(f"{path}: not a GenSplat depth file")
+            if frame is None:
+                return f.get_tensor("depth").float()[:, None]
+            return f.get_slice("depth")[frame : frame + 1].float()
+    except ValueError:
+        raise
+    except Exception as e:
+        raise ValueError(f"{path}: unreadable depth file ({e})") from e

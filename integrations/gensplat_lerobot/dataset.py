@@ -1,0 +1,103 @@
+"""Wrapping a LeRobotDataset with the GenSplat transform."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+from gensplat_transforms.cache import GaussianCache
+from gensplat_transforms.perturbation import PerturbationRange
+from gensplat_transforms.reconstruction import RGBDReconstructor
+from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
+
+from .source import LeRobotSource
+
+SETTINGS_DIR = "gensplat"
+
+
+def settings_path(root: str | Path) -> Path:
+    return Path(root) / SETTINGS_DIR / "config.json"
+
+
+def save_settings(root: str | Path, config: GenSplatConfig, reconstructor: dict) -> Path:
+    """Store the transform settings beside the dataset (read by :func:`enable_gensplat`)."""
+    cfg = asdict(config)
+    if isinstance(config.level, PerturbationRange):
+        cfg["level"] = asdict(config.level)
+    path = settings_path(root)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"transform": cfg, "reconstructor": reconstructor}, indent=2))
+    return path
+
+
+def load_settings(root: str | Path) -> tuple[GenSplatConfig, dict]:
+    path = settings_path(root)
+    if not path.exists():
+        raise FileNotFoundError(
+            f"GenSplat is enabled but {path} does not exist: run `gensplat cache --root {root} "
+            "--repo-id <id>` once to write the settings and build the Gaussian cache"
+        )
+    data = json.loads(path.read_text())
+    cfg = data["transform"]
+    if isinstance(cfg["level"], dict):
+        cfg["level"] = PerturbationRange(**{k: tuple(v) if isinstance(v, list) else v for k, v in cfg["level"].items()})
+    for key in ("cameras", "replace", "background", "frame_offsets"):
+        if cfg.get(key) is not None:
+            cfg[key] = tuple(cfg[key])
+    return GenSplatConfig(**cfg), data["reconstructor"]
+
+
+def make_reconstructor(spec: dict):
+    """The reconstructor named in the settings."""
+    if spec.get("name") == "rgbd":
+        return RGBDReconstructor(**spec.get("config", {}))
+    raise ValueError(f"unknown reconstructor {spec.get('name')!r} in the GenSplat settings")
+
+
+class GenSplatLeRobotDataset(LeRobotDataset):
+    """A LeRobotDataset whose items pass through the GenSplat transform, then through
+    LeRobot's own 2D image transforms (so those also apply to rendered views).
+    Created by :func:`enable_gensplat`, never directly."""
+
+    def __getitem__(self, idx):
+        item = self.gensplat(super().__getitem__(idx))
+        if self.gensplat_image_transforms is not None:
+            for cam in self.meta.camera_keys:
+                if cam not in self.meta.depth_keys:
+                    item[cam] = self.gensplat_image_transforms(item[cam])
+        return item
+
+
+def enable_gensplat(dataset: LeRobotDataset, config: GenSplatConfig | None = None,
+                    reconstructor: dict | None = None) -> GenSplatLeRobotDataset:
+    """Turn ``dataset`` (in place) into a :class:`GenSplatLeRobotDataset`.
+
+    Settings default to ``<root>/gensplat/config.json``. Frame offsets of temporal image
+    stacks are taken from the dataset's delta timestamps. Missing cache entries are built
+    lazily from the dataset. Raises if anything needed is missing: never a silent no-op.
+    """
+    if isinstance(dataset, GenSplatLeRobotDataset):
+        return dataset
+    if not isinstance(dataset, LeRobotDataset):
+        raise TypeError(f"enable_gensplat: expected a LeRobotDataset, got {type(dataset).__name__}")
+    if config is None:
+        config, reconstructor = load_settings(dataset.root)
+    rec = make_reconstructor(reconstructor or {"name": "rgbd"})
+    source = LeRobotSource(dataset.root, dataset.repo_id, config.cameras)
+    key = config.image_key.format(name=config.replace[0])
+    deltas = (dataset.delta_timestamps or {}).get(key)
+    if deltas is not None and config.frame_offsets is None:
+        offsets = tuple(round(d * dataset.meta.fps) for d in deltas)
+        config = GenSplatConfig(**{**asdict(config), "frame_offsets": offsets})
+    cache = GaussianCache(Path(dataset.root) / SETTINGS_DIR / "cache" / rec.identity(), rec.identity(),
+                          source.fingerprint)  # fmt: skip
+    transform = GenSplatTransform(config, cache, source, rec)
+    two_d = dataset.image_transforms
+    dataset.set_image_transforms(None)  # re-applied after GenSplat, see __getitem__
+    dataset.__class__ = GenSplatLeRobotDataset
+    dataset.gensplat = transform
+    dataset.gensplat_image_transforms = two_d
+    return dataset

@@ -1,0 +1,75 @@
+"""A LeRobot dataset as an :class:`~gensplat_transforms.episodes.EpisodeSource`."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import torch
+
+from gensplat_transforms.dataset_format import (
+    IMAGE_KEY_PREFIX,
+    calibrated_cameras,
+    depth_path,
+    load_calibration,
+    load_depth,
+)
+from gensplat_transforms.reconstruction import Views
+
+
+class LeRobotSource:
+    """Views of the external cameras of a local LeRobot dataset, frame by frame.
+
+    Args:
+        root: dataset root (holds ``meta/info.json``).
+        repo_id: the dataset's repo id (offline use: any id matching the local copy).
+        cameras: names of the external cameras to reconstruct (default: every camera
+            whose calibration says ``"camera.mount": "external"``).
+    """
+
+    def __init__(self, root: str | Path, repo_id: str, cameras: tuple[str, ...] | None = None) -> None:
+        self.root, self.repo_id = Path(root), repo_id
+        info = json.loads((self.root / "meta" / "info.json").read_text())
+        self.calibration = load_calibration(info["features"])
+        external = tuple(n for n, c in self.calibration.items() if c.mount == "external")
+        self.camera_names = tuple(cameras) if cameras else external
+        if len(self.camera_names) < 2:
+            raise ValueError(
+                f"{self.root}: GenSplat needs two calibrated external cameras; found {external} "
+                f"(calibration goes in the image features' info, see gensplat_transforms.dataset_format)"
+            )
+        shape = info["features"][IMAGE_KEY_PREFIX + self.camera_names[0]]["shape"]  # (H, W, C)
+        self.cameras = calibrated_cameras(self.calibration, self.camera_names, shape[1], shape[0])
+        blob = json.dumps([repo_id, info.get("total_episodes"), info.get("total_frames"), info.get("fps"),
+                           {k: info["features"][IMAGE_KEY_PREFIX + k] for k in self.camera_names}],
+                          sort_keys=True)  # fmt: skip
+        self.fingerprint = hashlib.sha256(blob.encode()).hexdigest()[:16]
+        self._dataset = None
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_dataset": None}
+
+    @property
+    def dataset(self):
+        if self._dataset is None:
+            from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+            self._dataset = LeRobotDataset(self.repo_id, root=self.root)
+        return self._dataset
+
+    def num_frames(self, episode: int) -> int:
+        return int(self.dataset.meta.episodes["length"][episode])
+
+    def views(self, episode: int, frame: int) -> Views:
+        start = int(self.dataset.meta.episodes["dataset_from_index"][episode])
+        item = self.dataset[start + frame]
+        images = torch.stack([_as_float(item[IMAGE_KEY_PREFIX + n]) for n in self.camera_names])
+        if not all(depth_path(self.root, n, episode).exists() for n in self.camera_names):
+            return Views(images, self.cameras)  # RGB only: needs a model reconstructor
+        depths = torch.stack([load_depth(self.root, n, episode, frame) for n in self.camera_names])
+        return Views(images, self.cameras, depths)
+
+
+def _as_float(image: torch.Tensor) -> torch.Tensor:
+    return image.float() / 255 if image.dtype == torch.uint8 else image.float()
