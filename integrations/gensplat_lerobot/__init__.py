@@ -11,7 +11,9 @@ beside the dataset (``<root>/gensplat/``), written by ``gensplat cache``. Import
 package itself has no side effects.
 """
 
-from .dataset import GenSplatLeRobotDataset, enable_gensplat, load_settings, save_settings
+from .dataset import GenSplatLeRobotDataset, enable_gensplat, load_settings, prepare, save_settings
 from .source import LeRobotSource
 
-__all__ = ["GenSplatLeRobotDataset", "LeRobotSource", "enable_gensplat", "load_settings", "save_settings"]
+__all__ = [
+    "GenSplatLeRobotDataset", "LeRobotSource", "enable_gensplat", "load_settings", "prepare", "save_settings",
+]  # fmt: skip

@@ -57,6 +57,12 @@ def make_reconstructor(spec: dict):
     raise ValueError(f"unknown reconstructor {spec.get('name')!r} in the GenSplat settings")
 
 
+def dataset_cache(root: str | Path, reconstructor, source: LeRobotSource) -> GaussianCache:
+    """The cache of a dataset: ``<root>/gensplat/cache/<reconstructor identity>/``."""
+    rid = reconstructor.identity()
+    return GaussianCache(Path(root) / SETTINGS_DIR / "cache" / rid, rid, source.fingerprint)
+
+
 class GenSplatLeRobotDataset(LeRobotDataset):
     """A LeRobotDataset whose items pass through the GenSplat transform, then through
     LeRobot's own 2D image transforms (so those also apply to rendered views).
@@ -92,12 +98,27 @@ def enable_gensplat(dataset: LeRobotDataset, config: GenSplatConfig | None = Non
     if deltas is not None and config.frame_offsets is None:
         offsets = tuple(round(d * dataset.meta.fps) for d in deltas)
         config = GenSplatConfig(**{**asdict(config), "frame_offsets": offsets})
-    cache = GaussianCache(Path(dataset.root) / SETTINGS_DIR / "cache" / rec.identity(), rec.identity(),
-                          source.fingerprint)  # fmt: skip
-    transform = GenSplatTransform(config, cache, source, rec)
+    transform = GenSplatTransform(config, dataset_cache(dataset.root, rec, source), source, rec)
     two_d = dataset.image_transforms
     dataset.set_image_transforms(None)  # re-applied after GenSplat, see __getitem__
     dataset.__class__ = GenSplatLeRobotDataset
     dataset.gensplat = transform
     dataset.gensplat_image_transforms = two_d
     return dataset
+
+
+def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructor: dict | None = None,
+            episodes=None, progress: bool = True) -> dict:
+    """Write the settings beside the dataset and build its Gaussian cache (resumable).
+
+    Returns per-episode :class:`~gensplat_transforms.cache.CacheStats` (None when the
+    episode was already cached)."""
+    from gensplat_transforms.episodes import build_cache
+
+    reconstructor = reconstructor or {"name": "rgbd"}
+    rec = make_reconstructor(reconstructor)
+    source = LeRobotSource(root, repo_id, config.cameras)
+    save_settings(root, config, reconstructor)
+    total = len(source.dataset.meta.episodes["length"])
+    episodes = range(total) if episodes is None else episodes
+    return build_cache(dataset_cache(root, rec, source), source, rec, episodes, progress)

@@ -24,8 +24,8 @@ class LeRobotSource:
     Args:
         root: dataset root (holds ``meta/info.json``).
         repo_id: the dataset's repo id (offline use: any id matching the local copy).
-        cameras: names of the external cameras to reconstruct (default: every camera
-            whose calibration says ``"camera.mount": "external"``).
+        cameras: names of the external cameras to reconstruct (default: the external
+            cameras that have depth, or all external cameras when none has).
     """
 
     def __init__(self, root: str | Path, repo_id: str, cameras: tuple[str, ...] | None = None) -> None:
@@ -33,7 +33,8 @@ class LeRobotSource:
         info = json.loads((self.root / "meta" / "info.json").read_text())
         self.calibration = load_calibration(info["features"])
         external = tuple(n for n, c in self.calibration.items() if c.mount == "external")
-        self.camera_names = tuple(cameras) if cameras else external
+        with_depth = tuple(n for n in external if depth_path(self.root, n, 0).exists())
+        self.camera_names = tuple(cameras) if cameras else (with_depth or external)
         if len(self.camera_names) < 2:
             raise ValueError(
                 f"{self.root}: GenSplat needs two calibrated external cameras; found {external} "

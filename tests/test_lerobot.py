@@ -1,0 +1,152 @@
+"""LeRobot integration: a real local LeRobotDataset, the one-line lerobot-train hook, pi0."""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
+os.environ["HF_HUB_OFFLINE"] = "1"
+
+from lerobot.datasets.lerobot_dataset import LeRobotDataset  # noqa: E402
+
+from gensplat_lerobot import LeRobotSource, enable_gensplat, prepare, save_settings  # noqa: E402
+from gensplat_lerobot.record import record_scene_dataset  # noqa: E402
+from gensplat_transforms.episodes import SceneEpisodes  # noqa: E402
+from gensplat_transforms.transform import GenSplatConfig  # noqa: E402
+
+REPO = "local/gensplat_scene"
+POLICIES = Path(__file__).resolve().parents[1] / "policies"
+LEFT = "observation.images.left"
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    root = tmp_path_factory.mktemp("lerobot") / "ds"
+    record_scene_dataset(root, SceneEpisodes(num_episodes=2, num_frames=20, size=48), REPO, progress=False)
+    return root
+
+
+@pytest.fixture
+def dataset_root(recorded, tmp_path):
+    root = tmp_path / "ds"
+    shutil.copytree(recorded, root)
+    return root
+
+
+def test_recorded_dataset_carries_calibration_and_depth(recorded):
+    ds = LeRobotDataset(REPO, root=recorded)
+    assert ds.num_episodes == 2 and ds.num_frames == 40
+    source = LeRobotSource(recorded, REPO)
+    assert source.camera_names == ("left", "right")  # the external cameras with depth
+    views = source.views(1, 5)
+    assert views.depths.shape == (2, 1, 48, 48) and (views.depths > 0).all()
+    truth = SceneEpisodes(num_episodes=2, num_frames=20, size=48)
+    rgb, depth = truth.render(1, 5)
+    torch.testing.assert_close(views.depths, depth[:2], atol=2e-3, rtol=1e-3)  # float16 storage
+    assert (views.images - rgb[:2]).abs().max() <= 1 / 255 + 1e-6  # 8-bit images
+    torch.testing.assert_close(views.cameras.c2w, truth.cameras.c2w[:2])
+
+
+def test_enable_gensplat_renders_external_views_only(dataset_root):
+    save_settings(dataset_root, GenSplatConfig(probability=1.0, level="large", report=True), {"name": "rgbd"})
+    plain = LeRobotDataset(REPO, root=dataset_root)
+    ds = enable_gensplat(LeRobotDataset(REPO, root=dataset_root))
+    item, ref = ds[7], plain[7]
+    assert item["gensplat.applied"].all()
+    for cam in ("left", "right"):
+        key = f"observation.images.{cam}"
+        assert item[key].shape == ref[key].shape and item[key].dtype == ref[key].dtype
+        assert not torch.equal(item[key], ref[key])
+    assert torch.equal(item["observation.images.front"], ref["observation.images.front"])
+    torch.testing.assert_close(item["action"], ref["action"])  # actions are kept
+    # cache was built lazily, beside the dataset; the dataset files were not touched
+    assert list((dataset_root / "gensplat" / "cache").rglob("episode_000000.safetensors"))
+
+
+def test_temporal_stacks_follow_delta_timestamps(dataset_root):
+    save_settings(dataset_root, GenSplatConfig(probability=1.0, level="small", views_per_source=1), {"name": "rgbd"})
+    dt = {LEFT: [-0.2, -0.1, 0.0]}
+    ds = enable_gensplat(LeRobotDataset(REPO, root=dataset_root, delta_timestamps=dt))
+    assert ds.gensplat.cfg.frame_offsets == (-2, -1, 0)
+    single = enable_gensplat(LeRobotDataset(REPO, root=dataset_root))
+    stack = ds[5][LEFT]  # frames 3, 4, 5 of episode 0
+    assert stack.shape == (3, 3, 48, 48)
+    torch.testing.assert_close(stack[0], single[3][LEFT])
+    torch.testing.assert_close(stack[2], single[5][LEFT])
+    first = ds[0][LEFT]  # padded at the episode start, like LeRobot does
+    torch.testing.assert_close(first[0], first[2])
+
+
+def test_prepare_builds_cache_and_is_resumable(dataset_root):
+    stats = prepare(dataset_root, REPO, GenSplatConfig(), progress=False)
+    assert set(stats) == {0, 1} and all(s.num_frames == 20 for s in stats.values())
+    assert max(s.bytes_per_timestep for s in stats.values()) < 1e6
+    again = prepare(dataset_root, REPO, GenSplatConfig(), progress=False)
+    assert all(s is None for s in again.values())
+
+
+def test_missing_settings_or_depth_raise_clear_errors(dataset_root):
+    with pytest.raises(FileNotFoundError, match="gensplat cache"):
+        enable_gensplat(LeRobotDataset(REPO, root=dataset_root))
+    shutil.rmtree(dataset_root / "depth")
+    save_settings(dataset_root, GenSplatConfig(cameras=("left", "right"), probability=1.0), {"name": "rgbd"})
+    ds = enable_gensplat(LeRobotDataset(REPO, root=dataset_root))
+    with pytest.raises(ValueError, match="depths"):
+        ds[0]
+    with pytest.raises(ValueError, match="no calibration"):
+        LeRobotSource(dataset_root, REPO, ("left", "wrist"))
+
+
+def test_pi0_config_parses_and_its_dataset_path_runs(dataset_root):
+    import draccus
+    import lerobot.policies  # noqa: F401  registers the policy config classes
+    from lerobot.configs.train import TrainPipelineConfig
+    from lerobot.datasets.factory import make_train_eval_datasets
+
+    save_settings(dataset_root, GenSplatConfig(probability=1.0, report=True), {"name": "rgbd"})
+    cfg = draccus.parse(TrainPipelineConfig, config_path=str(POLICIES / "pi0.json"),
+                        args=[f"--dataset.repo_id={REPO}", f"--dataset.root={dataset_root}"])  # fmt: skip
+    assert type(cfg.policy).__name__ == "PI0Config"
+    cfg.validate()
+    train, _ = make_train_eval_datasets(cfg)
+    item = enable_gensplat(train)[3]
+    assert item["gensplat.applied"].all() and item[LEFT].shape == (3, 48, 48)
+
+
+def test_lerobot_train_diffusion_policy_with_the_one_line(dataset_root, tmp_path):
+    save_settings(dataset_root, GenSplatConfig(probability=1.0), {"name": "rgbd"})
+    out = tmp_path / "out"
+    cmd = [
+        "bash", str(POLICIES / "train.sh"), "diffusion", "gensplat",
+        f"--dataset.repo_id={REPO}", f"--dataset.root={dataset_root}", f"--output_dir={out}",
+        "--steps=2", "--batch_size=2", "--num_workers=2", "--save_freq=2", "--log_freq=1",
+    ]  # fmt: skip
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}", "HF_HUB_OFFLINE": "1"}
+    run = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert "GenSplat enabled on the training dataset" in run.stderr + run.stdout
+    # spawn workers built the cache while rendering: the augmentation really ran
+    assert list((dataset_root / "gensplat" / "cache").rglob("episode_*.safetensors"))
+    # the checkpoint knows nothing about GenSplat: it loads without this package
+    saved = next(out.rglob("train_config.json")).read_text()
+    assert "gensplat_lerobot" not in saved and "discover_packages_path" not in saved
+    policy_cfg = json.loads(next(out.rglob("pretrained_model/config.json")).read_text())
+    assert policy_cfg["type"] == "diffusion"
+
+
+def test_plugin_without_settings_stops_training(dataset_root, tmp_path):
+    cmd = [
+        "bash", str(POLICIES / "train.sh"), "diffusion", "gensplat",
+        f"--dataset.repo_id={REPO}", f"--dataset.root={dataset_root}", f"--output_dir={tmp_path / 'o'}",
+        "--steps=1", "--batch_size=2", "--num_workers=0",
+    ]  # fmt: skip
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}", "HF_HUB_OFFLINE": "1"}
+    run = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+    assert run.returncode != 0
+    assert "gensplat cache" in run.stderr
