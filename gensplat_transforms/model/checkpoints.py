@@ -60,10 +60,15 @@ def load_pi3_weights(model: nn.Module, path: str | Path) -> LoadReport:
     shared = [k for k in state if k in own]
     if not shared:
         raise ValueError(f"{path}: shares no key with the model (not a Pi3 / GenSplat checkpoint?)")
-    wrong = [f"{k}: file {tuple(state[k].shape)} vs model {tuple(own[k].shape)}"
-             for k in shared if state[k].shape != own[k].shape]  # fmt: skip
+    wrong = [
+        f"{k}: file {tuple(state[k].shape)} vs model {tuple(own[k].shape)}"
+        for k in shared
+        if state[k].shape != own[k].shape
+    ]
     if wrong:
-        raise ValueError(f"{path}: {len(wrong)} shape mismatches (another model size?): " + "; ".join(wrong[:5]))
+        raise ValueError(
+            f"{path}: {len(wrong)} shape mismatches (another model size?): " + "; ".join(wrong[:5])
+        )
     result = model.load_state_dict(state, strict=False)
     return LoadReport(len(shared), list(result.missing_keys), list(result.unexpected_keys))
 

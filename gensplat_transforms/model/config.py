@@ -56,30 +56,27 @@ class GenSplatConfig:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "gs_taps", tuple(int(t) for t in self.gs_taps))
-        problems = []
-        for name, width, heads in (("dim/enc_heads", self.dim, self.enc_heads),
-                                   ("dim/dec_heads", self.dim, self.dec_heads),
-                                   ("head_dim/head_heads", self.head_dim, self.head_heads)):  # fmt: skip
-            if heads <= 0 or width % heads:
-                problems.append(f"{name}: {width} is not divisible by {heads} heads")
-        for name, width, heads in (("dim/dec_heads", self.dim, self.dec_heads),
-                                   ("head_dim/head_heads", self.head_dim, self.head_heads)):  # fmt: skip
-            if heads > 0 and (width // heads) % 4:
-                problems.append(f"{name}: RoPE-2D needs a per-head width divisible by 4, got {width // heads}")
-        if self.dec_depth < 2 or self.dec_depth % 2:
-            problems.append(f"dec_depth must be even and >= 2 (frame/global pairs), got {self.dec_depth}")
-        if len(self.gs_taps) != 4 or len(set(self.gs_taps)) != 4:
-            problems.append(f"gs_taps must be 4 distinct block indices, got {self.gs_taps}")
-        if any(not 0 <= t < self.dec_depth for t in self.gs_taps):
-            problems.append(f"gs_taps {self.gs_taps} out of range for dec_depth {self.dec_depth}")
-        if not 0 <= self.sh_degree <= 4:
-            problems.append(f"sh_degree must be in 0..4, got {self.sh_degree}")
-        for name in ("enc_depth", "enc_registers", "enc_pos_grid", "dec_registers", "head_depth",
-                     "head_out_dim", "camera_dim", "gs_features", "gs_rgb_features"):  # fmt: skip
-            if getattr(self, name) < (0 if name.endswith("registers") else 1):
-                problems.append(f"{name} must be positive, got {getattr(self, name)}")
-        if problems:
-            raise ValueError("GenSplatConfig: " + "; ".join(problems))
+        sizes = ("dim", "enc_depth", "enc_heads", "enc_pos_grid", "dec_heads", "head_dim", "head_depth",
+                 "head_heads", "head_out_dim", "camera_dim", "gs_features", "gs_rgb_features")  # fmt: skip
+        bad = [n for n in sizes if getattr(self, n) <= 0] + [
+            n for n in ("enc_registers", "dec_registers") if getattr(self, n) < 0
+        ]
+        if bad:
+            raise ValueError(f"GenSplatConfig: {bad} must be positive (registers: >= 0)")
+        taps = self.gs_taps
+        checks = {
+            "dim divisible by the heads": self.dim % self.enc_heads == self.dim % self.dec_heads == 0,
+            "head_dim divisible by head_heads": self.head_dim % self.head_heads == 0,
+            "RoPE head widths (dim / dec_heads, head_dim / head_heads) divisible by 4":
+                (self.dim // self.dec_heads) % 4 == (self.head_dim // self.head_heads) % 4 == 0,
+            "dec_depth even (frame/global pairs)": self.dec_depth >= 2 and self.dec_depth % 2 == 0,
+            "gs_taps: 4 distinct indices below dec_depth":
+                len(set(taps)) == len(taps) == 4 and all(0 <= t < self.dec_depth for t in taps),
+            "sh_degree in 0..4": 0 <= self.sh_degree <= 4,
+        }  # fmt: skip
+        failed = [k for k, ok in checks.items() if not ok]
+        if failed:
+            raise ValueError(f"GenSplatConfig: need {'; '.join(failed)}")
 
     @classmethod
     def full(cls) -> GenSplatConfig:

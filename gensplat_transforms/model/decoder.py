@@ -29,10 +29,16 @@ class Decoder(nn.ModuleList):
 
     def __init__(self, cfg: GenSplatConfig):
         super().__init__(
-            Block(cfg.dim, cfg.dec_heads, cfg.mlp_ratio, layerscale=cfg.dec_layerscale, qk_norm=True,
-                  rope_freq=cfg.rope_freq)
+            Block(
+                cfg.dim,
+                cfg.dec_heads,
+                cfg.mlp_ratio,
+                layerscale=cfg.dec_layerscale,
+                qk_norm=True,
+                rope_freq=cfg.rope_freq,
+            )
             for _ in range(cfg.dec_depth)
-        )  # fmt: skip
+        )
 
     def forward(self, x: torch.Tensor, pos: torch.Tensor, keep: set[int]) -> dict[int, torch.Tensor]:
         """Run all blocks and return the outputs of the blocks in ``keep``.

@@ -36,7 +36,8 @@ class Encoder(nn.Module):
         self.register_tokens = nn.Parameter(torch.zeros(1, cfg.enc_registers, d))
         self.patch_embed = PatchEmbed(d)
         self.blocks = nn.ModuleList(
-            Block(d, cfg.enc_heads, cfg.mlp_ratio, layerscale=cfg.enc_layerscale) for _ in range(cfg.enc_depth)
+            Block(d, cfg.enc_heads, cfg.mlp_ratio, layerscale=cfg.enc_layerscale)
+            for _ in range(cfg.enc_depth)
         )
         self.norm = nn.LayerNorm(d, eps=1e-6)
 

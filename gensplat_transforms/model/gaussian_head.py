@@ -69,14 +69,18 @@ class GaussianHead(nn.Module):
         ])  # fmt: skip
         self.fusion = nn.ModuleList(FusionBlock(features, merge=i < 3) for i in range(4))
         self.rgb = nn.Sequential(
-            nn.Conv2d(3, rgb_features, 3, padding=1), nn.ReLU(), nn.Conv2d(rgb_features, rgb_features, 3, padding=1)
+            nn.Conv2d(3, rgb_features, 3, padding=1),
+            nn.ReLU(),
+            nn.Conv2d(rgb_features, rgb_features, 3, padding=1),
         )
         self.out = nn.Sequential(
-            nn.Conv2d(features + rgb_features, features, 1), nn.ReLU(), nn.Conv2d(features, 8 + 3 * self.sh_bases, 1)
+            nn.Conv2d(features + rgb_features, features, 1),
+            nn.ReLU(),
+            nn.Conv2d(features, 8 + 3 * self.sh_bases, 1),
         )
-        self.reset_output()
+        self._init_output()
 
-    def reset_output(self) -> None:
+    def _init_output(self) -> None:
         """Start near identity rotations, opacity 0.9 and scale 0.005 (a pixel at depth ~1)."""
         last = self.out[-1]
         nn.init.normal_(last.weight, std=1e-3)
@@ -86,7 +90,9 @@ class GaussianHead(nn.Module):
             last.bias[1] = 1.0
             last.bias[5:8] = math.log(math.expm1(5.0))
 
-    def forward(self, tokens: list[torch.Tensor], images: torch.Tensor, h: int, w: int) -> dict[str, torch.Tensor]:
+    def forward(
+        self, tokens: list[torch.Tensor], images: torch.Tensor, h: int, w: int
+    ) -> dict[str, torch.Tensor]:
         """
         Args:
             tokens: four (N, h*w, dim) patch-token maps, shallow to deep.
@@ -106,11 +112,11 @@ class GaussianHead(nn.Module):
             size = maps[i - 1].shape[-2:] if i > 0 else (4 * h, 4 * w)
             x = self.fusion[i](maps[i], x, size)
         x = F.interpolate(x, size=(H, W), mode="bilinear", align_corners=False)
-        raw = self.out(torch.cat([x, self.rgb(images)], dim=1)).permute(0, 2, 3, 1)
-        opacity, quats, scales, sh = raw.split([1, 4, 3, 3 * self.sh_bases], dim=-1)
+        raw = self.out(torch.cat([x, self.rgb(images)], dim=1))
+        opacity, quats, scales, sh = raw.split([1, 4, 3, 3 * self.sh_bases], dim=1)
         return {
-            "opacity": torch.sigmoid(opacity[..., 0]),
-            "quats": F.normalize(quats, dim=-1, eps=1e-8),
-            "scales": (0.001 * F.softplus(scales)).clamp(max=0.3),
-            "sh": sh.reshape(n, H, W, self.sh_bases, 3),
+            "opacity": torch.sigmoid(opacity[:, 0]),
+            "quats": F.normalize(quats, dim=1, eps=1e-8).permute(0, 2, 3, 1),
+            "scales": (0.001 * F.softplus(scales)).clamp(max=0.3).permute(0, 2, 3, 1),
+            "sh": sh.reshape(n, self.sh_bases, 3, H, W).permute(0, 3, 4, 1, 2),
         }

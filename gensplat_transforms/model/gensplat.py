@@ -12,18 +12,18 @@ import warnings
 from pathlib import Path
 
 import torch
-import torch.nn.functional as F
 from safetensors.torch import load_file, save_file
 from torch import nn
 
 from ..gaussians import Gaussians
 from ..rotations import rotmat_to_quat
-from ..sh import rgb_to_sh_dc, sh_basis
+from ..sh import rgb_to_sh_dc
 from .checkpoints import CONFIG_FILE, FORMAT_NAME, FORMAT_VERSION, WEIGHTS_FILE, load_pi3_weights, resolve
 from .config import PATCH_SIZE, GenSplatConfig
 from .decoder import Decoder, token_positions
 from .encoder import Encoder
 from .gaussian_head import GaussianHead
+from .geometry import quat_mul, sh_rotation
 from .heads import CameraHead, HeadDecoder, PixelHead
 
 
@@ -37,15 +37,11 @@ class GenSplatModel(nn.Module):
         self.decoder = Decoder(cfg)
         self.register_token = nn.Parameter(torch.zeros(1, 1, cfg.dec_registers, cfg.dim))
 
-        def head_decoder(out_dim):
-            return HeadDecoder(2 * cfg.dim, cfg.head_dim, out_dim, cfg.head_depth, cfg.head_heads,
-                               cfg.mlp_ratio, cfg.rope_freq)  # fmt: skip
-
-        self.point_decoder = head_decoder(cfg.head_out_dim)
+        self.point_decoder = HeadDecoder(2 * cfg.dim, cfg.head_out_dim, cfg)
         self.point_head = PixelHead(cfg.head_out_dim, 3)
-        self.conf_decoder = head_decoder(cfg.head_out_dim)
+        self.conf_decoder = HeadDecoder(2 * cfg.dim, cfg.head_out_dim, cfg)
         self.conf_head = PixelHead(cfg.head_out_dim, 1)
-        self.camera_decoder = head_decoder(cfg.camera_dim)
+        self.camera_decoder = HeadDecoder(2 * cfg.dim, cfg.camera_dim, cfg)
         self.camera_head = CameraHead(cfg.camera_dim)
         self.register_buffer("image_mean", torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1))
         self.register_buffer("image_std", torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1))
@@ -99,12 +95,15 @@ class GenSplatModel(nn.Module):
             local = torch.cat([xy * z, z], dim=-1)
             conf = self.conf_head(conf_tokens.float(), h, w)[..., 0]
             poses = self.camera_head(camera_tokens.float())
-            R, t = poses[:, None, None, :3, :3], poses[:, None, None, :3, 3]
-            points = (R @ local[..., None])[..., 0] + t
-            gs = self.gaussian_head([outs[i][:, :, r:].reshape(B * V, h * w, -1).float() for i in taps],
-                                    x.float(), h, w)  # fmt: skip
-            quats = _quat_mul(rotmat_to_quat(poses[:, :3, :3])[:, None, None], gs["quats"])
-            sh = _rotate_sh(gs["sh"], poses[:, :3, :3])
+            points = torch.einsum("nij,nhwj->nhwi", poses[:, :3, :3], local) + poses[:, None, None, :3, 3]
+            gs = self.gaussian_head(
+                [outs[i][:, :, r:].reshape(B * V, h * w, -1).float() for i in taps], x.float(), h, w
+            )
+            # head outputs are in the camera frame: rotate orientations and SH colour into the world
+            quats = quat_mul(rotmat_to_quat(poses[:, :3, :3])[:, None, None], gs["quats"])
+            sh = gs["sh"]
+            if sh.shape[-2] > 1:
+                sh = torch.einsum("nkj,nhwjc->nhwkc", sh_rotation(poses[:, :3, :3], sh.shape[-2]), sh)
             rgb = images.reshape(B * V, 3, H, W).float().permute(0, 2, 3, 1)
             sh = torch.cat([sh[..., :1, :] + rgb_to_sh_dc(rgb)[..., None, :], sh[..., 1:, :]], dim=-2)
 
@@ -139,7 +138,9 @@ class GenSplatModel(nn.Module):
         meta = json.loads((path / CONFIG_FILE).read_text())
         if meta.get("format") == FORMAT_NAME:
             if meta.get("format_version") != FORMAT_VERSION:
-                raise ValueError(f"{path}: format version {meta.get('format_version')} is not {FORMAT_VERSION}")
+                raise ValueError(
+                    f"{path}: format version {meta.get('format_version')} is not {FORMAT_VERSION}"
+                )
             model = cls(GenSplatConfig.from_dict(meta["config"]))
             model.load_state_dict(load_file(str(path / WEIGHTS_FILE)))
         elif meta.get("decoder_size", "large") == "large" and meta.get("pos_type", "rope100") == "rope100":
@@ -151,7 +152,9 @@ class GenSplatModel(nn.Module):
         return model.to(device).eval()
 
 
-def to_gaussians(outputs: dict[str, torch.Tensor], index: int = 0, min_conf: float | None = None) -> Gaussians:
+def to_gaussians(
+    outputs: dict[str, torch.Tensor], index: int = 0, min_conf: float | None = None
+) -> Gaussians:
     """One sample's pixel-aligned Gaussians from :meth:`GenSplatModel.forward` outputs.
 
     Args:
@@ -185,44 +188,3 @@ def _check_images(images: torch.Tensor) -> tuple[int, int, int, int]:
     if not images.is_floating_point():
         raise ValueError(f"GenSplatModel: images must be float in [0, 1], got {images.dtype}")
     return B, V, H, W
-
-
-def _quat_mul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Hamilton product a * b of (..., 4) w-x-y-z quaternions (rotation b, then a)."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack([
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    ], dim=-1)  # fmt: skip
-
-
-def _fibonacci_sphere(n: int, device=None) -> torch.Tensor:
-    i = torch.arange(n, dtype=torch.float64, device=device) + 0.5
-    z = 1 - 2 * i / n
-    phi = torch.pi * (3 - 5**0.5) * i
-    r = (1 - z * z).sqrt()
-    return torch.stack([r * phi.cos(), r * phi.sin(), z], dim=-1)
-
-
-def _rotate_sh(sh: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
-    """SH coefficients of camera-frame colour -> world frame for camera-to-world rotations.
-
-    Colour seen along world direction d must equal the camera-frame colour along R^T d. The
-    basis transforms linearly, Y(R^T d) = M Y(d), so c_world = M^T c_cam; M^T is solved by least
-    squares on a fixed direction set (exact up to float error: the bands are closed under rotation).
-
-    Args:
-        sh: (N, H, W, K, 3); R: (N, 3, 3). Returns (N, H, W, K, 3).
-    """
-    k = sh.shape[-2]
-    if k == 1:
-        return sh
-    degree = round(k**0.5) - 1
-    dirs = _fibonacci_sphere(4 * k, device=sh.device)
-    Y = sh_basis(degree, dirs).to(sh.dtype)  # (S, K)
-    Y_rot = sh_basis(degree, dirs.to(sh.dtype) @ R)  # (N, S, K): rows are (R^T d)^T
-    A = torch.linalg.pinv(Y) @ Y_rot  # (N, K, K) = M^T
-    return torch.einsum("nkj,nhwjc->nhwkc", A, sh)

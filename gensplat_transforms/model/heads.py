@@ -7,22 +7,24 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .config import PATCH_SIZE
+from .config import PATCH_SIZE, GenSplatConfig
 from .layers import Block, run_block
 
 
 class HeadDecoder(nn.Module):
-    """Linear projection, ``depth`` RoPE blocks (no qk-norm, no LayerScale) within each frame,
+    """Linear projection, ``head_depth`` RoPE blocks (no qk-norm, no LayerScale) within each frame,
     linear output. Pi3's ``TransformerDecoder``."""
 
     checkpointing = False
 
-    def __init__(self, in_dim: int, dim: int, out_dim: int, depth: int, heads: int, mlp_ratio: float,
-                 rope_freq: float):  # fmt: skip
+    def __init__(self, in_dim: int, out_dim: int, cfg: GenSplatConfig):
         super().__init__()
-        self.projects = nn.Linear(in_dim, dim)
-        self.blocks = nn.ModuleList(Block(dim, heads, mlp_ratio, rope_freq=rope_freq) for _ in range(depth))
-        self.linear_out = nn.Linear(dim, out_dim)
+        self.projects = nn.Linear(in_dim, cfg.head_dim)
+        self.blocks = nn.ModuleList(
+            Block(cfg.head_dim, cfg.head_heads, cfg.mlp_ratio, rope_freq=cfg.rope_freq)
+            for _ in range(cfg.head_depth)
+        )
+        self.linear_out = nn.Linear(cfg.head_dim, out_dim)
 
     def forward(self, x: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
         """x: (N, T, in_dim) frame tokens; pos: (T, 2). Returns (N, T, out_dim)."""

@@ -87,8 +87,15 @@ class Block(nn.Module):
     ``layerscale=None`` leaves LayerScale out (no ``ls*`` parameters), as in Pi3's heads.
     """
 
-    def __init__(self, dim: int, heads: int, mlp_ratio: float, layerscale: float | None = None,
-                 qk_norm: bool = False, rope_freq: float | None = None):  # fmt: skip
+    def __init__(
+        self,
+        dim: int,
+        heads: int,
+        mlp_ratio: float,
+        layerscale: float | None = None,
+        qk_norm: bool = False,
+        rope_freq: float | None = None,
+    ):
         super().__init__()
         self.norm1 = nn.LayerNorm(dim, eps=1e-6)
         self.attn = Attention(dim, heads, qk_norm, rope_freq)
