@@ -1,0 +1,62 @@
+"""Preview of original versus augmented views along an episode (PNG grid and MP4)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import torch
+
+from .images import save_grid, to_uint8
+
+
+def _float(image: torch.Tensor) -> torch.Tensor:
+    image = image[-1] if image.ndim == 4 else image  # temporal stack: the current frame
+    return image.float() / 255 if image.dtype == torch.uint8 else image.float()
+
+
+def write_preview(
+    items: Sequence[dict],
+    transform: Callable[[dict], dict],
+    cameras: Sequence[str],
+    out_dir: str | Path,
+    image_key: str = "observation.images.{name}",
+    max_rows: int = 8,
+    fps: int = 10,
+) -> dict[str, Path]:
+    """Apply ``transform`` to every item and write ``preview.png`` (up to ``max_rows``
+    evenly spaced frames; columns: original and augmented per camera) and, when PyAV is
+    installed, ``preview.mp4`` with every frame side by side."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for item in items:
+        aug = transform(item)
+        row = []
+        for name in cameras:
+            key = image_key.format(name=name)
+            row += [_float(item[key]), _float(aug[key])]
+        rows.append(row)
+    step = max(1, -(-len(rows) // max_rows))
+    picked = list(range(0, len(rows), step))[:max_rows]
+    cols = [f"{n}: {kind}" for n in cameras for kind in ("original", "GenSplat")]
+    labels = [f"frame {int(items[i]['frame_index'])}" for i in picked]
+    paths = {"png": out_dir / "preview.png"}
+    save_grid([rows[i] for i in picked], paths["png"], labels, cols)
+    try:
+        import av
+    except ImportError:
+        return paths
+    paths["mp4"] = out_dir / "preview.mp4"
+    frames = [torch.cat(r, dim=2) for r in rows]  # (3, H, W * 2 * cameras)
+    h, w = frames[0].shape[-2:]
+    with av.open(str(paths["mp4"]), mode="w") as container:
+        stream = container.add_stream("libx264" if "libx264" in av.codecs_available else "mpeg4", rate=fps)
+        stream.width, stream.height, stream.pix_fmt = w - w % 2, h - h % 2, "yuv420p"
+        for f in frames:
+            img = to_uint8(f)[: h - h % 2, : w - w % 2].numpy()
+            for packet in stream.encode(av.VideoFrame.from_ndarray(img, format="rgb24")):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    return paths
