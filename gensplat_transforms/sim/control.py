@@ -45,7 +45,9 @@ class ArmController:
         iterations: IK iterations per control step.
     """
 
-    def __init__(self, model: mujoco.MjModel, home: np.ndarray, iterations: int = 15, damping: float = 0.05) -> None:
+    def __init__(
+        self, model: mujoco.MjModel, home: np.ndarray, iterations: int = 15, damping: float = 0.05
+    ) -> None:
         self.model = model
         self.home = np.asarray(home, dtype=np.float64)
         self.iterations, self.damping = iterations, damping

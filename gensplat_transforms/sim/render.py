@@ -7,8 +7,24 @@ plane (nothing hit) get 0, the library's "invalid" value.
 
 from __future__ import annotations
 
+import atexit
+import weakref
+
 import mujoco
 import numpy as np
+
+_OPEN: weakref.WeakSet = weakref.WeakSet()
+
+
+def _free(gl: mujoco.GLContext, con: mujoco.MjrContext) -> None:
+    gl.make_current()
+    con.free()
+    gl.free()
+
+
+def _close_all() -> None:
+    for renderer in list(_OPEN):
+        renderer.close()
 
 
 class OffscreenRenderer:
@@ -20,8 +36,9 @@ class OffscreenRenderer:
         shadows, reflections: MuJoCo's shadow and reflection passes (slow on a CPU).
     """
 
-    def __init__(self, model: mujoco.MjModel, height: int, width: int, shadows: bool = False,
-                 reflections: bool = False) -> None:
+    def __init__(
+        self, model: mujoco.MjModel, height: int, width: int, shadows: bool = False, reflections: bool = False
+    ) -> None:
         if width > model.vis.global_.offwidth or height > model.vis.global_.offheight:
             raise ValueError(
                 f"image {width}x{height} exceeds the offscreen buffer "
@@ -31,6 +48,12 @@ class OffscreenRenderer:
         self._gl = mujoco.GLContext(width, height)
         self._gl.make_current()
         self._con = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_100)
+        self._finalizer = weakref.finalize(self, _free, self._gl, self._con)
+        self._finalizer.atexit = False
+        if not _OPEN:  # (re-)register after the GL backend's own exit hook, so this one runs first
+            atexit.unregister(_close_all)
+            atexit.register(_close_all)
+        _OPEN.add(self)
         mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._con)
         self._con.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
         self._scene = mujoco.MjvScene(model, maxgeom=2000)
@@ -51,13 +74,16 @@ class OffscreenRenderer:
     def _draw(self, data: mujoco.MjData, camera_id: int, segmentation: bool = False) -> None:
         self._gl.make_current()
         self._camera.fixedcamid = camera_id
-        mujoco.mjv_updateScene(self.model, data, self._option, None, self._camera,
-                               mujoco.mjtCatBit.mjCAT_ALL, self._scene)
+        mujoco.mjv_updateScene(
+            self.model, data, self._option, None, self._camera, mujoco.mjtCatBit.mjCAT_ALL, self._scene
+        )
         self._scene.flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = segmentation
         self._scene.flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = segmentation
         mujoco.mjr_render(self._rect, self._scene, self._con)
 
-    def render(self, data: mujoco.MjData, camera_id: int, depth: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    def render(
+        self, data: mujoco.MjData, camera_id: int, depth: bool = True
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         """RGB (H, W, 3) uint8 and metric depth (H, W) float32 (0 = nothing hit) of one camera."""
         self._draw(data, camera_id)
         mujoco.mjr_readPixels(self._rgb, self._zbuf if depth else None, self._rect, self._con)
@@ -82,14 +108,5 @@ class OffscreenRenderer:
         return lut[np.clip(segid, 0, self._scene.ngeom)]
 
     def close(self) -> None:
-        if self._con is not None:
-            self._gl.make_current()
-            self._con.free()
-            self._gl.free()
-            self._con = None
-
-    def __del__(self) -> None:
-        try:
-            self.close()
-        except Exception:  # interpreter shutdown: GL may already be gone
-            pass
+        """Free the GL context (also done when garbage-collected or at exit)."""
+        self._finalizer()

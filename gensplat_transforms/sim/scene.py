@@ -36,8 +36,8 @@ class ObjectSpec:
 
     Attributes:
         name: body and geom name.
-        shape: "box" or "cylinder" (upright).
-        size: MuJoCo half sizes: box (hx, hy, hz), cylinder (radius, half height).
+        shape: "box", "cylinder" (upright) or "sphere".
+        size: MuJoCo half sizes: box (hx, hy, hz), cylinder (radius, half height), sphere (radius,).
         mass: kilograms.
     """
 
@@ -73,8 +73,8 @@ class SceneConfig:
 
     external: dict[str, CameraSpec] = field(
         default_factory=lambda: {
-            "left": CameraSpec((1.10, 0.42, 0.52), (0.50, 0.0, 0.08)),
-            "right": CameraSpec((1.10, -0.42, 0.52), (0.50, 0.0, 0.08)),
+            "left": CameraSpec((1.05, 0.40, 0.50), (0.45, 0.0, 0.12)),
+            "right": CameraSpec((1.05, -0.40, 0.50), (0.45, 0.0, 0.12)),
         }
     )
     wrist_fovy: float = 75.0
@@ -86,11 +86,20 @@ def robot_assets_dir() -> Path:
     """Folder with gym-hil's ``panda.xml`` (Franka Panda + Robotiq 2F-85, Menagerie meshes)."""
     spec = importlib.util.find_spec("gym_hil")
     if spec is None or not spec.submodule_search_locations:
-        raise ImportError("the simulated world needs gym-hil for its robot assets: pip install 'gensplat-transforms[sim]'")
+        raise ImportError(
+            "the simulated world needs gym-hil for its robot assets: pip install 'gensplat-transforms[sim]'"
+        )
     path = Path(next(iter(spec.submodule_search_locations))) / "assets"
     if not (path / "panda.xml").is_file():
         raise FileNotFoundError(f"gym-hil is installed but {path / 'panda.xml'} is missing")
     return path
+
+
+def mat_to_quat(R: np.ndarray) -> np.ndarray:
+    """(w, x, y, z) quaternion of a (3, 3) rotation."""
+    quat = np.zeros(4)
+    mujoco.mju_mat2Quat(quat, np.asarray(R, dtype=np.float64).reshape(-1))
+    return quat
 
 
 def look_at_quat(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
@@ -103,10 +112,7 @@ def look_at_quat(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     back /= np.linalg.norm(back)
     right = np.cross(up, back)
     right /= np.linalg.norm(right)
-    R = np.stack([right, np.cross(back, right), back], axis=1)
-    quat = np.zeros(4)
-    mujoco.mju_mat2Quat(quat, R.reshape(-1))
-    return quat
+    return mat_to_quat(np.stack([right, np.cross(back, right), back], axis=1))
 
 
 def _noise_texture(rng: np.random.Generator, size: int, octaves: int = 5) -> np.ndarray:
@@ -130,8 +136,8 @@ def _wood_texture(rng: np.random.Generator, size: int = 256) -> np.ndarray:
     y, x = np.mgrid[0:size, 0:size] / size
     grain = 0.5 + 0.5 * np.sin(2 * math.pi * (12 * x + 3.0 * noise))
     plank = (np.floor(y * 6) % 2) * 0.08 + (np.abs((y * 6) % 1 - 0.5) > 0.48) * -0.25
-    shade = np.clip(0.55 + 0.25 * grain + 0.15 * noise + plank, 0, 1)
-    base = np.array([0.62, 0.42, 0.24])
+    shade = np.clip(0.6 + 0.15 * grain + 0.2 * noise + plank, 0, 1)
+    base = np.array([0.60, 0.45, 0.32])
     return (255 * shade[..., None] * base / base.max()).astype(np.uint8)
 
 
@@ -185,6 +191,7 @@ def build_spec(objects: list[ObjectSpec], config: SceneConfig) -> mujoco.MjSpec:
     spec.visual.map.znear = 0.01
     spec.visual.map.zfar = 4.0
     spec.visual.quality.shadowsize = 2048
+    spec.visual.quality.offsamples = 0  # no MSAA: colour, depth and ids all sampled at pixel centres
     spec.visual.headlight.ambient = [0.35, 0.35, 0.35]
     spec.visual.headlight.diffuse = [0.25, 0.25, 0.25]
     spec.visual.headlight.specular = [0.0, 0.0, 0.0]
@@ -193,45 +200,101 @@ def build_spec(objects: list[ObjectSpec], config: SceneConfig) -> mujoco.MjSpec:
     rng = np.random.default_rng(config.texture_seed)
     table_mat = _add_texture(spec, "table", _wood_texture(rng), (1.5, 1.5))
     wall_mat = _add_texture(spec, "wall", _wall_texture(rng), (0.6, 0.6))
-    floor = spec.add_texture(name="floor", type=mujoco.mjtTexture.mjTEXTURE_2D, builtin=mujoco.mjtBuiltin.mjBUILTIN_CHECKER)
+    floor = spec.add_texture(
+        name="floor", type=mujoco.mjtTexture.mjTEXTURE_2D, builtin=mujoco.mjtBuiltin.mjBUILTIN_CHECKER
+    )
     floor.width = floor.height = 256
     floor.rgb1, floor.rgb2 = [0.35, 0.35, 0.38], [0.25, 0.25, 0.28]
     floor_mat = spec.add_material(name="floor", texrepeat=[4, 4], texuniform=True)
     floor_mat.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = "floor"
 
     world = spec.worldbody
-    world.add_geom(name="table", type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.7, 0.65, 0.02], pos=[0.35, 0, -0.02],
-                   material=table_mat)
-    world.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[3, 3, 0.1], pos=[0, 0, -0.75],
-                   material="floor", contype=0, conaffinity=0)
-    for i, (pos, size) in enumerate([
-        ((2.2, 0, 0.5), (0.02, 2.5, 1.3)), ((-1.4, 0, 0.5), (0.02, 2.5, 1.3)),
-        ((0.4, 2.5, 0.5), (1.8, 0.02, 1.3)), ((0.4, -2.5, 0.5), (1.8, 0.02, 1.3)),
-        ((0.4, 0, 1.8), (1.8, 2.5, 0.02)),
-    ]):
-        world.add_geom(name=f"wall{i}", type=mujoco.mjtGeom.mjGEOM_BOX, size=size, pos=pos, material=wall_mat,
-                       contype=0, conaffinity=0)
+    world.add_geom(
+        name="table",
+        type=mujoco.mjtGeom.mjGEOM_BOX,
+        size=[0.7, 0.65, 0.02],
+        pos=[0.35, 0, -0.02],
+        material=table_mat,
+    )
+    world.add_geom(
+        name="floor",
+        type=mujoco.mjtGeom.mjGEOM_PLANE,
+        size=[3, 3, 0.1],
+        pos=[0, 0, -0.75],
+        material="floor",
+        contype=0,
+        conaffinity=0,
+    )
+    for i, (pos, size) in enumerate(
+        [
+            ((2.2, 0, 0.5), (0.02, 2.5, 1.3)),
+            ((-1.4, 0, 0.5), (0.02, 2.5, 1.3)),
+            ((0.4, 2.5, 0.5), (1.8, 0.02, 1.3)),
+            ((0.4, -2.5, 0.5), (1.8, 0.02, 1.3)),
+            ((0.4, 0, 1.8), (1.8, 2.5, 0.02)),
+        ]
+    ):
+        world.add_geom(
+            name=f"wall{i}",
+            type=mujoco.mjtGeom.mjGEOM_BOX,
+            size=size,
+            pos=pos,
+            material=wall_mat,
+            contype=0,
+            conaffinity=0,
+        )
 
-    world.add_light(name="top", pos=[0.6, 0.3, 1.6], dir=[-0.1, -0.15, -1], type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL,
-                    diffuse=[0.6, 0.6, 0.6], specular=[0.15, 0.15, 0.15], castshadow=True)
-    world.add_light(name="fill", pos=[1.5, -1.0, 1.2], dir=[-0.7, 0.5, -0.6], type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL, diffuse=[0.25, 0.25, 0.25],
-                    specular=[0, 0, 0], castshadow=False)
+    world.add_light(
+        name="top",
+        pos=[0.6, 0.3, 1.6],
+        dir=[-0.1, -0.15, -1],
+        type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL,
+        diffuse=[0.6, 0.6, 0.6],
+        specular=[0.15, 0.15, 0.15],
+        castshadow=True,
+    )
+    world.add_light(
+        name="fill",
+        pos=[1.5, -1.0, 1.2],
+        dir=[-0.7, 0.5, -0.6],
+        type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL,
+        diffuse=[0.25, 0.25, 0.25],
+        specular=[0, 0, 0],
+        castshadow=False,
+    )
 
     for name, cam in config.external.items():
-        world.add_camera(name=name, pos=list(cam.eye), quat=list(look_at_quat(cam.eye, cam.target)), fovy=cam.fovy)
+        world.add_camera(
+            name=name, pos=list(cam.eye), quat=list(look_at_quat(cam.eye, cam.target)), fovy=cam.fovy
+        )
     world.add_camera(name="probe", pos=[1.0, 0, 0.5], quat=list(look_at_quat((1.0, 0, 0.5), (0.5, 0, 0))))
     # Wrist camera on the gripper base (+z = approach, fingers close along y): offset across
     # the finger axis, looking at the point between the fingertips.
     eye, target = (0.08, 0.0, 0.03), (0.0, 0.0, 0.19)
-    spec.body("base").add_camera(name="wrist", pos=list(eye), quat=list(look_at_quat(eye, target, up=(1, 0, 0))),
-                                 fovy=config.wrist_fovy)
+    spec.body("base").add_camera(
+        name="wrist",
+        pos=list(eye),
+        quat=list(look_at_quat(eye, target, up=(1, 0, 0))),
+        fovy=config.wrist_fovy,
+    )
 
-    geom_type = {"box": mujoco.mjtGeom.mjGEOM_BOX, "cylinder": mujoco.mjtGeom.mjGEOM_CYLINDER}
+    geom_type = {
+        "box": mujoco.mjtGeom.mjGEOM_BOX,
+        "cylinder": mujoco.mjtGeom.mjGEOM_CYLINDER,
+        "sphere": mujoco.mjtGeom.mjGEOM_SPHERE,
+    }
     for obj in objects:
         body = world.add_body(name=obj.name, pos=[0.5, 0, obj.half_height])
         body.add_freejoint(name=obj.name)
-        body.add_geom(name=obj.name, type=geom_type[obj.shape], size=list(obj.size) + [0] * (3 - len(obj.size)),
-                      mass=obj.mass, friction=[1.0, 0.01, 0.001], condim=4, rgba=[0.5, 0.5, 0.5, 1])
+        body.add_geom(
+            name=obj.name,
+            type=geom_type[obj.shape],
+            size=list(obj.size) + [0] * (3 - len(obj.size)),
+            mass=obj.mass,
+            friction=[1.0, 0.01, 0.001],
+            condim=4,
+            rgba=[0.5, 0.5, 0.5, 1],
+        )
     return spec
 
 

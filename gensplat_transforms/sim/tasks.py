@@ -32,6 +32,13 @@ PALETTE: dict[str, tuple[float, float, float]] = {
 }
 
 
+def episode_seed(seed: int, index: int, stream: str = "record") -> int:
+    """Seed of episode ``index`` in a run seeded ``seed``; ``stream`` separates recording
+    ("record") from evaluation ("eval") so evaluation never replays a training layout."""
+    salt = {"record": 0, "eval": 1}[stream]
+    return int(np.random.SeedSequence([int(seed), int(index), salt]).generate_state(1)[0])
+
+
 @dataclass(frozen=True)
 class Placement:
     """An object's initial pose on the table (world x, y in metres, yaw in radians) and colour name."""
@@ -59,13 +66,21 @@ class EpisodeSpec:
     instruction: str
 
     def to_dict(self) -> dict:
-        return {"task": self.task, "seed": self.seed, "instruction": self.instruction,
-                "placements": {k: vars(p) for k, p in self.placements.items()}}
+        return {
+            "task": self.task,
+            "seed": self.seed,
+            "instruction": self.instruction,
+            "placements": {k: vars(p) for k, p in self.placements.items()},
+        }
 
     @classmethod
     def from_dict(cls, d: dict) -> EpisodeSpec:
-        return cls(d["task"], int(d["seed"]), {k: Placement(**p) for k, p in d["placements"].items()},
-                   d["instruction"])
+        return cls(
+            d["task"],
+            int(d["seed"]),
+            {k: Placement(**p) for k, p in d["placements"].items()},
+            d["instruction"],
+        )
 
 
 @dataclass(frozen=True)
@@ -108,10 +123,13 @@ class Task:
             else:
                 raise RuntimeError(f"{self.name}: could not place {obj.name} (seed {seed})")
             placed.append((x, y, radius))
-            placements[obj.name] = Placement(float(x), float(y), float(rng.uniform(-math.pi / 4, math.pi / 4)),
-                                             str(color))
-        instruction = (f"put the {placements[self.pick].color} {self.pick_noun} on the "
-                       f"{placements[self.place].color} {self.place_noun}")
+            placements[obj.name] = Placement(
+                float(x), float(y), float(rng.uniform(-math.pi / 4, math.pi / 4)), str(color)
+            )
+        instruction = (
+            f"put the {placements[self.pick].color} {self.pick_noun} on the "
+            f"{placements[self.place].color} {self.place_noun}"
+        )
         return EpisodeSpec(self.name, int(seed), placements, instruction)
 
     def success(self, positions: dict[str, np.ndarray], gripper_closed: bool) -> bool:
@@ -123,8 +141,11 @@ class Task:
         """
         p, q = positions[self.pick], positions[self.place]
         top = q[2] + self.object(self.place).half_height + self.object(self.pick).half_height
-        return (not gripper_closed and math.hypot(p[0] - q[0], p[1] - q[1]) < self.place_tolerance
-                and abs(p[2] - top) < 0.01)
+        return (
+            not gripper_closed
+            and math.hypot(p[0] - q[0], p[1] - q[1]) < self.place_tolerance
+            and abs(p[2] - top) < 0.01
+        )
 
 
 _CAN = ObjectSpec("can", "cylinder", (0.025, 0.045), 0.15)
@@ -132,13 +153,29 @@ _CAN = ObjectSpec("can", "cylinder", (0.025, 0.045), 0.15)
 TASKS: dict[str, Task] = {
     "pick_place": Task(
         "pick_place",
-        (ObjectSpec("cube", "box", (0.02, 0.02, 0.02), 0.1), ObjectSpec("plate", "cylinder", (0.07, 0.006), 0.4), _CAN),
-        pick="cube", place="plate", pick_noun="cube", place_noun="plate", place_tolerance=0.06,
+        (
+            ObjectSpec("cube", "box", (0.02, 0.02, 0.02), 0.1),
+            ObjectSpec("plate", "cylinder", (0.07, 0.006), 0.4),
+            _CAN,
+        ),
+        pick="cube",
+        place="plate",
+        pick_noun="cube",
+        place_noun="plate",
+        place_tolerance=0.06,
     ),
     "stack": Task(
         "stack",
-        (ObjectSpec("cube", "box", (0.02, 0.02, 0.02), 0.1), ObjectSpec("block", "box", (0.03, 0.03, 0.03), 0.4), _CAN),
-        pick="cube", place="block", pick_noun="cube", place_noun="block", place_tolerance=0.025,
+        (
+            ObjectSpec("cube", "box", (0.02, 0.02, 0.02), 0.1),
+            ObjectSpec("block", "box", (0.03, 0.03, 0.03), 0.4),
+            _CAN,
+        ),
+        pick="cube",
+        place="block",
+        pick_noun="cube",
+        place_noun="block",
+        place_tolerance=0.025,
     ),
 }
 

@@ -1,0 +1,182 @@
+"""Policy evaluation under camera perturbation (the paper's RQ1 protocol, in simulation).
+
+:class:`PerturbedCameraEnv` is a Gymnasium environment of one task in which the named
+external cameras are moved, once per episode, by the perturbation that
+``PerturbationSampler(level, seed=seed).sample(episode_index)`` draws, about the pivot of the
+two external cameras' nominal poses. Observations use the recorded datasets' keys and the
+library's conventions, so a policy trained on a recorded dataset runs unchanged:
+
+* ``observation.images.<camera>``: (3, H, W) float32 tensor in [0, 1];
+* ``observation.state``: (12,) float32 tensor;
+* ``task``: the instruction string.
+
+Actions are ``[x, y, z, yaw, gripper]`` (see :mod:`.control`). An episode terminates on
+success (reward 1) or is truncated after the task's step budget.
+
+Example:
+    >>> env = PerturbedCameraEnv(EvalConfig(task="pick_place", level="large"))
+    >>> evaluate(my_policy, env, episodes=20).success_rate
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from ..dataset_format import IMAGE_KEY_PREFIX
+from ..perturbation import Perturbation, PerturbationSampler, pivot_point
+from .control import ACTION_HIGH, ACTION_LOW
+from .scene import mat_to_quat
+from .tasks import episode_seed
+from .world import CAMERA_NAMES, EXTERNAL_CAMERAS, STATE_NAMES, SimWorld, WorldConfig
+
+_GL_TO_CV = np.diag([1.0, -1.0, -1.0])
+
+
+@dataclass
+class EvalConfig:
+    """Attributes:
+    task: task name.
+    level: perturbation level (none / small / medium / large / extreme, or any key of LEVELS).
+    perturbed: external cameras that are moved (each by the same perturbation).
+    seed: seeds the episode layouts (evaluation stream, disjoint from recording) and the perturbations.
+    max_steps: step budget per episode (default: the task's).
+    world: scene settings; keep the camera layout of the training data.
+    """
+
+    task: str = "pick_place"
+    level: str = "none"
+    perturbed: tuple[str, ...] = ("left",)
+    seed: int = 0
+    max_steps: int | None = None
+    world: WorldConfig = field(default_factory=WorldConfig)
+
+
+class PerturbedCameraEnv(gym.Env):
+    """One task with perturbed external cameras; see the module docstring."""
+
+    metadata: ClassVar[dict] = {"render_modes": []}
+
+    def __init__(self, config: EvalConfig | None = None) -> None:
+        self.config = config or EvalConfig()
+        bad = [c for c in self.config.perturbed if c not in EXTERNAL_CAMERAS]
+        if bad:
+            raise ValueError(f"only external cameras {EXTERNAL_CAMERAS} can be perturbed, got {bad}")
+        self.world = SimWorld(self.config.task, self.config.world)
+        self.sampler = PerturbationSampler(self.config.level, seed=self.config.seed)
+        self.max_steps = self.config.max_steps or self.world.task.max_steps
+        nominal = self.world.cameras(EXTERNAL_CAMERAS)
+        self.nominal_c2w = dict(zip(EXTERNAL_CAMERAS, nominal.c2w))
+        self.pivot = pivot_point(nominal.c2w[0], nominal.c2w[1])
+        self.perturbation = Perturbation()
+        self.episode_index = -1
+        self._steps = 0
+        h, w = self.world.config.height, self.world.config.width
+        self.observation_space = gym.spaces.Dict(
+            {
+                **{
+                    IMAGE_KEY_PREFIX + n: gym.spaces.Box(0.0, 1.0, (3, h, w), np.float32)
+                    for n in CAMERA_NAMES
+                },
+                "observation.state": gym.spaces.Box(-np.inf, np.inf, (len(STATE_NAMES),), np.float32),
+            }
+        )
+        self.action_space = gym.spaces.Box(ACTION_LOW.astype(np.float32), ACTION_HIGH.astype(np.float32))
+
+    def _place_camera(self, name: str, c2w: torch.Tensor) -> None:
+        """Move a world-fixed camera to an OpenCV camera-to-world pose."""
+        cam = self.world.model.camera(name).id
+        self.world.model.cam_pos[cam] = c2w[:3, 3].numpy()
+        self.world.model.cam_quat[cam] = mat_to_quat(c2w[:3, :3].numpy() @ _GL_TO_CV)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """Start the next evaluation episode (or ``options["episode_index"]``)."""
+        super().reset(seed=seed)
+        self.episode_index = int((options or {}).get("episode_index", self.episode_index + 1))
+        self.perturbation = self.sampler.sample(self.episode_index)
+        for name in EXTERNAL_CAMERAS:
+            c2w = self.nominal_c2w[name]
+            self._place_camera(
+                name, self.perturbation.apply(c2w, self.pivot) if name in self.config.perturbed else c2w
+            )
+        episode = self.world.reset(episode_seed(self.config.seed, self.episode_index, "eval"))
+        self._steps = 0
+        info = {
+            "episode_index": self.episode_index,
+            "perturbation": self.perturbation.as_dict(),
+            "instruction": episode.instruction,
+        }
+        return self._observation(), info
+
+    def step(self, action):
+        self.world.step(np.asarray(action, dtype=np.float64).reshape(-1))
+        self._steps += 1
+        success = self.world.success()
+        return (
+            self._observation(),
+            float(success),
+            success,
+            self._steps >= self.max_steps,
+            {"success": success},
+        )
+
+    def _observation(self) -> dict:
+        frames = self.world.render(CAMERA_NAMES, depth=False)
+        obs = {
+            IMAGE_KEY_PREFIX + n: torch.from_numpy(frames[n][0]).permute(2, 0, 1).float() / 255
+            for n in CAMERA_NAMES
+        }
+        obs["observation.state"] = torch.from_numpy(self.world.robot_state())
+        obs["task"] = self.world.episode.instruction
+        return obs
+
+    def close(self) -> None:
+        self.world.close()
+
+
+@dataclass
+class EvalResult:
+    """Per-episode successes and steps, and the perturbation each episode used."""
+
+    level: str
+    successes: list[bool]
+    steps: list[int]
+    perturbations: list[dict]
+
+    @property
+    def success_rate(self) -> float:
+        return float(np.mean(self.successes)) if self.successes else 0.0
+
+
+def evaluate(
+    policy: Callable[[dict], np.ndarray | torch.Tensor],
+    env: PerturbedCameraEnv,
+    episodes: int = 10,
+    reset: Callable[[], None] | None = None,
+) -> EvalResult:
+    """Run evaluation episodes 0 .. ``episodes - 1`` of ``policy`` in ``env`` and report success.
+
+    Args:
+        policy: maps an observation (see the module docstring) to a (5,) action.
+        reset: called after every environment reset (e.g. a LeRobot policy's ``reset``).
+    """
+    result = EvalResult(env.config.level, [], [], [])
+    for i in range(episodes):
+        obs, info = env.reset(options={"episode_index": i})
+        if reset is not None:
+            reset()
+        done, steps, success = False, 0, False
+        while not done:
+            action = policy(obs)
+            obs, _, success, truncated, _ = env.step(torch.as_tensor(action).detach().cpu().numpy())
+            steps += 1
+            done = success or truncated
+        result.successes.append(bool(success))
+        result.steps.append(steps)
+        result.perturbations.append(info["perturbation"])
+    return result

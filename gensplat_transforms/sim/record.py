@@ -1,0 +1,182 @@
+"""Record scripted demonstrations into a local LeRobotDataset (v3, offline).
+
+Each attempt first runs the expert without rendering; successful episodes are then replayed
+state by state and rendered, so the recorded images are exactly what
+:class:`~.truth.GroundTruth` re-renders. Failed attempts are skipped (and counted).
+
+Dataset contents (see :mod:`.dataset_format` for calibration and depth):
+
+* ``observation.images.{left,right,wrist}``: (H, W, 3) RGB, calibration in ``info`` (see
+  :mod:`.dataset_format`);
+* ``observation.state``: (12,) float32, names :data:`~.world.STATE_NAMES`;
+* ``action``: (5,) float32 ``[x, y, z, yaw, gripper]`` (see :mod:`.control`);
+* ``task``: the instruction, e.g. "put the red cube on the blue plate";
+* ``depth/<left|right>/episode_*.safetensors`` and ``sim/`` sidecars.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from ..dataset_format import IMAGE_KEY_PREFIX, camera_info, save_depth
+from .control import ACTION_NAMES
+from .experts import ExpertConfig, run_expert
+from .tasks import episode_seed
+from .truth import save_sim_episode, save_world
+from .world import CAMERA_NAMES, EXTERNAL_CAMERAS, STATE_NAMES, SimWorld, WorldConfig
+
+
+@dataclass
+class RecordConfig:
+    """Attributes:
+    root: output folder (must not exist yet).
+    task: task name (``pick_place`` or ``stack``).
+    episodes: number of successful demonstrations to record.
+    seed: run seed; attempt k uses ``episode_seed(seed, k)``.
+    use_videos: store images as MP4 video (LeRobot's default) or as PNG images (lossless).
+    repo_id: LeRobot repo id written into the metadata (default ``gensplat/sim_<task>``).
+    max_attempts: give up after this many expert attempts (default ``2 * episodes + 10``).
+    world, expert: scene and expert settings.
+    """
+
+    root: Path
+    task: str = "pick_place"
+    episodes: int = 10
+    seed: int = 0
+    use_videos: bool = True
+    repo_id: str | None = None
+    max_attempts: int | None = None
+    world: WorldConfig = field(default_factory=WorldConfig)
+    expert: ExpertConfig = field(default_factory=ExpertConfig)
+
+
+@dataclass
+class RecordResult:
+    root: Path
+    episodes: int
+    attempts: int
+    frames: int
+    seconds: float
+
+    @property
+    def success_rate(self) -> float:
+        return self.episodes / max(self.attempts, 1)
+
+    @property
+    def frames_per_second(self) -> float:
+        return self.frames / max(self.seconds, 1e-9)
+
+
+def dataset_features(world: SimWorld, use_videos: bool) -> dict:
+    """LeRobot feature spec of a simulated dataset, calibration included."""
+    h, w = world.config.height, world.config.width
+    cams = world.cameras(CAMERA_NAMES)
+    features = {}
+    for i, name in enumerate(CAMERA_NAMES):
+        external = name in EXTERNAL_CAMERAS
+        features[IMAGE_KEY_PREFIX + name] = {
+            "dtype": "video" if use_videos else "image",
+            "shape": (h, w, 3),
+            "names": ["height", "width", "channels"],
+            "info": camera_info(
+                cams.K[i], cams.c2w[i] if external else None, "external" if external else "wrist"
+            ),
+        }
+    features["observation.state"] = {
+        "dtype": "float32",
+        "shape": (len(STATE_NAMES),),
+        "names": list(STATE_NAMES),
+    }
+    features["action"] = {"dtype": "float32", "shape": (len(ACTION_NAMES),), "names": list(ACTION_NAMES)}
+    return features
+
+
+def record(config: RecordConfig, progress: bool = True) -> RecordResult:
+    """Record ``config.episodes`` successful expert demonstrations; see the module docstring."""
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    os.environ.setdefault("SVT_LOG", "1")  # AV1 encoder: errors only
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    root = Path(config.root)
+    world = SimWorld(config.task, config.world)
+    dataset = LeRobotDataset.create(
+        repo_id=config.repo_id or f"gensplat/sim_{world.task.name}",
+        fps=world.config.fps,
+        features=dataset_features(world, config.use_videos),
+        root=root,
+        robot_type="franka_panda_robotiq_2f85",
+        use_videos=config.use_videos,
+        image_writer_threads=4,
+    )
+    save_world(root, world)
+    max_attempts = config.max_attempts or 2 * config.episodes + 10
+    saved = attempts = frames = 0
+    start = time.perf_counter()
+    bar = tqdm(total=config.episodes, unit="episode", desc=f"record {world.task.name}", disable=not progress)
+    try:
+        while saved < config.episodes and attempts < max_attempts:
+            episode, states, actions, success = run_expert(
+                world, episode_seed(config.seed, attempts), config.expert
+            )
+            attempts += 1
+            if not success:
+                continue
+            depth = {name: [] for name in EXTERNAL_CAMERAS}
+            for state, action in zip(states, actions):
+                world.set_state(state)
+                rendered = world.render(CAMERA_NAMES, depth=True)
+                frame = {IMAGE_KEY_PREFIX + n: rendered[n][0] for n in CAMERA_NAMES}
+                frame.update(
+                    {"observation.state": world.robot_state(), "action": action, "task": episode.instruction}
+                )
+                dataset.add_frame(frame)
+                for name in EXTERNAL_CAMERAS:
+                    depth[name].append(rendered[name][1])
+            dataset.save_episode(parallel_encoding=False)  # no fork() of this multi-threaded GL process
+            for name in EXTERNAL_CAMERAS:
+                save_depth(root, name, saved, torch.from_numpy(np.stack(depth[name])))
+            save_sim_episode(root, saved, episode, states)
+            saved += 1
+            frames += len(states)
+            bar.update(1)
+            bar.set_postfix(
+                frames=frames,
+                fps=f"{frames / (time.perf_counter() - start):.1f}",
+                success=f"{saved}/{attempts}",
+            )
+    finally:
+        bar.close()
+        dataset.finalize()
+        world.close()
+    if saved < config.episodes:
+        raise RuntimeError(f"only {saved} of {config.episodes} episodes succeeded in {attempts} attempts")
+    return RecordResult(root, saved, attempts, frames, time.perf_counter() - start)
+
+
+def record_from_cli(args) -> RecordResult:
+    """``gensplat record``: build the config from parsed arguments, record, print a summary."""
+    world = WorldConfig(
+        height=args.size, width=args.size, fps=args.fps, shadows=args.shadows, reflections=args.shadows
+    )
+    result = record(
+        RecordConfig(
+            Path(args.out),
+            task=args.task,
+            episodes=args.episodes,
+            seed=args.seed,
+            use_videos=not args.images,
+            world=world,
+        )
+    )
+    print(
+        f"recorded {result.episodes} {args.task} episode(s), {result.frames} frames, into {result.root} "
+        f"(expert success {result.episodes}/{result.attempts}, {result.frames_per_second:.1f} frames/s)"
+    )
+    return result
