@@ -10,24 +10,12 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="gensplat", description="GenSplat camera-pose augmentation tools")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    demo = sub.add_parser("demo", help="render perturbed views of the built-in RGB-D scene at every level")
+    demo = sub.add_parser("demo", help="the main job: simulated dataset -> Gaussian cache -> augmentation preview")
     demo.add_argument("--out", default="outputs/demo", help="output folder (default: outputs/demo)")
+    demo.add_argument("--episodes", type=int, default=2, help="demonstrations to record (default: 2)")
     demo.add_argument("--size", type=int, default=224, help="image size in pixels (default: 224)")
     demo.add_argument("--seed", type=int, default=0)
-    demo.add_argument("--backend", default="reference", help="render backend (default: reference)")
-
-    cache = sub.add_parser("cache", help="write GenSplat settings beside a LeRobot dataset and build its Gaussian cache")
-    cache.add_argument("--root", required=True, help="local LeRobot dataset root")
-    cache.add_argument("--repo-id", required=True, help="the dataset's repo id")
-    cache.add_argument("--cameras", nargs="+", default=None, help="external cameras to reconstruct (default: all)")
-    cache.add_argument("--replace", nargs="+", default=None, help="cameras whose image is replaced (default: all)")
-    cache.add_argument("--level", default="train", help="perturbation level (default: train)")
-    cache.add_argument("--probability", type=float, default=0.5, help="chance a sample is augmented")
-    cache.add_argument("--mode", choices=["episode", "frame"], default="episode")
-    cache.add_argument("--views-per-source", type=int, default=3)
-    cache.add_argument("--seed", type=int, default=0)
-    cache.add_argument("--backend", default="reference", help="render backend used in the workers")
-    cache.add_argument("--episodes", type=int, nargs="+", default=None, help="only these episodes")
+    demo.add_argument("--backend", default="fast", help="render backend (default: fast)")
 
     record = sub.add_parser("record", help="record scripted demonstrations of the simulated tabletop (LeRobot v3)")
     record.add_argument("--out", required=True, help="dataset root to create (must not exist)")
@@ -39,6 +27,37 @@ def main(argv: list[str] | None = None) -> int:
     record.add_argument("--images", action="store_true", help="store lossless PNG images instead of MP4 video")
     record.add_argument("--shadows", action="store_true", help="render shadows and reflections (slower)")
 
+    train = sub.add_parser("train-model", help="train the GenSplat model with 3D-prior distillation")
+    train.add_argument("--out", required=True, help="run directory (resumes when it holds a checkpoint)")
+    train.add_argument("--steps", type=int, required=True)
+    train.add_argument("--batch-size", type=int, default=4)
+    train.add_argument("--size", type=int, default=112, help="image side, a multiple of 14 (default: 112)")
+    train.add_argument("--model", choices=["small", "full"], default="small")
+    train.add_argument("--init-weights", default=None, help="Pi3 model.safetensors to initialise from (0.1x lr)")
+    train.add_argument("--data", choices=["procedural", "lerobot"], default="procedural")
+    train.add_argument("--views", type=int, default=2, help="procedural: cameras per sample (default: 2)")
+    train.add_argument("--scenes", type=int, default=None, help="procedural: distinct scenes (default: one per sample)")
+    train.add_argument("--root", default=None, help="lerobot: local dataset root")
+    train.add_argument("--repo-id", default=None, help="lerobot: the dataset's repo id")
+    train.add_argument("--cameras", nargs="+", default=None, help="lerobot: external cameras (default: all)")
+    train.add_argument("--teacher", choices=["true", "pi3"], default="true",
+                       help="true: the data's depth and calibration; pi3: a frozen Pi3 model")
+    train.add_argument("--teacher-weights", default=None, help="Pi3 model.safetensors for --teacher pi3")
+    train.add_argument("--no-distill", action="store_true", help="L_rgb only (l_depth = l_3D = l_cam = 0)")
+    train.add_argument("--l-depth", type=float, default=0.1)
+    train.add_argument("--l-3d", type=float, default=1.0)
+    train.add_argument("--l-cam", type=float, default=1.0)
+    train.add_argument("--lr", type=float, default=2e-4)
+    train.add_argument("--warmup", type=int, default=100, help="linear warm-up steps (default: 100)")
+    train.add_argument("--ema-decay", type=float, default=0.999)
+    train.add_argument("--render-views", type=int, default=None, help="context views rendered per sample (default: all)")
+    train.add_argument("--bf16", action="store_true", help="bfloat16 autocast")
+    train.add_argument("--grad-checkpointing", action="store_true")
+    train.add_argument("--seed", type=int, default=0)
+    train.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    train.add_argument("--log-every", type=int, default=10)
+    train.add_argument("--save-every", type=int, default=100)
+
     args = parser.parse_args(argv)
     if args.command == "record":
         from .sim.record import record_from_cli
@@ -47,9 +66,13 @@ def main(argv: list[str] | None = None) -> int:
     elif args.command == "demo":
         from .demo import run_demo
 
-        run_demo(args.out, size=args.size, seed=args.seed, backend=args.backend)
+        run_demo(args.out, episodes=args.episodes, size=args.size, seed=args.seed, backend=args.backend)
     elif args.command == "cache":
         _cache(args)
+    elif args.command == "train-model":
+        from .model.train import train_from_cli
+
+        train_from_cli(args)
     return 0
 
 
