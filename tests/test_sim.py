@@ -14,7 +14,7 @@ import gensplat_transforms.sim  # noqa: F401  (selects the headless GL backend b
 mujoco = pytest.importorskip("mujoco", reason="the simulated world needs the 'sim' extra (mujoco, gym-hil)")
 
 from gensplat_transforms.perturbation import Perturbation, PerturbationSampler, pivot_point
-from gensplat_transforms.sim.dataset_format import load_calibration, load_depth
+from gensplat_transforms.dataset_format import load_calibration, load_depth
 from gensplat_transforms.sim.evaluate import EvalConfig, PerturbedCameraEnv, evaluate
 from gensplat_transforms.sim.experts import ExpertPolicy, run_expert
 from gensplat_transforms.sim.record import RecordConfig, record
@@ -167,18 +167,15 @@ def test_dataset_loads_with_lerobot(recorded):
     assert item["observation.state"].shape == (12,) and item["action"].shape == (5,)
     assert item["task"].startswith("put the ") and item["task"].endswith(" plate")
 
-    calib = load_calibration(recorded.root)
+    calib = load_calibration(ds.meta.features)
     assert list(calib) == list(CAMERA_NAMES)
-    from_meta = load_calibration(ds.meta)
-    for name in CAMERA_NAMES:
-        torch.testing.assert_close(from_meta[name]["intrinsics"], calib[name]["intrinsics"])
-    assert calib["wrist"]["mount"] == "wrist" and calib["wrist"]["extrinsics"] is None
+    assert calib["wrist"].mount == "wrist" and calib["wrist"].c2w is None
     w = SimWorld("pick_place", small_config())
     truth = w.cameras(("left", "right"))
     for i, name in enumerate(("left", "right")):
-        assert calib[name]["mount"] == "external"
-        torch.testing.assert_close(calib[name]["intrinsics"], truth.K[i])
-        torch.testing.assert_close(calib[name]["extrinsics"], truth.c2w[i])
+        assert calib[name].mount == "external"
+        torch.testing.assert_close(calib[name].K, truth.K[i])
+        torch.testing.assert_close(calib[name].c2w, truth.c2w[i])
     w.close()
 
     depth = load_depth(recorded.root, "left", 0)

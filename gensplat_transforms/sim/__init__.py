@@ -4,7 +4,8 @@ recording, ground truth at any camera pose and a perturbed-camera evaluation env
 Modules: :mod:`.world` (``SimWorld``: physics, control, rendering), :mod:`.tasks` and
 :mod:`.experts` (``pick_place``, ``stack``), :mod:`.record` (LeRobot datasets,
 ``gensplat record``), :mod:`.truth` (``GroundTruth``), :mod:`.evaluate`
-(``PerturbedCameraEnv``, ``evaluate``), :mod:`.dataset_format` (calibration and depth readers).
+(``PerturbedCameraEnv``, ``evaluate``). Calibration and depth follow
+:mod:`gensplat_transforms.dataset_format`.
 
 Needs the ``sim`` extra (``pip install 'gensplat-transforms[sim]'``). Importing this package
 selects MuJoCo's headless EGL backend (``MUJOCO_GL=egl``, Mesa llvmpipe on a CPU) unless
