@@ -33,7 +33,8 @@ class GenSplatConfig:
             RNG, which DataLoader seeds per worker and per epoch.
         frame_offsets: frames of a temporal stack (T, C, H, W) relative to the item's frame
             (default: the T frames ending at it); clamped to the episode, as LeRobot pads.
-        backend, render_options: renderer and its options (e.g. ``{"threads": 1}``).
+        backend, render_options: renderer and its options; "fast" renders with one thread
+            unless ``{"threads": n}`` is given.
         background: RGB where nothing was reconstructed.
         report: add ``gensplat.*`` keys describing the perturbation to the item.
     """
@@ -47,7 +48,7 @@ class GenSplatConfig:
     views_per_source: int = 3
     seed: int = 0
     frame_offsets: tuple[int, ...] | None = None
-    backend: str = "reference"
+    backend: str = "fast"
     render_options: dict = field(default_factory=dict)
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     report: bool = False

@@ -91,6 +91,17 @@ def test_prepare_builds_cache_and_is_resumable(dataset_root):
     assert all(s is None for s in again.values())
 
 
+def test_cache_command_writes_settings_and_cache(dataset_root, capsys):
+    from gensplat_lerobot import load_settings
+    from gensplat_transforms.cli import main
+
+    main(["cache", "--root", str(dataset_root), "--repo-id", REPO, "--level", "large", "--probability", "0.7"])
+    assert "cached 2 episode(s)" in capsys.readouterr().out
+    config, reconstructor = load_settings(dataset_root)
+    assert config.level == "large" and config.probability == 0.7 and config.cameras == ("left", "right")
+    assert reconstructor["name"] == "rgbd"
+
+
 def test_missing_settings_or_depth_raise_clear_errors(dataset_root):
     with pytest.raises(FileNotFoundError, match="gensplat cache"):
         enable_gensplat(LeRobotDataset(REPO, root=dataset_root))
