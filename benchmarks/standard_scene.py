@@ -7,7 +7,7 @@ oblique), ``sigma_px`` source pixels wide, opacity 0.9 +- 0.05, SH degree 3 with
 colour in the DC term and small random higher-order coefficients (view-dependent colour,
 so the full SH evaluation is exercised). ``sigma_px = 1.5`` gives about 11 M
 (splat, pixel) pairs inside the splats' boxes in the target view, the workload DESIGN.md
-section 2 measured; the reconstructor's own default (0.4) gives about a third of that.
+section 2 measured; the reconstructor's own default (0.4) gives 1.8 M.
 The target camera is the left source camera rotated 20 deg about the world x axis through
 the pivot of the left and right cameras.
 """
@@ -42,7 +42,11 @@ class StandardScene:
 
 
 def standard_scene(
-    size: int = 224, seed: int = 0, sigma_px: float = STANDARD_SIGMA_PX, stride: int = 1, theta_deg: float = 20.0
+    size: int = 224,
+    seed: int = 0,
+    sigma_px: float = STANDARD_SIGMA_PX,
+    stride: int = 1,
+    theta_deg: float = 20.0,
 ) -> StandardScene:
     """Build the standard scene.
 
