@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -64,17 +65,22 @@ class Gaussians:
             sh_degree_from_bases(self.sh.shape[1])
         except ValueError as e:
             raise ValueError(f"Gaussians.sh: {e}") from None
+        lo = {}
         for name in _FIELDS:
             t = getattr(self, name)
             if not t.is_floating_point():
                 raise ValueError(f"Gaussians.{name}: expected a floating-point tensor, got {t.dtype}")
-            if not torch.isfinite(t).all():
+            if n == 0:
+                continue
+            # min/max propagate NaN and expose Inf: one fast pass instead of isfinite
+            lo[name], hi = (float(v) for v in torch.aminmax(t.detach()))
+            if not (math.isfinite(lo[name]) and math.isfinite(hi)):
                 bad = int((~torch.isfinite(t)).reshape(n, -1).any(-1).sum())
                 raise ValueError(f"Gaussians.{name}: {bad} Gaussian(s) have NaN or Inf values")
-        if (self.scales < 0).any():
+            if name == "opacities" and (lo[name] < 0 or hi > 1):
+                raise ValueError("Gaussians.opacities: opacities must lie in [0, 1]")
+        if lo.get("scales", 0.0) < 0:
             raise ValueError("Gaussians.scales: scales must be >= 0")
-        if ((self.opacities < 0) | (self.opacities > 1)).any():
-            raise ValueError("Gaussians.opacities: opacities must lie in [0, 1]")
         return self
 
     # ------------------------------------------------------------------ basics
