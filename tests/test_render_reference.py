@@ -6,6 +6,7 @@ import math
 import pytest
 import torch
 from dense_renderer import dense_render
+from hard_cases import HARD_CASES
 
 from gensplat_transforms import Cameras, Gaussians, render
 from gensplat_transforms.sh import C0, eval_sh
@@ -164,34 +165,6 @@ def test_gradients_reach_every_input_including_camera_pose():
 
 
 # ---------------------------------------------------------------------------- hard cases
-
-
-def one(mean, scale=0.05, quat=(1.0, 0, 0, 0), opacity=0.9, dtype=torch.float32):
-    return Gaussians(
-        means=torch.tensor([mean], dtype=dtype), quats=torch.tensor([quat], dtype=dtype),
-        scales=torch.tensor([[scale] * 3 if not isinstance(scale, tuple) else scale], dtype=dtype),
-        opacities=torch.tensor([opacity], dtype=dtype), sh=torch.full((1, 4, 3), 0.3, dtype=dtype),
-    )  # fmt: skip
-
-
-HARD_CASES = {
-    "behind_camera": one([0.0, 0.0, -1.0]),
-    "at_camera_centre": one([0.0, 0.0, 0.0]),
-    "on_near_plane": one([0.0, 0.0, 0.01]),
-    "just_past_near_plane": one([0.0, 0.0, 0.0100001], scale=0.001),
-    "centre_outside_image": one([1.2, 0.0, 2.0], scale=0.2),
-    "far_outside_image": one([1e4, -1e4, 1.0], scale=0.5),
-    "on_image_border": one([1.0, 0.8, 2.0], scale=0.03),
-    "zero_scale": one([0.1, 0.0, 2.0], scale=0.0),
-    "tiny_scale": one([0.1, 0.0, 2.0], scale=1e-20),
-    "huge_scale": one([0.0, 0.0, 2.0], scale=1e20),
-    "needle": one([0.0, 0.0, 2.0], scale=(1e8, 1e-12, 1e-12), quat=(0.9, 0.1, 0.3, 0.2)),
-    "zero_quaternion": one([0.0, 0.0, 2.0], scale=(0.1, 0.02, 0.01), quat=(0.0, 0, 0, 0)),
-    "unnormalised_quaternion": one([0.0, 0.0, 2.0], scale=(0.1, 0.02, 0.01), quat=(40.0, 3.0, -7.0, 1.0)),
-    "zero_opacity": one([0.0, 0.0, 2.0], opacity=0.0),
-    "empty_scene": Gaussians.empty(sh_degree=1),
-    "far_away": one([0.0, 0.0, 1e7], scale=1.0),
-}
 
 
 @pytest.mark.parametrize("name", sorted(HARD_CASES))
