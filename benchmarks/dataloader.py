@@ -1,12 +1,16 @@
-"""DataLoader throughput with and without GenSplat, and where the transform's time goes.
+"""DataLoader throughput with and without GenSplat, where the transform's time goes, and
+what the cache costs in bytes and in fidelity.
 
-    python benchmarks/dataloader.py [--quick] [--backend fast]
+    python benchmarks/dataloader.py [--quick] [--backend fast] [--replace left right]
 
-A local LeRobot dataset of the built-in procedural scene (two external cameras with depth
-plus a third camera, 224x224) is recorded, its Gaussian cache built, and the same
-DataLoader (same workers, batch size, order) is iterated with and without GenSplat
-(probability 1, level "train"). The per-sample split times one worker's steps directly:
-cache read, render, resize and dtype conversion. Writes benchmarks/results/dataloader.json.
+A simulated pick-and-place dataset is recorded (two external cameras with depth and a
+wrist camera; 224x224, or 96x96 with --quick), its Gaussian cache built, and the same
+DataLoader (same workers, batch size and sample order) is iterated with and without
+GenSplat (probability 1, level "train"). The per-sample split times one worker's steps
+directly (one thread): cache read, render of the replaced cameras, uint8 conversion, and
+the whole transform. The cache's fidelity cost is PSNR against the simulator's true image
+at perturbed poses, rendered from the cached (quantised) versus the raw Gaussians.
+Writes benchmarks/results/dataloader.json.
 """
 
 from __future__ import annotations
@@ -25,14 +29,17 @@ import torch  # noqa: E402
 from lerobot.datasets.lerobot_dataset import LeRobotDataset  # noqa: E402
 from torch.utils.data import DataLoader, RandomSampler  # noqa: E402
 
-from gensplat_lerobot import enable_gensplat, prepare  # noqa: E402
-from gensplat_lerobot.record import record_scene_dataset  # noqa: E402
-from gensplat_transforms.episodes import SceneEpisodes  # noqa: E402
-from gensplat_transforms.perturbation import pivot_point  # noqa: E402
+from gensplat_lerobot import LeRobotSource, enable_gensplat, prepare  # noqa: E402
+from gensplat_transforms.metrics import psnr  # noqa: E402
+from gensplat_transforms.perturbation import PerturbationSampler, pivot_point  # noqa: E402
+from gensplat_transforms.reconstruction import RGBDReconstructor  # noqa: E402
 from gensplat_transforms.rendering import render  # noqa: E402
+from gensplat_transforms.sim.record import RecordConfig, record  # noqa: E402
+from gensplat_transforms.sim.truth import GroundTruth  # noqa: E402
+from gensplat_transforms.sim.world import WorldConfig  # noqa: E402
 from gensplat_transforms.transform import GenSplatConfig  # noqa: E402
 
-REPO = "local/gensplat_bench"
+REPO = "gensplat/bench_pick_place"
 
 
 def loader_rate(dataset, workers: int, batch: int, batches: int) -> float:
@@ -44,28 +51,28 @@ def loader_rate(dataset, workers: int, batch: int, batches: int) -> float:
     it = iter(loader)
     next(it)
     t0 = time.perf_counter()
-    n = 0
-    for _ in range(batches):
-        n += next(it)["index"].shape[0]
+    n = sum(next(it)["index"].shape[0] for _ in range(batches))
     return n / (time.perf_counter() - t0)
+
+
+def target_camera(rec, i: int, p):
+    cams = rec.cameras
+    return cams[i].with_c2w(p.apply(cams.c2w[i : i + 1], pivot_point(cams.c2w[0], cams.c2w[1])))
 
 
 def split_ms(ds, samples: int) -> dict:
     """Median per-sample milliseconds of the transform's steps, in this process."""
     tf = ds.gensplat
-    times = {"cache_read": [], "render": [], "resize_convert": [], "transform_total": []}
-    torch.set_num_threads(1)  # as in a dataloader worker
-    raw = [LeRobotDataset.__getitem__(ds, i) for i in range(samples)]
-    for item in raw:
+    times = {"cache_read": [], "render": [], "to_uint8": [], "transform_total": []}
+    for idx in torch.linspace(0, len(ds) - 1, samples).long().tolist():
+        item = LeRobotDataset.__getitem__(ds, idx)
         ep, fr = int(item["episode_index"]), int(item["frame_index"])
         t0 = time.perf_counter()
         rec = tf.cache.read(ep, fr)
         t1 = time.perf_counter()
-        for i, name in enumerate(tf.cfg.replace):
-            p = tf.sampler.sample(ep, fr)
-            cams = rec.cameras
-            target = cams[i].with_c2w(p.apply(cams.c2w[i : i + 1], pivot_point(cams.c2w[0], cams.c2w[1])))
-            out = render(rec.gaussians, target, backend=tf.cfg.backend, return_depth=False, **tf.cfg.render_options)
+        for name in tf.cfg.replace:
+            target = target_camera(rec, tf.cfg.cameras.index(name), tf.sampler.sample(ep, fr))
+            out = render(rec.gaussians, target, backend=tf.cfg.backend, return_depth=False)
         t2 = time.perf_counter()
         (out.rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8)
         t3 = time.perf_counter()
@@ -76,36 +83,64 @@ def split_ms(ds, samples: int) -> dict:
     return {k: round(statistics.median(v), 2) for k, v in times.items()}
 
 
+def cache_fidelity(root: Path, ds, frames: int) -> dict:
+    """Mean PSNR against the simulator at Large perturbations: raw vs cached Gaussians."""
+    tf = ds.gensplat
+    source, rgbd, truth = LeRobotSource(root, REPO), RGBDReconstructor(), GroundTruth(root)
+    raw_db, cached_db = [], []
+    for k, idx in enumerate(torch.linspace(0, len(ds) - 1, frames).long().tolist()):
+        item = LeRobotDataset.__getitem__(ds, idx)
+        ep, fr = int(item["episode_index"]), int(item["frame_index"])
+        raw, cached = rgbd(source.views(ep, fr)), tf.cache.read(ep, fr)
+        target = target_camera(raw, 0, PerturbationSampler("large", seed=k).sample(ep))
+        true_rgb, _ = truth.render(ep, fr, target)
+        a = render(raw.gaussians, target, backend="fast")
+        b = render(cached.gaussians, target, backend="fast")
+        seen = a.alpha > 0.5
+        raw_db.append(psnr(a.rgb, true_rgb, seen))
+        cached_db.append(psnr(b.rgb, true_rgb, seen))
+    raw_mean, cached_mean = statistics.mean(raw_db), statistics.mean(cached_db)
+    return {"psnr_raw_db": round(raw_mean, 3), "psnr_cached_db": round(cached_mean, 3),
+            "psnr_lost_db": round(raw_mean - cached_mean, 3), "frames": frames}  # fmt: skip
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="small dataset, few batches (< 1 min)")
     parser.add_argument("--backend", default="fast")
     parser.add_argument("--workers", type=int, default=1)
+    parser.add_argument("--replace", nargs="+", default=["left", "right"], help="cameras replaced per sample")
     args = parser.parse_args()
-    size, episodes, frames, batches = (96, 1, 8, 3) if args.quick else (224, 2, 20, 10)
+    torch.set_num_threads(1)  # as in a dataloader worker
+    size, episodes, batches, samples = (96, 1, 3, 4) if args.quick else (224, 2, 10, 12)
     root = Path(tempfile.mkdtemp()) / "ds"
-    record_scene_dataset(root, SceneEpisodes(episodes, frames, size), REPO, progress=False)
-    config = GenSplatConfig(probability=1.0, level="train", backend=args.backend)
+    record(RecordConfig(root, "pick_place", episodes, seed=0, use_videos=False, repo_id=REPO,
+                        world=WorldConfig(width=size, height=size)), progress=False)  # fmt: skip
+    config = GenSplatConfig(probability=1.0, level="train", backend=args.backend, replace=tuple(args.replace))
+    t0 = time.perf_counter()
     stats = prepare(root, REPO, config, progress=False)
-    bytes_per_timestep = sum(s.bytes for s in stats.values()) / sum(s.num_frames for s in stats.values())
+    build_s = time.perf_counter() - t0
+    frames = sum(s.num_frames for s in stats.values())
 
     plain = LeRobotDataset(REPO, root=root)
     gensplat = enable_gensplat(LeRobotDataset(REPO, root=root))
-    split = split_ms(gensplat, samples=min(8, episodes * frames))
-    rate_plain = loader_rate(plain, args.workers, 4, batches)
-    rate_gs = loader_rate(gensplat, args.workers, 4, batches)
+    split = split_ms(gensplat, samples)
     result = {
         "quick": args.quick, "backend": args.backend, "workers": args.workers, "resolution": [size, size],
         "cameras_reconstructed": list(config.cameras), "cameras_replaced": list(config.replace),
-        "samples_per_s_plain": round(rate_plain, 2), "samples_per_s_gensplat": round(rate_gs, 2),
+        "samples_per_s_plain": round(loader_rate(plain, args.workers, 4, batches), 2),
+        "samples_per_s_gensplat": round(loader_rate(gensplat, args.workers, 4, batches), 2),
         "transform_ms": split["transform_total"], "split_ms": split,
-        "cache_bytes_per_timestep": round(bytes_per_timestep),
+        "cache_bytes_per_timestep": round(sum(s.bytes for s in stats.values()) / frames),
+        "cache_build_ms_per_timestep": round(build_s / frames * 1e3, 1),
+        "cache_fidelity": cache_fidelity(root, gensplat, samples // 2),
+        "load_average": os.getloadavg(),
     }  # fmt: skip
-    print(f"{'':28}{'value':>12}")
-    for k in ("samples_per_s_plain", "samples_per_s_gensplat", "transform_ms", "cache_bytes_per_timestep"):
-        print(f"{k:28}{result[k]:>12}")
-    for k, v in split.items():
-        print(f"  {k:26}{v:>12} ms")
+    for k in ("samples_per_s_plain", "samples_per_s_gensplat", "transform_ms", "cache_bytes_per_timestep",
+              "cache_build_ms_per_timestep"):  # fmt: skip
+        print(f"{k:30}{result[k]:>12}")
+    for k, v in {**split, **result["cache_fidelity"]}.items():
+        print(f"  {k:28}{v:>12}")
     out = Path(__file__).parent / "results" / "dataloader.json"
     out.parent.mkdir(exist_ok=True)
     out.write_text(json.dumps(result, indent=2) + "\n")
