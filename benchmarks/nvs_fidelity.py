@@ -46,7 +46,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from gensplat_lerobot import LeRobotSource
-from PIL import Image, ImageDraw, ImageFont
+from plotting import Panel, line_panels
 
 from gensplat_transforms.cameras import Cameras
 from gensplat_transforms.metrics import psnr, ssim
@@ -193,35 +193,17 @@ def plot(table: dict, path: Path) -> None:
                "homography": (148, 103, 189)}  # fmt: skip
     values = [e[k] for m in table.values() for e in m.values() for k, _ in panels if e[k] is not None]
     lo, hi = np.floor(min(values) / 5) * 5, min(np.ceil(max(values) / 5) * 5, PLOT_MAX_DB)
-    pw, ph, margin = 420, 300, 50
-    img = Image.new("RGB", (2 * pw + 40, ph + 2 * margin + 40), "white")
-    draw = ImageDraw.Draw(img)
-    draw.font = ImageFont.load_default(size=13)
-    for i, (key, title) in enumerate(panels):
-        x0, y0 = 20 + i * pw + margin, margin
-        w, h = pw - margin - 20, ph - margin
-        draw.rectangle([x0, y0, x0 + w, y0 + h], outline="black")
-        draw.text((x0, y0 - 22), title, fill="black")
-        for t in np.arange(lo, hi + 1e-9, 5):
-            y = y0 + h - (t - lo) / (hi - lo) * h
-            draw.line([x0 - 4, y, x0, y], fill="black")
-            draw.text((x0 - 26, y - 8), f"{t:.0f}", fill="black")
-        xs = {lv: x0 + (j + 0.5) * w / len(EVAL_LEVELS) for j, lv in enumerate(EVAL_LEVELS)}
-        for lv, x in xs.items():
-            draw.text((x - 20, y0 + h + 6), lv, fill="black")
-        for method, levels in table.items():
-            db = [min(hi, levels[lv][key] if levels[lv][key] is not None else hi) for lv in EVAL_LEVELS]
-            pts = [(xs[lv], y0 + h - (v - lo) / (hi - lo) * h) for lv, v in zip(EVAL_LEVELS, db)]
-            draw.line(pts, fill=colours[method], width=2)
-            for x, y in pts:
-                draw.ellipse([x - 3, y - 3, x + 3, y + 3], fill=colours[method])
-    for j, method in enumerate(table):
-        x = 20 + margin + j * 170
-        draw.line([x, ph + margin + 12, x + 20, ph + margin + 12], fill=colours[method], width=3)
-        draw.text((x + 25, ph + margin + 6), method, fill="black")
+    x_ticks = list(enumerate(EVAL_LEVELS))
+
+    def series(key: str) -> dict:
+        return {m: [(j, hi if levels[lv][key] is None else levels[lv][key], "") for j, lv in x_ticks]
+                for m, levels in table.items()}  # fmt: skip
+
+    y_ticks = [(t, f"{t:.0f}") for t in np.arange(lo, hi + 1e-9, 5)]
+    plots = [Panel(title, series(key), (-0.5, len(EVAL_LEVELS) - 0.5), (lo, hi), x_ticks, y_ticks)
+             for key, title in panels]  # fmt: skip
     note = f"Values above {PLOT_MAX_DB:.0f} dB (exact copies of the truth) are drawn at {PLOT_MAX_DB:.0f}."
-    draw.text((20 + margin, ph + margin + 28), note, fill="black")
-    img.save(path)
+    line_panels(path, plots, {m: colours[m] for m in table}, note)
 
 
 def main() -> None:

@@ -10,6 +10,7 @@ import torch
 from ..cameras import Cameras
 from ..gaussians import Gaussians
 from .fast import render_fast
+from .gsplat_backend import render_gsplat
 from .projection import Projected, project
 from .reference import rasterize_reference
 
@@ -42,7 +43,7 @@ def _render_reference(gaussians: Gaussians, camera: Cameras, *, background: torc
 #: ``fn(gaussians, camera, *, background, near, sh_degree, out_dtype, return_depth, **options)``
 #: and returns ``(rgb (H*W, 3), depth_sum (H*W,) or None, alpha (H*W,))`` where depth_sum is
 #: sum_i w_i z_i (it may be None when ``return_depth`` is False).
-BACKENDS: dict[str, Callable] = {"reference": _render_reference, "fast": render_fast}
+BACKENDS: dict[str, Callable] = {"reference": _render_reference, "fast": render_fast, "gsplat": render_gsplat}
 
 
 def render(
@@ -65,7 +66,8 @@ def render(
         background: RGB added where the splats leave transmittance.
         near: splats whose centre is not beyond this camera-space z are culled.
         sh_degree: evaluate colour only up to this SH degree (default: all carried).
-        backend: one of ``BACKENDS``; "reference" is differentiable pure PyTorch.
+        backend: one of ``BACKENDS``; "reference" is differentiable pure PyTorch; "gsplat"
+            needs CUDA and the gsplat package.
         return_depth, return_alpha: skip these outputs when False.
         options: backend-specific settings (reference: ``max_pairs`` per chunk).
     Returns:
