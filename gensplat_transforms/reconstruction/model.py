@@ -11,6 +11,7 @@ import torch.nn.functional as F
 from ..cameras import Cameras, rigid_inverse
 from ..model import PATCH_SIZE, GenSplatModel, to_gaussians
 from ..model.geometry import align_similarity, estimate_focal, transform_gaussians, transform_poses
+from ..weights import DEFAULT_MODEL_DIR
 from .base import Reconstruction, Reconstructor, Views
 
 
@@ -30,7 +31,8 @@ class GenSplatReconstructor(Reconstructor):
     cameras are reported at the input size.
 
     Args:
-        model: a :class:`GenSplatModel`, or a checkpoint directory / hub id for ``from_pretrained``.
+        model: a :class:`GenSplatModel`, or a checkpoint directory / hub id for ``from_pretrained``
+            (default: the shipped small model, ``gensplat_transforms/weights/small``).
         min_conf: drop pixels with sigmoid(conf) below this.
         device: where the model runs (default: where its weights are).
         autocast_dtype: e.g. torch.bfloat16 to run the transformer under autocast.
@@ -40,7 +42,7 @@ class GenSplatReconstructor(Reconstructor):
 
     def __init__(
         self,
-        model: GenSplatModel | str | Path,
+        model: GenSplatModel | str | Path = DEFAULT_MODEL_DIR,
         *,
         min_conf: float | None = None,
         device: str | torch.device | None = None,
