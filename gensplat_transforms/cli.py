@@ -39,6 +39,9 @@ def main(argv: list[str] | None = None) -> int:
     cache.add_argument("--seed", type=int, default=0)
     cache.add_argument("--backend", default="fast", help="render backend used in the workers (default: fast)")
     cache.add_argument("--episodes", type=int, nargs="+", default=None, help="only these episodes")
+    cache.add_argument("--reconstructor", choices=["rgbd", "gensplat"], default=None,
+                       help="default: rgbd when the cameras have depth, else the feed-forward model")
+    cache.add_argument("--model", default=None, help="gensplat weights directory (default: the shipped model)")
 
     train = sub.add_parser("train-model", help="train the GenSplat model with 3D-prior distillation")
     train.add_argument("--out", required=True, help="run directory (resumes when it holds a checkpoint)")
@@ -108,7 +111,10 @@ def _cache(args) -> None:
         cameras=cameras, replace=args.replace, level=args.level, probability=args.probability, mode=args.mode,
         views_per_source=args.views_per_source, seed=args.seed, backend=args.backend,
     )  # fmt: skip
-    stats = prepare(args.root, args.repo_id, config)
+    spec = None if args.reconstructor is None else {"name": args.reconstructor}
+    if args.model:
+        spec = {"name": "gensplat", "model": args.model}
+    stats = prepare(args.root, args.repo_id, config, spec, args.episodes)
     built = {e: s for e, s in stats.items() if s is not None}
     size = sum(s.bytes for s in built.values())
     frames = sum(s.num_frames for s in built.values())

@@ -15,7 +15,7 @@ os.environ["HF_HUB_OFFLINE"] = "1"
 
 from lerobot.datasets.lerobot_dataset import LeRobotDataset  # noqa: E402
 
-from gensplat_lerobot import LeRobotSource, enable_gensplat, prepare, save_settings  # noqa: E402
+from gensplat_lerobot import LeRobotSource, enable_gensplat, load_settings, prepare, save_settings  # noqa: E402
 from gensplat_lerobot.record import record_scene_dataset  # noqa: E402
 from gensplat_transforms.episodes import SceneEpisodes  # noqa: E402
 from gensplat_transforms.transform import GenSplatConfig  # noqa: E402
@@ -92,7 +92,6 @@ def test_prepare_builds_cache_and_is_resumable(dataset_root):
 
 
 def test_cache_command_writes_settings_and_cache(dataset_root, capsys):
-    from gensplat_lerobot import load_settings
     from gensplat_transforms.cli import main
 
     main(["cache", "--root", str(dataset_root), "--repo-id", REPO, "--level", "large", "--probability", "0.7"])
@@ -112,6 +111,19 @@ def test_missing_settings_or_depth_raise_clear_errors(dataset_root):
         ds[0]
     with pytest.raises(ValueError, match="no calibration"):
         LeRobotSource(dataset_root, REPO, ("left", "wrist"))
+
+
+def test_rgb_only_dataset_uses_the_feed_forward_model(dataset_root):
+    shutil.rmtree(dataset_root / "depth")
+    stats = prepare(dataset_root, REPO, GenSplatConfig(probability=1.0, level="small"), episodes=[0],
+                    progress=False)  # fmt: skip
+    assert stats[0].num_frames == 20
+    _, reconstructor = load_settings(dataset_root)
+    assert reconstructor["name"] == "gensplat"
+    ds = enable_gensplat(LeRobotDataset(REPO, root=dataset_root))
+    item, ref = ds[3], LeRobotDataset(REPO, root=dataset_root)[3]
+    assert item[LEFT].shape == ref[LEFT].shape and torch.isfinite(item[LEFT]).all()
+    assert not torch.equal(item[LEFT], ref[LEFT])
 
 
 def test_pi0_config_parses_and_its_dataset_path_runs(dataset_root):

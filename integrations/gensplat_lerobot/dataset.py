@@ -51,10 +51,21 @@ def load_settings(root: str | Path) -> tuple[GenSplatConfig, dict]:
 
 
 def make_reconstructor(spec: dict):
-    """The reconstructor named in the settings."""
+    """The reconstructor named in the settings: ``{"name": "rgbd", "config": {...}}`` or
+    ``{"name": "gensplat", "model": <weights dir or hub id; default: the shipped model>}``."""
     if spec.get("name") == "rgbd":
         return RGBDReconstructor(**spec.get("config", {}))
+    if spec.get("name") == "gensplat":
+        from gensplat_transforms.reconstruction.model import GenSplatReconstructor
+        from gensplat_transforms.weights import DEFAULT_MODEL_DIR
+
+        return GenSplatReconstructor(spec.get("model") or DEFAULT_MODEL_DIR)
     raise ValueError(f"unknown reconstructor {spec.get('name')!r} in the GenSplat settings")
+
+
+def default_reconstructor(source: LeRobotSource) -> dict:
+    """RGB-D where every reconstructed camera has depth, the feed-forward model otherwise."""
+    return {"name": "rgbd"} if source.has_depth() else {"name": "gensplat"}
 
 
 def dataset_cache(root: str | Path, reconstructor, source: LeRobotSource) -> GaussianCache:
@@ -91,8 +102,8 @@ def enable_gensplat(dataset: LeRobotDataset, config: GenSplatConfig | None = Non
         raise TypeError(f"enable_gensplat: expected a LeRobotDataset, got {type(dataset).__name__}")
     if config is None:
         config, reconstructor = load_settings(dataset.root)
-    rec = make_reconstructor(reconstructor or {"name": "rgbd"})
     source = LeRobotSource(dataset.root, dataset.repo_id, config.cameras)
+    rec = make_reconstructor(reconstructor or default_reconstructor(source))
     key = config.image_key.format(name=config.replace[0])
     deltas = (dataset.delta_timestamps or {}).get(key)
     if deltas is not None and config.frame_offsets is None:
@@ -115,9 +126,9 @@ def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructo
     episode was already cached)."""
     from gensplat_transforms.episodes import build_cache
 
-    reconstructor = reconstructor or {"name": "rgbd"}
-    rec = make_reconstructor(reconstructor)
     source = LeRobotSource(root, repo_id, config.cameras)
+    reconstructor = reconstructor or default_reconstructor(source)
+    rec = make_reconstructor(reconstructor)
     save_settings(root, config, reconstructor)
     total = len(source.dataset.meta.episodes["length"])
     episodes = range(total) if episodes is None else episodes

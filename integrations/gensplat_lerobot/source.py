@@ -59,6 +59,10 @@ class LeRobotSource:
             self._dataset = LeRobotDataset(self.repo_id, root=self.root)
         return self._dataset
 
+    def has_depth(self) -> bool:
+        """Whether every reconstructed camera has a depth sidecar (checked on episode 0)."""
+        return all(depth_path(self.root, n, 0).exists() for n in self.camera_names)
+
     def num_frames(self, episode: int) -> int:
         return int(self.dataset.meta.episodes["length"][episode])
 
