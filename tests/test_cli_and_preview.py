@@ -2,7 +2,6 @@
 
 import json
 
-import torch
 from PIL import Image
 
 from gensplat_transforms.cache import GaussianCache
