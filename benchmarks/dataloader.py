@@ -31,7 +31,7 @@ from torch.utils.data import DataLoader, RandomSampler  # noqa: E402
 
 from gensplat_lerobot import LeRobotSource, enable_gensplat, prepare  # noqa: E402
 from gensplat_transforms.metrics import psnr  # noqa: E402
-from gensplat_transforms.perturbation import PerturbationSampler, pivot_point  # noqa: E402
+from gensplat_transforms.perturbation import PerturbationSampler  # noqa: E402
 from gensplat_transforms.reconstruction import RGBDReconstructor  # noqa: E402
 from gensplat_transforms.rendering import render  # noqa: E402
 from gensplat_transforms.sim.record import RecordConfig, record  # noqa: E402
@@ -55,11 +55,6 @@ def loader_rate(dataset, workers: int, batch: int, batches: int) -> float:
     return n / (time.perf_counter() - t0)
 
 
-def target_camera(rec, i: int, p):
-    cams = rec.cameras
-    return cams[i].with_c2w(p.apply(cams.c2w[i : i + 1], pivot_point(cams.c2w[0], cams.c2w[1])))
-
-
 def split_ms(ds, samples: int) -> dict:
     """Median per-sample milliseconds of the transform's steps, in this process."""
     tf = ds.gensplat
@@ -71,7 +66,7 @@ def split_ms(ds, samples: int) -> dict:
         rec = tf.cache.read(ep, fr)
         t1 = time.perf_counter()
         for name in tf.cfg.replace:
-            target = target_camera(rec, tf.cfg.cameras.index(name), tf.sampler.sample(ep, fr))
+            target = tf.sampler.sample(ep, fr).move(rec.cameras, tf.cfg.cameras.index(name))
             out = render(rec.gaussians, target, backend=tf.cfg.backend, return_depth=False)
         t2 = time.perf_counter()
         (out.rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8)
@@ -92,7 +87,7 @@ def cache_fidelity(root: Path, ds, frames: int) -> dict:
         item = LeRobotDataset.__getitem__(ds, idx)
         ep, fr = int(item["episode_index"]), int(item["frame_index"])
         raw, cached = rgbd(source.views(ep, fr)), tf.cache.read(ep, fr)
-        target = target_camera(raw, 0, PerturbationSampler("large", seed=k).sample(ep))
+        target = PerturbationSampler("large", seed=k).sample(ep).move(raw.cameras, 0)
         true_rgb, _ = truth.render(ep, fr, target)
         a = render(raw.gaussians, target, backend="fast")
         b = render(cached.gaussians, target, backend="fast")

@@ -50,7 +50,7 @@ from plotting import Panel, line_panels
 
 from gensplat_transforms.cameras import Cameras
 from gensplat_transforms.metrics import psnr, ssim
-from gensplat_transforms.perturbation import EVAL_LEVELS, PerturbationSampler, pivot_point
+from gensplat_transforms.perturbation import EVAL_LEVELS, PerturbationSampler
 from gensplat_transforms.reconstruction import GenSplatReconstructor, RGBDReconstructor, Views
 from gensplat_transforms.rendering import render
 from gensplat_transforms.sim.record import RecordConfig, record
@@ -132,17 +132,14 @@ def warm_up(views: Views, model) -> None:
 def compare_frame(views: Views, truth: GroundTruth, ep: int, fr: int, model, args, rows: list) -> None:
     """Append one row per (method, level, draw) for one timestep: metrics and times."""
     cams = views.cameras
-    pivot = pivot_point(cams.c2w[0], cams.c2w[1])
     rgbd, rgbd_ms = timed(RGBDReconstructor().reconstruct, views)
     if not isinstance(model, str):
         mrec, model_ms = timed(model.reconstruct, Views(views.images, cams))  # RGB only
-        mcams = mrec.cameras
-        mpivot = pivot_point(mcams.c2w[0], mcams.c2w[1])
     for level in EVAL_LEVELS:
         sampler = PerturbationSampler(level, seed=args.seed)
         for d in range(1 if level == "none" else args.draws):
             p = sampler.sample(ep, view=d)
-            target = cams[0].with_c2w(p.apply(cams.c2w[:1], pivot))
+            target = p.move(cams, 0)
             gt = truth.render(ep, fr, target)[0][0]
             out, ms = timed(render, rgbd.gaussians, target, backend="fast", return_depth=False)
             seen = out.alpha[0] > 0.5
@@ -150,7 +147,7 @@ def compare_frame(views: Views, truth: GroundTruth, ep: int, fr: int, model, arg
             warped, ms = timed(homography_warp, views.images[0], cams[0], target)
             views_of["homography"] = (warped, 0.0, ms)
             if not isinstance(model, str):
-                mtarget = mcams[0].with_c2w(p.apply(mcams.c2w[:1], mpivot))
+                mtarget = p.move(mrec.cameras, 0)
                 out_m, ms = timed(render, mrec.gaussians, mtarget, backend="fast", return_depth=False)
                 views_of["gensplat_small"] = (out_m.rgb[0], model_ms, ms)
             coverage = float(seen.float().mean())

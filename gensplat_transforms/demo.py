@@ -13,7 +13,7 @@ import torch
 
 from .images import save_grid
 from .metrics import psnr
-from .perturbation import EVAL_LEVELS, PerturbationSampler, pivot_point
+from .perturbation import EVAL_LEVELS, PerturbationSampler
 from .preview import write_preview
 from .rendering import render
 from .transform import GenSplatConfig, GenSplatTransform
@@ -72,12 +72,10 @@ def _levels(tf: GenSplatTransform, truth, item: dict, path: Path, log) -> dict:
     """Perturb the first external camera at every level; compare with the simulator."""
     ep, fr = int(item["episode_index"]), int(item["frame_index"])
     rec = tf.cache.read(ep, fr)
-    cams = rec.cameras
-    pivot = pivot_point(cams.c2w[0], cams.c2w[1])
     rows, labels, out = [], [], {}
     for level in EVAL_LEVELS:
         p = PerturbationSampler(level, seed=tf.cfg.seed).sample(ep)
-        target = cams[0].with_c2w(p.apply(cams.c2w[:1], pivot))
+        target = p.move(rec.cameras, 0)
         true_rgb, _ = truth.render(ep, fr, target)
         t0 = time.perf_counter()
         res = render(rec.gaussians, target, backend=tf.cfg.backend, return_depth=False)

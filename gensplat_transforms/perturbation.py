@@ -17,6 +17,8 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
+from .cameras import Cameras
+
 AXES = ("x", "y")
 
 
@@ -90,6 +92,12 @@ class Perturbation:
     def apply(self, c2w: torch.Tensor, pivot: torch.Tensor) -> torch.Tensor:
         """Perturbed (..., 4, 4) camera-to-world; see :func:`perturb_pose`."""
         return perturb_pose(c2w, pivot, self.axis, self.theta_deg, self.mu_m)
+
+    def move(self, cameras: Cameras, index: int = 0) -> Cameras:
+        """Camera ``index`` of a rig, moved about the pivot of the rig's cameras 0 and 1
+        (the two external cameras)."""
+        pivot = pivot_point(cameras.c2w[0], cameras.c2w[1])
+        return cameras[index].with_c2w(self.apply(cameras.c2w[index : index + 1], pivot))
 
     def as_dict(self) -> dict:
         return asdict(self)

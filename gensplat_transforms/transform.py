@@ -11,8 +11,8 @@ from torch.utils.data import Dataset
 
 from .cache import GaussianCache
 from .episodes import EpisodeSource
-from .perturbation import AXES, PerturbationRange, PerturbationSampler, pivot_point
-from .reconstruction import Reconstructor
+from .perturbation import AXES, Perturbation, PerturbationRange, PerturbationSampler
+from .reconstruction import Reconstruction, Reconstructor
 from .rendering import BACKENDS, render
 
 
@@ -111,10 +111,13 @@ class GenSplatTransform:
         applied = bool(torch.rand(()) < self.cfg.probability)
         view = int(torch.randint(self.cfg.views_per_source, ()))
         report = []
+        if applied:
+            self._ensure(episode)
+        read: dict[int, Reconstruction] = {}  # frame -> Gaussians, read once per item
         for ci, (name, key) in enumerate(zip(self.cfg.replace, keys)):
             p = self.sampler.sample(episode, frame, view=view * len(self.cfg.replace) + ci)
             if applied:
-                out[key] = self._render_like(item[key], episode, frame, name, p)
+                out[key] = self._render_like(item[key], episode, frame, name, p, read)
             report.append([float(applied), float(AXES.index(p.axis)), p.theta_deg, p.mu_m])
         if self.cfg.report:
             r = torch.tensor(report) if applied else torch.zeros(len(report), 4)
@@ -124,7 +127,8 @@ class GenSplatTransform:
             out["gensplat.mu_m"] = r[:, 3]
         return out
 
-    def _render_like(self, image: torch.Tensor, episode: int, frame: int, name: str, p) -> torch.Tensor:
+    def _render_like(self, image: torch.Tensor, episode: int, frame: int, name: str, p: Perturbation,
+                     read: dict[int, Reconstruction]) -> torch.Tensor:
         """Rendered replacement with the shape, dtype and value range of ``image``."""
         if image.ndim not in (3, 4) or image.shape[-3] != 3:
             raise ValueError(f"GenSplatTransform: expected (3, H, W) or (T, 3, H, W) images, got {tuple(image.shape)}")
@@ -132,9 +136,16 @@ class GenSplatTransform:
         offsets = (0,) if image.ndim == 3 else self.cfg.frame_offsets or tuple(range(1 - stack.shape[0], 1))
         if len(offsets) != stack.shape[0]:
             raise ValueError(f"GenSplatTransform: {len(offsets)} frame_offsets for a stack of {stack.shape[0]}")
-        last = self._num_frames(episode) - 1
-        frames = [self._render(episode, min(max(frame + o, 0), last), name, p) for o in offsets]
-        rgb = torch.stack(frames)
+        last = self.cache.num_frames(episode) - 1
+        rgbs = []
+        for f in (min(max(frame + o, 0), last) for o in offsets):
+            if f not in read:
+                read[f] = self.cache.read(episode, f)
+            target = p.move(read[f].cameras, self.cfg.cameras.index(name))
+            out = render(read[f].gaussians, target, background=self.cfg.background, backend=self.cfg.backend,
+                         return_depth=False, **self.cfg.render_options)  # fmt: skip
+            rgbs.append(out.rgb[0])
+        rgb = torch.stack(rgbs)
         if rgb.shape[-2:] != stack.shape[-2:]:
             rgb = F.interpolate(rgb, size=stack.shape[-2:], mode="bilinear", antialias=True, align_corners=False)
         rgb = rgb.clamp(0, 1)
@@ -143,25 +154,6 @@ class GenSplatTransform:
         else:
             rgb = rgb.to(stack.dtype)
         return rgb if image.ndim == 4 else rgb[0]
-
-    def _render(self, episode: int, frame: int, name: str, p) -> torch.Tensor:
-        """(3, h, w) view of camera ``name`` moved by perturbation ``p``."""
-        rec = self._reconstruction(episode, frame)
-        i = self.cfg.cameras.index(name)
-        cams = rec.cameras
-        pivot = pivot_point(cams.c2w[0], cams.c2w[1])
-        target = cams[i].with_c2w(p.apply(cams.c2w[i : i + 1], pivot))
-        out = render(rec.gaussians, target, background=self.cfg.background, backend=self.cfg.backend,
-                     return_depth=False, **self.cfg.render_options)  # fmt: skip
-        return out.rgb[0]
-
-    def _num_frames(self, episode: int) -> int:
-        self._ensure(episode)
-        return self.cache.num_frames(episode)
-
-    def _reconstruction(self, episode: int, frame: int):
-        self._ensure(episode)
-        return self.cache.read(episode, frame)
 
     def _ensure(self, episode: int) -> None:
         status = self.cache.status(episode)

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from gensplat_transforms.cameras import Cameras, look_at
-from gensplat_transforms.model import GenSplatConfig, GenSplatModel, to_gaussians
+from gensplat_transforms.model import GenSplatModel, to_gaussians
 from gensplat_transforms.model.losses import (
     LossWeights,
     camera_loss,
@@ -20,12 +20,8 @@ from gensplat_transforms.perturbation import axis_rotation
 from gensplat_transforms.rendering import render
 from gensplat_transforms.rotations import quat_to_rotmat
 from gensplat_transforms.scenes import TabletopScene, default_cameras
+from tiny_model import TINY
 
-TINY = GenSplatConfig(
-    dim=32, enc_depth=1, enc_heads=2, enc_pos_grid=2, dec_depth=4, dec_heads=2, head_dim=32, head_depth=1,
-    head_heads=2, head_out_dim=32, camera_dim=32, gs_taps=(0, 1, 2, 3), gs_features=8, gs_rgb_features=8,
-    sh_degree=0,
-)  # fmt: skip
 
 
 def rig(b: int = 2, v: int = 3) -> torch.Tensor:

@@ -309,3 +309,15 @@ def test_none_and_extreme_levels_are_fixed():
 def test_bad_arguments_raise_clear_value_errors(make, match):
     with pytest.raises(ValueError, match=match):
         make()
+
+
+def test_move_perturbs_one_camera_of_a_rig_about_its_pivot():
+    from gensplat_transforms.scenes import default_cameras
+
+    cams = default_cameras(32, 32)
+    p = Perturbation("x", 12.0, 0.03)
+    moved = p.move(cams, 1)
+    expected = p.apply(cams.c2w[1:2], pivot_point(cams.c2w[0], cams.c2w[1]))
+    torch.testing.assert_close(moved.c2w, expected)
+    torch.testing.assert_close(moved.K, cams.K[1:2])
+    assert len(moved) == 1

@@ -27,12 +27,8 @@ from gensplat_transforms.model.train import (
 from gensplat_transforms.reconstruction import GenSplatReconstructor, Views
 from gensplat_transforms.scenes import WORKSPACE_CENTER
 from gensplat_transforms.weights import DEFAULT_MODEL_DIR
+from tiny_model import TINY
 
-TINY = GenSplatConfig(
-    dim=32, enc_depth=1, enc_heads=2, enc_pos_grid=2, dec_depth=4, dec_heads=2, head_dim=32, head_depth=1,
-    head_heads=2, head_out_dim=32, camera_dim=32, gs_taps=(0, 1, 2, 3), gs_features=8, gs_rgb_features=8,
-    sh_degree=0,
-)  # fmt: skip
 SIZE = 28  # 2 x 2 patches, above the 11-pixel SSIM window
 
 
