@@ -31,7 +31,10 @@ from converged; ``--device cuda --steps 20000`` is the setting to aim for on a G
 level of at most 20 steps: it checks the pipeline end to end, its success rates mean nothing.
 
 Writes ``benchmarks/results/policy_robustness.json``: ``{"baseline": {level: success %},
-"gensplat": {...}, "episodes_per_level": n, "quick": bool, "settings", "timing", "episodes"}``.
+"gensplat": {...}, "episodes_per_level": n, "progress": {mode: {level: {lift_percent,
+median_reach_cm}}}, "quick": bool, "settings", "timing", "episodes"}``. ``progress`` tells
+apart policies that do not succeed yet: the share of episodes that lifted the cube and the
+median closest approach of the pinch site to it.
 """
 
 from __future__ import annotations
@@ -45,6 +48,8 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
@@ -102,10 +107,11 @@ def train(mode: str, root: Path, out: Path, args) -> dict:
             "last_loss": float(losses[-1]) if losses else None}  # fmt: skip
 
 
-def evaluate_policy(checkpoint: Path, args) -> tuple[dict, list]:
-    """Success percent per level and the per-episode records of one checkpoint."""
+def evaluate_policy(checkpoint: Path, args) -> tuple[dict, dict, list]:
+    """Success percent per level, progress per level ({lift_percent, median_reach_cm}) and the
+    per-episode records of one checkpoint."""
     policy = LeRobotPolicy(checkpoint, device=args.device)
-    rates, episodes = {}, []
+    rates, progress, episodes = {}, {}, []
     for level in LEVELS:
         env = PerturbedCameraEnv(EvalConfig(TASK, level, ("left",), seed=args.seed, max_steps=args.max_steps,
                                             world=WorldConfig(height=args.size, width=args.size)))  # fmt: skip
@@ -114,10 +120,15 @@ def evaluate_policy(checkpoint: Path, args) -> tuple[dict, list]:
         finally:
             env.close()
         rates[level] = round(100 * result.success_rate, 2)
-        episodes += [{"level": level, "episode": i, "success": s, "steps": n, **p}
-                     for i, (s, n, p) in enumerate(zip(result.successes, result.steps, result.perturbations))]  # fmt: skip
-        print(f"  {level:>6}: {rates[level]:5.1f} % success over {args.episodes} episodes", flush=True)
-    return rates, episodes
+        progress[level] = {"lift_percent": round(100 * result.lift_rate, 2),
+                           "median_reach_cm": round(100 * float(np.median(result.reach_m)), 2)}  # fmt: skip
+        episodes += [{"level": level, "episode": i, "success": s, "steps": n, "reach_m": round(r, 4), "lifted": lf, **p}
+                     for i, (s, n, p, r, lf) in enumerate(zip(result.successes, result.steps, result.perturbations,
+                                                              result.reach_m, result.lifted))]  # fmt: skip
+        print(f"  {level:>6}: {rates[level]:5.1f} % success, {progress[level]['lift_percent']:5.1f} % lifted, "
+              f"median closest approach {progress[level]['median_reach_cm']:.1f} cm "
+              f"over {args.episodes} episodes", flush=True)  # fmt: skip
+    return rates, progress, episodes
 
 
 def main() -> None:
@@ -158,13 +169,13 @@ def main() -> None:
     gensplat = GenSplatConfig(views_per_source=args.views_per_source, backend="fast", seed=args.seed)
     prepare(root, REPO, gensplat, progress=False)
 
-    timing, rates, episodes = {}, {}, {}
+    timing, rates, progress, episodes = {}, {}, {}, {}
     for mode in MODES:
         timing[f"train_{mode}"] = train(mode, root, work / mode, args)
     for mode in MODES:
         print(f"evaluating {mode}", flush=True)
         t0 = time.perf_counter()
-        rates[mode], episodes[mode] = evaluate_policy(work / mode, args)
+        rates[mode], progress[mode], episodes[mode] = evaluate_policy(work / mode, args)
         seconds = time.perf_counter() - t0
         steps = sum(e["steps"] for e in episodes[mode])
         timing[f"eval_{mode}"] = {
@@ -179,8 +190,8 @@ def main() -> None:
     settings.update(task=TASK, policy="diffusion (policies/diffusion.json + the overrides above)",
                     perturbed_camera="left", gensplat={"cameras": list(gensplat.cameras),
                     "probability": gensplat.probability, "level": gensplat.level, "mode": gensplat.mode})  # fmt: skip
-    result = {**rates, "episodes_per_level": args.episodes, "quick": args.quick, "settings": settings,
-              "timing": timing, "episodes": episodes}  # fmt: skip
+    result = {**rates, "episodes_per_level": args.episodes, "quick": args.quick, "progress": progress,
+              "settings": settings, "timing": timing, "episodes": episodes}  # fmt: skip
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
     print(f"{'success %':>10}" + "".join(f"{lv:>9}" for lv in LEVELS))

@@ -4,6 +4,7 @@ and the perturbed-camera evaluation environment. Images are 96x96 to keep the su
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -209,6 +210,13 @@ def test_perturbed_camera_env():
     expert = ExpertPolicy(env.world)
     result = evaluate(expert, env, episodes=1, reset=expert.reset)
     assert result.successes == [True] and 0 < result.steps[0] < env.max_steps
+    assert result.lifted == [True] and result.reach_m[0] < 0.02 and result.lift_rate == 1.0
+
+    def hold(obs):  # stay where the arm starts, gripper open
+        return np.concatenate([obs["observation.state"][:4].numpy(), [0.0]])
+
+    still = evaluate(hold, PerturbedCameraEnv(replace(config, max_steps=5)), episodes=1)
+    assert still.successes == [False] and still.lifted == [False] and still.reach_m[0] > 0.05
 
     obs, info = env.reset(options={"episode_index": 0})
     p = PerturbationSampler("large", seed=2).sample(0)

@@ -11,7 +11,9 @@ library's conventions, so a policy trained on a recorded dataset runs unchanged:
 * ``task``: the instruction string.
 
 Actions are ``[x, y, z, yaw, gripper]`` (see :mod:`.control`). An episode terminates on
-success (reward 1) or is truncated after the task's step budget.
+success (reward 1) or is truncated after the task's step budget. Besides success,
+:func:`evaluate` records how far each episode got (closest pinch-to-pick distance, whether
+the pick was lifted), which separates policies that are still far from succeeding.
 
 Example:
     >>> env = PerturbedCameraEnv(EvalConfig(task="pick_place", level="large"))
@@ -139,18 +141,29 @@ class PerturbedCameraEnv(gym.Env):
         self.world.close()
 
 
+#: The pick counts as lifted once its centre rose this far (m) above where it started.
+LIFT_HEIGHT = 0.03
+
+
 @dataclass
 class EvalResult:
-    """Per-episode successes and steps, and the perturbation each episode used."""
+    """Per episode: success, steps, the perturbation, the closest the pinch site came to the
+    pick object (m) and whether the pick was lifted by :data:`LIFT_HEIGHT`."""
 
     level: str
-    successes: list[bool]
-    steps: list[int]
-    perturbations: list[dict]
+    successes: list[bool] = field(default_factory=list)
+    steps: list[int] = field(default_factory=list)
+    perturbations: list[dict] = field(default_factory=list)
+    reach_m: list[float] = field(default_factory=list)
+    lifted: list[bool] = field(default_factory=list)
 
     @property
     def success_rate(self) -> float:
         return float(np.mean(self.successes)) if self.successes else 0.0
+
+    @property
+    def lift_rate(self) -> float:
+        return float(np.mean(self.lifted)) if self.lifted else 0.0
 
 
 def evaluate(
@@ -165,18 +178,25 @@ def evaluate(
         policy: maps an observation (see the module docstring) to a (5,) action.
         reset: called after every environment reset (e.g. a LeRobot policy's ``reset``).
     """
-    result = EvalResult(env.config.level, [], [], [])
+    result = EvalResult(env.config.level)
+    pick = env.world.task.pick
     for i in range(episodes):
         obs, info = env.reset(options={"episode_index": i})
         if reset is not None:
             reset()
-        done, steps, success = False, 0, False
+        start_z = env.world.object_positions()[pick][2]
+        done, steps, success, reach, lifted = False, 0, False, np.inf, False
         while not done:
             action = policy(obs)
             obs, _, success, truncated, _ = env.step(torch.as_tensor(action).detach().cpu().numpy())
             steps += 1
             done = success or truncated
+            target = env.world.object_positions()[pick]
+            reach = min(reach, float(np.linalg.norm(env.world.ee_pose()[0] - target)))
+            lifted = lifted or target[2] - start_z > LIFT_HEIGHT
         result.successes.append(bool(success))
         result.steps.append(steps)
         result.perturbations.append(info["perturbation"])
+        result.reach_m.append(reach)
+        result.lifted.append(bool(lifted))
     return result
