@@ -16,11 +16,11 @@ model's training size. Per scene:
   and the Gaussians are rendered there and compared with ``TabletopScene.render`` (exact
   ray casting): PSNR over the image, and depth MAE (m) over the pixels the render covers
   (alpha > 0.5) and the truth sees. ``gensplat`` is ``GenSplatReconstructor`` on the RGB
-  images with the calibrated cameras (its Gaussians aligned into the calibrated frame by the
-  pose similarity); ``gensplat_calibrated`` places each view's Gaussians with that view's
-  calibrated pose instead (predicted depth only; what a reconstructor could do when the
-  cameras are calibrated); ``rgbd`` is ``RGBDReconstructor`` on the true RGB-D views. Level
-  ``none`` re-renders the source cameras;
+  images with the calibrated cameras (default ``placement="per_view"``: each view's
+  Gaussians moved with its predicted camera onto its calibrated pose);
+  ``gensplat_similarity`` aligns the whole prediction to the calibrated frame by the pose
+  similarity instead (``placement="similarity"``); ``rgbd`` is ``RGBDReconstructor`` on the
+  true RGB-D views. Level ``none`` re-renders the source cameras;
 * inference time per timestep (two views), median over repeats, this CPU, torch's thread
   count as printed.
 
@@ -42,11 +42,8 @@ from pathlib import Path
 
 import torch
 
-from gensplat_transforms.cameras import rigid_inverse
-from gensplat_transforms.gaussians import Gaussians
 from gensplat_transforms.metrics import psnr
-from gensplat_transforms.model import GenSplatModel, to_gaussians
-from gensplat_transforms.model.geometry import transform_gaussians
+from gensplat_transforms.model import GenSplatModel
 from gensplat_transforms.model.losses import geodesic_angle, relative_poses
 from gensplat_transforms.model.teacher import camera_points
 from gensplat_transforms.perturbation import PerturbationSampler, pivot_point
@@ -84,20 +81,6 @@ def geometry_errors(model: GenSplatModel, views: Views) -> dict[str, float]:
     }
 
 
-def calibrated_placement(model: GenSplatModel, views: Views) -> Gaussians:
-    """The model's Gaussians with each view's share moved rigidly from its predicted camera onto
-    its calibrated camera (predicted depth, calibrated poses; no similarity fit)."""
-    with torch.no_grad():
-        out = model(views.images[None])
-    g = to_gaussians(out)
-    n = len(g) // len(views)  # pixel-aligned, view-major
-    moved = []
-    for i in range(len(views)):
-        T = views.cameras.c2w[i].float() @ rigid_inverse(out["camera_poses"][0, i])
-        moved.append(transform_gaussians(g[i * n : (i + 1) * n], 1.0, T[:3, :3], T[:3, 3]))
-    return Gaussians.cat(moved)
-
-
 def novel_view_errors(gaussians, target, truth_rgb, truth_depth) -> dict[str, float]:
     """PSNR (dB) and depth MAE (m) of the Gaussians rendered at ``target`` against the truth."""
     r = render(gaussians, target, background=(1.0, 1.0, 1.0))
@@ -124,16 +107,16 @@ def evaluate(model: GenSplatModel, scenes: int, draws: int, with_rgbd: bool) -> 
     """Geometry and novel-view errors of ``model`` (and of the RGB-D path) over held-out scenes."""
     cams = default_cameras(SIZE, SIZE)[:2]
     pivot = pivot_point(cams.c2w[0], cams.c2w[1])
-    recon = GenSplatReconstructor(model)
-    paths = ["gensplat", "gensplat_calibrated"] + (["rgbd"] if with_rgbd else [])
+    recons = {"gensplat": GenSplatReconstructor(model),
+              "gensplat_similarity": GenSplatReconstructor(model, placement="similarity")}  # fmt: skip
+    paths = list(recons) + (["rgbd"] if with_rgbd else [])
     geometry, novel = [], {p: {lv: [] for lv in LEVELS} for p in paths}
     for s in range(scenes):
         scene = TabletopScene(FIRST_SEED + s)
         rgb, depth = scene.render(cams)
         views = Views(rgb, cams, depth)
         geometry.append(geometry_errors(model, views))
-        gaussians = {"gensplat": recon(Views(rgb, cams)).gaussians,
-                     "gensplat_calibrated": calibrated_placement(model, views)}  # fmt: skip
+        gaussians = {name: recon(Views(rgb, cams)).gaussians for name, recon in recons.items()}
         if with_rgbd:
             gaussians["rgbd"] = RGBDReconstructor()(views).gaussians
         for level in LEVELS:

@@ -53,7 +53,9 @@ def main(argv: list[str] | None = None) -> int:
                        help="Pi3 (or GenSplat) model.safetensors to initialise from; its geometry parts train at "
                             "--pretrained-lr-scale x lr")
     train.add_argument("--pretrained-lr-scale", type=float, default=0.1)
-    train.add_argument("--data", choices=["procedural", "lerobot"], default="procedural")
+    train.add_argument("--data", choices=["procedural", "lerobot"], nargs="+", default=["procedural"],
+                       help="one or both: both mixes the samples, in proportion to the datasets' lengths "
+                            "(set the procedural one with --scenes)")
     train.add_argument("--views", type=int, default=2, help="procedural: cameras per sample (default: 2)")
     train.add_argument("--scenes", type=int, default=None, help="procedural: distinct scenes (default: one per sample)")
     train.add_argument("--root", default=None, help="lerobot: local dataset root")

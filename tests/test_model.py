@@ -309,11 +309,36 @@ def test_reconstructor_uncalibrated_uses_the_first_view_frame(model):
 def test_reconstructor_calibrated_lands_in_the_dataset_frame(model):
     c2w = torch.stack([look_at(e, (0, 0, 0), dtype=torch.float32) for e in ((1, 0, 1), (0, 1, 1))])
     cams = Cameras.from_intrinsics(30.0, 30.0, 21.0, 21.0, c2w, 42, 42)
-    out = GenSplatReconstructor(model, min_conf=0.0).reconstruct(Views(images(v=2, h=42, w=42)[0], cams))
+    out = GenSplatReconstructor(model, min_conf=0.0, placement="similarity").reconstruct(
+        Views(images(v=2, h=42, w=42)[0], cams)
+    )
     # two cameras: the aligned centres reproduce the given baseline and midpoint exactly
     centers = out.cameras.c2w[:, :3, 3]
     torch.testing.assert_close((centers[0] - centers[1]).norm(), (c2w[0, :3, 3] - c2w[1, :3, 3]).norm())
     torch.testing.assert_close(centers.mean(0), c2w[:, :3, 3].mean(0), atol=1e-4, rtol=0)
+
+
+@pytest.mark.parametrize("metric", [True, False])
+def test_reconstructor_per_view_placement_uses_the_calibrated_rays(model, metric):
+    c2w = torch.stack([look_at(e, (0, 0, 0), dtype=torch.float32) for e in ((1, 0, 1), (0, 1, 1))])
+    cams = Cameras.from_intrinsics(30.0, 30.0, 21.0, 21.0, c2w, 42, 42)
+    views = Views(images(v=2, h=42, w=42)[0], cams)
+    out = GenSplatReconstructor(model, metric=metric).reconstruct(views)
+    assert out.cameras is cams  # the given cameras reproduce the source views
+    with torch.no_grad():
+        pred = model(views.images[None])
+    scale = 1.0 if metric else align_similarity(pred["camera_poses"][0], c2w)[0]
+    depth = scale * pred["local_points"][0, ..., 2].reshape(2, -1)
+    v, u = torch.meshgrid(torch.arange(42) + 0.5, torch.arange(42) + 0.5, indexing="ij")
+    centres = torch.stack([u, v], -1).reshape(1, -1, 2).expand(2, -1, -1)
+    means = out.gaussians.means.reshape(2, -1, 3)
+    # each Gaussian lies on its pixel's calibrated ray, at the (scaled) predicted depth
+    torch.testing.assert_close(means, cams.unproject(centres, depth), atol=1e-5, rtol=1e-5)
+
+
+def test_reconstructor_rejects_unknown_placement(model):
+    with pytest.raises(ValueError, match="placement must be one of"):
+        GenSplatReconstructor(model, placement="nearest")
 
 
 def test_reconstructor_identity_tracks_the_weights():

@@ -326,6 +326,31 @@ def test_cli_trains_and_exports(tmp_path):
     assert model.config == GenSplatConfig.small()
 
 
+def test_cli_mixes_procedural_and_lerobot_data(tmp_path, monkeypatch):
+    pytest.importorskip("lerobot", reason="the LeRobot extra is not installed")
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    from gensplat_lerobot.record import record_scene_dataset
+
+    from gensplat_transforms.episodes import SceneEpisodes
+    from gensplat_transforms.model import train as train_module
+
+    record_scene_dataset(tmp_path / "ds", SceneEpisodes(num_episodes=1, num_frames=3, size=42), "local/t",
+                         progress=False)  # fmt: skip
+    seen = {}
+
+    def capture(config, model_config, dataset, teacher=None, init_weights=None, progress=True):
+        seen["dataset"] = dataset
+        return tmp_path
+
+    monkeypatch.setattr(train_module, "train", capture)
+    args = ["train-model", "--out", str(tmp_path / "run"), "--steps", "2", "--size", "28", "--data", "procedural",
+            "lerobot", "--scenes", "5", "--root", str(tmp_path / "ds"), "--repo-id", "local/t"]  # fmt: skip
+    assert cli_main(args) == 0
+    data = seen["dataset"]
+    assert len(data) == 5 + 3 and [len(d) for d in data.datasets] == [5, 3]
+    assert data[0].images.shape == data[7].images.shape == (2, 3, 28, 28)
+
+
 # ---------------------------------------------------------------- shipped weights
 def test_shipped_default_weights_load_and_give_finite_output():
     model = GenSplatModel.from_pretrained(DEFAULT_MODEL_DIR)

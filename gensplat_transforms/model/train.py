@@ -35,7 +35,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import torch
-from torch.utils.data import Dataset
+from torch.utils.data import ConcatDataset, Dataset
 from tqdm.auto import tqdm
 
 from ..cameras import Cameras
@@ -418,15 +418,17 @@ def train_from_cli(args) -> Path:
         threads=args.threads,
     )  # fmt: skip
     model_config = GenSplatConfig.full() if args.model == "full" else GenSplatConfig.small()
-    if args.data == "lerobot":
-        if not (args.root and args.repo_id):
-            raise SystemExit("gensplat train-model --data lerobot needs --root and --repo-id")
-        dataset = LeRobotViews(
-            args.root, args.repo_id, args.size, tuple(args.cameras) if args.cameras else None
-        )
-    else:
-        length = args.scenes or args.steps * args.batch_size
-        dataset = ProceduralViews(length, args.size, args.views, seed=args.seed)
+    datasets = []
+    for kind in dict.fromkeys(args.data):
+        if kind == "lerobot":
+            if not (args.root and args.repo_id):
+                raise SystemExit("gensplat train-model --data lerobot needs --root and --repo-id")
+            cameras = tuple(args.cameras) if args.cameras else None
+            datasets.append(LeRobotViews(args.root, args.repo_id, args.size, cameras))
+        else:
+            length = args.scenes or args.steps * args.batch_size
+            datasets.append(ProceduralViews(length, args.size, args.views, seed=args.seed))
+    dataset = datasets[0] if len(datasets) == 1 else ConcatDataset(datasets)
     teacher = None
     if config.distills:
         if args.teacher == "pi3":

@@ -9,6 +9,7 @@ import torch
 import torch.nn.functional as F
 
 from ..cameras import Cameras, rigid_inverse
+from ..gaussians import Gaussians
 from ..model import PATCH_SIZE, GenSplatModel, to_gaussians
 from ..model.geometry import align_similarity, estimate_focal, transform_gaussians, transform_poses
 from ..weights import DEFAULT_MODEL_DIR
@@ -18,14 +19,23 @@ from .base import Reconstruction, Reconstructor, Views
 class GenSplatReconstructor(Reconstructor):
     """Images -> predicted cameras + one Gaussian per pixel (fewer with ``min_conf``).
 
-    Frame of the result: when the views carry calibrated cameras, the prediction is moved onto
-    them by the similarity that best matches the camera poses (rotation, centroid and spread of
-    the centres; scale 1 for a single view), so the Gaussians live in the dataset's world and
-    metres. Otherwise the first view's camera frame is the world (the model's own frame does not
-    depend on view order, this convention does). The returned cameras are the predicted poses in
-    that frame with intrinsics estimated from the point maps (principal point at the centre,
-    focal at least 1 px), so rendering them reproduces the source views; they are not the given
-    calibration.
+    Frame of the result: when the views carry calibrated cameras, the Gaussians are put into the
+    dataset's world and metres in one of two ways (``placement``):
+
+    * ``"per_view"`` (default): only the predicted depth is kept. Each pixel's Gaussian sits
+      on that pixel's ray of the calibrated camera at the predicted depth, oriented as the
+      model predicted it relative to its view's camera; errors of the predicted poses and
+      focal lengths do not misplace the views, and the given cameras reproduce the source
+      views. The depth scale is the model's own (metric when it was trained on metric
+      geometry, as the shipped model is), or the similarity's (below) with ``metric=False``;
+    * ``"similarity"``: the whole prediction moves by the similarity that best matches the
+      camera poses (rotation, centroid and spread of the centres; scale 1 for a single view).
+
+    Without cameras, the first view's camera frame is the world (the model's own frame does not
+    depend on view order, this convention does). The returned cameras are the given ones with
+    ``per_view``; otherwise the predicted poses in the result's frame with intrinsics estimated
+    from the point maps (principal point at the centre, focal at least 1 px), so rendering them
+    reproduces the source views.
 
     Images whose size is not a multiple of 14 are resized to the nearest one for the model; the
     cameras are reported at the input size.
@@ -34,6 +44,8 @@ class GenSplatReconstructor(Reconstructor):
         model: a :class:`GenSplatModel`, or a checkpoint directory / hub id for ``from_pretrained``
             (default: the shipped small model, ``gensplat_transforms/weights/small``).
         min_conf: drop pixels with sigmoid(conf) below this.
+        placement: ``"per_view"`` or ``"similarity"``, for calibrated views (see above).
+        metric: with ``per_view``, keep the model's scale (True) or use the camera spread's.
         device: where the model runs (default: where its weights are).
         autocast_dtype: e.g. torch.bfloat16 to run the transformer under autocast.
     """
@@ -45,13 +57,19 @@ class GenSplatReconstructor(Reconstructor):
         model: GenSplatModel | str | Path = DEFAULT_MODEL_DIR,
         *,
         min_conf: float | None = None,
+        placement: str = "per_view",
+        metric: bool = True,
         device: str | torch.device | None = None,
         autocast_dtype: torch.dtype | None = None,
     ):
         if not isinstance(model, GenSplatModel):
             model = GenSplatModel.from_pretrained(model)
         self.model = model.eval() if device is None else model.to(device).eval()
+        if placement not in PLACEMENTS:
+            raise ValueError(f"GenSplatReconstructor: placement must be one of {PLACEMENTS}, got {placement!r}")
         self.min_conf = min_conf
+        self.placement = placement
+        self.metric = bool(metric)
         self.autocast_dtype = autocast_dtype
         self._weights_hash: str | None = None
 
@@ -71,6 +89,8 @@ class GenSplatReconstructor(Reconstructor):
             "model": self.model.config.to_dict(),
             "weights": self.weights_hash(),
             "min_conf": self.min_conf,
+            "placement": self.placement,
+            "metric": self.metric,
             "autocast_dtype": str(self.autocast_dtype) if self.autocast_dtype else None,
         }
 
@@ -84,13 +104,47 @@ class GenSplatReconstructor(Reconstructor):
             images = F.interpolate(images, size=(h, w), mode="bilinear", antialias=True, align_corners=False)
         with torch.autocast(device.type, dtype=self.autocast_dtype, enabled=self.autocast_dtype is not None):
             out = self.model(images[None])
-        gaussians = to_gaussians(out, 0, self.min_conf)
+        gaussians = to_gaussians(out, 0)
         c2w = out["camera_poses"][0]
-        focal = estimate_focal(out["local_points"][0], torch.sigmoid(out["conf"][0])).clamp_min(1.0)
-        if views.cameras is not None:
-            scale, R, t = align_similarity(c2w, views.cameras.c2w.to(c2w))
-        else:
+        conf = torch.sigmoid(out["conf"][0])
+        if views.cameras is None:
             first = rigid_inverse(c2w[0])
             scale, R, t = torch.ones((), device=device), first[:3, :3], first[:3, 3]
-        cameras = Cameras.from_intrinsics(focal, focal, w / 2, h / 2, transform_poses(c2w, scale, R, t), w, h)
-        return Reconstruction(transform_gaussians(gaussians, scale, R, t), cameras.resize(W, H))
+        else:
+            target = views.cameras.c2w.to(c2w)
+            scale, R, t = align_similarity(c2w, target)
+        if views.cameras is not None and self.placement == "per_view":
+            scale = torch.ones_like(scale) if self.metric else scale
+            n = h * w  # pixel-aligned, view-major
+            gaussians = Gaussians.cat([
+                transform_gaussians(gaussians[v * n : (v + 1) * n], scale, *_onto(c2w[v], target[v], scale))
+                for v in range(V)
+            ])  # fmt: skip
+            calibrated = views.cameras.resize(w, h).to(device=device, dtype=torch.float32)
+            depth = scale * out["local_points"][0, ..., 2].reshape(V, n)
+            gaussians.means = calibrated.unproject(_pixel_centres(h, w, device).expand(V, n, 2), depth).reshape(-1, 3)
+            cameras = views.cameras
+        else:
+            poses = transform_poses(c2w, scale, R, t)
+            gaussians = transform_gaussians(gaussians, scale, R, t)
+            focal = estimate_focal(out["local_points"][0], conf).clamp_min(1.0)
+            cameras = Cameras.from_intrinsics(focal, focal, w / 2, h / 2, poses, w, h).resize(W, H)
+        if self.min_conf is not None:
+            gaussians = gaussians[conf.reshape(-1) >= self.min_conf]
+        return Reconstruction(gaussians, cameras)
+
+
+#: How calibrated views' Gaussians are placed (see :class:`GenSplatReconstructor`).
+PLACEMENTS = ("per_view", "similarity")
+
+
+def _pixel_centres(h: int, w: int, device) -> torch.Tensor:
+    """(1, h * w, 2) pixel centres (u, v), row-major."""
+    v, u = torch.meshgrid(torch.arange(h, device=device) + 0.5, torch.arange(w, device=device) + 0.5, indexing="ij")
+    return torch.stack([u, v], -1).reshape(1, -1, 2)
+
+
+def _onto(source: torch.Tensor, target: torch.Tensor, scale: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(R, t) of x -> scale R x + t taking camera-to-world ``source`` onto ``target`` (4, 4)."""
+    R = target[:3, :3] @ source[:3, :3].T
+    return R, target[:3, 3] - scale * R @ source[:3, 3]
