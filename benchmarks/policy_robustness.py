@@ -41,15 +41,18 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
 import os
 import re
 import shutil
 import subprocess
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
+import torch
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
@@ -107,28 +110,41 @@ def train(mode: str, root: Path, out: Path, args) -> dict:
             "last_loss": float(losses[-1]) if losses else None}  # fmt: skip
 
 
-def evaluate_policy(checkpoint: Path, args) -> tuple[dict, dict, list]:
-    """Success percent per level, progress per level ({lift_percent, median_reach_cm}) and the
-    per-episode records of one checkpoint."""
+def evaluate_level(checkpoint: Path, level: str, args) -> dict:
+    """Evaluate one checkpoint at one level (one torch thread): {"success" %, "progress"
+    ({lift_percent, median_reach_cm}), "episodes" (per-episode records), "seconds",
+    "steps"}."""
+    torch.set_num_threads(1)
+    t0 = time.perf_counter()
     policy = LeRobotPolicy(checkpoint, device=args.device)
-    rates, progress, episodes = {}, {}, []
-    for level in LEVELS:
-        env = PerturbedCameraEnv(EvalConfig(TASK, level, ("left",), seed=args.seed, max_steps=args.max_steps,
-                                            world=WorldConfig(height=args.size, width=args.size)))  # fmt: skip
-        try:
-            result = evaluate(policy, env, args.episodes, reset=policy.reset)
-        finally:
-            env.close()
-        rates[level] = round(100 * result.success_rate, 2)
-        progress[level] = {"lift_percent": round(100 * result.lift_rate, 2),
-                           "median_reach_cm": round(100 * float(np.median(result.reach_m)), 2)}  # fmt: skip
-        episodes += [{"level": level, "episode": i, "success": s, "steps": n, "reach_m": round(r, 4), "lifted": lf, **p}
-                     for i, (s, n, p, r, lf) in enumerate(zip(result.successes, result.steps, result.perturbations,
-                                                              result.reach_m, result.lifted))]  # fmt: skip
-        print(f"  {level:>6}: {rates[level]:5.1f} % success, {progress[level]['lift_percent']:5.1f} % lifted, "
-              f"median closest approach {progress[level]['median_reach_cm']:.1f} cm "
-              f"over {args.episodes} episodes", flush=True)  # fmt: skip
-    return rates, progress, episodes
+    env = PerturbedCameraEnv(EvalConfig(TASK, level, ("left",), seed=args.seed, max_steps=args.max_steps,
+                                        world=WorldConfig(height=args.size, width=args.size)))  # fmt: skip
+    try:
+        result = evaluate(policy, env, args.episodes, reset=policy.reset)
+    finally:
+        env.close()
+    episodes = [{"level": level, "episode": i, "success": s, "steps": n, "reach_m": round(r, 4), "lifted": lf, **p}
+                for i, (s, n, p, r, lf) in enumerate(zip(result.successes, result.steps, result.perturbations,
+                                                         result.reach_m, result.lifted))]  # fmt: skip
+    progress = {"lift_percent": round(100 * result.lift_rate, 2),
+                "median_reach_cm": round(100 * float(np.median(result.reach_m)), 2)}  # fmt: skip
+    return {"success": round(100 * result.success_rate, 2), "progress": progress, "episodes": episodes,
+            "seconds": time.perf_counter() - t0, "steps": sum(result.steps)}  # fmt: skip
+
+
+def evaluate_all(work: Path, args) -> dict:
+    """{mode: {level: evaluate_level(...)}}, ``args.eval_jobs`` (mode, level) pairs at a time
+    in separate processes."""
+    jobs = [(mode, level) for mode in MODES for level in LEVELS]
+    with ProcessPoolExecutor(args.eval_jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+        futures = {job: pool.submit(evaluate_level, work / job[0], job[1], args) for job in jobs}
+        out: dict = {mode: {} for mode in MODES}
+        for (mode, level), future in futures.items():
+            r = out[mode][level] = future.result()
+            print(f"  {mode:>8} {level:>6}: {r['success']:5.1f} % success, {r['progress']['lift_percent']:5.1f} % "
+                  f"lifted, median closest approach {r['progress']['median_reach_cm']:.1f} cm over "
+                  f"{args.episodes} episodes", flush=True)  # fmt: skip
+    return out
 
 
 def main() -> None:
@@ -150,6 +166,7 @@ def main() -> None:
     parser.add_argument("--max-steps", type=int, help="evaluation step budget (default 100; quick 20)")
     parser.add_argument("--seed", type=int, default=0, help="seeds recording, training and evaluation")
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--eval-jobs", type=int, default=2, help="evaluation processes (default 2)")
     parser.add_argument("--out", type=Path, default=RESULTS / "policy_robustness.json")
     args = parser.parse_args()
     for key, (full, quick) in DEFAULTS.items():
@@ -172,16 +189,16 @@ def main() -> None:
     timing, rates, progress, episodes = {}, {}, {}, {}
     for mode in MODES:
         timing[f"train_{mode}"] = train(mode, root, work / mode, args)
-    for mode in MODES:
-        print(f"evaluating {mode}", flush=True)
-        t0 = time.perf_counter()
-        rates[mode], progress[mode], episodes[mode] = evaluate_policy(work / mode, args)
-        seconds = time.perf_counter() - t0
-        steps = sum(e["steps"] for e in episodes[mode])
-        timing[f"eval_{mode}"] = {
-            "seconds": round(seconds, 1),
-            "s_per_control_step": round(seconds / steps, 3),
-        }
+    print(f"evaluating ({args.eval_jobs} processes)", flush=True)
+    t0 = time.perf_counter()
+    evaluated = evaluate_all(work, args)
+    timing["eval_seconds"] = round(time.perf_counter() - t0, 1)
+    for mode, per_level in evaluated.items():
+        rates[mode] = {lv: r["success"] for lv, r in per_level.items()}
+        progress[mode] = {lv: r["progress"] for lv, r in per_level.items()}
+        episodes[mode] = [e for r in per_level.values() for e in r["episodes"]]
+        seconds, steps = (sum(r[k] for r in per_level.values()) for k in ("seconds", "steps"))
+        timing[f"eval_{mode}"] = {"process_seconds": round(seconds, 1), "s_per_control_step": round(seconds / steps, 3)}
     timing["total_seconds"] = round(time.perf_counter() - t_start, 1)
 
     settings = {k: getattr(args, k) for k in ("demos", "size", "steps", "batch_size", "workers", "down_dims",
