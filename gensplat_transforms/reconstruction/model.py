@@ -107,24 +107,25 @@ class GenSplatReconstructor(Reconstructor):
         gaussians = to_gaussians(out, 0)
         c2w = out["camera_poses"][0]
         conf = torch.sigmoid(out["conf"][0])
-        if views.cameras is None:
-            first = rigid_inverse(c2w[0])
-            scale, R, t = torch.ones((), device=device), first[:3, :3], first[:3, 3]
-        else:
-            target = views.cameras.c2w.to(c2w)
-            scale, R, t = align_similarity(c2w, target)
         if views.cameras is not None and self.placement == "per_view":
-            scale = torch.ones_like(scale) if self.metric else scale
-            n = h * w  # pixel-aligned, view-major
+            target = views.cameras.c2w.to(c2w)
+            scale = torch.ones((), device=device) if self.metric else align_similarity(c2w, target)[0]
+            n = h * w  # pixel-aligned, view-major: each view's share rotates with its camera...
             gaussians = Gaussians.cat([
                 transform_gaussians(gaussians[v * n : (v + 1) * n], scale, *_onto(c2w[v], target[v], scale))
                 for v in range(V)
             ])  # fmt: skip
+            # ...and its centres sit on the calibrated rays at the predicted depth
             calibrated = views.cameras.resize(w, h).to(device=device, dtype=torch.float32)
             depth = scale * out["local_points"][0, ..., 2].reshape(V, n)
             gaussians.means = calibrated.unproject(_pixel_centres(h, w, device).expand(V, n, 2), depth).reshape(-1, 3)
             cameras = views.cameras
         else:
+            if views.cameras is None:
+                first = rigid_inverse(c2w[0])
+                scale, R, t = torch.ones((), device=device), first[:3, :3], first[:3, 3]
+            else:
+                scale, R, t = align_similarity(c2w, views.cameras.c2w.to(c2w))
             poses = transform_poses(c2w, scale, R, t)
             gaussians = transform_gaussians(gaussians, scale, R, t)
             focal = estimate_focal(out["local_points"][0], conf).clamp_min(1.0)
