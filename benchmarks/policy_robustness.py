@@ -3,7 +3,7 @@
     python benchmarks/policy_robustness.py [--quick] [--work DIR] [--steps N] ...
 
 Stages (each is skipped when its output already exists in ``--work``, so a stopped run
-resumes where it was; use a new ``--work`` after changing settings):
+resumes where it was; a ``--work`` made with other settings is refused):
 
 1. record ``--demos`` scripted pick-and-place demonstrations at ``--size`` px (run seed
    ``--seed``; lossless PNG frames, calibration and depth sidecars);
@@ -64,21 +64,58 @@ from gensplat_lerobot import prepare
 from gensplat_transforms.sim.evaluate import EvalConfig, PerturbedCameraEnv, evaluate
 from gensplat_transforms.sim.policy_adapter import LeRobotPolicy
 from gensplat_transforms.sim.record import RecordConfig, record
-from gensplat_transforms.sim.world import WorldConfig
+from gensplat_transforms.sim.tasks import TASKS
+from gensplat_transforms.sim.world import CAMERA_NAMES, EXTERNAL_CAMERAS, STATE_NAMES, WorldConfig
 from gensplat_transforms.transform import GenSplatConfig
 
-REPO = "gensplat/sim_pick_place"
-TASK = "pick_place"
 LEVELS = ("none", "small", "medium", "large")
 MODES = ("baseline", "gensplat")
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
 
+
+def repo_id(task: str) -> str:
+    return f"gensplat/sim_{task}"
+
+
 #: (full, quick) defaults of the settings that size the experiment.
 DEFAULTS = {
-    "demos": (50, 2), "size": (96, 96), "steps": (1500, 4), "batch_size": (8, 4), "workers": (2, 0),
-    "down_dims": ("64,128,256", "32,64,128"), "episodes": (30, 2), "max_steps": (100, 20),
+    "demos": (200, 2), "size": (96, 96), "steps": (2500, 4), "batch_size": (32, 4), "workers": (2, 0),
+    "down_dims": ("64,128,256", "32,64,128"), "episodes": (30, 2), "max_steps": (None, 20),
 }  # fmt: skip
+
+
+#: Settings that shape the recorded data and the trained policies (kept in ``work/settings.json``).
+RUN_SETTINGS = ("task", "cameras", "demos", "size", "steps", "batch_size", "workers", "down_dims",
+                "n_obs_steps", "views_per_source", "seed", "device")  # fmt: skip
+
+
+def check_work(work: Path, args) -> None:
+    """Record the run settings in ``work``, or refuse to resume a ``work`` made with others."""
+    settings = {k: list(v) if isinstance(v, tuple) else v for k in RUN_SETTINGS for v in [getattr(args, k)]}
+    path = work / "settings.json"
+    if path.is_file():
+        old = json.loads(path.read_text())
+        changed = {k: (old.get(k), v) for k, v in settings.items() if old.get(k) != v}
+        if changed:
+            raise SystemExit(f"{work} holds a run with other settings {changed} (was, now): "
+                             "pass a new --work or delete it")  # fmt: skip
+        return
+    work.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(settings, indent=2) + "\n")
+
+
+def policy_config(work: Path, args) -> Path:
+    """``policies/diffusion.json`` with the policy's inputs limited to ``args.cameras`` and
+    the state, written to ``work/diffusion.json``."""
+    config = json.loads((ROOT / "policies" / "diffusion.json").read_text())
+    features = {f"observation.images.{c}": {"type": "VISUAL", "shape": [3, args.size, args.size]}
+                for c in args.cameras}  # fmt: skip
+    features["observation.state"] = {"type": "STATE", "shape": [len(STATE_NAMES)]}
+    config["policy"]["input_features"] = features
+    path = work / "diffusion.json"
+    path.write_text(json.dumps(config, indent=2) + "\n")
+    return path
 
 
 def train(mode: str, root: Path, out: Path, args) -> dict:
@@ -91,12 +128,13 @@ def train(mode: str, root: Path, out: Path, args) -> dict:
     shutil.rmtree(out, ignore_errors=True)  # an unfinished run: lerobot-train refuses existing folders
     dims = "[" + args.down_dims + "]"
     cmd = [
-        "bash", str(ROOT / "policies" / "train.sh"), "diffusion", mode,
-        f"--dataset.repo_id={REPO}", f"--dataset.root={root}", f"--output_dir={out}",
+        "bash", str(ROOT / "policies" / "train.sh"), str(policy_config(out.parent, args)), mode,
+        f"--dataset.repo_id={repo_id(args.task)}", f"--dataset.root={root}", f"--output_dir={out}",
         f"--steps={args.steps}", f"--batch_size={args.batch_size}", f"--num_workers={args.workers}",
         f"--seed={args.seed}", f"--save_freq={args.steps}", f"--log_freq={max(1, args.steps // 50)}",
         f"--policy.down_dims={dims}", f"--policy.n_obs_steps={args.n_obs_steps}",
         "--policy.noise_scheduler_type=DDIM", f"--policy.num_inference_steps={args.inference_steps}",
+        f"--policy.scheduler_warmup_steps={min(500, args.steps // 10)}",
         f"--policy.device={args.device}",
     ]  # fmt: skip
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}"}
@@ -123,7 +161,7 @@ def evaluate_level(checkpoint: Path, level: str, args) -> dict:
     torch.set_num_threads(1)
     t0 = time.perf_counter()
     policy = LeRobotPolicy(checkpoint, device=args.device)
-    env = PerturbedCameraEnv(EvalConfig(TASK, level, ("left",), seed=args.seed, max_steps=args.max_steps,
+    env = PerturbedCameraEnv(EvalConfig(args.task, level, ("left",), seed=args.seed, max_steps=args.max_steps,
                                         world=WorldConfig(height=args.size, width=args.size)))  # fmt: skip
     try:
         result = evaluate(policy, env, args.episodes, reset=policy.reset)
@@ -159,17 +197,20 @@ def main() -> None:
     parser.add_argument(
         "--work", type=Path, help="dataset, checkpoints, logs (default outputs/policy_robustness[_quick])"
     )
+    parser.add_argument("--task", default="reach", choices=sorted(TASKS), help="default reach")
+    parser.add_argument("--cameras", default="left",
+                        help="comma-separated cameras the policy sees (default left; all: left,right,wrist)")  # fmt: skip
     parser.add_argument("--demos", type=int, help="demonstrations (default 50; quick 2)")
     parser.add_argument("--size", type=int, help="image size of every camera (default 96)")
     parser.add_argument("--steps", type=int, help="training steps per policy (default 1500; quick 4)")
     parser.add_argument("--batch-size", type=int, help="default 8; quick 4")
     parser.add_argument("--workers", type=int, help="dataloader workers (default 2; quick 0)")
     parser.add_argument("--down-dims", help="U-Net widths (default 64,128,256; quick 32,64,128)")
-    parser.add_argument("--n-obs-steps", type=int, default=2)
+    parser.add_argument("--n-obs-steps", type=int, default=1, help="observation frames per step (default 1)")
     parser.add_argument("--inference-steps", type=int, default=10, help="DDIM steps per action chunk")
     parser.add_argument("--views-per-source", type=int, default=3, help="GenSplat cameras per trajectory")
     parser.add_argument("--episodes", type=int, help="evaluation episodes per level (default 30; quick 2)")
-    parser.add_argument("--max-steps", type=int, help="evaluation step budget (default 100; quick 20)")
+    parser.add_argument("--max-steps", type=int, help="evaluation step budget (default the task's; quick 20)")
     parser.add_argument("--seed", type=int, default=0, help="seeds recording, training and evaluation")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--eval-jobs", type=int, default=2, help="evaluation processes (default 2)")
@@ -178,19 +219,27 @@ def main() -> None:
     for key, (full, quick) in DEFAULTS.items():
         if getattr(args, key) is None:
             setattr(args, key, quick if args.quick else full)
+    args.cameras = tuple(args.cameras.split(","))
+    if not args.cameras or any(c not in CAMERA_NAMES for c in args.cameras):
+        parser.error(f"--cameras: choose from {CAMERA_NAMES}, got {args.cameras}")
+    args.max_steps = args.max_steps or TASKS[args.task].max_steps
     work = args.work or ROOT / "outputs" / ("policy_robustness_quick" if args.quick else "policy_robustness")
     root = work / "dataset"
+    check_work(work, args)
     t_start = time.perf_counter()
 
     if not (root / "meta" / "info.json").is_file():
         shutil.rmtree(root, ignore_errors=True)
-        res = record(RecordConfig(root, TASK, args.demos, args.seed, use_videos=False, repo_id=REPO,
+        res = record(RecordConfig(root, args.task, args.demos, args.seed, use_videos=False, repo_id=repo_id(args.task),
                                   world=WorldConfig(height=args.size, width=args.size)), progress=False)  # fmt: skip
         print(
             f"recorded {res.episodes} demonstrations, {res.frames} frames, in {res.seconds:.0f} s", flush=True
         )
-    gensplat = GenSplatConfig(views_per_source=args.views_per_source, backend="fast", seed=args.seed)
-    prepare(root, REPO, gensplat, progress=False)
+    replace = tuple(c for c in args.cameras if c in EXTERNAL_CAMERAS)
+    gensplat = GenSplatConfig(
+        replace=replace, views_per_source=args.views_per_source, backend="fast", seed=args.seed
+    )
+    prepare(root, repo_id(args.task), gensplat, progress=False)
 
     timing, rates, progress, episodes = {}, {}, {}, {}
     for mode in MODES:
@@ -210,8 +259,9 @@ def main() -> None:
     settings = {k: getattr(args, k) for k in ("demos", "size", "steps", "batch_size", "workers", "down_dims",
                                              "n_obs_steps", "inference_steps", "views_per_source", "max_steps",
                                              "seed", "device")}  # fmt: skip
-    settings.update(task=TASK, policy="diffusion (policies/diffusion.json + the overrides above)",
-                    perturbed_camera="left", gensplat={"cameras": list(gensplat.cameras),
+    settings.update(task=args.task, policy_cameras=list(args.cameras),
+                    policy="diffusion (policies/diffusion.json + the overrides above)",
+                    perturbed_camera="left", gensplat={"cameras": list(gensplat.cameras), "replace": list(replace),
                     "probability": gensplat.probability, "level": gensplat.level, "mode": gensplat.mode})  # fmt: skip
     result = {**rates, "episodes_per_level": args.episodes, "quick": args.quick, "progress": progress,
               "settings": settings, "timing": timing, "episodes": episodes}  # fmt: skip

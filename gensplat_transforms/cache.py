@@ -72,7 +72,8 @@ def quantize(g: Gaussians, lo: torch.Tensor, hi: torch.Tensor) -> dict[str, torc
 
 
 def dequantize(d: dict[str, torch.Tensor], lo: torch.Tensor, hi: torch.Tensor) -> Gaussians:
-    """Inverse of :func:`quantize` (float32)."""
+    """Inverse of :func:`quantize` (float32). Valid by construction for finite ``lo``, ``hi``
+    and checksummed input (``quantize`` clamps), so the result is marked checked."""
     span = (hi - lo).clamp_min(1e-9)
     return Gaussians(
         means=d["means"].to(torch.int32).float() / 65535 * span + lo,
@@ -81,7 +82,7 @@ def dequantize(d: dict[str, torch.Tensor], lo: torch.Tensor, hi: torch.Tensor) -
         opacities=d["opacities"].float() / 255,
         sh=d["sh"].float(),
         validate=False,
-    )
+    ).mark_checked()
 
 
 def _row_bytes(d: dict[str, torch.Tensor]) -> torch.Tensor:
@@ -274,6 +275,8 @@ class _EpisodeFile:
         self.width, self.height = json.loads(meta["image_size"])
         lo, hi = json.loads(meta["bbox"])
         self.lo, self.hi = torch.tensor(lo), torch.tensor(hi)
+        if not (torch.isfinite(self.lo).all() and torch.isfinite(self.hi).all()):
+            raise CorruptCacheError(f"{path}: bounding box {meta['bbox']} is not finite; delete it to rebuild")
         self.crc = json.loads(meta["crc"])
         self._static: Gaussians | None = None
 

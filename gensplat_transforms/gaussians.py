@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -45,12 +45,35 @@ class Gaussians:
     opacities: torch.Tensor
     sh: torch.Tensor
     validate: bool = True
+    #: what the last passed check saw (see ``check``)
+    _checked: tuple | None = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.validate:
             self.check()
 
-    def check(self) -> Gaussians:
+    def _fingerprint(self) -> tuple:
+        """Identity of the current tensors: storage, torch's in-place version counter, layout."""
+        return tuple((t.data_ptr(), t._version, t.shape, t.stride(), t.dtype, t.device)
+                     for t in self.tensors().values())  # fmt: skip
+
+    def mark_checked(self) -> Gaussians:
+        """Record the tensors as valid without scanning them: only for values valid by
+        construction (e.g. decoded from a checksummed cache)."""
+        self._checked = self._fingerprint()
+        return self
+
+    def check(self, force: bool = False) -> Gaussians:
+        """Raise ``ValueError`` naming the first invalid field: shapes, dtypes, NaN or Inf,
+        opacities outside [0, 1], negative scales.
+
+        A check that passed is remembered until a tensor is replaced or changed in place
+        through torch (its version counter moves), so rendering the same Gaussians again
+        does not rescan them. Writes through a NumPy view are invisible to torch: pass
+        ``force=True`` after those.
+        """
+        if not force and self._checked is not None and self._checked == self._fingerprint():
+            return self
         if self.means.ndim != 2 or self.means.shape[1] != 3:
             raise ValueError(f"Gaussians.means: expected shape (N, 3), got {tuple(self.means.shape)}")
         n = self.means.shape[0]
@@ -81,7 +104,7 @@ class Gaussians:
                 raise ValueError("Gaussians.opacities: opacities must lie in [0, 1]")
         if lo.get("scales", 0.0) < 0:
             raise ValueError("Gaussians.scales: scales must be >= 0")
-        return self
+        return self.mark_checked()
 
     # ------------------------------------------------------------------ basics
     def __len__(self) -> int:
@@ -134,8 +157,10 @@ class Gaussians:
         if not items:
             raise ValueError("Gaussians.cat: nothing to concatenate")
         degree = max(g.sh_degree for g in items)
+        checked = all(g._checked is not None and g._checked == g._fingerprint() for g in items)
         items = [g.with_sh_degree(degree) for g in items]
-        return Gaussians(**{k: torch.cat([getattr(g, k) for g in items]) for k in _FIELDS}, validate=False)
+        out = Gaussians(**{k: torch.cat([getattr(g, k) for g in items]) for k in _FIELDS}, validate=False)
+        return out.mark_checked() if checked else out
 
     @staticmethod
     def empty(sh_degree: int = 0, dtype=torch.float32, device=None) -> Gaussians:

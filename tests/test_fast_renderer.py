@@ -148,6 +148,15 @@ def test_float32_camera():
     both(random_scene(n=200, seed=8), camera(dtype=torch.float32))
 
 
+@pytest.mark.parametrize("backend", ["reference", "fast"])
+def test_gaussians_changed_in_place_after_a_render_are_checked_again(backend):
+    g = random_scene(n=50, seed=10)
+    render(g, camera(), backend=backend)
+    g.sh[7, 2, 1] = float("inf")
+    with pytest.raises(ValueError, match=r"Gaussians.sh: 1 Gaussian\(s\) have NaN or Inf"):
+        render(g, camera(), backend=backend)
+
+
 @pytest.mark.parametrize("name", sorted(HARD_CASES))
 def test_hard_cases_agree_with_reference(name):
     both(HARD_CASES[name], camera(torch.float32), background=(0.5, 0.25, 1.0))

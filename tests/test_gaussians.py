@@ -71,6 +71,30 @@ def test_invalid_fields_raise_naming_the_field(name, fn, match):
         Gaussians(**_replace(name, fn))
 
 
+def test_a_passed_check_is_remembered_until_a_tensor_changes():
+    g = make(5)
+    assert g._checked is not None  # construction checked it
+    g.means[2, 1] = float("nan")  # in-place through torch: the version counter moves
+    with pytest.raises(ValueError, match=r"Gaussians.means: 1 Gaussian\(s\) have NaN"):
+        g.check()
+    g = make(5)
+    g.opacities = torch.full((5,), 2.0)  # a replaced tensor
+    with pytest.raises(ValueError, match=r"opacities must lie in \[0, 1\]"):
+        g.check()
+    g = make(5)
+    g.scales.numpy()[0, 0] = -1.0  # invisible to torch: only a forced check sees it
+    g.check()
+    with pytest.raises(ValueError, match=r"scales must be >= 0"):
+        g.check(force=True)
+
+
+def test_cat_of_checked_gaussians_stays_checked():
+    a, b = make(3), make(4, degree=2)
+    assert Gaussians.cat([a, b])._checked is not None
+    unchecked = Gaussians(**b.tensors(), validate=False)
+    assert Gaussians.cat([a, unchecked])._checked is None
+
+
 def test_boundary_values_are_valid():
     g = make(3)
     g = Gaussians(g.means, g.quats * 0, g.scales * 0, torch.tensor([0.0, 1.0, 0.5]), g.sh)  # zero quats ok

@@ -20,7 +20,7 @@ from gensplat_transforms.sim.evaluate import EvalConfig, PerturbedCameraEnv, eva
 from gensplat_transforms.sim.experts import ExpertPolicy, run_expert
 from gensplat_transforms.sim.record import RecordConfig, record
 from gensplat_transforms.sim.scene import ObjectSpec
-from gensplat_transforms.sim.tasks import TASKS, Task, episode_seed
+from gensplat_transforms.sim.tasks import REACH_CLEARANCE, TASKS, Task, episode_seed
 from gensplat_transforms.sim.truth import GroundTruth, load_sim_episode
 from gensplat_transforms.sim.world import CAMERA_NAMES, SimWorld, WorldConfig
 
@@ -74,6 +74,30 @@ def test_experts_succeed(task):
     results = [run_expert(w, episode_seed(0, i))[3] for i in range(3)]
     w.close()
     assert all(results), f"{task}: expert failed on seeds {[i for i, r in enumerate(results) if not r]}"
+
+
+def test_reach_success_needs_the_open_gripper_at_the_goal():
+    task = TASKS["reach"]
+    cube = np.array([0.5, 0.1, 0.02])
+    positions = {"cube": cube, "plate": np.array([0.4, -0.1, 0.006]), "can": np.array([0.6, 0.0, 0.045])}
+    goal = task.reach_goal(cube)
+    np.testing.assert_allclose(goal, cube + [0, 0, 0.02 + REACH_CLEARANCE])
+    assert task.success(positions, gripper_closed=False, pinch=goal + [0.02, 0, 0])
+    assert not task.success(positions, gripper_closed=False, pinch=goal + [0.0, 0.03, 0])
+    assert not task.success(positions, gripper_closed=False, pinch=goal + [0.0, 0, 0.03])
+    assert not task.success(positions, gripper_closed=True, pinch=goal)
+    episode = task.sample(3)
+    assert episode.instruction == f"reach the {episode.placements['cube'].color} cube"
+
+
+def test_reach_expert_starts_away_from_the_goal():
+    """A reach is not won at reset: the expert needs a dozen or more steps to get there."""
+    w = SimWorld("reach", small_config())
+    w.reset(episode_seed(0, 0))
+    assert not w.success()
+    _, _, actions, success = run_expert(w, episode_seed(0, 0))
+    w.close()
+    assert success and 10 <= len(actions) <= 40
 
 
 def _marker_world() -> tuple[SimWorld, int]:

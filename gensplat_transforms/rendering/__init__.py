@@ -61,7 +61,8 @@ def render(
     """Render Gaussians from each camera with EWA splatting and front-to-back compositing.
 
     Args:
-        gaussians: the scene (any float dtype; half precision is computed in float32).
+        gaussians: the scene (any float dtype; half precision is computed in float32);
+            checked with ``Gaussians.check``, which skips a rescan of unchanged tensors.
         cameras: B cameras (OpenCV convention) sharing one image size.
         background: RGB added where the splats leave transmittance.
         near: splats whose centre is not beyond this camera-space z are culled.

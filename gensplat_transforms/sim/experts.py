@@ -2,7 +2,8 @@
 it on its ``place`` object, using the true object poses (privileged information).
 
 Phases: approach above the object, descend, close, lift, carry above the place object,
-lower, open, retreat. Each phase moves the commanded pinch target in a straight line at a
+lower, open, retreat. A reach task (no ``place``) stops after descending to the reach goal
+and holding it for ``settle`` seconds. Each phase moves the commanded pinch target in a straight line at a
 bounded speed, so consecutive actions differ by at most a few centimetres.
 """
 
@@ -44,7 +45,7 @@ def _box_yaw(quat: np.ndarray) -> float:
 
 
 class PickPlaceExpert:
-    """Scripted expert for any :class:`~.tasks.Task` (pick onto place).
+    """Scripted expert for any :class:`~.tasks.Task` (pick onto place, or reach).
 
     Call :meth:`act` once per control step and pass the action to ``world.step``;
     :attr:`done` turns true after the retreat and settling time.
@@ -63,7 +64,6 @@ class PickPlaceExpert:
         """Yield (goal function, speed, hold seconds); goals are evaluated when a phase starts."""
         task, c = self.world.task, self.cfg
         pick_h = task.object(task.pick).half_height
-        place_h = task.object(task.place).half_height
 
         def pick_pose():
             body = self.world.data.body(task.pick)
@@ -80,8 +80,12 @@ class PickPlaceExpert:
         def place_xy():
             return self.world.data.body(task.place).xpos[:2].copy()
 
-        carry_z = 2 * place_h + 2 * pick_h + c.hover
         yield above_pick, c.speed, 0.0
+        if task.place is None:
+            yield lambda t: np.r_[task.reach_goal(pick_pose()[0]), t[3], 0.0], c.slow_speed, c.settle
+            return
+        place_h = task.object(task.place).half_height
+        carry_z = 2 * place_h + 2 * pick_h + c.hover
         yield at_pick, c.slow_speed, 0.0
         yield lambda t: np.r_[t[:4], 1.0], c.speed, c.grasp_wait
         yield lambda t: np.r_[t[:2], carry_z, t[3], 1.0], c.slow_speed, 0.0

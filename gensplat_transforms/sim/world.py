@@ -138,7 +138,9 @@ class SimWorld:
 
     def success(self) -> bool:
         """The task's success test on the current state."""
-        return self.task.success(self.object_positions(), gripper_closed=self.data.ctrl[7] > 127.5)
+        return self.task.success(
+            self.object_positions(), gripper_closed=self.data.ctrl[7] > 127.5, pinch=self.ee_pose()[0]
+        )
 
     def ee_pose(self) -> tuple[np.ndarray, float]:
         """Pinch-site position (3,) and yaw (radians)."""
