@@ -5,39 +5,40 @@
 Stages (each is skipped when its output already exists in ``--work``, so a stopped run
 resumes where it was; a ``--work`` made with other settings is refused):
 
-1. record ``--demos`` scripted pick-and-place demonstrations at ``--size`` px (run seed
+1. record ``--demos`` scripted demonstrations of ``--task`` at ``--size`` px (run seed
    ``--seed``; lossless PNG frames, calibration and depth sidecars);
 2. write the GenSplat settings beside the dataset and build its Gaussian cache: RGB-D
-   reconstruction of the left + right cameras, both replaced with probability 0.5 by a
-   view from the training range (|theta| <= 30 deg, 0.5-6 cm), one camera per trajectory,
-   ``--views-per-source`` (default 3) distinct cameras per source trajectory;
+   reconstruction of the left + right cameras; the policy's external cameras (left by
+   default) are replaced with probability 0.5 by a view from the training range
+   (|theta| <= 30 deg, 0.5-6 cm), one camera per trajectory, ``--views-per-source``
+   (default 3) distinct cameras per source trajectory;
 3. train Diffusion Policy twice with LeRobot's stock trainer through ``policies/train.sh``
    (``baseline`` and ``gensplat``, the latter with the one added line): same data, seed,
-   steps, batch and policy settings;
+   steps, batch and policy settings; the policy sees ``--cameras`` and the robot state;
 4. evaluate both checkpoints in ``PerturbedCameraEnv`` with the left external camera
    perturbed once per episode at none / small / medium / large. Episode layouts come from
    the evaluation stream (never a training layout) and both policies meet the same layouts
    and perturbations.
 
-Defaults, about 1.7 hours on this 2-core CPU (measured: recording 6 min, 1.1 s per
-training step at batch 8 (1500 steps: 28 min per policy), evaluation 13 min in two
-processes at 0.07 s per control step; ``timing`` in the result holds the measured values):
-50 demos at 96x96; Diffusion Policy as in
-``policies/diffusion.json`` (ResNet-18 encoders from scratch, one per camera, U-Net
-``down_dims`` 64-128-256, 2 observation steps, horizon 16, 8 executed actions) with DDIM and
-10 inference steps; 1500 steps at batch 8; 30 evaluation episodes per level of at most 100
-control steps (the demonstrations take about 60). At this budget Diffusion Policy is far
-from converged: in the committed run neither policy lifted the cube once (success 0-3 %),
-so the run does not measure GenSplat's effect; ``--device cuda --steps 20000`` is the
-setting to aim for on a GPU.
+Defaults, sized for this 2-core CPU (``timing`` in the result holds the measured values):
+the ``reach`` task (bring the open gripper 2 cm above a 4 cm cube placed at random among
+two distractors; the policy must find the cube in the image), 200 demonstrations at
+96x96, the policy sees the left camera and the state; Diffusion Policy as in
+``policies/diffusion.json`` (ResNet-18 encoder from scratch, U-Net ``down_dims``
+64-128-256, horizon 16, 8 executed actions) with 1 observation step, DDIM and 10 inference
+steps; 2500 steps at batch 32 (warm-up a tenth of the steps); 30 evaluation episodes per
+level of at most 50 control steps (the demonstrations take 15-18). The pick-and-place task
+(``--task pick_place --cameras left,right,wrist``) did not train at a CPU budget (no cube
+lifted after 1500 steps at batch 8); ``--device cuda --steps 20000`` is the setting to aim
+for on a GPU.
 ``--quick`` (a few minutes): 2 demos, 4 steps at batch 4, a smaller U-Net, 2 episodes per
 level of at most 20 steps: it checks the pipeline end to end, its success rates mean nothing.
 
 Writes ``benchmarks/results/policy_robustness.json``: ``{"baseline": {level: success %},
 "gensplat": {...}, "episodes_per_level": n, "progress": {mode: {level: {lift_percent,
 median_reach_cm}}}, "quick": bool, "settings", "timing", "episodes"}``. ``progress`` tells
-apart policies that do not succeed yet: the share of episodes that lifted the cube and the
-median closest approach of the pinch site to it.
+apart policies that do not succeed yet: the share of episodes that lifted the cube (pick
+and place) and the median closest approach of the pinch point to the cube's centre.
 """
 
 from __future__ import annotations
@@ -60,6 +61,7 @@ import torch
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 from gensplat_lerobot import prepare
+from plotting import Panel, line_panels
 
 from gensplat_transforms.sim.evaluate import EvalConfig, PerturbedCameraEnv, evaluate
 from gensplat_transforms.sim.policy_adapter import LeRobotPolicy
@@ -191,6 +193,26 @@ def evaluate_all(work: Path, args) -> dict:
     return out
 
 
+def plot(result: dict, path: Path) -> None:
+    """Two panels against the level: success % and the median closest approach (cm)."""
+    colours = {"baseline": (214, 39, 40), "gensplat": (44, 160, 44)}
+    x_ticks = list(enumerate(LEVELS))
+    success = {m: [(j, result[m][lv], f"{result[m][lv]:.0f}") for j, lv in x_ticks] for m in MODES}
+    reach = {m: [(j, result["progress"][m][lv]["median_reach_cm"], "") for j, lv in x_ticks] for m in MODES}
+    top = max(5.0, max(y for pts in reach.values() for _, y, _ in pts))
+    top = float(np.ceil(top / 5) * 5)
+    x_range = (-0.5, len(LEVELS) - 0.5)
+    panels = [
+        Panel("success (%)", success, x_range, (0, 100), x_ticks, [(t, str(t)) for t in range(0, 101, 20)]),
+        Panel("median closest approach (cm)", reach, x_range, (0, top), x_ticks,
+              [(t, f"{t:.0f}") for t in np.arange(0, top + 1e-9, 5)]),
+    ]  # fmt: skip
+    s = result["settings"]
+    note = (f"{s['task']}, Diffusion Policy, {s['steps']} steps at batch {s['batch_size']}, "
+            f"{result['episodes_per_level']} episodes per level, left camera perturbed")  # fmt: skip
+    line_panels(path, panels, colours, note)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="tiny end-to-end check (a few minutes)")
@@ -267,6 +289,7 @@ def main() -> None:
               "settings": settings, "timing": timing, "episodes": episodes}  # fmt: skip
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
+    plot(result, args.out.with_suffix(".png"))
     print(f"{'success %':>10}" + "".join(f"{lv:>9}" for lv in LEVELS))
     for mode in MODES:
         print(f"{mode:>10}" + "".join(f"{rates[mode][lv]:9.1f}" for lv in LEVELS))

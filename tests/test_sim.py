@@ -242,6 +242,14 @@ def test_perturbed_camera_env():
     still = evaluate(hold, PerturbedCameraEnv(replace(config, max_steps=5)), episodes=1)
     assert still.successes == [False] and still.lifted == [False] and still.reach_m[0] > 0.05
 
+    reach = PerturbedCameraEnv(replace(config, task="reach"))
+    expert = ExpertPolicy(reach.world)
+    reached = evaluate(expert, reach, episodes=1, reset=expert.reset)
+    reach.close()
+    # a reach ends as soon as the pinch point is within the task's tolerance of the goal
+    assert reached.successes == [True] and reached.reach_m[0] < TASKS["reach"].place_tolerance
+    assert reached.lifted == [False]
+
     obs, info = env.reset(options={"episode_index": 0})
     p = PerturbationSampler("large", seed=2).sample(0)
     assert info["perturbation"] == p.as_dict() and abs(p.theta_deg) >= 18

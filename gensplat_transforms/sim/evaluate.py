@@ -147,8 +147,9 @@ LIFT_HEIGHT = 0.03
 
 @dataclass
 class EvalResult:
-    """Per episode: success, steps, the perturbation, the closest the pinch site came to the
-    pick object (m) and whether the pick was lifted by :data:`LIFT_HEIGHT`."""
+    """Per episode: success, steps, the perturbation, the closest the pinch point came to the
+    pick object's centre (to the reach goal in a reach task) (m) and whether the pick was
+    lifted by :data:`LIFT_HEIGHT`."""
 
     level: str
     successes: list[bool] = field(default_factory=list)
@@ -179,21 +180,22 @@ def evaluate(
         reset: called after every environment reset (e.g. a LeRobot policy's ``reset``).
     """
     result = EvalResult(env.config.level)
-    pick = env.world.task.pick
+    task = env.world.task
     for i in range(episodes):
         obs, info = env.reset(options={"episode_index": i})
         if reset is not None:
             reset()
-        start_z = env.world.object_positions()[pick][2]
+        start_z = env.world.object_positions()[task.pick][2]
         done, steps, success, reach, lifted = False, 0, False, np.inf, False
         while not done:
             action = policy(obs)
             obs, _, success, truncated, _ = env.step(torch.as_tensor(action).detach().cpu().numpy())
             steps += 1
             done = success or truncated
-            target = env.world.object_positions()[pick]
-            reach = min(reach, float(np.linalg.norm(env.world.ee_pose()[0] - target)))
-            lifted = lifted or target[2] - start_z > LIFT_HEIGHT
+            pick = env.world.object_positions()[task.pick]
+            goal = pick if task.place is not None else task.reach_goal(pick)
+            reach = min(reach, float(np.linalg.norm(env.world.ee_pose()[0] - goal)))
+            lifted = lifted or pick[2] - start_z > LIFT_HEIGHT
         result.successes.append(bool(success))
         result.steps.append(steps)
         result.perturbations.append(info["perturbation"])
