@@ -23,7 +23,7 @@ Numbers: the projection runs in float64 like ``project()``, everything after it 
 whatever the input dtype (float64 Gaussians are rounded to float32 first; the outputs are
 returned in the API's dtype). Per (splat, pixel) pair the arithmetic follows the
 reference's float32 operations one by one except the exponential (a polynomial, relative
-error below 1e-6) and the transmittance (a running product instead of a float64 sum of
+error below 2e-6) and the transmittance (a running product instead of a float64 sum of
 logarithms), so images agree with the reference to about 1e-6.
 
 Threads: ``threads=1`` (the default, one dataloader worker = one thread) runs serial
@@ -257,33 +257,74 @@ def _pack(lo, hi, idx, soa, opacities, sh, degree, cam, geom, boxes, rec, vboxes
         keys[j] = geom[5, i]
 
 
+# Stable ascending order of the positive float64 depth keys: LSD radix sort on 11-bit digits
+# of their IEEE bits (which order like the values for positive numbers). The parallel sort
+# splits the current order into chunks; chunk c's keys of a digit go before chunk c+1's, so
+# every pass stays stable and the order does not depend on the thread count.
+_DIGITS = 2048
+
+
+@_jit()
+def _radix_histogram(bits, order, lo, hi, shift, hist):
+    """hist (_DIGITS,): digit counts of the keys order[lo:hi]."""
+    hist[:] = 0
+    for k in range(lo, hi):
+        hist[(bits[order[k]] >> shift) & np.uint64(_DIGITS - 1)] += 1
+
+
+@_jit()
+def _radix_offsets(hist, n):
+    """(chunks, _DIGITS) counts -> scatter cursors, digit-major then chunk; True when a single
+    digit holds all n keys (the pass would change nothing)."""
+    total, single = 0, False
+    for d in range(_DIGITS):
+        first = total
+        for c in range(hist.shape[0]):
+            cnt = hist[c, d]
+            hist[c, d] = total
+            total += cnt
+        single |= total - first == n
+    return single
+
+
+@_jit()
+def _radix_scatter(bits, order, lo, hi, shift, cursor, out):
+    for k in range(lo, hi):
+        o = order[k]
+        d = (bits[o] >> shift) & np.uint64(_DIGITS - 1)
+        out[cursor[d]] = o
+        cursor[d] += 1
+
+
 @_jit()
 def _argsort_depth(keys):
-    """Stable ascending order of positive float64 keys: LSD radix sort on 11-bit digits of
-    their IEEE bits (which order like the values for positive numbers)."""
     n = keys.shape[0]
     bits = keys.view(np.uint64)
-    order, tmp = np.empty(n, np.int32), np.empty(n, np.int32)
-    for k in range(n):
-        order[k] = k
-    hist = np.zeros(2048, np.int64)
+    order, tmp = np.arange(n).astype(np.int32), np.empty(n, np.int32)
+    hist = np.empty((1, _DIGITS), np.int64)
     for shift in range(0, 64, 11):
-        hist[:] = 0
-        for k in range(n):
-            hist[(bits[k] >> np.uint64(shift)) & np.uint64(2047)] += 1
-        total, single = 0, False
-        for d in range(2048):
-            cnt = hist[d]
-            single |= cnt == n  # the same digit for every key: nothing to do
-            hist[d] = total
-            total += cnt
-        if single:
+        _radix_histogram(bits, order, 0, n, np.uint64(shift), hist[0])
+        if _radix_offsets(hist, n):
             continue
-        for k in range(n):
-            o = order[k]
-            d = (bits[o] >> np.uint64(shift)) & np.uint64(2047)
-            tmp[hist[d]] = o
-            hist[d] += 1
+        _radix_scatter(bits, order, 0, n, np.uint64(shift), hist[0], tmp)
+        order, tmp = tmp, order
+    return order
+
+
+@_jit(parallel=True)
+def _argsort_depth_parallel(keys, nchunks):
+    n = keys.shape[0]
+    bits = keys.view(np.uint64)
+    order, tmp = np.arange(n).astype(np.int32), np.empty(n, np.int32)
+    hist = np.empty((nchunks, _DIGITS), np.int64)
+    for shift in range(0, 64, 11):
+        for c in prange(nchunks):
+            _radix_histogram(bits, order, c * n // nchunks, (c + 1) * n // nchunks, np.uint64(shift), hist[c])
+        if _radix_offsets(hist, n):
+            continue
+        for c in prange(nchunks):
+            lo, hi = c * n // nchunks, (c + 1) * n // nchunks
+            _radix_scatter(bits, order, lo, hi, np.uint64(shift), hist[c], tmp)
         order, tmp = tmp, order
     return order
 
@@ -353,7 +394,7 @@ def _project_parallel(
     for c in prange(nchunks):
         _pack(c * m // nchunks, (c + 1) * m // nchunks, idx, soa, opacities, sh, degree, cam, geom, boxes,
               rec, vboxes, keys)  # fmt: skip
-    return rec, vboxes, _argsort_depth(keys)
+    return rec, vboxes, _argsort_depth_parallel(keys, nchunks)
 
 
 # --------------------------------------------------------------------------- binning
@@ -428,24 +469,30 @@ def _bin_parallel(order, boxes, ntx, nty, nchunks):
 
 
 # --------------------------------------------------------------------------- rasterization
+def _exp_coefficients(degree: int = 6, lo: float = -0.625) -> list[float]:
+    """Coefficients, highest power first, of the Chebyshev interpolant of exp on [lo, 0]:
+    near-minimax, so degree 6 is as accurate in float32 as the degree-9 Taylor polynomial."""
+    interpolant = np.polynomial.Chebyshev.interpolate(np.exp, degree, domain=[lo, 0.0])
+    return interpolant.convert(kind=np.polynomial.Polynomial).coef[::-1].tolist()
+
+
 #: float32 constants of ``_raster_tile``: alpha cap and threshold, transmittance floor, -1/2,
 #: the footprint limit q <= 9, 0, 1, then 1/8 and -5 (argument scale and floor of the
-#: exponential, whose value matters only for q <= 9) and the Taylor coefficients of ``_exp8``.
+#: exponential, whose value matters only for q <= 9) and the 7 coefficients of ``_exp8``.
 _CONSTANTS = np.array(
-    [ALPHA_MAX, ALPHA_MIN, T_MIN, -0.5, SIGMA_EXTENT**2, 0.0, 1.0, 0.125, -5.0]
-    + [1.0 / math.factorial(j) for j in range(9, -1, -1)],
+    [ALPHA_MAX, ALPHA_MIN, T_MIN, -0.5, SIGMA_EXTENT**2, 0.0, 1.0, 0.125, -5.0] + _exp_coefficients(),
     np.float32,
 )
 
 
 @_jit(fastmath={"contract"})
 def _exp8(y, c):
-    """exp(8 y) for y in [-5/8, 0]: the Taylor polynomial of exp(y) with coefficients
-    c = (1/9!, ..., 1/1!, 1), raised to the 8th power (relative error < 1e-6 in float32).
-    Plain arithmetic, so that the row loop inlining it compiles to SIMD code; fused
-    multiply-adds only here."""
+    """exp(8 y) for y in [-5/8, 0]: a degree-6 polynomial approximation of exp(y) with
+    coefficients c (``_exp_coefficients``), raised to the 8th power: 9 operations, relative
+    error < 2e-6 in float32 (tested). Plain arithmetic, so that the row loop inlining it
+    compiles to SIMD code; fused multiply-adds only here."""
     p = c[0]
-    for j in range(1, 10):
+    for j in range(1, 7):
         p = p * y + c[j]
     p = p * p
     p = p * p
@@ -463,7 +510,7 @@ def _raster_tile(tile, rec, boxes, start, ids, width, height, ntx, bg, want_dept
     """
     amax, amin, tmin, mhalf, nine, zero, one = k[0], k[1], k[2], k[3], k[4], k[5], k[6]
     eighth, lowest = k[7], k[8]
-    taylor = (k[9], k[10], k[11], k[12], k[13], k[14], k[15], k[16], k[17], k[18])  # values, not memory
+    poly = (k[9], k[10], k[11], k[12], k[13], k[14], k[15])  # values, not memory
     tx, ty = tile % ntx, tile // ntx
     x_org, y_org = tx * TILE, ty * TILE
     nx, ny = min(TILE, width - x_org), min(TILE, height - y_org)
@@ -498,7 +545,7 @@ def _raster_tile(tile, rec, boxes, start, ids, width, height, ntx, bg, want_dept
             for lx in range(TILE):  # branch-free: one SIMD row
                 dx = xs[lx] - u
                 q = (ca * (dx * dx) + (cb2 * dx) * dy) + cq
-                a = min(o * _exp8(max(mhalf * q, lowest) * eighth, taylor), amax)
+                a = min(o * _exp8(max(mhalf * q, lowest) * eighth, poly), amax)
                 t = state[0, ly, lx]
                 t_next = t * (one - a)
                 hit = (((live >> lx) & 1) == 1) & (q <= nine) & (a >= amin)
