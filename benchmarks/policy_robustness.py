@@ -28,7 +28,7 @@ two distractors; the policy must find the cube in the image), 200 demonstrations
 96x96, the policy sees the left camera and the state; Diffusion Policy as in
 ``policies/diffusion.json`` (ResNet-18 encoder from scratch, U-Net ``down_dims``
 64-128-256, horizon 16, 8 executed actions) with 1 observation step, DDIM and 10 inference
-steps; 2500 steps at batch 32 (warm-up a tenth of the steps); 30 evaluation episodes per
+steps; 2500 steps at batch 32 (warm-up a tenth of the steps, at most 500); 30 evaluation episodes per
 level of at most 50 control steps (the demonstrations take 15-18). The pick-and-place task
 (``--task pick_place --cameras left,right,wrist``) did not train at a CPU budget (no cube
 lifted after 1500 steps at batch 8), and at these defaults the reach policies do not find
@@ -41,7 +41,8 @@ Writes ``benchmarks/results/policy_robustness.json``: ``{"baseline": {level: suc
 "gensplat": {...}, "episodes_per_level": n, "progress": {mode: {level: {lift_percent,
 median_reach_cm}}}, "quick": bool, "settings", "timing", "episodes"}``. ``progress`` tells
 apart policies that do not succeed yet: the share of episodes that lifted the cube (pick
-and place) and the median closest approach of the pinch point to the cube's centre.
+and place) and the median closest approach of the pinch point to the cube's centre (to the
+reach goal in a reach).
 """
 
 from __future__ import annotations

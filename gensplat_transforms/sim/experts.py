@@ -3,8 +3,8 @@ it on its ``place`` object, using the true object poses (privileged information)
 
 Phases: approach above the object, descend, close, lift, carry above the place object,
 lower, open, retreat. A reach task (no ``place``) stops after descending to the reach goal
-and holding it for ``settle`` seconds. Each phase moves the commanded pinch target in a straight line at a
-bounded speed, so consecutive actions differ by at most a few centimetres.
+and holding it for ``settle`` seconds. Each phase moves the commanded pinch target in a
+straight line at a bounded speed, so consecutive actions differ by at most a few centimetres.
 """
 
 from __future__ import annotations

@@ -6,8 +6,8 @@ Two kinds of task, each with distractors on the table:
 * ``pick_place``: move a 4 cm cube onto a plate;
 * ``stack``: move a 4 cm cube onto a 6 cm cube;
 * ``reach``: bring the open gripper to just above a 4 cm cube (no ``place`` object). The
-  shortest closed-loop task in which the policy must find an object in the image; it trains
-  in a fraction of the steps of the others, which is what a CPU budget allows.
+  shortest closed-loop task in which the policy must find an object in the image
+  (demonstrations of 15-18 steps), meant for small training budgets.
 
 Per episode the object positions, yaws and colours are drawn from the episode seed; colours
 come from a named palette, so the instruction can name them ("put the red cube on the blue
