@@ -257,74 +257,33 @@ def _pack(lo, hi, idx, soa, opacities, sh, degree, cam, geom, boxes, rec, vboxes
         keys[j] = geom[5, i]
 
 
-# Stable ascending order of the positive float64 depth keys: LSD radix sort on 11-bit digits
-# of their IEEE bits (which order like the values for positive numbers). The parallel sort
-# splits the current order into chunks; chunk c's keys of a digit go before chunk c+1's, so
-# every pass stays stable and the order does not depend on the thread count.
-_DIGITS = 2048
-
-
-@_jit()
-def _radix_histogram(bits, order, lo, hi, shift, hist):
-    """hist (_DIGITS,): digit counts of the keys order[lo:hi]."""
-    hist[:] = 0
-    for k in range(lo, hi):
-        hist[(bits[order[k]] >> shift) & np.uint64(_DIGITS - 1)] += 1
-
-
-@_jit()
-def _radix_offsets(hist, n):
-    """(chunks, _DIGITS) counts -> scatter cursors, digit-major then chunk; True when a single
-    digit holds all n keys (the pass would change nothing)."""
-    total, single = 0, False
-    for d in range(_DIGITS):
-        first = total
-        for c in range(hist.shape[0]):
-            cnt = hist[c, d]
-            hist[c, d] = total
-            total += cnt
-        single |= total - first == n
-    return single
-
-
-@_jit()
-def _radix_scatter(bits, order, lo, hi, shift, cursor, out):
-    for k in range(lo, hi):
-        o = order[k]
-        d = (bits[o] >> shift) & np.uint64(_DIGITS - 1)
-        out[cursor[d]] = o
-        cursor[d] += 1
-
-
 @_jit()
 def _argsort_depth(keys):
+    """Stable ascending order of positive float64 keys: LSD radix sort on 11-bit digits of
+    their IEEE bits (which order like the values for positive numbers)."""
     n = keys.shape[0]
     bits = keys.view(np.uint64)
-    order, tmp = np.arange(n).astype(np.int32), np.empty(n, np.int32)
-    hist = np.empty((1, _DIGITS), np.int64)
+    order, tmp = np.empty(n, np.int32), np.empty(n, np.int32)
+    for k in range(n):
+        order[k] = k
+    hist = np.zeros(2048, np.int64)
     for shift in range(0, 64, 11):
-        _radix_histogram(bits, order, 0, n, np.uint64(shift), hist[0])
-        if _radix_offsets(hist, n):
+        hist[:] = 0
+        for k in range(n):
+            hist[(bits[k] >> np.uint64(shift)) & np.uint64(2047)] += 1
+        total, single = 0, False
+        for d in range(2048):
+            cnt = hist[d]
+            single |= cnt == n  # the same digit for every key: nothing to do
+            hist[d] = total
+            total += cnt
+        if single:
             continue
-        _radix_scatter(bits, order, 0, n, np.uint64(shift), hist[0], tmp)
-        order, tmp = tmp, order
-    return order
-
-
-@_jit(parallel=True)
-def _argsort_depth_parallel(keys, nchunks):
-    n = keys.shape[0]
-    bits = keys.view(np.uint64)
-    order, tmp = np.arange(n).astype(np.int32), np.empty(n, np.int32)
-    hist = np.empty((nchunks, _DIGITS), np.int64)
-    for shift in range(0, 64, 11):
-        for c in prange(nchunks):
-            _radix_histogram(bits, order, c * n // nchunks, (c + 1) * n // nchunks, np.uint64(shift), hist[c])
-        if _radix_offsets(hist, n):
-            continue
-        for c in prange(nchunks):
-            lo, hi = c * n // nchunks, (c + 1) * n // nchunks
-            _radix_scatter(bits, order, lo, hi, np.uint64(shift), hist[c], tmp)
+        for k in range(n):
+            o = order[k]
+            d = (bits[o] >> np.uint64(shift)) & np.uint64(2047)
+            tmp[hist[d]] = o
+            hist[d] += 1
         order, tmp = tmp, order
     return order
 
@@ -394,7 +353,7 @@ def _project_parallel(
     for c in prange(nchunks):
         _pack(c * m // nchunks, (c + 1) * m // nchunks, idx, soa, opacities, sh, degree, cam, geom, boxes,
               rec, vboxes, keys)  # fmt: skip
-    return rec, vboxes, _argsort_depth_parallel(keys, nchunks)
+    return rec, vboxes, _argsort_depth(keys)
 
 
 # --------------------------------------------------------------------------- binning
