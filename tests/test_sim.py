@@ -90,6 +90,12 @@ def test_reach_success_needs_the_open_gripper_at_the_goal():
     assert episode.instruction == f"reach the {episode.placements['cube'].color} cube"
 
 
+def test_reach_solo_draws_contrasting_colours_only():
+    task = TASKS["reach_solo"]
+    colours = {task.sample(seed).placements["cube"].color for seed in range(200)}
+    assert colours == set(task.colors) and not colours & {"yellow", "orange", "pink"}
+
+
 def test_reach_expert_starts_away_from_the_goal():
     """A reach is not won at reset: the expert needs a dozen or more steps to get there."""
     w = SimWorld("reach", small_config())

@@ -1,13 +1,16 @@
 """Tabletop tasks: which objects a scene holds, how an episode is randomised, the instruction
 string and success detection.
 
-Two kinds of task, each with distractors on the table:
+Tabletop tasks (all but ``reach_solo`` with distractors on the table):
 
 * ``pick_place``: move a 4 cm cube onto a plate;
 * ``stack``: move a 4 cm cube onto a 6 cm cube;
 * ``reach``: bring the open gripper to just above a 4 cm cube (no ``place`` object). The
   shortest closed-loop task in which the policy must find an object in the image
-  (demonstrations of 15-18 steps), meant for small training budgets.
+  (demonstrations of 15-18 steps), meant for small training budgets;
+* ``reach_solo``: the same with a single 5 cm cube in a colour that stands out from the
+  wooden table and no distractors: the policy only has to find the one object in view. This is
+  the task a from-scratch image encoder learns on a CPU budget.
 
 Per episode the object positions, yaws and colours are drawn from the episode seed; colours
 come from a named palette, so the instruction can name them ("put the red cube on the blue
@@ -99,6 +102,7 @@ class Task:
         place_tolerance: how far (m) the pick's centre may lie from the place's axis; for a
             reach, how far the pinch point may lie from its goal.
         max_steps: step budget of an evaluation episode (control steps at 10 Hz).
+        colors: the palette names objects are coloured from (default all of :data:`PALETTE`).
     """
 
     name: str
@@ -109,6 +113,7 @@ class Task:
     place_noun: str
     place_tolerance: float
     max_steps: int = 150
+    colors: tuple[str, ...] = tuple(PALETTE)
 
     def object(self, name: str) -> ObjectSpec:
         return next(o for o in self.objects if o.name == name)
@@ -116,7 +121,7 @@ class Task:
     def sample(self, seed: int) -> EpisodeSpec:
         """Draw colours and a collision-free layout from ``seed``."""
         rng = np.random.default_rng([int(seed), 7919])
-        colors = rng.choice(list(PALETTE), size=len(self.objects), replace=False)
+        colors = rng.choice(list(self.colors), size=len(self.objects), replace=False)
         placed: list[tuple[float, float, float]] = []  # x, y, footprint radius
         placements = {}
         for obj, color in zip(self.objects, colors):
@@ -169,6 +174,8 @@ REACH_CLEARANCE = 0.02
 _CUBE = ObjectSpec("cube", "box", (0.02, 0.02, 0.02), 0.1)
 _PLATE = ObjectSpec("plate", "cylinder", (0.07, 0.006), 0.4)
 _CAN = ObjectSpec("can", "cylinder", (0.025, 0.045), 0.15)
+#: Palette colours with high contrast to the wooden table (no yellow, orange or pink).
+_CONTRAST = ("red", "green", "blue", "purple", "cyan")
 
 TASKS: dict[str, Task] = {
     "pick_place": Task(
@@ -198,6 +205,17 @@ TASKS: dict[str, Task] = {
         place_noun="",
         place_tolerance=0.025,
         max_steps=50,
+    ),
+    "reach_solo": Task(
+        "reach_solo",
+        (ObjectSpec("cube", "box", (0.025, 0.025, 0.025), 0.1),),
+        pick="cube",
+        place=None,
+        pick_noun="cube",
+        place_noun="",
+        place_tolerance=0.025,
+        max_steps=50,
+        colors=_CONTRAST,
     ),
 }
 
