@@ -77,6 +77,18 @@ def test_depth_sort_is_stable(n):
     np.testing.assert_array_equal(fast._argsort_depth(keys), want)
 
 
+def test_depth_sort_orders_keys_equal_in_float32():
+    """The radix passes see float32 roundings; keys that differ only in float64 (and exact
+    ties among them) must still come out in float64 order, ties by index."""
+    rng = np.random.default_rng(0)
+    base = rng.uniform(0.4, 2.5, 500).astype(np.float32).astype(np.float64)
+    keys = np.concatenate([base + 1e-12, base, base, np.nextafter(base, 3.0), [1e300, 5e299, 1e300, 1e-300]])
+    keys = keys[rng.permutation(keys.size)]
+    with np.errstate(over="ignore"):  # 1e300 rounds to inf in float32, as in the sort
+        assert np.unique(keys.astype(np.float32)).size < np.unique(keys).size
+    np.testing.assert_array_equal(fast._argsort_depth(keys), np.argsort(keys, kind="stable"))
+
+
 def test_registered_backend():
     assert BACKENDS["fast"] is fast.render_fast
 
