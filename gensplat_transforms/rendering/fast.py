@@ -4,7 +4,7 @@ Same rules and outputs as :mod:`.projection` + :mod:`.reference` (see projection
 differentiable. One frame runs in three compiled stages:
 
 1. projection, in float64 like ``project()``: EWA conic, depth and opacity-aware pixel box
-   of every Gaussian (branch-free, SIMD in the parallel version), culling (near plane,
+   of every Gaussian (branch-free, SIMD over blocks of 128), culling (near plane,
    opacity, off-image); one float32 record per visible splat, with its colour from SH only
    up to the requested degree; their front-to-back order by a stable radix sort on the
    bits of the depths rounded to float32, runs of equal roundings finished in float64;
@@ -65,6 +65,7 @@ TILE = 16  # tile side in pixels: one tile row is one 16-lane vector
 # fields of a splat's float32 record: centre u, v; conic A, 2B, C; opacity; colour; depth
 _U, _V, _A, _B2, _C, _O, _R, _G, _BL, _Z = range(10)
 _REC = 10
+_BLOCK = 128  # Gaussians per block of the serial projection
 # above this opacity the box extent is the full 3 sigma: 2 ln(255 o) > 9 for o > 0.353
 _OPAC_FULL_EXTENT = 0.36
 
@@ -96,11 +97,12 @@ def _pixel_box(u, v, rx, ry, width, height):
 
 
 @_jit(inline=True)
-def _geometry(i, soa, opacities, cam, near, opac_min, width, height, geom, boxes, visible):
-    """EWA projection of Gaussian i with projection.py's rules, in float64 (up to rounding:
-    some divisions are products with a reciprocal). Branch-free, so that a loop over i can
-    compile to SIMD code (the parallel loop does: there numba tells the compiler that the
-    arrays do not overlap); the box uses the full 3-sigma extent (see ``_shrink_box``).
+def _geometry(lo, hi, soa, opacities, cam, near, opac_min, width, height, geom, boxes, visible):
+    """EWA projection of Gaussians lo..hi-1 with projection.py's rules, in float64 (up to
+    rounding: some divisions are products with a reciprocal). The loop is branch-free, so it
+    compiles to SIMD code where the compiler can tell that the arrays do not overlap (see
+    ``_geometry_blocks``); the box uses the full 3-sigma extent (see ``_shrink_box``).
+    Inlined, with the loop inside: as a per-Gaussian call in a loop it stays scalar.
 
     soa: (10, N) rows: means (3), quaternions w-x-y-z (4), scales (3).
     cam: (23,) float64: world-to-camera rows (12), fx, fy, cx, cy, the field-of-view clamp
@@ -112,56 +114,85 @@ def _geometry(i, soa, opacities, cam, near, opac_min, width, height, geom, boxes
     w20, w21, w22, w23 = cam[8], cam[9], cam[10], cam[11]
     fx, fy, cx, cy = cam[12], cam[13], cam[14], cam[15]
     lim_xp, lim_xn, lim_yp, lim_yn = cam[16], cam[17], cam[18], cam[19]
-    mx, my, mz = np.float64(soa[0, i]), np.float64(soa[1, i]), np.float64(soa[2, i])
-    x = w00 * mx + w01 * my + w02 * mz + w03
-    y = w10 * mx + w11 * my + w12 * mz + w13
-    z = w20 * mx + w21 * my + w22 * mz + w23
-    iz = 1.0 / z
-    # rows of J W (2x3): J = [[fx/z, 0, -fx tx/z], [0, fy/z, -fy ty/z]] with the
-    # field-of-view clamp on tx = x/z, ty = y/z; W = camera rotation
-    tx = min(max(x * iz, -lim_xn), lim_xp)
-    ty = min(max(y * iz, -lim_yn), lim_yp)
-    j00, j02, j11, j12 = fx * iz, -fx * tx * iz, fy * iz, -fy * ty * iz
-    a0, a1, a2 = j00 * w00 + j02 * w20, j00 * w01 + j02 * w21, j00 * w02 + j02 * w22
-    b0, b1, b2 = j11 * w10 + j12 * w20, j11 * w11 + j12 * w21, j11 * w12 + j12 * w22
+    for i in range(lo, hi):
+        mx, my, mz = np.float64(soa[0, i]), np.float64(soa[1, i]), np.float64(soa[2, i])
+        x = w00 * mx + w01 * my + w02 * mz + w03
+        y = w10 * mx + w11 * my + w12 * mz + w13
+        z = w20 * mx + w21 * my + w22 * mz + w23
+        iz = 1.0 / z
+        # rows of J W (2x3): J = [[fx/z, 0, -fx tx/z], [0, fy/z, -fy ty/z]] with the
+        # field-of-view clamp on tx = x/z, ty = y/z; W = camera rotation
+        tx = min(max(x * iz, -lim_xn), lim_xp)
+        ty = min(max(y * iz, -lim_yn), lim_yp)
+        j00, j02, j11, j12 = fx * iz, -fx * tx * iz, fy * iz, -fy * ty * iz
+        a0, a1, a2 = j00 * w00 + j02 * w20, j00 * w01 + j02 * w21, j00 * w02 + j02 * w22
+        b0, b1, b2 = j11 * w10 + j12 * w20, j11 * w11 + j12 * w21, j11 * w12 + j12 * w22
 
-    # rotation R from the quaternion (normalised; zero = identity)
-    qw, qx = np.float64(soa[3, i]), np.float64(soa[4, i])
-    qy, qz = np.float64(soa[5, i]), np.float64(soa[6, i])
-    qn = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-    unit = qn > 1e-8
-    iq = 1.0 / qn
-    qw = qw * iq if unit else 1.0
-    qx = qx * iq if unit else 0.0
-    qy = qy * iq if unit else 0.0
-    qz = qz * iq if unit else 0.0
-    r00, r01, r02 = 1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy)
-    r10, r11, r12 = 2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx)
-    r20, r21, r22 = 2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)
+        # rotation R from the quaternion (normalised; zero = identity)
+        qw, qx = np.float64(soa[3, i]), np.float64(soa[4, i])
+        qy, qz = np.float64(soa[5, i]), np.float64(soa[6, i])
+        qn = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+        unit = qn > 1e-8
+        iq = 1.0 / qn
+        qw = qw * iq if unit else 1.0
+        qx = qx * iq if unit else 0.0
+        qy = qy * iq if unit else 0.0
+        qz = qz * iq if unit else 0.0
+        r00, r01, r02 = 1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy)
+        r10, r11, r12 = 2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx)
+        r20, r21, r22 = 2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)
 
-    # M = J W R S (2x3) with rows m, n; 2D covariance M M^T + 0.3 I, exact determinant
-    s0 = min(np.float64(soa[7, i]), MAX_SCALE)
-    s1 = min(np.float64(soa[8, i]), MAX_SCALE)
-    s2 = min(np.float64(soa[9, i]), MAX_SCALE)
-    m0 = (a0 * r00 + a1 * r10 + a2 * r20) * s0
-    m1 = (a0 * r01 + a1 * r11 + a2 * r21) * s1
-    m2 = (a0 * r02 + a1 * r12 + a2 * r22) * s2
-    n0 = (b0 * r00 + b1 * r10 + b2 * r20) * s0
-    n1 = (b0 * r01 + b1 * r11 + b2 * r21) * s1
-    n2 = (b0 * r02 + b1 * r12 + b2 * r22) * s2
-    mm, nn, mn = m0 * m0 + m1 * m1 + m2 * m2, n0 * n0 + n1 * n1 + n2 * n2, m0 * n0 + m1 * n1 + m2 * n2
-    k0, k1, k2 = m1 * n2 - m2 * n1, m2 * n0 - m0 * n2, m0 * n1 - m1 * n0
-    det = DILATION**2 + DILATION * (mm + nn) + (k0 * k0 + k1 * k1 + k2 * k2)
-    idet = 1.0 / det
-    sa, sc = math.sqrt(mm + DILATION), math.sqrt(nn + DILATION)
+        # M = J W R S (2x3) with rows m, n; 2D covariance M M^T + 0.3 I, exact determinant
+        s0 = min(np.float64(soa[7, i]), MAX_SCALE)
+        s1 = min(np.float64(soa[8, i]), MAX_SCALE)
+        s2 = min(np.float64(soa[9, i]), MAX_SCALE)
+        m0 = (a0 * r00 + a1 * r10 + a2 * r20) * s0
+        m1 = (a0 * r01 + a1 * r11 + a2 * r21) * s1
+        m2 = (a0 * r02 + a1 * r12 + a2 * r22) * s2
+        n0 = (b0 * r00 + b1 * r10 + b2 * r20) * s0
+        n1 = (b0 * r01 + b1 * r11 + b2 * r21) * s1
+        n2 = (b0 * r02 + b1 * r12 + b2 * r22) * s2
+        mm, nn, mn = m0 * m0 + m1 * m1 + m2 * m2, n0 * n0 + n1 * n1 + n2 * n2, m0 * n0 + m1 * n1 + m2 * n2
+        k0, k1, k2 = m1 * n2 - m2 * n1, m2 * n0 - m0 * n2, m0 * n1 - m1 * n0
+        det = DILATION**2 + DILATION * (mm + nn) + (k0 * k0 + k1 * k1 + k2 * k2)
+        idet = 1.0 / det
+        sa, sc = math.sqrt(mm + DILATION), math.sqrt(nn + DILATION)
 
-    u = fx * x * iz + cx
-    v = fy * y * iz + cy
-    x0, y0, x1, y1 = _pixel_box(u, v, SIGMA_EXTENT * sa, SIGMA_EXTENT * sc, width, height)
-    geom[0, i], geom[1, i], geom[5, i], geom[6, i], geom[7, i] = u, v, z, sa, sc
-    geom[2, i], geom[3, i], geom[4, i] = (nn + DILATION) * idet, -2 * mn * idet, (mm + DILATION) * idet
-    boxes[0, i], boxes[1, i], boxes[2, i], boxes[3, i] = x0, y0, x1, y1
-    visible[i] = (z > near) & (opacities[i] >= opac_min) & (x0 <= x1) & (y0 <= y1)
+        u = fx * x * iz + cx
+        v = fy * y * iz + cy
+        x0, y0, x1, y1 = _pixel_box(u, v, SIGMA_EXTENT * sa, SIGMA_EXTENT * sc, width, height)
+        geom[0, i], geom[1, i], geom[5, i], geom[6, i], geom[7, i] = u, v, z, sa, sc
+        geom[2, i], geom[3, i], geom[4, i] = (nn + DILATION) * idet, -2 * mn * idet, (mm + DILATION) * idet
+        boxes[0, i], boxes[1, i], boxes[2, i], boxes[3, i] = x0, y0, x1, y1
+        visible[i] = (z > near) & (opacities[i] >= opac_min) & (x0 <= x1) & (y0 <= y1)
+
+
+@_jit()
+def _geometry_blocks(lo, hi, means, quats, scales, opacities, cam, near, opac_min, width, height, geom,
+                     boxes, visible):  # fmt: skip
+    """``_geometry`` of Gaussians lo..hi-1 (inputs as in ``Gaussians``, the rest as in
+    ``_geometry``), in blocks of constant shape held in one float64 array (inputs, opacity,
+    geometry, box, visibility): the compiler sees that nothing in the block loop overlaps,
+    and vectorises it."""
+    blk = np.zeros((24, _BLOCK))
+    for b0 in range(lo, hi, _BLOCK):
+        nb = min(_BLOCK, hi - b0)
+        for j in range(nb):
+            i = b0 + j
+            blk[0, j], blk[1, j], blk[2, j] = means[i, 0], means[i, 1], means[i, 2]
+            blk[3, j], blk[4, j], blk[5, j], blk[6, j] = quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3]
+            blk[7, j], blk[8, j], blk[9, j] = scales[i, 0], scales[i, 1], scales[i, 2]
+            blk[10, j] = opacities[i]
+        # lanes past nb hold stale inputs and are not copied out
+        _geometry(
+            0, _BLOCK, blk[:10], blk[10], cam, near, opac_min, width, height, blk[11:19], blk[19:23], blk[23]
+        )
+        for j in range(nb):
+            for r in range(8):
+                geom[r, b0 + j] = blk[11 + r, j]
+            for c in range(4):
+                boxes[c, b0 + j] = np.int32(blk[19 + c, j])
+            visible[b0 + j] = blk[23, j] != 0.0
 
 
 @_jit(inline=True)
@@ -236,7 +267,7 @@ def _sh_rgb(sh, g, dx, dy, dz, degree):
 
 
 @_jit()
-def _pack(lo, hi, idx, soa, opacities, sh, degree, cam, geom, boxes, rec, vboxes, keys):
+def _pack(lo, hi, idx, means, opacities, sh, degree, cam, geom, boxes, rec, vboxes, keys):
     """Records j = lo..hi-1 from the visible Gaussians idx[j], with their colours from SH.
 
     rec: (M, 10) float32 out, rounded from float64 as project(out_dtype=float32) rounds
@@ -245,9 +276,9 @@ def _pack(lo, hi, idx, soa, opacities, sh, degree, cam, geom, boxes, rec, vboxes
     """
     for j in range(lo, hi):
         i = idx[j]
-        dx = np.float64(soa[0, i]) - cam[20]
-        dy = np.float64(soa[1, i]) - cam[21]
-        dz = np.float64(soa[2, i]) - cam[22]
+        dx = np.float64(means[i, 0]) - cam[20]
+        dy = np.float64(means[i, 1]) - cam[21]
+        dz = np.float64(means[i, 2]) - cam[22]
         red, green, blue = _sh_rgb(sh, i, dx, dy, dz, degree)
         rec[j, _U], rec[j, _V], rec[j, _Z] = geom[0, i], geom[1, i], geom[5, i]
         rec[j, _A], rec[j, _B2], rec[j, _C] = geom[2, i], geom[3, i], geom[4, i]
@@ -304,16 +335,6 @@ def _argsort_depth(keys):
 
 
 @_jit()
-def _to_soa(means, quats, scales, lo, hi, soa):
-    """Columns lo..hi-1 of soa (10, N): rows means, quaternions, scales (the SIMD-friendly
-    layout of _geometry)."""
-    for i in range(lo, hi):
-        soa[0, i], soa[1, i], soa[2, i] = means[i, 0], means[i, 1], means[i, 2]
-        soa[3, i], soa[4, i], soa[5, i], soa[6, i] = quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3]
-        soa[7, i], soa[8, i], soa[9, i] = scales[i, 0], scales[i, 1], scales[i, 2]
-
-
-@_jit()
 def _visible(geom, boxes, visible, opacities, width, height):
     """Indices of the visible Gaussians, ascending, after ``_shrink_box`` of those with low
     opacity. Branch-free compactions: with the shrink inside one plain loop, the compiler
@@ -339,15 +360,13 @@ def _project_serial(means, quats, scales, opacities, sh, degree, cam, near, opac
     order front to back (M,). Inputs as in ``Gaussians`` (float32), ``cam`` as in
     ``_geometry``."""
     n = means.shape[0]
-    soa = np.empty((10, n), means.dtype)
-    _to_soa(means, quats, scales, 0, n, soa)
     geom, boxes, visible = np.empty((8, n)), np.empty((4, n), np.int32), np.empty(n, np.bool_)
-    for i in range(n):
-        _geometry(i, soa, opacities, cam, near, opac_min, width, height, geom, boxes, visible)
+    _geometry_blocks(0, n, means, quats, scales, opacities, cam, near, opac_min, width, height, geom, boxes,
+                     visible)  # fmt: skip
     idx = _visible(geom, boxes, visible, opacities, width, height)
     m = idx.shape[0]
     rec, vboxes, keys = np.empty((m, _REC), np.float32), np.empty((m, 4), np.int32), np.empty(m)
-    _pack(0, m, idx, soa, opacities, sh, degree, cam, geom, boxes, rec, vboxes, keys)
+    _pack(0, m, idx, means, opacities, sh, degree, cam, geom, boxes, rec, vboxes, keys)
     return rec, vboxes, _argsort_depth(keys)
 
 
@@ -356,17 +375,15 @@ def _project_parallel(
     means, quats, scales, opacities, sh, degree, cam, near, opac_min, width, height, nchunks
 ):  # fmt: skip
     n = means.shape[0]
-    soa = np.empty((10, n), means.dtype)
-    for c in prange(nchunks):
-        _to_soa(means, quats, scales, c * n // nchunks, (c + 1) * n // nchunks, soa)
     geom, boxes, visible = np.empty((8, n)), np.empty((4, n), np.int32), np.empty(n, np.bool_)
-    for i in prange(n):  # a parfor: the compiler knows the arrays do not overlap, and uses SIMD
-        _geometry(i, soa, opacities, cam, near, opac_min, width, height, geom, boxes, visible)
+    for c in prange(nchunks):
+        _geometry_blocks(c * n // nchunks, (c + 1) * n // nchunks, means, quats, scales, opacities, cam, near,
+                         opac_min, width, height, geom, boxes, visible)  # fmt: skip
     idx = _visible(geom, boxes, visible, opacities, width, height)
     m = idx.shape[0]
     rec, vboxes, keys = np.empty((m, _REC), np.float32), np.empty((m, 4), np.int32), np.empty(m)
     for c in prange(nchunks):
-        _pack(c * m // nchunks, (c + 1) * m // nchunks, idx, soa, opacities, sh, degree, cam, geom, boxes,
+        _pack(c * m // nchunks, (c + 1) * m // nchunks, idx, means, opacities, sh, degree, cam, geom, boxes,
               rec, vboxes, keys)  # fmt: skip
     return rec, vboxes, _argsort_depth(keys)
 
