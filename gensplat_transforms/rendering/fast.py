@@ -15,7 +15,8 @@ differentiable. One frame runs in three compiled stages:
    at most 8 pixels wide there (about 60 % of rows in the standard scene), branch-free, so
    the compiler can use SIMD (the exponential is a polynomial for that reason). A pixel
    stops at the splat that would take its transmittance below 1e-4; a tile stops when all
-   its pixels have; tiles without splats only get the background. Depth is accumulated only when asked for.
+   its pixels have; tiles without splats only get the background. Depth is accumulated
+   only when asked for.
 
 fastmath is off (IEEE arithmetic, like the reference) except fused multiply-adds inside
 the exponential's polynomial.
@@ -65,7 +66,7 @@ TILE = 16  # tile side in pixels: one tile row is one 16-lane vector
 # fields of a splat's float32 record: centre u, v; conic A, 2B, C; opacity; colour; depth
 _U, _V, _A, _B2, _C, _O, _R, _G, _BL, _Z = range(10)
 _REC = 10
-_BLOCK = 128  # Gaussians per block of the serial projection
+_BLOCK = 128  # Gaussians per block of the projection's geometry (see _geometry_blocks)
 # above this opacity the box extent is the full 3 sigma: 2 ln(255 o) > 9 for o > 0.353
 _OPAC_FULL_EXTENT = 0.36
 
