@@ -1,7 +1,7 @@
 """Tabletop tasks: which objects a scene holds, how an episode is randomised, the instruction
 string and success detection.
 
-Tabletop tasks (all but ``reach_solo`` with distractors on the table):
+The tasks (all but ``reach_solo`` with distractors on the table):
 
 * ``pick_place``: move a 4 cm cube onto a plate;
 * ``stack``: move a 4 cm cube onto a 6 cm cube;
