@@ -177,6 +177,13 @@ _CAN = ObjectSpec("can", "cylinder", (0.025, 0.045), 0.15)
 #: Palette colours with high contrast to the wooden table (no yellow, orange or pink).
 _CONTRAST = ("red", "green", "blue", "purple", "cyan")
 
+
+def _reach(name: str, objects: tuple[ObjectSpec, ...], **options) -> Task:
+    """A reach of the object named "cube" among ``objects``: within 2.5 cm, in 50 steps."""
+    return Task(name, objects, pick="cube", place=None, pick_noun="cube", place_noun="",
+                place_tolerance=0.025, max_steps=50, **options)  # fmt: skip
+
+
 TASKS: dict[str, Task] = {
     "pick_place": Task(
         "pick_place",
@@ -196,26 +203,9 @@ TASKS: dict[str, Task] = {
         place_noun="block",
         place_tolerance=0.025,
     ),
-    "reach": Task(
-        "reach",
-        (_CUBE, _PLATE, _CAN),
-        pick="cube",
-        place=None,
-        pick_noun="cube",
-        place_noun="",
-        place_tolerance=0.025,
-        max_steps=50,
-    ),
-    "reach_solo": Task(
-        "reach_solo",
-        (ObjectSpec("cube", "box", (0.025, 0.025, 0.025), 0.1),),
-        pick="cube",
-        place=None,
-        pick_noun="cube",
-        place_noun="",
-        place_tolerance=0.025,
-        max_steps=50,
-        colors=_CONTRAST,
+    "reach": _reach("reach", (_CUBE, _PLATE, _CAN)),
+    "reach_solo": _reach(
+        "reach_solo", (ObjectSpec("cube", "box", (0.025, 0.025, 0.025), 0.1),), colors=_CONTRAST
     ),
 }
 
