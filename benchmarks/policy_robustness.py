@@ -56,7 +56,7 @@ import shutil
 import subprocess
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -240,6 +240,8 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0, help="seeds recording, training and evaluation")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--eval-jobs", type=int, default=2, help="evaluation processes (default 2)")
+    parser.add_argument("--parallel-train", action="store_true",
+                        help="train both policies at once (a GPU with room to spare; not on a 2-core CPU)")
     parser.add_argument("--out", type=Path, default=RESULTS / "policy_robustness.json")
     args = parser.parse_args()
     for key, (full, quick) in DEFAULTS.items():
@@ -268,8 +270,9 @@ def main() -> None:
     prepare(root, repo_id(args.task), gensplat, progress=False)
 
     timing, rates, progress, episodes = {}, {}, {}, {}
-    for mode in MODES:
-        timing[f"train_{mode}"] = train(mode, root, work / mode, args)
+    with ThreadPoolExecutor(len(MODES) if args.parallel_train else 1) as pool:  # each trains in a subprocess
+        for mode, t in zip(MODES, pool.map(lambda m: train(m, root, work / m, args), MODES)):
+            timing[f"train_{mode}"] = t
     print(f"evaluating ({args.eval_jobs} processes)", flush=True)
     t0 = time.perf_counter()
     evaluated = evaluate_all(work, args)
@@ -284,7 +287,7 @@ def main() -> None:
 
     settings = {k: getattr(args, k) for k in ("demos", "size", "steps", "batch_size", "workers", "down_dims",
                                              "n_obs_steps", "inference_steps", "views_per_source", "max_steps",
-                                             "seed", "device")}  # fmt: skip
+                                             "seed", "device", "parallel_train")}  # fmt: skip
     settings.update(task=args.task, policy_cameras=list(args.cameras),
                     policy="diffusion (policies/diffusion.json + the overrides above)",
                     perturbed_camera="left", gensplat={"cameras": list(gensplat.cameras), "replace": list(replace),

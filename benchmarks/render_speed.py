@@ -1,12 +1,15 @@
 """Render speed of the "fast" CPU backend on the standard scene, against the reference.
 
-Usage: python benchmarks/render_speed.py [--quick]
+Usage: python benchmarks/render_speed.py [--quick] [--out PATH]
 
 Times ``render(..., backend="fast", threads=n)`` for n = 1 and 2 (median of repeated
 frames after warm-up), the backend alone with its time split (projection / binning /
 raster), and the pure-PyTorch reference once per frame setting; checks the fast image
 against the reference (PSNR, depth error where alpha > 0.5). torch runs on one thread, as
-in a dataloader worker. Prints a table and writes benchmarks/results/render_speed.json.
+in a dataloader worker. Where CUDA and gsplat are present it also times the "gsplat"
+backend (``gsplat`` in the JSON: the Gaussians resident on the GPU, and uploaded per frame)
+against the fast image; elsewhere ``gsplat.available`` is false with the reason. Prints a
+table and writes benchmarks/results/render_speed.json (``--out`` to write elsewhere).
 The machine may be shared: figures are medians, and min/max are recorded beside them.
 
 OpenMP threads sleep between parallel regions here (OMP_WAIT_POLICY=PASSIVE unless set):
@@ -83,6 +86,35 @@ def _accuracy(fast, ref) -> dict:
     }
 
 
+def _gsplat(scene, fast, repeats: int) -> dict:
+    """The gsplat backend on CUDA: median ms per frame with the Gaussians already on the GPU
+    and with them uploaded from the CPU each frame, and agreement with the fast image."""
+    try:
+        out = render(scene.gaussians, scene.target, backend="gsplat")
+    except RuntimeError as e:  # no CUDA device, or gsplat missing: render says which
+        return {"available": False, "reason": str(e)}
+    cuda = scene.gaussians.to(torch.device("cuda"))
+
+    def timed(gaussians) -> float:
+        def frame():
+            render(gaussians, scene.target, backend="gsplat")
+            torch.cuda.synchronize()
+
+        _time(frame, 5)  # warm-up
+        return statistics.median(_time(frame, repeats))
+
+    accuracy = _accuracy(out, fast)
+    return {
+        "available": True,
+        "device": torch.cuda.get_device_name(),
+        "ms_resident": timed(cuda),
+        "ms_with_upload": timed(scene.gaussians),
+        "psnr_vs_fast_db": accuracy["psnr_vs_reference_db"],
+        "alpha_max_abs_err_vs_fast": accuracy["alpha_max_abs_err"],
+        "depth_max_rel_err_vs_fast": accuracy["depth_max_rel_err"],
+    }
+
+
 def _scene_stats(scene) -> dict:
     proj = project(scene.gaussians, scene.target)
     b = proj.boxes
@@ -129,6 +161,7 @@ def run(quick: bool) -> dict:
         light_ms[threads] = statistics.median(_time(frame, repeats))
 
     reference_ms = statistics.median(ref_ms)
+    gsplat = _gsplat(scene, fast, repeats)
     return {
         "ms_1thread": api[1]["median"],
         "ms_2threads": api[2]["median"],
@@ -147,6 +180,7 @@ def run(quick: bool) -> dict:
         "light_scene_sigma_px_0.4": {
             **_scene_stats(light), "ms_1thread": light_ms[1], "ms_2threads": light_ms[2],
         },
+        "gsplat": gsplat,
         "first_call_s": first_call_s,
         "scene_build_s": build_s,
         "quick": quick,
@@ -188,6 +222,14 @@ def _print_table(r: dict) -> None:
          f"{light['ms_1thread']:.1f} / {light['ms_2threads']:.1f} ms"),
         ("first call (cache load or compile)", f"{r['first_call_s']:.2f} s"),
     ]
+    g = r["gsplat"]
+    if g["available"]:
+        rows += [
+            (f"gsplat on {g['device']}, resident / upload", f"{g['ms_resident']:.2f} / {g['ms_with_upload']:.2f} ms"),
+            ("gsplat PSNR vs fast", f"{g['psnr_vs_fast_db']:.1f} dB"),
+        ]
+    else:
+        rows.append(("gsplat backend", "not measured: " + g["reason"]))
     width = max(len(k) for k, _ in rows)
     for k, v in rows:
         print(f"{k:<{width}}  {v}")
@@ -196,12 +238,13 @@ def _print_table(r: dict) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer repetitions (under a minute)")
+    parser.add_argument("--out", type=Path, default=RESULTS, help=f"JSON path (default {RESULTS})")
     args = parser.parse_args()
     result = run(args.quick)
     _print_table(result)
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps(result, indent=2) + "\n")
-    print(f"wrote {RESULTS}")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

@@ -9,8 +9,10 @@ Conventions (ours -> gsplat), which match so that no data is reordered:
   z forward); gsplat's ``viewmats`` are world-to-camera in the same OpenCV convention, so
   ``viewmats = camera.w2c()``; ``Ks`` are the same pixel intrinsics with pixel (row i,
   col j) centred at (j + 0.5, i + 0.5) in both.
-* quaternions: w-x-y-z in both (gsplat normalises them; so does our projection).
-* scales: standard deviations along the rotated axes in both (not log-scales).
+* quaternions: w-x-y-z in both. They are normalised here as in our projection (a zero
+  quaternion becomes the identity, where gsplat's own normalisation would divide by zero).
+* scales: standard deviations along the rotated axes in both (not log-scales); clamped at
+  the projection's ``MAX_SCALE`` so that gsplat's float32 covariances stay finite.
 * SH: our (N, K, 3) coefficients are gsplat's ``colors`` with ``sh_degree``; both use the
   3DGS real SH basis, view direction = mean - camera centre, and rgb = max(0, SH + 0.5).
 * projection: the same 1.3x field-of-view clamp of the Jacobian and the same 0.3 px^2
@@ -32,7 +34,9 @@ import torch
 
 from ..cameras import Cameras
 from ..gaussians import Gaussians
+from ..rotations import normalize_quat
 from ..sh import sh_degree_from_bases
+from .projection import MAX_SCALE
 
 _NEEDS = "gsplat backend needs CUDA and the gsplat package: "
 
@@ -71,7 +75,7 @@ def render_gsplat(
     dev = torch.device("cuda")
     g = gaussians.to(dev, torch.float32)
     colors, alphas, _ = rasterization(
-        g.means, g.quats, g.scales, g.opacities, g.sh,
+        g.means, normalize_quat(g.quats), g.scales.clamp(max=MAX_SCALE), g.opacities, g.sh,
         viewmats=camera.w2c().to(dev, torch.float32), Ks=camera.K.to(dev, torch.float32),
         width=camera.width, height=camera.height, near_plane=float(near), eps2d=0.3, sh_degree=degree,
         backgrounds=background.to(dev, torch.float32)[None],
