@@ -240,8 +240,11 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0, help="seeds recording, training and evaluation")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--eval-jobs", type=int, default=2, help="evaluation processes (default 2)")
-    parser.add_argument("--parallel-train", action="store_true",
-                        help="train both policies at once (a GPU with room to spare; not on a 2-core CPU)")
+    parser.add_argument(
+        "--parallel-train",
+        action="store_true",
+        help="train both policies at once (a GPU with room to spare; not on a 2-core CPU)",
+    )
     parser.add_argument("--out", type=Path, default=RESULTS / "policy_robustness.json")
     args = parser.parse_args()
     for key, (full, quick) in DEFAULTS.items():

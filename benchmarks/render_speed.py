@@ -225,7 +225,10 @@ def _print_table(r: dict) -> None:
     g = r["gsplat"]
     if g["available"]:
         rows += [
-            (f"gsplat on {g['device']}, resident / upload", f"{g['ms_resident']:.2f} / {g['ms_with_upload']:.2f} ms"),
+            (
+                f"gsplat on {g['device']}, resident / upload",
+                f"{g['ms_resident']:.2f} / {g['ms_with_upload']:.2f} ms",
+            ),
             ("gsplat PSNR vs fast", f"{g['psnr_vs_fast_db']:.1f} dB"),
         ]
     else:

