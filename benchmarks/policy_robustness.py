@@ -9,9 +9,9 @@ resumes where it was; a ``--work`` made with other settings is refused):
    ``--seed``; lossless PNG frames, calibration and depth sidecars);
 2. write the GenSplat settings beside the dataset and build its Gaussian cache: RGB-D
    reconstruction of the left + right cameras; the policy's external cameras (left by
-   default) are replaced with probability 0.5 by a view from the training range
-   (|theta| <= 30 deg, 0.5-6 cm), one camera per trajectory, ``--views-per-source``
-   (default 3) distinct cameras per source trajectory;
+   default) are replaced with probability ``--probability`` (default 0.5) by a view from
+   the training range (|theta| <= 30 deg, 0.5-6 cm), one camera per trajectory,
+   ``--views-per-source`` (default 3) distinct cameras per source trajectory;
 3. train Diffusion Policy twice with LeRobot's stock trainer through ``policies/train.sh``
    (``baseline`` and ``gensplat``, the latter with the one added line): same data, seed,
    steps, batch and policy settings; the policy sees ``--cameras`` and the robot state;
@@ -33,7 +33,9 @@ episodes per level of at most 50 control steps (the demonstrations take 15-18). 
 tasks did not train at this budget: ``reach`` (a 4 cm cube among two distractors of random
 colours) stayed at about 10 % success at every level, and ``pick_place`` (``--cameras
 left,right,wrist``) lifted no cube after 1500 steps at batch 8 (see the README);
-``--device cuda --steps 20000`` is the setting to aim for on a GPU.
+``--device cuda --steps 20000`` is the setting to aim for on a GPU. Measured on one
+H100 machine (16 cores): with ``--parallel-train --workers 6`` each policy ran at 3-4 steps/s,
+bound by the dataloader (LeRobot decoding PNG frames), so 20000 steps take about 1.5 h there.
 ``--quick`` (a few minutes): 2 demos, 4 steps at batch 4, a smaller U-Net, 2 episodes per
 level of at most 20 steps: it checks the pipeline end to end, its success rates mean nothing.
 
@@ -93,7 +95,7 @@ DEFAULTS = {
 
 #: Settings that shape the recorded data and the trained policies (kept in ``work/settings.json``).
 RUN_SETTINGS = ("task", "cameras", "demos", "size", "steps", "batch_size", "workers", "down_dims",
-                "n_obs_steps", "views_per_source", "seed", "device")  # fmt: skip
+                "n_obs_steps", "views_per_source", "probability", "seed", "device")  # fmt: skip
 
 
 def check_work(work: Path, args) -> None:
@@ -235,6 +237,8 @@ def main() -> None:
     parser.add_argument("--n-obs-steps", type=int, default=1, help="observation frames per step (default 1)")
     parser.add_argument("--inference-steps", type=int, default=10, help="DDIM steps per action chunk")
     parser.add_argument("--views-per-source", type=int, default=3, help="GenSplat cameras per trajectory")
+    parser.add_argument("--probability", type=float, default=0.5,
+                        help="chance that GenSplat replaces a sample's camera (default 0.5)")  # fmt: skip
     parser.add_argument("--episodes", type=int, help="evaluation episodes per level (default 30; quick 2)")
     parser.add_argument("--max-steps", type=int, help="evaluation step budget (default the task's; quick 20)")
     parser.add_argument("--seed", type=int, default=0, help="seeds recording, training and evaluation")
@@ -267,9 +271,8 @@ def main() -> None:
             f"recorded {res.episodes} demonstrations, {res.frames} frames, in {res.seconds:.0f} s", flush=True
         )
     replace = tuple(c for c in args.cameras if c in EXTERNAL_CAMERAS)
-    gensplat = GenSplatConfig(
-        replace=replace, views_per_source=args.views_per_source, backend="fast", seed=args.seed
-    )
+    gensplat = GenSplatConfig(replace=replace, views_per_source=args.views_per_source,
+                              probability=args.probability, backend="fast", seed=args.seed)  # fmt: skip
     prepare(root, repo_id(args.task), gensplat, progress=False)
 
     timing, rates, progress, episodes = {}, {}, {}, {}
