@@ -39,9 +39,10 @@ bound by the dataloader (LeRobot decoding PNG frames), so 20000 steps take about
 ``--quick`` (a few minutes): 2 demos, 4 steps at batch 4, a smaller U-Net, 2 episodes per
 level of at most 20 steps: it checks the pipeline end to end, its success rates mean nothing.
 
-Writes ``benchmarks/results/policy_robustness.json``: ``{"baseline": {level: success %},
-"gensplat": {...}, "episodes_per_level": n, "progress": {mode: {level: {lift_percent,
-median_reach_cm}}}, "quick": bool, "settings", "timing", "episodes"}``. ``progress`` tells
+Writes ``benchmarks/results/policy_robustness.json`` (``policy_robustness_quick.json`` with
+``--quick``): ``{"baseline": {level: success %}, "gensplat": {...}, "episodes_per_level": n,
+"progress": {mode: {level: {lift_percent, median_reach_cm}}}, "quick": bool, "settings",
+"timing", "episodes"}``. ``progress`` tells
 apart policies that do not succeed yet: the share of episodes that lifted the cube (pick
 and place) and the median closest approach of the pinch point to the cube's centre (to the
 reach goal in a reach).
@@ -249,7 +250,8 @@ def main() -> None:
         action="store_true",
         help="train both policies at once (a GPU with room to spare; not on a 2-core CPU)",
     )
-    parser.add_argument("--out", type=Path, default=RESULTS / "policy_robustness.json")
+    parser.add_argument("--out", type=Path, help="result JSON (default benchmarks/results/policy_robustness.json; "
+                        "with --quick policy_robustness_quick.json, so a check never replaces the result)")  # fmt: skip
     args = parser.parse_args()
     for key, (full, quick) in DEFAULTS.items():
         if getattr(args, key) is None:
@@ -258,6 +260,7 @@ def main() -> None:
     if not args.cameras or any(c not in CAMERA_NAMES for c in args.cameras):
         parser.error(f"--cameras: choose from {CAMERA_NAMES}, got {args.cameras}")
     args.max_steps = args.max_steps or TASKS[args.task].max_steps
+    args.out = args.out or RESULTS / ("policy_robustness_quick.json" if args.quick else "policy_robustness.json")
     work = args.work or ROOT / "outputs" / ("policy_robustness_quick" if args.quick else "policy_robustness")
     root = work / "dataset"
     check_work(work, args)
