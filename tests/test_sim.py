@@ -256,6 +256,13 @@ def test_perturbed_camera_env():
     assert reached.successes == [True] and reached.reach_m[0] < TASKS["reach"].place_tolerance
     assert reached.lifted == [False]
 
+    def jitter(obs):  # a stochastic policy: torch's global generator, as a diffusion policy
+        return np.concatenate([obs["observation.state"][:4].numpy() + 0.05 * torch.randn(4).numpy(), [0.0]])
+
+    short = replace(config, max_steps=4)
+    first, again = (evaluate(jitter, PerturbedCameraEnv(short), episodes=2).reach_m for _ in range(2))
+    assert first == again  # unseeded, the noise (and the arm) would differ between the two runs
+
     obs, info = env.reset(options={"episode_index": 0})
     p = PerturbationSampler("large", seed=2).sample(0)
     assert info["perturbation"] == p.as_dict() and abs(p.theta_deg) >= 18

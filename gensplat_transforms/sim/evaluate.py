@@ -175,6 +175,10 @@ def evaluate(
 ) -> EvalResult:
     """Run evaluation episodes 0 .. ``episodes - 1`` of ``policy`` in ``env`` and report success.
 
+    torch's global generator is seeded at the start of every episode (``episode_seed(seed,
+    i, "policy")``), so a stochastic policy (a diffusion policy's sampling noise) gives the
+    same result when evaluated again, and every policy meets the same noise in episode i.
+
     Args:
         policy: maps an observation (see the module docstring) to a (5,) action.
         reset: called after every environment reset (e.g. a LeRobot policy's ``reset``).
@@ -183,6 +187,7 @@ def evaluate(
     task = env.world.task
     for i in range(episodes):
         obs, info = env.reset(options={"episode_index": i})
+        torch.manual_seed(episode_seed(env.config.seed, i, "policy"))
         if reset is not None:
             reset()
         start_z = env.world.object_positions()[task.pick][2]

@@ -40,8 +40,9 @@ PALETTE: dict[str, tuple[float, float, float]] = {
 
 def episode_seed(seed: int, index: int, stream: str = "record") -> int:
     """Seed of episode ``index`` in a run seeded ``seed``; ``stream`` separates recording
-    ("record") from evaluation ("eval") so evaluation never replays a training layout."""
-    salt = {"record": 0, "eval": 1}[stream]
+    ("record") from evaluation ("eval") so evaluation never replays a training layout, and
+    both from the policy's sampling noise in an evaluation ("policy")."""
+    salt = {"record": 0, "eval": 1, "policy": 2}[stream]
     return int(np.random.SeedSequence([int(seed), int(index), salt]).generate_state(1)[0])
 
 
