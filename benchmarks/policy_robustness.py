@@ -17,18 +17,18 @@ resumes where it was; a ``--work`` made with other settings is refused):
    steps, batch and policy settings; the policy sees ``--cameras`` and the robot state;
 4. evaluate both checkpoints in ``PerturbedCameraEnv`` with the left external camera
    perturbed once per episode at none / small / medium / large. Episode layouts come from
-   the evaluation stream (never a training layout) and both policies meet the same layouts
-   and perturbations.
+   the evaluation stream (never a training layout) and both policies meet the same layouts,
+   perturbations and sampling noise (torch is seeded per episode).
 
-Defaults, sized for this 2-core CPU, about 2.1 hours (measured: 1.29 s per training step
-without GenSplat and 1.45 s with it, 54 and 60 min per policy, evaluation 6 min in two
-processes at 0.06 s per control step, recording 5 min; ``timing`` in the result holds the
+Defaults, sized for this 2-core CPU, about 2.2 hours (measured: 1.29 s per training step
+without GenSplat and 1.45 s with it, 54 and 60 min per policy, evaluation 11 min in two
+processes at 0.07-0.08 s per control step, recording 5 min; ``timing`` in the result holds the
 measured values): the ``reach_solo`` task (bring the open gripper 2 cm above the one 5 cm
 cube on the table, placed at random; the policy must find it in the image), 300
 demonstrations at 96x96, the policy sees the left camera and the state; Diffusion Policy as
 in ``policies/diffusion.json`` (ResNet-18 encoder from scratch, U-Net ``down_dims``
 64-128-256, horizon 16, 8 executed actions) with 1 observation step, DDIM and 10 inference
-steps; 2500 steps at batch 32 (warm-up a tenth of the steps, at most 500); 30 evaluation
+steps; 2500 steps at batch 32 (warm-up a tenth of the steps, at most 500); 50 evaluation
 episodes per level of at most 50 control steps (the demonstrations take 15-18). Harder
 tasks did not train at this budget: ``reach`` (a 4 cm cube among two distractors of random
 colours) stayed at about 10 % success at every level, and ``pick_place`` (``--cameras
@@ -90,7 +90,7 @@ def repo_id(task: str) -> str:
 #: (full, quick) defaults of the settings that size the experiment.
 DEFAULTS = {
     "demos": (300, 2), "size": (96, 96), "steps": (2500, 4), "batch_size": (32, 4), "workers": (2, 0),
-    "down_dims": ("64,128,256", "32,64,128"), "episodes": (30, 2), "max_steps": (None, 20),
+    "down_dims": ("64,128,256", "32,64,128"), "episodes": (50, 2), "max_steps": (None, 20),
 }  # fmt: skip
 
 
@@ -240,7 +240,7 @@ def main() -> None:
     parser.add_argument("--views-per-source", type=int, default=3, help="GenSplat cameras per trajectory")
     parser.add_argument("--probability", type=float, default=0.5,
                         help="chance that GenSplat replaces a sample's camera (default 0.5)")  # fmt: skip
-    parser.add_argument("--episodes", type=int, help="evaluation episodes per level (default 30; quick 2)")
+    parser.add_argument("--episodes", type=int, help="evaluation episodes per level (default 50; quick 2)")
     parser.add_argument("--max-steps", type=int, help="evaluation step budget (default the task's; quick 20)")
     parser.add_argument("--seed", type=int, default=0, help="seeds recording, training and evaluation")
     parser.add_argument("--device", default="cpu")
