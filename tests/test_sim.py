@@ -259,8 +259,9 @@ def test_perturbed_camera_env():
     def jitter(obs):  # a stochastic policy: torch's global generator, as a diffusion policy
         return np.concatenate([obs["observation.state"][:4].numpy() + 0.05 * torch.randn(4).numpy(), [0.0]])
 
-    short = replace(config, max_steps=4)
-    first, again = (evaluate(jitter, PerturbedCameraEnv(short), episodes=2).reach_m for _ in range(2))
+    short = PerturbedCameraEnv(replace(config, max_steps=4))
+    first, again = (evaluate(jitter, short, episodes=2).reach_m for _ in range(2))
+    short.close()
     assert first == again  # unseeded, the noise (and the arm) would differ between the two runs
 
     obs, info = env.reset(options={"episode_index": 0})
