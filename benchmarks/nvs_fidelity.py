@@ -9,6 +9,8 @@ each method's view at that pose is compared with ``GroundTruth.render`` there:
 
 * ``rgbd``: Gaussians from the calibrated left + right RGB-D views (``RGBDReconstructor``),
   rendered with the fast CPU renderer at the perturbed pose;
+* ``rgbd_fill``: the same render with the uncovered pixels filled from their surroundings
+  (``holes.fill_holes``, what the training transform does by default);
 * ``gensplat_small``: the feed-forward model (``GenSplatReconstructor``) on the left + right
   RGB images only; like the training transform, it perturbs the camera it predicted about
   the pivot of its predicted cameras. Included when the weights exist (default: the
@@ -49,6 +51,7 @@ from gensplat_lerobot import LeRobotSource
 from plotting import Panel, line_panels
 
 from gensplat_transforms.cameras import Cameras
+from gensplat_transforms.holes import fill_holes
 from gensplat_transforms.metrics import psnr, ssim
 from gensplat_transforms.perturbation import EVAL_LEVELS, PerturbationSampler
 from gensplat_transforms.reconstruction import GenSplatReconstructor, RGBDReconstructor, Views
@@ -60,7 +63,7 @@ from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 
 REPO = "gensplat/sim_pick_place_heldout"
 HELDOUT_SEED = 1000
-METHODS = ("rgbd", "gensplat_small", "source_image", "homography")
+METHODS = ("rgbd", "rgbd_fill", "gensplat_small", "source_image", "homography")
 RESULTS = Path(__file__).parent / "results"
 PLOT_MAX_DB = 40.0
 
@@ -144,6 +147,8 @@ def compare_frame(views: Views, truth: GroundTruth, ep: int, fr: int, model, arg
             out, ms = timed(render, rgbd.gaussians, target, backend="fast", return_depth=False)
             seen = out.alpha[0] > 0.5
             views_of = {"rgbd": (out.rgb[0], rgbd_ms, ms), "source_image": (views.images[0], 0.0, 0.0)}
+            filled, fill_ms = timed(fill_holes, out.rgb, out.alpha)
+            views_of["rgbd_fill"] = (filled[0], rgbd_ms, ms + fill_ms)
             warped, ms = timed(homography_warp, views.images[0], cams[0], target)
             views_of["homography"] = (warped, 0.0, ms)
             if not isinstance(model, str):
@@ -186,7 +191,7 @@ def plot(table: dict, path: Path) -> None:
     """Two panels, PSNR over the whole image and over the visible pixels, against the level;
     values above ``PLOT_MAX_DB`` (exact baselines at "none") are drawn at the top edge."""
     panels = (("psnr", "PSNR, whole image (dB)"), ("psnr_visible", "PSNR, pixels seen by the sources (dB)"))
-    colours = {"rgbd": (31, 119, 180), "gensplat_small": (44, 160, 44), "source_image": (214, 39, 40),
+    colours = {"rgbd": (31, 119, 180), "rgbd_fill": (255, 127, 14), "gensplat_small": (44, 160, 44), "source_image": (214, 39, 40),
                "homography": (148, 103, 189)}  # fmt: skip
     values = [e[k] for m in table.values() for e in m.values() for k, _ in panels if e[k] is not None]
     lo, hi = np.floor(min(values) / 5) * 5, min(np.ceil(max(values) / 5) * 5, PLOT_MAX_DB)

@@ -96,7 +96,7 @@ DEFAULTS = {
 
 #: Settings that shape the recorded data and the trained policies (kept in ``work/settings.json``).
 RUN_SETTINGS = ("task", "cameras", "demos", "size", "steps", "batch_size", "workers", "down_dims",
-                "n_obs_steps", "views_per_source", "probability", "seed", "device")  # fmt: skip
+                "n_obs_steps", "views_per_source", "probability", "fill_holes", "seed", "device")  # fmt: skip
 
 
 def check_work(work: Path, args) -> None:
@@ -240,6 +240,9 @@ def main() -> None:
     parser.add_argument("--views-per-source", type=int, default=3, help="GenSplat cameras per trajectory")
     parser.add_argument("--probability", type=float, default=0.5,
                         help="chance that GenSplat replaces a sample's camera (default 0.5)")  # fmt: skip
+    parser.add_argument("--fill-holes", action=argparse.BooleanOptionalAction, default=True,
+                        help="GenSplat fills uncovered pixels from their surroundings (default; "
+                        "--no-fill-holes paints them black)")  # fmt: skip
     parser.add_argument("--episodes", type=int, help="evaluation episodes per level (default 50; quick 2)")
     parser.add_argument("--max-steps", type=int, help="evaluation step budget (default the task's; quick 20)")
     parser.add_argument("--seed", type=int, default=0, help="seeds recording, training and evaluation")
@@ -275,7 +278,8 @@ def main() -> None:
         )
     replace = tuple(c for c in args.cameras if c in EXTERNAL_CAMERAS)
     gensplat = GenSplatConfig(replace=replace, views_per_source=args.views_per_source,
-                              probability=args.probability, backend="fast", seed=args.seed)  # fmt: skip
+                              probability=args.probability, fill_holes=args.fill_holes, backend="fast",
+                              seed=args.seed)  # fmt: skip
     prepare(root, repo_id(args.task), gensplat, progress=False)
 
     timing, rates, progress, episodes = {}, {}, {}, {}
@@ -300,7 +304,8 @@ def main() -> None:
     settings.update(task=args.task, policy_cameras=list(args.cameras),
                     policy="diffusion (policies/diffusion.json + the overrides above)",
                     perturbed_camera="left", gensplat={"cameras": list(gensplat.cameras), "replace": list(replace),
-                    "probability": gensplat.probability, "level": gensplat.level, "mode": gensplat.mode})  # fmt: skip
+                    "probability": gensplat.probability, "level": gensplat.level, "mode": gensplat.mode,
+                    "fill_holes": gensplat.fill_holes})  # fmt: skip
     result = {**rates, "episodes_per_level": args.episodes, "quick": args.quick, "progress": progress,
               "settings": settings, "timing": timing, "episodes": episodes}  # fmt: skip
     args.out.parent.mkdir(parents=True, exist_ok=True)

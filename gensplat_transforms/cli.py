@@ -37,6 +37,8 @@ def main(argv: list[str] | None = None) -> int:
     cache.add_argument("--mode", choices=["episode", "frame"], default="episode")
     cache.add_argument("--views-per-source", type=int, default=3)
     cache.add_argument("--seed", type=int, default=0)
+    cache.add_argument("--no-fill-holes", dest="fill_holes", action="store_false",
+                       help="paint pixels no source camera saw black instead of filling them")
     cache.add_argument("--backend", default="fast", help="render backend used in the workers (default: fast)")
     cache.add_argument("--episodes", type=int, nargs="+", default=None, help="only these episodes")
     cache.add_argument("--reconstructor", choices=["rgbd", "gensplat"], default=None,
@@ -111,7 +113,7 @@ def _cache(args) -> None:
     cameras = tuple(args.cameras or LeRobotSource(args.root, args.repo_id).camera_names)
     config = GenSplatConfig(
         cameras=cameras, replace=args.replace, level=args.level, probability=args.probability, mode=args.mode,
-        views_per_source=args.views_per_source, seed=args.seed, backend=args.backend,
+        views_per_source=args.views_per_source, seed=args.seed, backend=args.backend, fill_holes=args.fill_holes,
     )  # fmt: skip
     spec = None if args.reconstructor is None else {"name": args.reconstructor}
     if args.model:

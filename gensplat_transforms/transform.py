@@ -10,7 +10,10 @@ import torch.nn.functional as F
 from torch.utils.data import Dataset
 
 from .cache import GaussianCache
+from .cameras import Cameras
 from .episodes import EpisodeSource
+from .gaussians import Gaussians
+from .holes import fill_holes
 from .perturbation import AXES, Perturbation, PerturbationRange, PerturbationSampler
 from .reconstruction import Reconstruction, Reconstructor
 from .rendering import BACKENDS, render
@@ -35,7 +38,11 @@ class GenSplatConfig:
             (default: the T frames ending at it); clamped to the episode, as LeRobot pads.
         backend, render_options: renderer and its options; "fast" renders with one thread
             unless ``{"threads": n}`` is given.
-        background: RGB where nothing was reconstructed.
+        background: RGB where nothing was reconstructed (with ``fill_holes``: only where the
+            view shows nothing at all).
+        fill_holes: paint the pixels the Gaussians leave uncovered (parts of the new view no
+            source camera saw) and soften silhouette edges with the surrounding colours
+            (``holes.fill_holes``), instead of ``background``.
         report: add ``gensplat.*`` keys describing the perturbation to the item.
     """
 
@@ -51,6 +58,7 @@ class GenSplatConfig:
     backend: str = "fast"
     render_options: dict = field(default_factory=dict)
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    fill_holes: bool = True
     report: bool = False
 
     def __post_init__(self) -> None:
@@ -67,6 +75,15 @@ class GenSplatConfig:
             raise ValueError(f"GenSplatConfig.views_per_source must be >= 1, got {self.views_per_source}")
         if self.backend not in BACKENDS:
             raise ValueError(f"GenSplatConfig.backend: unknown {self.backend!r}; available {sorted(BACKENDS)}")
+
+
+def render_view(gaussians: Gaussians, camera: Cameras, config: GenSplatConfig) -> torch.Tensor:
+    """The augmented image of ``camera`` (B cameras) as the transform makes it: (B, 3, H, W)
+    float32, rendered with ``config.backend`` and, with ``config.fill_holes``, hole-filled."""
+    fill = config.fill_holes
+    out = render(gaussians, camera, background=(0.0, 0.0, 0.0) if fill else config.background,
+                 backend=config.backend, return_depth=False, return_alpha=fill, **config.render_options)  # fmt: skip
+    return fill_holes(out.rgb, out.alpha, empty=config.background) if fill else out.rgb
 
 
 class GenSplatTransform:
@@ -142,9 +159,7 @@ class GenSplatTransform:
             if f not in read:
                 read[f] = self.cache.read(episode, f)
             target = p.move(read[f].cameras, self.cfg.cameras.index(name))
-            out = render(read[f].gaussians, target, background=self.cfg.background, backend=self.cfg.backend,
-                         return_depth=False, **self.cfg.render_options)  # fmt: skip
-            rgbs.append(out.rgb[0])
+            rgbs.append(render_view(read[f].gaussians, target, self.cfg)[0])
         rgb = torch.stack(rgbs)
         if rgb.shape[-2:] != stack.shape[-2:]:
             rgb = F.interpolate(rgb, size=stack.shape[-2:], mode="bilinear", antialias=True, align_corners=False)

@@ -98,7 +98,9 @@ def test_cache_command_writes_settings_and_cache(dataset_root, capsys):
     assert "cached 2 episode(s)" in capsys.readouterr().out
     config, reconstructor = load_settings(dataset_root)
     assert config.level == "large" and config.probability == 0.7 and config.cameras == ("left", "right")
-    assert reconstructor["name"] == "rgbd"
+    assert reconstructor["name"] == "rgbd" and config.fill_holes
+    main(["cache", "--root", str(dataset_root), "--repo-id", REPO, "--no-fill-holes"])
+    assert not load_settings(dataset_root)[0].fill_holes
 
 
 def test_missing_settings_or_depth_raise_clear_errors(dataset_root):

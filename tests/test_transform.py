@@ -11,7 +11,8 @@ from gensplat_transforms.cache import GaussianCache
 from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
 from gensplat_transforms.metrics import psnr
 from gensplat_transforms.reconstruction import RGBDReconstructor
-from gensplat_transforms.transform import AugmentedDataset, GenSplatConfig, GenSplatTransform
+from gensplat_transforms.perturbation import PerturbationSampler
+from gensplat_transforms.transform import AugmentedDataset, GenSplatConfig, GenSplatTransform, render_view
 
 LEFT = "observation.images.left"
 
@@ -147,3 +148,17 @@ def test_spawn_workers(setup):
     assert sum(b[LEFT].shape[0] for b in batches) == len(ds)
     assert all(b["gensplat.applied"].all() for b in batches)
     assert all(torch.isfinite(b[LEFT]).all() for b in batches)
+
+
+def test_fill_holes_paints_only_what_the_gaussians_leave_uncovered(setup):
+    *_, cache, _ = setup
+    rec = cache.read(0, 1)
+    target = PerturbationSampler("extreme", seed=0).sample(0, view=0).move(rec.cameras, 0)
+    alpha = render(rec.gaussians, target, backend="fast", return_depth=False).alpha.expand(-1, 3, -1, -1)
+    filled = render_view(rec.gaussians, target, GenSplatConfig())
+    black = render_view(rec.gaussians, target, GenSplatConfig(fill_holes=False))
+    covered, hole = alpha > 0.999, alpha < 1e-3
+    assert covered.any() and hole.any()
+    torch.testing.assert_close(filled[covered], black[covered], atol=1e-3, rtol=0)
+    assert (black[hole] == 0).all() and filled[hole].mean() > 0.05
+    assert torch.isfinite(filled).all()

@@ -1,0 +1,86 @@
+"""Hole filling: covered pixels unchanged, holes take the surrounding colour, hard inputs."""
+
+import pytest
+import torch
+
+from gensplat_transforms.holes import fill_holes
+
+
+def constant(rgb, h=24, w=20, b=1):
+    return torch.tensor(rgb, dtype=torch.float32).reshape(1, 3, 1, 1).expand(b, 3, h, w).clone()
+
+
+def test_fully_covered_image_is_unchanged():
+    color = torch.rand(2, 3, 17, 23)
+    alpha = torch.ones(2, 1, 17, 23)
+    assert torch.equal(fill_holes(color, alpha), color)
+
+
+def test_hole_in_a_uniform_region_takes_its_colour():
+    color, alpha = constant((0.2, 0.5, 0.9)), torch.ones(1, 1, 24, 20)
+    color[..., 5:15, 3:12] = 0
+    alpha[..., 5:15, 3:12] = 0
+    out = fill_holes(color, alpha, empty=(1.0, 0.0, 0.0))
+    torch.testing.assert_close(out, constant((0.2, 0.5, 0.9)), atol=1e-6, rtol=0)
+
+
+def test_partly_covered_edge_blends_with_its_neighbours_not_with_black():
+    color, alpha = constant((0.8, 0.8, 0.8)), torch.ones(1, 1, 24, 20)
+    alpha[..., :, 10] = 0.5
+    color[..., :, 10] *= 0.5  # premultiplied, as rendered over black
+    out = fill_holes(color, alpha)
+    torch.testing.assert_close(out[..., :, 10], torch.full((1, 3, 24), 0.8), atol=1e-6, rtol=0)
+
+
+def test_hole_between_two_colours_is_a_blend_of_both():
+    color, alpha = torch.zeros(1, 3, 16, 32), torch.ones(1, 1, 16, 32)
+    color[:, 0, :, :12] = 1.0  # red left, blue right, a gap between
+    color[:, 2, :, 20:] = 1.0
+    color[..., 12:20] = 0
+    alpha[..., 12:20] = 0
+    out = fill_holes(color, alpha)
+    gap = out[..., 12:20]
+    assert (gap[:, 1] == 0).all() and (gap[:, 0] > 0.05).all() and (gap[:, 2] > 0.05).all()
+    assert gap[:, 0, :, 0].mean() > gap[:, 0, :, -1].mean()  # redder near the red side
+
+
+def test_empty_image_gets_the_empty_colour_and_images_are_independent():
+    color = torch.stack([torch.zeros(3, 8, 8), constant((0.1, 0.2, 0.3), 8, 8)[0]])
+    alpha = torch.stack([torch.zeros(1, 8, 8), torch.ones(1, 8, 8)])
+    out = fill_holes(color, alpha, empty=(0.5, 0.25, 1.0))
+    torch.testing.assert_close(out[0], constant((0.5, 0.25, 1.0), 8, 8)[0])
+    torch.testing.assert_close(out[1], color[1])
+
+
+@pytest.mark.parametrize("size", [(1, 2), (1, 9), (7, 5), (3, 64)])
+def test_odd_and_tiny_sizes(size):
+    color, alpha = constant((0.3, 0.3, 0.3), *size), torch.ones(1, 1, *size)
+    alpha[..., 0, 0] = 0
+    color[..., 0, 0] = 0
+    out = fill_holes(color, alpha)
+    assert out.shape == color.shape
+    torch.testing.assert_close(out, constant((0.3, 0.3, 0.3), *size), atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float64])
+def test_low_and_high_precision_inputs(dtype):
+    color, alpha = torch.rand(1, 3, 12, 12).to(dtype), (torch.rand(1, 1, 12, 12) > 0.5).to(dtype)
+    out = fill_holes(color * alpha, alpha)
+    assert out.dtype == (torch.float64 if dtype == torch.float64 else torch.float32)
+    assert torch.isfinite(out).all() and out.min() >= 0 and out.max() <= 1
+
+
+def test_nan_inf_and_out_of_range_alpha_give_finite_output():
+    color, alpha = torch.rand(1, 3, 10, 10), torch.rand(1, 1, 10, 10)
+    color[0, 0, 0, 0], color[0, 1, 2, 2], alpha[0, 0, 3, 3] = float("nan"), float("inf"), float("nan")
+    alpha[0, 0, 4, 4], alpha[0, 0, 5, 5] = -1.0, 7.0
+    assert torch.isfinite(fill_holes(color, alpha)).all()
+
+
+def test_bad_inputs_raise_naming_the_problem():
+    with pytest.raises(ValueError, match="color must be"):
+        fill_holes(torch.zeros(3, 8, 8), torch.zeros(1, 8, 8))
+    with pytest.raises(ValueError, match="alpha must be"):
+        fill_holes(torch.zeros(1, 3, 8, 8), torch.zeros(1, 1, 8, 9))
+    with pytest.raises(ValueError, match="empty must be"):
+        fill_holes(torch.zeros(1, 3, 8, 8), torch.zeros(1, 1, 8, 8), empty=(float("nan"), 0, 0))
