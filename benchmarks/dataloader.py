@@ -25,19 +25,19 @@ from pathlib import Path
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
-import torch  # noqa: E402
-from lerobot.datasets.lerobot_dataset import LeRobotDataset  # noqa: E402
-from torch.utils.data import DataLoader, RandomSampler  # noqa: E402
+import torch
+from gensplat_lerobot import LeRobotSource, enable_gensplat, prepare
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from torch.utils.data import DataLoader, RandomSampler
 
-from gensplat_lerobot import LeRobotSource, enable_gensplat, prepare  # noqa: E402
-from gensplat_transforms.metrics import psnr  # noqa: E402
-from gensplat_transforms.perturbation import PerturbationSampler  # noqa: E402
-from gensplat_transforms.reconstruction import RGBDReconstructor  # noqa: E402
-from gensplat_transforms.rendering import render  # noqa: E402
-from gensplat_transforms.sim.record import RecordConfig, record  # noqa: E402
-from gensplat_transforms.sim.truth import GroundTruth  # noqa: E402
-from gensplat_transforms.sim.world import WorldConfig  # noqa: E402
-from gensplat_transforms.transform import GenSplatConfig  # noqa: E402
+from gensplat_transforms.metrics import psnr
+from gensplat_transforms.perturbation import PerturbationSampler
+from gensplat_transforms.reconstruction import RGBDReconstructor
+from gensplat_transforms.rendering import render
+from gensplat_transforms.sim.record import RecordConfig, record
+from gensplat_transforms.sim.truth import GroundTruth
+from gensplat_transforms.sim.world import WorldConfig
+from gensplat_transforms.transform import GenSplatConfig
 
 REPO = "gensplat/bench_pick_place"
 

@@ -8,9 +8,9 @@ from .rendering import RenderOutput, render
 __version__ = "0.1.0"
 
 __all__ = [
+    "LEVELS",
     "Cameras",
     "Gaussians",
-    "LEVELS",
     "Perturbation",
     "PerturbationRange",
     "PerturbationSampler",

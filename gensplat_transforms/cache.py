@@ -281,7 +281,7 @@ class _EpisodeFile:
         self._static: Gaussians | None = None
 
     def _group(self, name: str) -> dict[str, torch.Tensor]:
-        keys = [k for k in self.handle.keys() if k.startswith(name + ".")]
+        keys = [k for k in self.handle.keys() if k.startswith(name + ".")]  # noqa: SIM118 (not a dict)
         try:
             group = {k[len(name) + 1 :]: self.handle.get_tensor(k) for k in keys}
         except Exception as e:

@@ -10,7 +10,9 @@ _EPS = 1e-6
 
 
 def fill_holes(
-    color: torch.Tensor, alpha: torch.Tensor, empty: tuple[float, float, float] | torch.Tensor = (0.0, 0.0, 0.0)
+    color: torch.Tensor,
+    alpha: torch.Tensor,
+    empty: tuple[float, float, float] | torch.Tensor = (0.0, 0.0, 0.0),
 ) -> torch.Tensor:
     """Composite a render over a pull-push inpainting of itself.
 
@@ -30,7 +32,9 @@ def fill_holes(
     if color.ndim != 4 or color.shape[1] != 3:
         raise ValueError(f"fill_holes: color must be (B, 3, H, W), got {tuple(color.shape)}")
     if alpha.shape != (color.shape[0], 1, *color.shape[2:]):
-        raise ValueError(f"fill_holes: alpha must be {(color.shape[0], 1, *color.shape[2:])}, got {tuple(alpha.shape)}")
+        raise ValueError(
+            f"fill_holes: alpha must be {(color.shape[0], 1, *color.shape[2:])}, got {tuple(alpha.shape)}"
+        )
     dtype = torch.float64 if color.dtype == torch.float64 else torch.float32
     c = torch.nan_to_num(color.to(dtype), nan=0.0, posinf=0.0, neginf=0.0)
     a = torch.nan_to_num(alpha.to(dtype), nan=0.0).clamp(0, 1)

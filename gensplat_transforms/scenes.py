@@ -295,7 +295,7 @@ class TabletopScene:
 
     def _build_primitives(self) -> None:
         """Stack primitive parameters per kind and remember the label of every column."""
-        f64 = dict(dtype=torch.float64)
+        f64 = {"dtype": torch.float64}
         boxes = [
             (ROOM_CENTER, ROOM_HALF_SIZE, 0.0, LABEL_ROOM),
             (TABLE_CENTER, TABLE_HALF_SIZE, 0.0, LABEL_TABLE),

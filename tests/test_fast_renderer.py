@@ -17,11 +17,11 @@ import numba
 import numpy as np
 import pytest
 import torch
+from hard_cases import HARD_CASES
 
 from gensplat_transforms import Cameras, Gaussians, render
 from gensplat_transforms.cameras import look_at
 from gensplat_transforms.rendering import BACKENDS, fast
-from hard_cases import HARD_CASES
 
 W, H = 45, 38  # not multiples of the 16-pixel tile: edge tiles are partial
 ATOL = 2e-5

@@ -4,6 +4,7 @@ import math
 
 import pytest
 import torch
+from tiny_model import TINY
 
 from gensplat_transforms.cameras import Cameras, look_at
 from gensplat_transforms.model import GenSplatModel, to_gaussians
@@ -20,8 +21,6 @@ from gensplat_transforms.perturbation import axis_rotation
 from gensplat_transforms.rendering import render
 from gensplat_transforms.rotations import quat_to_rotmat
 from gensplat_transforms.scenes import TabletopScene, default_cameras
-from tiny_model import TINY
-
 
 
 def rig(b: int = 2, v: int = 3) -> torch.Tensor:

@@ -99,7 +99,7 @@ def test_shapes_dtypes_and_range(scene):
 
 
 def test_every_default_pixel_hits_and_everything_is_seen(scene, default_render):
-    cams, rgb, depth, labels = default_render
+    cams, _, depth, labels = default_render
     assert len(cams) == 3 and (cams.width, cams.height) == (224, 224)
     assert torch.isfinite(depth).all() and (depth > 0).all()
     assert (labels != LABEL_NONE).all()

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 from safetensors.torch import save_file
+from tiny_model import TINY
 
 from gensplat_transforms.cli import main as cli_main
 from gensplat_transforms.model import GenSplatConfig, GenSplatModel
@@ -27,7 +28,6 @@ from gensplat_transforms.model.train import (
 from gensplat_transforms.reconstruction import GenSplatReconstructor, Views
 from gensplat_transforms.scenes import WORKSPACE_CENTER
 from gensplat_transforms.weights import DEFAULT_MODEL_DIR
-from tiny_model import TINY
 
 SIZE = 28  # 2 x 2 patches, above the 11-pixel SSIM window
 

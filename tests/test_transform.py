@@ -10,8 +10,8 @@ from gensplat_transforms import render
 from gensplat_transforms.cache import GaussianCache
 from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
 from gensplat_transforms.metrics import psnr
-from gensplat_transforms.reconstruction import RGBDReconstructor
 from gensplat_transforms.perturbation import PerturbationSampler
+from gensplat_transforms.reconstruction import RGBDReconstructor
 from gensplat_transforms.transform import AugmentedDataset, GenSplatConfig, GenSplatTransform, render_view
 
 LEFT = "observation.images.left"
@@ -48,8 +48,8 @@ def test_input_item_is_not_modified_and_wrist_is_untouched(setup):
     item = ds[0]
     before = {k: v.clone() for k, v in item.items()}
     out = make(cache, level="large", replace=("left",))(item)
-    for k in before:
-        assert torch.equal(item[k], before[k])
+    for k, value in before.items():
+        assert torch.equal(item[k], value)
     assert torch.equal(out["observation.images.front"], item["observation.images.front"])
     assert torch.equal(out["observation.images.right"], item["observation.images.right"])
     assert not torch.equal(out[LEFT], item[LEFT])
@@ -110,7 +110,7 @@ def test_output_resized_to_the_item_image_size(setup):
 
 
 def test_bad_inputs_raise_clear_errors(setup, tmp_path):
-    source, rec, cache, ds = setup
+    *_, cache, ds = setup
     item = ds[0]
     with pytest.raises(KeyError, match="observation.images.left"):
         make(cache)({k: v for k, v in item.items() if k != LEFT})

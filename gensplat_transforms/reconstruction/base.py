@@ -36,12 +36,13 @@ class Views:
         if not torch.isfinite(self.images).all():
             raise ValueError("Views.images: contains NaN or Inf")
         v, _, h, w = self.images.shape
-        if self.cameras is not None:
-            if len(self.cameras) != v or (self.cameras.height, self.cameras.width) != (h, w):
-                raise ValueError(
-                    f"Views.cameras: need {v} cameras of size {w}x{h}, got {len(self.cameras)} of "
-                    f"{self.cameras.width}x{self.cameras.height}"
-                )
+        if self.cameras is not None and (
+            len(self.cameras) != v or (self.cameras.height, self.cameras.width) != (h, w)
+        ):
+            raise ValueError(
+                f"Views.cameras: need {v} cameras of size {w}x{h}, got {len(self.cameras)} of "
+                f"{self.cameras.width}x{self.cameras.height}"
+            )
         if self.depths is not None and tuple(self.depths.shape) != (v, 1, h, w):
             raise ValueError(f"Views.depths: expected shape {(v, 1, h, w)}, got {tuple(self.depths.shape)}")
 

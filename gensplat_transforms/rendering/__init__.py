@@ -14,7 +14,7 @@ from .gsplat_backend import render_gsplat
 from .projection import Projected, project
 from .reference import rasterize_reference
 
-__all__ = ["RenderOutput", "render", "BACKENDS", "project", "Projected"]
+__all__ = ["BACKENDS", "Projected", "RenderOutput", "project", "render"]
 
 
 @dataclass

@@ -7,12 +7,14 @@ import sys
 
 from ..dataset import enable_gensplat
 
+log = logging.getLogger(__name__)  # propagates to the handlers lerobot-train sets up
+
 
 def _install() -> None:
     targets = [m for name in ("lerobot.scripts.lerobot_train", "__main__")
                if (m := sys.modules.get(name)) is not None and hasattr(m, "make_train_eval_datasets")]  # fmt: skip
     if not targets:
-        logging.warning("gensplat_lerobot.plugin: not running lerobot-train; GenSplat is training-only "
+        log.warning("gensplat_lerobot.plugin: not running lerobot-train; GenSplat is training-only "
                         "and does nothing here")  # fmt: skip
         return
     for module in targets:
@@ -23,7 +25,7 @@ def _install() -> None:
         def make_train_eval_datasets(cfg, _original=original):
             train, evaluation = _original(cfg)
             enable_gensplat(train)
-            logging.info("GenSplat enabled on the training dataset: %s", train.gensplat.cfg)
+            log.info("GenSplat enabled on the training dataset: %s", train.gensplat.cfg)
             return train, evaluation
 
         make_train_eval_datasets.gensplat = True
