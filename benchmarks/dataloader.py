@@ -37,7 +37,7 @@ from gensplat_transforms.rendering import render
 from gensplat_transforms.sim.record import RecordConfig, record
 from gensplat_transforms.sim.truth import GroundTruth
 from gensplat_transforms.sim.world import WorldConfig
-from gensplat_transforms.transform import GenSplatConfig
+from gensplat_transforms.transform import GenSplatConfig, render_view
 
 REPO = "gensplat/bench_pick_place"
 
@@ -67,7 +67,7 @@ def split_ms(ds, samples: int) -> dict:
         t1 = time.perf_counter()
         for name in tf.cfg.replace:
             target = tf.sampler.sample(ep, fr).move(rec.cameras, tf.cfg.cameras.index(name))
-            out = render(rec.gaussians, target, backend=tf.cfg.backend, return_depth=False)
+            out = render_view(rec.gaussians, target, tf.cfg)
         t2 = time.perf_counter()
         (out.rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8)
         t3 = time.perf_counter()

@@ -15,8 +15,7 @@ from .images import save_grid
 from .metrics import psnr
 from .perturbation import EVAL_LEVELS, PerturbationSampler
 from .preview import write_preview
-from .rendering import render
-from .transform import GenSplatConfig, GenSplatTransform
+from .transform import GenSplatConfig, GenSplatTransform, render_view
 
 REPO_ID = "gensplat/sim_pick_place"
 
@@ -78,7 +77,7 @@ def _levels(tf: GenSplatTransform, truth, item: dict, path: Path, log) -> dict:
         target = p.move(rec.cameras, 0)
         true_rgb, _ = truth.render(ep, fr, target)
         t0 = time.perf_counter()
-        res = render(rec.gaussians, target, backend=tf.cfg.backend, return_depth=False)
+        res = render_view(rec.gaussians, target, tf.cfg)
         ms = (time.perf_counter() - t0) * 1e3
         seen = res.alpha > 0.5
         score = psnr(res.rgb, true_rgb, seen)

@@ -16,7 +16,7 @@ from .gaussians import Gaussians
 from .holes import fill_holes
 from .perturbation import AXES, Perturbation, PerturbationRange, PerturbationSampler
 from .reconstruction import Reconstruction, Reconstructor
-from .rendering import BACKENDS, render
+from .rendering import BACKENDS, RenderOutput, render
 
 
 @dataclass
@@ -77,13 +77,16 @@ class GenSplatConfig:
             raise ValueError(f"GenSplatConfig.backend: unknown {self.backend!r}; available {sorted(BACKENDS)}")
 
 
-def render_view(gaussians: Gaussians, camera: Cameras, config: GenSplatConfig) -> torch.Tensor:
-    """The augmented image of ``camera`` (B cameras) as the transform makes it: (B, 3, H, W)
-    float32, rendered with ``config.backend`` and, with ``config.fill_holes``, hole-filled."""
+def render_view(gaussians: Gaussians, camera: Cameras, config: GenSplatConfig) -> RenderOutput:
+    """The augmented view of ``camera`` (B cameras) as the transform makes it, rendered with
+    ``config.backend``: rgb (B, 3, H, W), hole-filled with ``config.fill_holes``, and the
+    render's alpha (B, 1, H, W) (its coverage; no depth)."""
     fill = config.fill_holes
     out = render(gaussians, camera, background=(0.0, 0.0, 0.0) if fill else config.background,
-                 backend=config.backend, return_depth=False, return_alpha=fill, **config.render_options)  # fmt: skip
-    return fill_holes(out.rgb, out.alpha, empty=config.background) if fill else out.rgb
+                 backend=config.backend, return_depth=False, **config.render_options)  # fmt: skip
+    if fill:
+        out.rgb = fill_holes(out.rgb, out.alpha, empty=config.background)
+    return out
 
 
 class GenSplatTransform:
@@ -159,7 +162,7 @@ class GenSplatTransform:
             if f not in read:
                 read[f] = self.cache.read(episode, f)
             target = p.move(read[f].cameras, self.cfg.cameras.index(name))
-            rgbs.append(render_view(read[f].gaussians, target, self.cfg)[0])
+            rgbs.append(render_view(read[f].gaussians, target, self.cfg).rgb[0])
         rgb = torch.stack(rgbs)
         if rgb.shape[-2:] != stack.shape[-2:]:
             rgb = F.interpolate(rgb, size=stack.shape[-2:], mode="bilinear", antialias=True, align_corners=False)
