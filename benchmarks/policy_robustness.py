@@ -41,8 +41,11 @@ level of at most 20 steps: it checks the pipeline end to end, its success rates 
 
 Writes ``benchmarks/results/policy_robustness.json`` (``policy_robustness_quick.json`` with
 ``--quick``): ``{"baseline": {level: success %}, "gensplat": {...}, "episodes_per_level": n,
-"progress": {mode: {level: {lift_percent, median_reach_cm}}}, "quick": bool, "settings",
-"timing", "episodes"}``. ``progress`` tells
+"progress": {mode: {level: {lift_percent, median_reach_cm}}}, "difference": {level: {points,
+ci95, a_only, b_only, mcnemar_p}}, "quick": bool, "settings", "timing", "episodes"}``.
+``difference`` compares the two policies episode by episode (they met the same episodes):
+GenSplat minus baseline in points, a paired-bootstrap 95 % interval, and an exact McNemar
+test on the episodes only one of them solved. ``progress`` tells
 apart policies that do not succeed yet: the share of episodes that lifted the cube (pick
 and place) and the median closest approach of the pinch point to the cube's centre (to the
 reach goal in a reach).
@@ -70,7 +73,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 from gensplat_lerobot import prepare
 from plotting import Panel, line_panels
 
-from gensplat_transforms.sim.evaluate import EvalConfig, PerturbedCameraEnv, evaluate
+from gensplat_transforms.sim.evaluate import EvalConfig, PerturbedCameraEnv, evaluate, paired_difference
 from gensplat_transforms.sim.policy_adapter import LeRobotPolicy
 from gensplat_transforms.sim.record import RecordConfig, record
 from gensplat_transforms.sim.tasks import TASKS
@@ -182,6 +185,7 @@ def evaluate_level(checkpoint: Path, level: str, args) -> dict:
     progress = {"lift_percent": round(100 * result.lift_rate, 2),
                 "median_reach_cm": round(100 * float(np.median(result.reach_m)), 2)}  # fmt: skip
     return {"success": round(100 * result.success_rate, 2), "progress": progress, "episodes": episodes,
+            "successes": result.successes,
             "seconds": time.perf_counter() - t0, "steps": sum(result.steps)}  # fmt: skip
 
 
@@ -198,6 +202,12 @@ def evaluate_all(work: Path, args) -> dict:
                   f"lifted, median closest approach {r['progress']['median_reach_cm']:.1f} cm over "
                   f"{args.episodes} episodes", flush=True)  # fmt: skip
     return out
+
+
+def paired_by_level(evaluated: dict) -> dict:
+    """{level: paired_difference(baseline, gensplat)}: both met the same episodes."""
+    return {lv: paired_difference(evaluated["baseline"][lv]["successes"], evaluated["gensplat"][lv]["successes"])
+            for lv in LEVELS}  # fmt: skip
 
 
 def plot(result: dict, path: Path) -> None:
@@ -307,6 +317,7 @@ def main() -> None:
                     "probability": gensplat.probability, "level": gensplat.level, "mode": gensplat.mode,
                     "fill_holes": gensplat.fill_holes})  # fmt: skip
     result = {**rates, "episodes_per_level": args.episodes, "quick": args.quick, "progress": progress,
+              "difference": paired_by_level(evaluated),
               "settings": settings, "timing": timing, "episodes": episodes}  # fmt: skip
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
@@ -314,6 +325,10 @@ def main() -> None:
     print(f"{'success %':>10}" + "".join(f"{lv:>9}" for lv in LEVELS))
     for mode in MODES:
         print(f"{mode:>10}" + "".join(f"{rates[mode][lv]:9.1f}" for lv in LEVELS))
+    diff = result["difference"]
+    print(f"{'difference':>10}" + "".join(f"{diff[lv]['points']:+9.1f}" for lv in LEVELS)
+          + "  (gensplat - baseline, points; 95% CI " + ", ".join(
+              f"{lv} [{diff[lv]['ci95'][0]:+.0f}, {diff[lv]['ci95'][1]:+.0f}]" for lv in LEVELS) + ")")  # fmt: skip
     print(
         f"wrote {args.out} ({timing['total_seconds']:.0f} s{', QUICK: not a result' if args.quick else ''})"
     )

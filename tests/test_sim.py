@@ -16,7 +16,7 @@ mujoco = pytest.importorskip("mujoco", reason="the simulated world needs the 'si
 
 from gensplat_transforms.dataset_format import load_calibration, load_depth
 from gensplat_transforms.perturbation import Perturbation, PerturbationSampler, pivot_point
-from gensplat_transforms.sim.evaluate import EvalConfig, PerturbedCameraEnv, evaluate
+from gensplat_transforms.sim.evaluate import EvalConfig, PerturbedCameraEnv, evaluate, paired_difference
 from gensplat_transforms.sim.experts import ExpertPolicy, run_expert
 from gensplat_transforms.sim.record import RecordConfig, record
 from gensplat_transforms.sim.scene import ObjectSpec
@@ -289,3 +289,16 @@ def test_video_dataset_close_to_truth(tmp_path):
     mse = float(((rgb[0] - ds[t]["observation.images.left"]) ** 2).mean())
     assert 10 * math.log10(1 / mse) > 30
     truth.close()
+
+
+def test_paired_difference():
+    same = paired_difference([True, False] * 10, [True, False] * 10)
+    assert same["points"] == 0 and same["ci95"] == [0, 0] and same["mcnemar_p"] == 1.0
+    # b solves 8 episodes a failed, a solves none that b failed: 40 points, p = 2 / 2**8
+    a, b = [False] * 8 + [True] * 12, [True] * 20
+    r = paired_difference(a, b)
+    assert r["points"] == 40 and (r["a_only"], r["b_only"]) == (0, 8)
+    assert r["mcnemar_p"] == round(2 / 2**8, 4) and 15 < r["ci95"][0] < 40 < r["ci95"][1] < 65
+    assert paired_difference(b, a)["points"] == -40
+    with pytest.raises(ValueError, match="equal"):
+        paired_difference([True], [True, False])

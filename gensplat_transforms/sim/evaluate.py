@@ -22,6 +22,7 @@ Example:
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import ClassVar
@@ -207,3 +208,24 @@ def evaluate(
         result.reach_m.append(reach)
         result.lifted.append(bool(lifted))
     return result
+
+
+def paired_difference(a: list[bool], b: list[bool], resamples: int = 10000, seed: int = 0) -> dict:
+    """Success of ``b`` minus success of ``a`` on the same episodes (same layouts,
+    perturbations and sampling noise), in percentage points.
+
+    Returns {"points", "ci95" (paired bootstrap over episodes), "a_only" / "b_only" (episodes
+    only that one solved), "mcnemar_p" (exact two-sided McNemar test on those discordant
+    episodes: the chance of a split at least this uneven if both policies were equal)}.
+    """
+    if len(a) != len(b) or not a:
+        raise ValueError(f"paired_difference: need two equal, non-empty lists, got {len(a)} and {len(b)}")
+    d = np.asarray(b, dtype=np.float64) - np.asarray(a, dtype=np.float64)
+    rng = np.random.default_rng(seed)
+    means = d[rng.integers(0, len(d), size=(resamples, len(d)))].mean(axis=1)
+    lo, hi = np.percentile(means, [2.5, 97.5])
+    a_only, b_only = int((d < 0).sum()), int((d > 0).sum())
+    n, k = a_only + b_only, min(a_only, b_only)
+    p = min(1.0, 2 * sum(math.comb(n, j) for j in range(k + 1)) / 2**n) if n else 1.0
+    return {"points": round(100 * float(d.mean()), 2), "ci95": [round(100 * float(lo), 2), round(100 * float(hi), 2)],
+            "a_only": a_only, "b_only": b_only, "mcnemar_p": round(p, 4)}  # fmt: skip
