@@ -9,7 +9,7 @@ resumes where it was; a ``--work`` made with other settings is refused):
    ``--seed``; lossless PNG frames, calibration and depth sidecars);
 2. write the GenSplat settings beside the dataset and build its Gaussian cache: RGB-D
    reconstruction of the left + right cameras; the policy's external cameras (left by
-   default) are replaced with probability ``--probability`` (default 0.5) by a view from
+   default) are replaced with probability ``--probability`` (default 0.25) by a view from
    the training range (|theta| <= 30 deg, 0.5-6 cm), one camera per trajectory,
    ``--views-per-source`` (default 3) distinct cameras per source trajectory;
 3. train Diffusion Policy twice with LeRobot's stock trainer through ``policies/train.sh``
@@ -248,8 +248,8 @@ def main() -> None:
     parser.add_argument("--n-obs-steps", type=int, default=1, help="observation frames per step (default 1)")
     parser.add_argument("--inference-steps", type=int, default=10, help="DDIM steps per action chunk")
     parser.add_argument("--views-per-source", type=int, default=3, help="GenSplat cameras per trajectory")
-    parser.add_argument("--probability", type=float, default=0.5,
-                        help="chance that GenSplat replaces a sample's camera (default 0.5)")  # fmt: skip
+    parser.add_argument("--probability", type=float, default=0.25,
+                        help="chance that GenSplat replaces a sample's camera (default 0.25)")  # fmt: skip
     parser.add_argument("--fill-holes", action=argparse.BooleanOptionalAction, default=True,
                         help="GenSplat fills uncovered pixels from their surroundings (default; "
                         "--no-fill-holes paints them black)")  # fmt: skip
