@@ -104,6 +104,8 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="small dataset, few batches (< 1 min)")
     parser.add_argument("--backend", default="fast")
     parser.add_argument("--workers", type=int, default=1)
+    parser.add_argument("--fill-holes", action=argparse.BooleanOptionalAction, default=True,
+                        help="fill uncovered pixels (the transform's default)")
     parser.add_argument("--replace", nargs="+", default=["left", "right"], help="cameras replaced per sample")
     args = parser.parse_args()
     torch.set_num_threads(1)  # as in a dataloader worker
@@ -111,7 +113,8 @@ def main() -> None:
     root = Path(tempfile.mkdtemp()) / "ds"
     record(RecordConfig(root, "pick_place", episodes, seed=0, use_videos=False, repo_id=REPO,
                         world=WorldConfig(width=size, height=size)), progress=False)  # fmt: skip
-    config = GenSplatConfig(probability=1.0, level="train", backend=args.backend, replace=tuple(args.replace))
+    config = GenSplatConfig(probability=1.0, level="train", backend=args.backend, replace=tuple(args.replace),
+                            fill_holes=args.fill_holes)
     t0 = time.perf_counter()
     stats = prepare(root, REPO, config, progress=False)
     build_s = time.perf_counter() - t0
@@ -122,6 +125,7 @@ def main() -> None:
     split = split_ms(gensplat, samples)
     result = {
         "quick": args.quick, "backend": args.backend, "workers": args.workers, "resolution": [size, size],
+        "fill_holes": args.fill_holes,
         "cameras_reconstructed": list(config.cameras), "cameras_replaced": list(config.replace),
         "samples_per_s_plain": round(loader_rate(plain, args.workers, 4, batches), 2),
         "samples_per_s_gensplat": round(loader_rate(gensplat, args.workers, 4, batches), 2),
