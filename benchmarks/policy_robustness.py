@@ -185,7 +185,6 @@ def evaluate_level(checkpoint: Path, level: str, args) -> dict:
     progress = {"lift_percent": round(100 * result.lift_rate, 2),
                 "median_reach_cm": round(100 * float(np.median(result.reach_m)), 2)}  # fmt: skip
     return {"success": round(100 * result.success_rate, 2), "progress": progress, "episodes": episodes,
-            "successes": result.successes,
             "seconds": time.perf_counter() - t0, "steps": sum(result.steps)}  # fmt: skip
 
 
@@ -206,8 +205,10 @@ def evaluate_all(work: Path, args) -> dict:
 
 def paired_by_level(evaluated: dict) -> dict:
     """{level: paired_difference(baseline, gensplat)}: both met the same episodes."""
-    return {lv: paired_difference(evaluated["baseline"][lv]["successes"], evaluated["gensplat"][lv]["successes"])
-            for lv in LEVELS}  # fmt: skip
+    def successes(mode: str, level: str) -> list[bool]:
+        return [e["success"] for e in evaluated[mode][level]["episodes"]]
+
+    return {lv: paired_difference(successes("baseline", lv), successes("gensplat", lv)) for lv in LEVELS}
 
 
 def plot(result: dict, path: Path) -> None:
