@@ -36,6 +36,10 @@ left,right,wrist``) lifted no cube after 1500 steps at batch 8 (see the README);
 ``--device cuda --steps 20000`` is the setting to aim for on a GPU. Measured on one
 H100 machine (16 cores): with ``--parallel-train --workers 6`` each policy ran at 3-4 steps/s,
 bound by the dataloader (LeRobot decoding PNG frames), so 20000 steps take about 1.5 h there.
+``--baseline-from RESULT.json`` reuses the baseline of an earlier result instead of training
+and evaluating it again (an hour here): the evaluation is seeded and reproducible, so its
+episode records stand for the checkpoint. The settings that shape the baseline and its
+evaluation must match (checked), and the result names the file in ``settings``.
 ``--quick`` (a few minutes): 2 demos, 4 steps at batch 4, a smaller U-Net, 2 episodes per
 level of at most 20 steps: it checks the pipeline end to end, its success rates mean nothing.
 
@@ -188,19 +192,47 @@ def evaluate_level(checkpoint: Path, level: str, args) -> dict:
             "seconds": time.perf_counter() - t0, "steps": sum(result.steps)}  # fmt: skip
 
 
-def evaluate_all(work: Path, args) -> dict:
+def evaluate_all(work: Path, modes: tuple[str, ...], args) -> dict:
     """{mode: {level: evaluate_level(...)}}, ``args.eval_jobs`` (mode, level) pairs at a time
     in separate processes."""
-    jobs = [(mode, level) for mode in MODES for level in LEVELS]
+    jobs = [(mode, level) for mode in modes for level in LEVELS]
     with ProcessPoolExecutor(args.eval_jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
         futures = {job: pool.submit(evaluate_level, work / job[0], job[1], args) for job in jobs}
-        out: dict = {mode: {} for mode in MODES}
+        out: dict = {mode: {} for mode in modes}
         for (mode, level), future in futures.items():
             r = out[mode][level] = future.result()
             print(f"  {mode:>8} {level:>6}: {r['success']:5.1f} % success, {r['progress']['lift_percent']:5.1f} % "
                   f"lifted, median closest approach {r['progress']['median_reach_cm']:.1f} cm over "
                   f"{args.episodes} episodes", flush=True)  # fmt: skip
     return out
+
+
+#: Settings that shape the baseline policy and its evaluation (``--baseline-from`` checks them).
+BASELINE_SETTINGS = ("task", "policy_cameras", "demos", "size", "steps", "batch_size", "workers", "down_dims",
+                     "n_obs_steps", "inference_steps", "max_steps", "seed", "device")  # fmt: skip
+
+
+def reused_baseline(path: Path, settings: dict, episodes: int) -> tuple[dict, dict]:
+    """The baseline of an earlier result: ({level: evaluate_level-like record}, its training and
+    evaluation timing). Raises SystemExit when its settings differ from ``settings``."""
+    old = json.loads(path.read_text())
+    if old.get("quick"):
+        raise SystemExit(f"--baseline-from {path}: a --quick result is not a baseline")
+    changed = {k: (old["settings"].get(k), settings[k]) for k in BASELINE_SETTINGS
+               if old["settings"].get(k) != settings[k]}  # fmt: skip
+    if old["episodes_per_level"] != episodes:
+        changed["episodes"] = (old["episodes_per_level"], episodes)
+    if changed:
+        raise SystemExit(f"--baseline-from {path}: its baseline was made with other settings {changed} (was, now)")
+    per_level = {}
+    for level in LEVELS:
+        records = sorted((e for e in old["episodes"]["baseline"] if e["level"] == level), key=lambda e: e["episode"])
+        if [e["episode"] for e in records] != list(range(episodes)):
+            raise SystemExit(f"--baseline-from {path}: episodes 0-{episodes - 1} of level {level} are not all there")
+        per_level[level] = {"success": old["baseline"][level], "progress": old["progress"]["baseline"][level],
+                            "episodes": records}  # fmt: skip
+    timing = {k: old["timing"][k] for k in ("train_baseline", "eval_baseline")}
+    return per_level, timing
 
 
 def paired_by_level(evaluated: dict) -> dict:
@@ -264,6 +296,8 @@ def main() -> None:
         action="store_true",
         help="train both policies at once (a GPU with room to spare; not on a 2-core CPU)",
     )
+    parser.add_argument("--baseline-from", type=Path, metavar="RESULT.json",
+                        help="reuse the baseline of an earlier result (same settings) instead of training it")  # fmt: skip
     parser.add_argument("--out", type=Path, help="result JSON (default benchmarks/results/policy_robustness.json; "
                         "with --quick policy_robustness_quick.json, so a check never replaces the result)")  # fmt: skip
     args = parser.parse_args()
@@ -277,6 +311,23 @@ def main() -> None:
     args.out = args.out or RESULTS / ("policy_robustness_quick.json" if args.quick else "policy_robustness.json")
     work = args.work or ROOT / "outputs" / ("policy_robustness_quick" if args.quick else "policy_robustness")
     root = work / "dataset"
+    replace = tuple(c for c in args.cameras if c in EXTERNAL_CAMERAS)
+    gensplat = GenSplatConfig(replace=replace, views_per_source=args.views_per_source,
+                              probability=args.probability, fill_holes=args.fill_holes, backend="fast",
+                              seed=args.seed)  # fmt: skip
+    settings = {k: getattr(args, k) for k in ("demos", "size", "steps", "batch_size", "workers", "down_dims",
+                                             "n_obs_steps", "inference_steps", "views_per_source", "max_steps",
+                                             "seed", "device", "parallel_train")}  # fmt: skip
+    settings.update(task=args.task, policy_cameras=list(args.cameras),
+                    policy="diffusion (policies/diffusion.json + the overrides above)",
+                    perturbed_camera="left", gensplat={"cameras": list(gensplat.cameras), "replace": list(replace),
+                    "probability": gensplat.probability, "level": gensplat.level, "mode": gensplat.mode,
+                    "fill_holes": gensplat.fill_holes})  # fmt: skip
+    modes, reused, timing = MODES, {}, {}
+    if args.baseline_from:
+        modes = ("gensplat",)
+        reused["baseline"], timing = reused_baseline(args.baseline_from, settings, args.episodes)
+        settings["baseline_from"] = args.baseline_from.name
     check_work(work, args)
     t_start = time.perf_counter()
 
@@ -287,36 +338,25 @@ def main() -> None:
         print(
             f"recorded {res.episodes} demonstrations, {res.frames} frames, in {res.seconds:.0f} s", flush=True
         )
-    replace = tuple(c for c in args.cameras if c in EXTERNAL_CAMERAS)
-    gensplat = GenSplatConfig(replace=replace, views_per_source=args.views_per_source,
-                              probability=args.probability, fill_holes=args.fill_holes, backend="fast",
-                              seed=args.seed)  # fmt: skip
     prepare(root, repo_id(args.task), gensplat, progress=False)
 
-    timing, rates, progress, episodes = {}, {}, {}, {}
-    with ThreadPoolExecutor(len(MODES) if args.parallel_train else 1) as pool:  # each trains in a subprocess
-        for mode, t in zip(MODES, pool.map(lambda m: train(m, root, work / m, args), MODES)):
+    rates, progress, episodes = {}, {}, {}
+    with ThreadPoolExecutor(len(modes) if args.parallel_train else 1) as pool:  # each trains in a subprocess
+        for mode, t in zip(modes, pool.map(lambda m: train(m, root, work / m, args), modes)):
             timing[f"train_{mode}"] = t
     print(f"evaluating ({args.eval_jobs} processes)", flush=True)
     t0 = time.perf_counter()
-    evaluated = evaluate_all(work, args)
+    evaluated = evaluate_all(work, modes, args)
     timing["eval_seconds"] = round(time.perf_counter() - t0, 1)
     for mode, per_level in evaluated.items():
-        rates[mode] = {lv: r["success"] for lv, r in per_level.items()}
-        progress[mode] = {lv: r["progress"] for lv, r in per_level.items()}
-        episodes[mode] = [e for r in per_level.values() for e in r["episodes"]]
         seconds, steps = (sum(r[k] for r in per_level.values()) for k in ("seconds", "steps"))
         timing[f"eval_{mode}"] = {"process_seconds": round(seconds, 1), "s_per_control_step": round(seconds / steps, 3)}
     timing["total_seconds"] = round(time.perf_counter() - t_start, 1)
-
-    settings = {k: getattr(args, k) for k in ("demos", "size", "steps", "batch_size", "workers", "down_dims",
-                                             "n_obs_steps", "inference_steps", "views_per_source", "max_steps",
-                                             "seed", "device", "parallel_train")}  # fmt: skip
-    settings.update(task=args.task, policy_cameras=list(args.cameras),
-                    policy="diffusion (policies/diffusion.json + the overrides above)",
-                    perturbed_camera="left", gensplat={"cameras": list(gensplat.cameras), "replace": list(replace),
-                    "probability": gensplat.probability, "level": gensplat.level, "mode": gensplat.mode,
-                    "fill_holes": gensplat.fill_holes})  # fmt: skip
+    evaluated = {**reused, **evaluated}
+    for mode in MODES:
+        rates[mode] = {lv: r["success"] for lv, r in evaluated[mode].items()}
+        progress[mode] = {lv: r["progress"] for lv, r in evaluated[mode].items()}
+        episodes[mode] = [e for r in evaluated[mode].values() for e in r["episodes"]]
     result = {**rates, "episodes_per_level": args.episodes, "quick": args.quick, "progress": progress,
               "difference": paired_by_level(evaluated),
               "settings": settings, "timing": timing, "episodes": episodes}  # fmt: skip
