@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import fcntl
 import json
+import math
 import os
 import tempfile
 import zlib
@@ -86,9 +87,10 @@ def dequantize(d: dict[str, torch.Tensor], lo: torch.Tensor, hi: torch.Tensor) -
 
 
 def _row_bytes(d: dict[str, torch.Tensor]) -> torch.Tensor:
-    """(N, B) uint8: every Gaussian's quantised fields as one byte row."""
+    """(N, B) uint8: every Gaussian's quantised fields as one byte row (N may be 0)."""
     n = d["means"].shape[0]
-    return torch.cat([d[k].contiguous().view(torch.uint8).reshape(n, -1) for k in _FIELDS], 1)
+    width = [math.prod(d[k].shape[1:]) * d[k].element_size() for k in _FIELDS]
+    return torch.cat([d[k].contiguous().view(torch.uint8).reshape(n, w) for k, w in zip(_FIELDS, width)], 1)
 
 
 def _crc(tensors: dict[str, torch.Tensor]) -> str:
@@ -171,6 +173,7 @@ class GaussianCache:
         os.close(fd)
         try:
             save_file(tensors, tmp, metadata=meta)
+            os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes it owner-only; readable as any file
             os.replace(tmp, path)
         finally:
             if os.path.exists(tmp):
@@ -189,14 +192,26 @@ class GaussianCache:
             finally:
                 fcntl.flock(fh, fcntl.LOCK_UN)
 
-    def ensure(self, episode: int, build: Callable[[], Sequence[Reconstruction]]) -> None:
-        """Build the episode with ``build()`` unless a valid file exists; stale or corrupt
-        files are rebuilt. Safe when several processes call it at once."""
-        if self.status(episode) == "ok":
+    def ensure(self, episode: int, build: Callable[[], Sequence[Reconstruction]], verify: bool = False) -> None:
+        """Build the episode with ``build()`` unless a valid file exists; stale files and files
+        with a bad header are rebuilt, and with ``verify`` also files that fail a checksum
+        (reads the whole file). Safe when several processes call it at once."""
+        if not verify and self.status(episode) == "ok":
             return
         with self.lock(episode):
-            if self.status(episode) != "ok":  # another process may have built it meanwhile
+            self._open.pop(int(episode), None)  # another process may have replaced the file
+            if self.status(episode) != "ok" or (verify and not self.verify(episode)):
                 self.write_episode(episode, build())
+
+    def verify(self, episode: int) -> bool:
+        """Whether every group of a readable episode file passes its checksum."""
+        f = self._file(episode)
+        try:
+            for name in f.crc:
+                f.group(name)
+        except CorruptCacheError:
+            return False
+        return True
 
     # ------------------------------------------------------------------ reading
     def status(self, episode: int) -> str:
@@ -228,15 +243,22 @@ class GaussianCache:
         if episode in self._open:
             self._open.move_to_end(episode)
             return self._open[episode]
-        f = _EpisodeFile(self.path(episode), self.reconstructor, self.dataset)
+        f = _EpisodeFile(self.path(episode), episode, self.reconstructor, self.dataset)
         self._open[episode] = f
         while len(self._open) > self.max_open:
             self._open.popitem(last=False)
         return f
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def _static_mask(frames: Sequence[Reconstruction], qs: list[dict]) -> list[torch.Tensor]:
-    """Per frame, (N_t,) bool: this Gaussian is bit-identical at its pixel in every frame."""
+    """Per frame, (N_t,) bool: this Gaussian is the only one at its pixel in every frame and
+    bit-identical there in every frame."""
     false = [torch.zeros(len(f.gaussians), dtype=torch.bool) for f in frames]
     if len(frames) < 2 or any(f.pixel_ids is None for f in frames):
         return false
@@ -246,19 +268,20 @@ def _static_mask(frames: Sequence[Reconstruction], qs: list[dict]) -> list[torch
     same = torch.zeros(npix, dtype=torch.bool)
     ref[frames[0].pixel_ids] = rows[0]
     same[frames[0].pixel_ids] = True
-    for f, r in zip(frames[1:], rows[1:]):
+    for f, r in zip(frames, rows):
         here = torch.zeros(npix, dtype=torch.bool)
         here[f.pixel_ids] = (r == ref[f.pixel_ids]).all(1)
-        same &= here
+        same &= here & (torch.bincount(f.pixel_ids, minlength=npix) == 1)  # a shared pixel is never static
     return [same[f.pixel_ids] for f in frames]
 
 
 class _EpisodeFile:
     """An open, validated episode file; decodes frames on demand."""
 
-    def __init__(self, path: Path, reconstructor: str, dataset: str) -> None:
+    def __init__(self, path: Path, episode: int, reconstructor: str, dataset: str) -> None:
         if not path.exists():
             raise FileNotFoundError(f"{path}: episode not cached")
+        self.path = path
         try:
             self.handle = safe_open(str(path), framework="pt")
             meta = self.handle.metadata() or {}
@@ -270,7 +293,8 @@ class _EpisodeFile:
                           ("dataset", dataset)):  # fmt: skip
             if meta.get(key) != want:
                 raise StaleCacheError(f"{path}: built with {key}={meta.get(key)!r}, expected {want!r}")
-        self.path = path
+        if meta.get("episode_index") != str(episode):
+            raise CorruptCacheError(f"{path}: holds episode {meta.get('episode_index')}, not {episode}")
         self.num_frames = int(meta["num_frames"])
         self.width, self.height = json.loads(meta["image_size"])
         lo, hi = json.loads(meta["bbox"])
@@ -280,7 +304,8 @@ class _EpisodeFile:
         self.crc = json.loads(meta["crc"])
         self._static: Gaussians | None = None
 
-    def _group(self, name: str) -> dict[str, torch.Tensor]:
+    def group(self, name: str) -> dict[str, torch.Tensor]:
+        """The tensors of one group (``static`` or ``f<t>``), checksum verified."""
         keys = [k for k in self.handle.keys() if k.startswith(name + ".")]  # noqa: SIM118 (not a dict)
         try:
             group = {k[len(name) + 1 :]: self.handle.get_tensor(k) for k in keys}
@@ -294,8 +319,8 @@ class _EpisodeFile:
         if not 0 <= frame < self.num_frames:
             raise IndexError(f"{self.path}: frame {frame} outside 0..{self.num_frames - 1}")
         if self._static is None:  # decoded once per process and episode, then reused
-            self._static = dequantize(self._group("static"), self.lo, self.hi)
-        group = self._group(f"f{frame}")
+            self._static = dequantize(self.group("static"), self.lo, self.hi)
+        group = self.group(f"f{frame}")
         g = Gaussians.cat([self._static, dequantize(group, self.lo, self.hi)])
         cams = Cameras(group["K"], group["c2w"], self.width, self.height)
         return Reconstruction(g, cams)

@@ -96,6 +96,8 @@ class Perturbation:
     def move(self, cameras: Cameras, index: int = 0) -> Cameras:
         """Camera ``index`` of a rig, moved about the pivot of the rig's cameras 0 and 1
         (the two external cameras)."""
+        if not 0 <= index < len(cameras):
+            raise IndexError(f"Perturbation.move: camera index {index} outside 0..{len(cameras) - 1}")
         pivot = pivot_point(cameras.c2w[0], cameras.c2w[1])
         return cameras[index].with_c2w(self.apply(cameras.c2w[index : index + 1], pivot))
 

@@ -3,13 +3,14 @@ poses, from cached Gaussians, inside dataloader workers."""
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 
 import torch
 import torch.nn.functional as F
 from torch.utils.data import Dataset
 
-from .cache import GaussianCache
+from .cache import CorruptCacheError, GaussianCache
 from .cameras import Cameras
 from .episodes import EpisodeSource
 from .gaussians import Gaussians
@@ -17,6 +18,8 @@ from .holes import fill_holes
 from .perturbation import AXES, Perturbation, PerturbationRange, PerturbationSampler
 from .reconstruction import Reconstruction, Reconstructor
 from .rendering import BACKENDS, RenderOutput, render
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass
@@ -94,7 +97,9 @@ class GenSplatTransform:
 
     Gaussians come from ``cache``; episodes missing from it are built on first use from
     ``source`` with ``reconstructor`` (safe with several workers), or raise if those are
-    not given. Picklable (spawn workers); nothing touches CUDA.
+    not given; an episode file whose data fails its checksum is rebuilt the same way.
+    Picklable (spawn workers). The ``gsplat`` backend renders on CUDA: use it with spawn
+    workers (CUDA cannot be initialised in a forked worker) or in the main process.
     """
 
     def __init__(
@@ -149,7 +154,8 @@ class GenSplatTransform:
 
     def _render_like(self, image: torch.Tensor, episode: int, frame: int, name: str, p: Perturbation,
                      read: dict[int, Reconstruction]) -> torch.Tensor:
-        """Rendered replacement with the shape, dtype and value range of ``image``."""
+        """Rendered replacement with the shape and dtype of ``image``: uint8 in [0, 255], or
+        float in [0, 1] (float images are taken to be in [0, 1], as LeRobot's are)."""
         if image.ndim not in (3, 4) or image.shape[-3] != 3:
             raise ValueError(f"GenSplatTransform: expected (3, H, W) or (T, 3, H, W) images, got {tuple(image.shape)}")
         stack = image if image.ndim == 4 else image[None]
@@ -160,7 +166,7 @@ class GenSplatTransform:
         rgbs = []
         for f in (min(max(frame + o, 0), last) for o in offsets):
             if f not in read:
-                read[f] = self.cache.read(episode, f)
+                read[f] = self._read(episode, f)
             target = p.move(read[f].cameras, self.cfg.cameras.index(name))
             rgbs.append(render_view(read[f].gaussians, target, self.cfg).rgb[0])
         rgb = torch.stack(rgbs)
@@ -173,16 +179,33 @@ class GenSplatTransform:
             rgb = rgb.to(stack.dtype)
         return rgb if image.ndim == 4 else rgb[0]
 
-    def _ensure(self, episode: int) -> None:
+    def _ensure(self, episode: int, verify: bool = False) -> None:
+        """Build the episode unless the cache holds it (with ``verify``: every checksum passes)."""
         status = self.cache.status(episode)
-        if status != "ok":
+        if status != "ok" or verify:
             if self.source is None:
                 raise FileNotFoundError(
                     f"GenSplatTransform: episode {episode} is {status} in the cache at {self.cache.root} "
                     "and no source/reconstructor was given to build it; run the cache command first"
                 )
             src, rec = self.source, self.reconstructor
-            self.cache.ensure(episode, lambda: [rec(src.views(episode, t)) for t in range(src.num_frames(episode))])
+
+            def build() -> list[Reconstruction]:
+                return [rec(src.views(episode, t)) for t in range(src.num_frames(episode))]
+
+            self.cache.ensure(episode, build, verify=verify)
+
+    def _read(self, episode: int, frame: int) -> Reconstruction:
+        """One cached frame; a file whose data fails its checksum is rebuilt once (when a
+        source is given) instead of stopping the training run."""
+        try:
+            return self.cache.read(episode, frame)
+        except CorruptCacheError as e:
+            if self.source is None:
+                raise
+            logger.warning("%s: rebuilding episode %d", e, episode)
+            self._ensure(episode, verify=True)
+            return self.cache.read(episode, frame)
 
 
 class AugmentedDataset(Dataset):

@@ -37,8 +37,8 @@ def dense_render(means, quats, scales, opacities, colors, K, c2w, width, height,
         x, y, z = cam[g]
         if z <= near or opacities[g] < 1 / 255:
             continue
-        lx = (1.3 - 1) * width / fx
-        ly = (1.3 - 1) * height / fy
+        lx = (1.3 - 1) * 0.5 * width / fx  # 3DGS: 0.3 * tan(half field of view)
+        ly = (1.3 - 1) * 0.5 * height / fy
         tx = torch.clamp(x / z, -(cx / fx + lx), (width - cx) / fx + lx)
         ty = torch.clamp(y / z, -(cy / fy + ly), (height - cy) / fy + ly)
         J = torch.tensor([[fx / z, 0, -fx * tx / z], [0, fy / z, -fy * ty / z]], dtype=d)

@@ -124,3 +124,102 @@ def test_concurrent_builders_build_once(tmp_path, source):
     assert len(calls) == 1
     assert cache.status(0) == "ok"
     assert not list(tmp_path.glob("*.tmp"))  # no temporary files left behind
+
+
+def test_verify_reads_every_checksum(built):
+    cache, _, _ = built
+    assert cache.verify(0)
+    path = cache.path(0)
+    data = bytearray(path.read_bytes())
+    for i in range(len(data) - 200, len(data) - 100):
+        data[i] ^= 0xFF
+    path.write_bytes(bytes(data))
+    fresh = GaussianCache(cache.root, cache.reconstructor, cache.dataset)
+    assert fresh.status(0) == "ok" and not fresh.verify(0)
+
+
+def test_ensure_with_verify_rebuilds_a_file_that_fails_its_checksum(built, source):
+    cache, rec, _ = built
+    path = cache.path(0)
+    data = bytearray(path.read_bytes())
+    for i in range(len(data) - 200, len(data) - 100):
+        data[i] ^= 0xFF
+    path.write_bytes(bytes(data))
+    calls = []
+
+    def build():
+        calls.append(1)
+        return [rec(source.views(0, t)) for t in range(3)]
+
+    cache.ensure(0, build)  # the header is fine: not rebuilt without verify
+    assert not calls
+    cache.ensure(0, build, verify=True)
+    assert len(calls) == 1 and cache.verify(0)
+    cache.ensure(0, build, verify=True)  # valid now: not rebuilt again
+    assert len(calls) == 1
+
+
+def test_a_file_renamed_to_another_episode_is_corrupt(built):
+    cache, _, _ = built
+    cache.path(0).replace(cache.path(5))
+    assert cache.status(5) == "corrupt"
+    with pytest.raises(CorruptCacheError, match="holds episode 0"):
+        cache.read(5, 0)
+
+
+def test_written_files_follow_the_umask(built):
+    cache, _, _ = built
+    import os
+
+    mask = os.umask(0)
+    os.umask(mask)
+    assert cache.path(0).stat().st_mode & 0o777 == 0o666 & ~mask
+
+
+def _frame(gaussians, cameras, ids):
+    from gensplat_transforms.reconstruction import Reconstruction
+
+    return Reconstruction(gaussians, cameras, torch.tensor(ids, dtype=torch.int64))
+
+
+def test_two_gaussians_at_one_pixel_are_never_static(tmp_path, source):
+    """Frame 0 holds A and B at pixel 0, frame 1 holds C and B: each frame reads back as written."""
+    from gensplat_transforms.gaussians import Gaussians
+
+    full = RGBDReconstructor()(source.views(0, 0))
+    cams, g = full.cameras, full.gaussians
+    a, b, c = (g[i : i + 1] for i in (0, 100, 200))
+    frames = [_frame(Gaussians.cat([a, b]), cams, [0, 0]), _frame(Gaussians.cat([c, b]), cams, [0, 0])]
+    cache = GaussianCache(tmp_path, "test", "test")
+    stats = cache.write_episode(0, frames)
+    assert stats.num_static == 0
+    for t, f in enumerate(frames):
+        got = cache.read(0, t).gaussians
+        torch.testing.assert_close(got.means, f.gaussians.means, atol=1e-3, rtol=0)
+
+
+def test_an_empty_frame_is_stored_and_read_back(tmp_path, source):
+    from gensplat_transforms.gaussians import Gaussians
+
+    full = RGBDReconstructor()(source.views(0, 0))
+    empty = _frame(Gaussians.empty(), full.cameras, [])
+    cache = GaussianCache(tmp_path, "test", "test")
+    stats = cache.write_episode(0, [full, empty, full])
+    assert stats.num_static == 0  # nothing is in every frame
+    assert len(cache.read(0, 1).gaussians) == 0
+    assert len(cache.read(0, 2).gaussians) == len(full.gaussians)
+    out = render(cache.read(0, 1).gaussians, full.cameras[:1])
+    assert torch.isfinite(out.rgb).all() and out.alpha.max() == 0
+
+
+def test_reconstruction_checks_pixel_ids(source):
+    from gensplat_transforms.reconstruction import Reconstruction
+
+    full = RGBDReconstructor()(source.views(0, 0))
+    n = len(full.gaussians)
+    with pytest.raises(ValueError, match="pixel_ids: expected int64"):
+        Reconstruction(full.gaussians, full.cameras, torch.zeros(n - 1, dtype=torch.int64))
+    with pytest.raises(ValueError, match="pixel_ids: expected int64"):
+        Reconstruction(full.gaussians, full.cameras, torch.zeros(n, dtype=torch.int32))
+    with pytest.raises(ValueError, match=">= 0"):
+        Reconstruction(full.gaussians, full.cameras, -torch.ones(n, dtype=torch.int64))

@@ -18,6 +18,7 @@ from gensplat_lerobot.record import record_scene_dataset
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from gensplat_transforms.episodes import SceneEpisodes
+from gensplat_transforms.perturbation import PerturbationRange
 from gensplat_transforms.transform import GenSplatConfig
 
 REPO = "local/gensplat_scene"
@@ -44,6 +45,8 @@ def test_recorded_dataset_carries_calibration_and_depth(recorded):
     assert ds.num_episodes == 2 and ds.num_frames == 40
     source = LeRobotSource(recorded, REPO)
     assert source.camera_names == ("left", "right")  # the external cameras with depth
+    # the cache stores the cameras in order: another order is another cache
+    assert LeRobotSource(recorded, REPO, ("right", "left")).fingerprint != source.fingerprint
     views = source.views(1, 5)
     assert views.depths.shape == (2, 1, 48, 48) and (views.depths > 0).all()
     truth = SceneEpisodes(num_episodes=2, num_frames=20, size=48)
@@ -74,6 +77,9 @@ def test_temporal_stacks_follow_delta_timestamps(dataset_root):
     dt = {LEFT: [-0.2, -0.1, 0.0]}
     ds = enable_gensplat(LeRobotDataset(REPO, root=dataset_root, delta_timestamps=dt))
     assert ds.gensplat.cfg.frame_offsets == (-2, -1, 0)
+    custom = GenSplatConfig(probability=1.0, level=PerturbationRange((2.0, 4.0), (0.01, 0.02)), views_per_source=1)
+    ranged = enable_gensplat(LeRobotDataset(REPO, root=dataset_root, delta_timestamps=dt), custom)
+    assert ranged.gensplat.cfg.level == custom.level and ranged[5][LEFT].shape == (3, 3, 48, 48)
     single = enable_gensplat(LeRobotDataset(REPO, root=dataset_root))
     stack = ds[5][LEFT]  # frames 3, 4, 5 of episode 0
     assert stack.shape == (3, 3, 48, 48)

@@ -321,3 +321,6 @@ def test_move_perturbs_one_camera_of_a_rig_about_its_pivot():
     torch.testing.assert_close(moved.c2w, expected)
     torch.testing.assert_close(moved.K, cams.K[1:2])
     assert len(moved) == 1
+    for bad in (-1, len(cams)):
+        with pytest.raises(IndexError, match="camera index"):
+            p.move(cams, bad)

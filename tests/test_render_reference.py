@@ -67,6 +67,26 @@ def test_single_gaussian_matches_analytic_footprint():
     assert (out.depth[0, 0][alpha == 0] == 0).all()
 
 
+def test_field_of_view_clamp_is_that_of_3dgs_and_gsplat():
+    """Off-image centres use the Jacobian at x/z clamped to (W - cx) / fx + 0.3 tan(fov_x / 2)."""
+    from gensplat_transforms.rendering.projection import project
+
+    f, z, s = 40.0, 2.0, 1.0
+    cam = Cameras.from_intrinsics(f, f, W / 2, H / 2, torch.eye(4, dtype=torch.float64), W, H)
+    x = z * W / f  # x/z = W / f, 20 px right of the image's edge: beyond the clamp at 0.65 W / f
+    g = Gaussians(
+        means=torch.tensor([[x, 0.0, z]]), quats=torch.tensor([[1.0, 0, 0, 0]]),
+        scales=torch.full((1, 3), s), opacities=torch.tensor([1.0]), sh=torch.zeros(1, 1, 3),
+    )  # fmt: skip
+    p = project(g, cam, out_dtype=torch.float64)
+    assert len(p) == 1  # wide enough to reach into the image
+    tx = (W - W / 2) / f + 0.3 * 0.5 * W / f
+    J = torch.tensor([[f / z, 0, -f * tx / z], [0, f / z, 0]], dtype=torch.float64)
+    cov = s**2 * J @ J.T + 0.3 * torch.eye(2, dtype=torch.float64)
+    inv = torch.linalg.inv(cov)
+    torch.testing.assert_close(p.conics[0], torch.stack([inv[0, 0], inv[0, 1], inv[1, 1]]))
+
+
 # ---------------------------------------------------------------------------- brute force
 
 

@@ -7,7 +7,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from gensplat_transforms import render
-from gensplat_transforms.cache import GaussianCache
+from gensplat_transforms.cache import CorruptCacheError, GaussianCache
 from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
 from gensplat_transforms.metrics import psnr
 from gensplat_transforms.perturbation import PerturbationSampler
@@ -163,3 +163,24 @@ def test_fill_holes_paints_only_what_the_gaussians_leave_uncovered(setup):
     torch.testing.assert_close(filled[covered], black[covered], atol=1e-3, rtol=0)
     assert (black[hole] == 0).all() and filled[hole].mean() > 0.05
     assert torch.isfinite(filled).all()
+
+
+def test_a_cache_file_failing_its_checksum_is_rebuilt_or_reported(setup, tmp_path):
+    source, rec, _, ds = setup
+    cache = GaussianCache(tmp_path, rec.identity(), source.fingerprint)
+    build_cache(cache, source, rec, [0], progress=False)
+    path = cache.path(0)
+    data = bytearray(path.read_bytes())
+    for i in range(len(data) - 200, len(data) - 100):  # the data, not the header
+        data[i] ^= 0xFF
+    path.write_bytes(bytes(data))
+    items = [ds[i] for i in range(3)]  # episode 0, every frame: one of them meets the damage
+    assert [int(it["episode_index"]) for it in items] == [0, 0, 0]
+    reader = make(GaussianCache(tmp_path, cache.reconstructor, cache.dataset))
+    with pytest.raises(CorruptCacheError, match="checksum"):
+        for item in items:
+            reader(item)
+    fresh = GaussianCache(tmp_path, cache.reconstructor, cache.dataset)
+    tf = GenSplatTransform(GenSplatConfig(probability=1.0, level="small"), fresh, source, rec)
+    assert all(torch.isfinite(tf(item)[LEFT]).all() for item in items)
+    assert cache.verify(0)

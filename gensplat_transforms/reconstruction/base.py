@@ -55,13 +55,25 @@ class Reconstruction:
     """Gaussians of one timestep and the source cameras expressed in their frame (the given
     calibration, or the poses a feed-forward model predicted).
 
-    ``pixel_ids`` (N,) tells pixel-aligned Gaussians' source pixel, ``v * H * W + row * W +
-    col``; caches use it to store the static part of a scene once.
+    ``pixel_ids`` (N,) int64 tells pixel-aligned Gaussians' source pixel, ``v * H * W + row *
+    W + col``; caches use it to store the static part of a scene once.
     """
 
     gaussians: Gaussians
     cameras: Cameras
     pixel_ids: torch.Tensor | None = None
+
+    def __post_init__(self) -> None:
+        ids = self.pixel_ids
+        if ids is None:
+            return
+        if ids.dtype != torch.int64 or ids.shape != (len(self.gaussians),):
+            raise ValueError(
+                f"Reconstruction.pixel_ids: expected int64 of shape ({len(self.gaussians)},), "
+                f"got {ids.dtype} of shape {tuple(ids.shape)}"
+            )
+        if len(ids) and int(ids.min()) < 0:
+            raise ValueError(f"Reconstruction.pixel_ids: must be >= 0, got {int(ids.min())}")
 
 
 class Reconstructor(ABC):

@@ -669,9 +669,8 @@ def render_fast(
     opac_min = torch.tensor(ALPHA_MIN, dtype=g.opacities.dtype).item()
     w2c = camera.w2c()[0].to(torch.float64)
     fx, fy, cx, cy = camera.K[0].to(torch.float64)[[0, 1, 0, 1], [0, 1, 2, 2]].tolist()
-    fov = FOV_CLAMP - 1  # field-of-view clamp limits of x/z and y/z, as in project()
-    lims = [(W - cx) / fx + fov * W / fx, cx / fx + fov * W / fx,
-            (H - cy) / fy + fov * H / fy, cy / fy + fov * H / fy]  # fmt: skip
+    mx, my = (FOV_CLAMP - 1) * 0.5 * W / fx, (FOV_CLAMP - 1) * 0.5 * H / fy  # the clamp of project()
+    lims = [(W - cx) / fx + mx, cx / fx + mx, (H - cy) / fy + my, cy / fy + my]
     cam = np.array([*w2c[:3].reshape(-1).tolist(), fx, fy, cx, cy, *lims, *camera.centers[0].tolist()])
     rgb = torch.empty(H * W, 3)
     alpha = torch.empty(H * W)

@@ -83,8 +83,10 @@ def project(
     x, y, z = cam.unbind(-1)
 
     # Jacobian of the perspective map with 3DGS's field-of-view clamp.
-    lim_xp, lim_xn = (W - cx) / fx + (FOV_CLAMP - 1) * W / fx, cx / fx + (FOV_CLAMP - 1) * W / fx
-    lim_yp, lim_yn = (H - cy) / fy + (FOV_CLAMP - 1) * H / fy, cy / fy + (FOV_CLAMP - 1) * H / fy
+    # the margin beyond the image edge is (FOV_CLAMP - 1) * tan(half field of view), as in 3DGS and gsplat
+    mx, my = (FOV_CLAMP - 1) * 0.5 * W / fx, (FOV_CLAMP - 1) * 0.5 * H / fy
+    lim_xp, lim_xn = (W - cx) / fx + mx, cx / fx + mx
+    lim_yp, lim_yn = (H - cy) / fy + my, cy / fy + my
     tx = torch.minimum(torch.maximum(x / z, -lim_xn), lim_xp)
     ty = torch.minimum(torch.maximum(y / z, -lim_yn), lim_yp)
     zero = torch.zeros_like(z)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -108,7 +108,7 @@ def enable_gensplat(dataset: LeRobotDataset, config: GenSplatConfig | None = Non
     deltas = (dataset.delta_timestamps or {}).get(key)
     if deltas is not None and config.frame_offsets is None:
         offsets = tuple(round(d * dataset.meta.fps) for d in deltas)
-        config = GenSplatConfig(**{**asdict(config), "frame_offsets": offsets})
+        config = replace(config, frame_offsets=offsets)
     transform = GenSplatTransform(config, dataset_cache(dataset.root, rec, source), source, rec)
     two_d = dataset.image_transforms
     dataset.set_image_transforms(None)  # re-applied after GenSplat, see __getitem__

@@ -42,8 +42,9 @@ class LeRobotSource:
             )
         shape = info["features"][IMAGE_KEY_PREFIX + self.camera_names[0]]["shape"]  # (H, W, C)
         self.cameras = calibrated_cameras(self.calibration, self.camera_names, shape[1], shape[0])
+        # the cameras in order: the cache's Gaussians and source cameras follow it
         blob = json.dumps([repo_id, info.get("total_episodes"), info.get("total_frames"), info.get("fps"),
-                           {k: info["features"][IMAGE_KEY_PREFIX + k] for k in self.camera_names}],
+                           [[k, info["features"][IMAGE_KEY_PREFIX + k]] for k in self.camera_names]],
                           sort_keys=True)  # fmt: skip
         self.fingerprint = hashlib.sha256(blob.encode()).hexdigest()[:16]
         self._dataset = None
