@@ -21,7 +21,7 @@ import fcntl
 import json
 import math
 import os
-import tempfile
+import uuid
 import zlib
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
@@ -169,11 +169,12 @@ class GaussianCache:
         }  # fmt: skip
         self.root.mkdir(parents=True, exist_ok=True)
         path = self.path(episode)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=self.root)
-        os.close(fd)
+        tmp = str(self.root / f".{path.name}.{uuid.uuid4().hex}.tmp")
+        os.close(os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666))
+        mode = os.stat(tmp).st_mode & 0o777  # 0o666 less the umask, as any new file
         try:
-            save_file(tensors, tmp, metadata=meta)
-            os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes it owner-only; readable as any file
+            save_file(tensors, tmp, metadata=meta)  # (recreates the file owner-only)
+            os.chmod(tmp, mode)
             os.replace(tmp, path)
         finally:
             if os.path.exists(tmp):
@@ -248,12 +249,6 @@ class GaussianCache:
         while len(self._open) > self.max_open:
             self._open.popitem(last=False)
         return f
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
 
 
 def _static_mask(frames: Sequence[Reconstruction], qs: list[dict]) -> list[torch.Tensor]:

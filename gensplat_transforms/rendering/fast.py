@@ -60,7 +60,7 @@ from numba import prange
 from ..cameras import Cameras
 from ..gaussians import Gaussians
 from ..sh import sh_degree_from_bases
-from .projection import ALPHA_MAX, ALPHA_MIN, DILATION, FOV_CLAMP, MAX_SCALE, SIGMA_EXTENT, T_MIN
+from .projection import ALPHA_MAX, ALPHA_MIN, DILATION, MAX_SCALE, SIGMA_EXTENT, T_MIN, fov_limits
 
 TILE = 16  # tile side in pixels: one tile row is one 16-lane vector
 # fields of a splat's float32 record: centre u, v; conic A, 2B, C; opacity; colour; depth
@@ -669,8 +669,7 @@ def render_fast(
     opac_min = torch.tensor(ALPHA_MIN, dtype=g.opacities.dtype).item()
     w2c = camera.w2c()[0].to(torch.float64)
     fx, fy, cx, cy = camera.K[0].to(torch.float64)[[0, 1, 0, 1], [0, 1, 2, 2]].tolist()
-    mx, my = (FOV_CLAMP - 1) * 0.5 * W / fx, (FOV_CLAMP - 1) * 0.5 * H / fy  # the clamp of project()
-    lims = [(W - cx) / fx + mx, cx / fx + mx, (H - cy) / fy + my, cy / fy + my]
+    lims = fov_limits(W, H, fx, fy, cx, cy)  # the clamp of project()
     cam = np.array([*w2c[:3].reshape(-1).tolist(), fx, fy, cx, cy, *lims, *camera.centers[0].tolist()])
     rgb = torch.empty(H * W, 3)
     alpha = torch.empty(H * W)

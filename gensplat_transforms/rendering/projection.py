@@ -59,6 +59,13 @@ class Projected:
         return self.ids.shape[0]
 
 
+def fov_limits(W: int, H: int, fx, fy, cx, cy) -> tuple:
+    """Limits (+x, -x, +y, -y) of x/z and y/z where the projection's Jacobian is taken: the
+    image edge plus (FOV_CLAMP - 1) * tan(half field of view), as in 3DGS and gsplat."""
+    mx, my = (FOV_CLAMP - 1) * 0.5 * W / fx, (FOV_CLAMP - 1) * 0.5 * H / fy
+    return (W - cx) / fx + mx, cx / fx + mx, (H - cy) / fy + my, cy / fy + my
+
+
 def project(
     gaussians: Gaussians,
     camera: Cameras,
@@ -83,10 +90,7 @@ def project(
     x, y, z = cam.unbind(-1)
 
     # Jacobian of the perspective map with 3DGS's field-of-view clamp.
-    # the margin beyond the image edge is (FOV_CLAMP - 1) * tan(half field of view), as in 3DGS and gsplat
-    mx, my = (FOV_CLAMP - 1) * 0.5 * W / fx, (FOV_CLAMP - 1) * 0.5 * H / fy
-    lim_xp, lim_xn = (W - cx) / fx + mx, cx / fx + mx
-    lim_yp, lim_yn = (H - cy) / fy + my, cy / fy + my
+    lim_xp, lim_xn, lim_yp, lim_yn = fov_limits(W, H, fx, fy, cx, cy)
     tx = torch.minimum(torch.maximum(x / z, -lim_xn), lim_xp)
     ty = torch.minimum(torch.maximum(y / z, -lim_yn), lim_yp)
     zero = torch.zeros_like(z)
