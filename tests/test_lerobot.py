@@ -14,9 +14,11 @@ pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip i
 os.environ["HF_HUB_OFFLINE"] = "1"
 
 from gensplat_lerobot import LeRobotSource, enable_gensplat, load_settings, prepare, save_settings
+from gensplat_lerobot.dataset import dataset_cache, make_reconstructor
 from gensplat_lerobot.record import record_scene_dataset
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+from gensplat_transforms.dataset_format import load_depth, save_depth
 from gensplat_transforms.episodes import SceneEpisodes
 from gensplat_transforms.perturbation import PerturbationRange
 from gensplat_transforms.transform import GenSplatConfig
@@ -95,6 +97,26 @@ def test_prepare_builds_cache_and_is_resumable(dataset_root):
     assert max(s.bytes_per_timestep for s in stats.values()) < 1e6
     again = prepare(dataset_root, REPO, GenSplatConfig(), progress=False)
     assert all(s is None for s in again.values())
+
+
+def test_rerecorded_frames_make_the_cache_stale(recorded, dataset_root, tmp_path):
+    source = LeRobotSource(dataset_root, REPO)
+    assert source.fingerprint == LeRobotSource(recorded, REPO).fingerprint  # a copy is the same data
+    prepare(dataset_root, REPO, GenSplatConfig(), episodes=[0], progress=False)
+    reconstructor = make_reconstructor(load_settings(dataset_root)[1])
+    assert dataset_cache(dataset_root, reconstructor, source).status(0) == "ok"
+    # same episode and frame counts, other frames: info.json alone cannot tell
+    other = tmp_path / "other"
+    record_scene_dataset(other, SceneEpisodes(num_episodes=2, num_frames=20, size=48, seed=7), REPO, progress=False)
+    for d in ("data", "depth"):
+        shutil.rmtree(dataset_root / d)
+        shutil.copytree(other / d, dataset_root / d)
+    rerecorded = LeRobotSource(dataset_root, REPO)
+    assert rerecorded.fingerprint != source.fingerprint
+    assert dataset_cache(dataset_root, reconstructor, rerecorded).status(0) == "stale"
+    # a depth sidecar saved again with other values
+    save_depth(dataset_root, "left", 1, load_depth(dataset_root, "left", 1)[:, 0] + 0.01)
+    assert LeRobotSource(dataset_root, REPO).fingerprint != rerecorded.fingerprint
 
 
 def test_cache_command_writes_settings_and_cache(dataset_root, capsys):

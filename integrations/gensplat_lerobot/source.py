@@ -42,12 +42,19 @@ class LeRobotSource:
             )
         shape = info["features"][IMAGE_KEY_PREFIX + self.camera_names[0]]["shape"]  # (H, W, C)
         self.cameras = calibrated_cameras(self.calibration, self.camera_names, shape[1], shape[0])
-        # the cameras in order: the cache's Gaussians and source cameras follow it
+        # the cameras in order (the cache's Gaussians and source cameras follow it), and the
+        # files the frames come from: a re-recorded episode makes the cache stale
         blob = json.dumps([repo_id, info.get("total_episodes"), info.get("total_frames"), info.get("fps"),
-                           [[k, info["features"][IMAGE_KEY_PREFIX + k]] for k in self.camera_names]],
+                           [[k, info["features"][IMAGE_KEY_PREFIX + k]] for k in self.camera_names],
+                           files_digest(self.root, self._content_dirs())],
                           sort_keys=True)  # fmt: skip
         self.fingerprint = hashlib.sha256(blob.encode()).hexdigest()[:16]
         self._dataset = None
+
+    def _content_dirs(self) -> list[str]:
+        """Folders (relative to the root) whose files hold this source's frames."""
+        return ["data", *(f"videos/{IMAGE_KEY_PREFIX}{n}" for n in self.camera_names),
+                *(f"depth/{n}" for n in self.camera_names)]  # fmt: skip
 
     def __getstate__(self) -> dict:
         return {**self.__dict__, "_dataset": None}
@@ -75,6 +82,23 @@ class LeRobotSource:
             return Views(images, self.cameras)  # RGB only: needs a model reconstructor
         depths = torch.stack([load_depth(self.root, n, episode, frame) for n in self.camera_names])
         return Views(images, self.cameras, depths)
+
+
+def files_digest(root: Path, dirs: list[str], sample: int = 16384) -> str:
+    """SHA-256 over the files under ``root/dirs``: each file's relative path, size, and its
+    first and last ``sample`` bytes (cheap on large video files; an edit that keeps the size
+    and both ends is not noticed). Missing folders count as empty."""
+    h = hashlib.sha256()
+    files = sorted(f for d in dirs if (root / d).is_dir() for f in (root / d).rglob("*") if f.is_file())
+    for f in files:
+        size = f.stat().st_size
+        h.update(f"{f.relative_to(root).as_posix()}\0{size}\0".encode())
+        with f.open("rb") as fh:
+            h.update(fh.read(sample))
+            if size > sample:
+                fh.seek(max(sample, size - sample))
+                h.update(fh.read(sample))
+    return h.hexdigest()
 
 
 def _as_float(image: torch.Tensor) -> torch.Tensor:
