@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from functools import cached_property
 from pathlib import Path
 
 import torch
@@ -42,14 +43,19 @@ class LeRobotSource:
             )
         shape = info["features"][IMAGE_KEY_PREFIX + self.camera_names[0]]["shape"]  # (H, W, C)
         self.cameras = calibrated_cameras(self.calibration, self.camera_names, shape[1], shape[0])
-        # the cameras in order (the cache's Gaussians and source cameras follow it), and the
-        # files the frames come from: a re-recorded episode makes the cache stale
-        blob = json.dumps([repo_id, info.get("total_episodes"), info.get("total_frames"), info.get("fps"),
+        self._dataset = None
+
+    @cached_property
+    def fingerprint(self) -> str:
+        """Keys the cache: the repo id, counts, fps, the reconstructed cameras' features in order
+        (the cache's Gaussians and source cameras follow it) and the files the frames come
+        from, so a re-recorded episode makes the cache stale. Computed on first use."""
+        info = json.loads((self.root / "meta" / "info.json").read_text())
+        blob = json.dumps([self.repo_id, info.get("total_episodes"), info.get("total_frames"), info.get("fps"),
                            [[k, info["features"][IMAGE_KEY_PREFIX + k]] for k in self.camera_names],
                            files_digest(self.root, self._content_dirs())],
                           sort_keys=True)  # fmt: skip
-        self.fingerprint = hashlib.sha256(blob.encode()).hexdigest()[:16]
-        self._dataset = None
+        return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
     def _content_dirs(self) -> list[str]:
         """Folders (relative to the root) whose files hold this source's frames."""
