@@ -132,6 +132,32 @@ def test_checkpoint_of_another_model_size_is_refused(tmp_path):
         trainer.fit(progress=False)
 
 
+class _RunsCode:
+    """Unpickling this calls ``open(marker, "w")``: a stand-in for any code a crafted file runs."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return open, (self.marker, "w")
+
+
+def test_crafted_checkpoint_is_refused_without_running_code(tmp_path):
+    marker = tmp_path / "code_ran"
+    trainer = tiny_trainer(tmp_path)
+    state = trainer.state_dict()
+    torch.save({**state, "step": _RunsCode(marker)}, tmp_path / CHECKPOINT_FILE)
+    with pytest.raises(ValueError, match=r"checkpoint.pt: refused to load"):
+        trainer.fit(progress=False)
+    assert not marker.exists()
+    (tmp_path / CHECKPOINT_FILE).write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="refused to load"):
+        trainer.fit(progress=False)
+    torch.save({"model": state["model"]}, tmp_path / CHECKPOINT_FILE)  # tensors, but incomplete
+    with pytest.raises(ValueError, match="not a training checkpoint"):
+        trainer.fit(progress=False)
+
+
 def test_ema_differs_from_the_raw_weights_and_follows_them(tmp_path):
     trainer = tiny_trainer(tmp_path, steps=6, ema_decay=0.9)
     initial = {k: v.clone() for k, v in trainer.ema.shadow.items()}

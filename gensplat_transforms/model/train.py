@@ -324,7 +324,19 @@ class Trainer:
         return path
 
     def load(self, path: str | Path) -> None:
-        state = torch.load(path, map_location="cpu", weights_only=False)
+        """Resume from a checkpoint written by :meth:`save`. Only tensors and plain containers
+        are read (``weights_only``): a file holding any other object is refused with
+        ``ValueError``, never executed."""
+        try:
+            state = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as e:  # torch raises several types for refused or unreadable files
+            raise ValueError(
+                f"{path}: refused to load: not a training checkpoint of tensors and plain containers "
+                f"({type(e).__name__}; a file holding other objects could run code)"
+            ) from e
+        keys = {"step", "model", "ema", "optimizer", "scheduler", "model_config"}
+        if not isinstance(state, dict) or not keys <= set(state):
+            raise ValueError(f"{path}: not a training checkpoint (expected the keys {sorted(keys)})")
         if state["model_config"] != self.model.config.to_dict():
             raise ValueError(f"{path}: checkpoint of another model configuration")
         self.model.load_state_dict(state["model"])
