@@ -97,3 +97,22 @@ class Reconstructor(ABC):
 
     def __call__(self, views: Views) -> Reconstruction:
         return self.reconstruct(views)
+
+
+class DepthReconstructor(Reconstructor):
+    """A reconstructor whose Gaussians follow cheaply from the images, the cameras and one
+    depth map per view. The work splits in two, and caches store only what is between:
+
+    * :meth:`predict_depth` (expensive: a model's forward pass, or reading sensor depth):
+      views -> the same views with ``cameras`` and ``depths`` set (0 where no Gaussian);
+    * :meth:`assemble` (cheap, runs in dataloader workers): such views -> Gaussians.
+    """
+
+    @abstractmethod
+    def predict_depth(self, views: Views) -> Views: ...
+
+    @abstractmethod
+    def assemble(self, views: Views) -> Reconstruction: ...
+
+    def reconstruct(self, views: Views) -> Reconstruction:
+        return self.assemble(self.predict_depth(views))

@@ -26,7 +26,8 @@ import torch
 from ..gaussians import Gaussians
 from ..rotations import rotmat_to_quat
 from ..sh import num_sh_bases, rgb_to_sh_dc
-from .base import Reconstruction, Reconstructor, Views
+from .base import DepthReconstructor, Reconstruction, Views
+from .discs_fast import surface_discs
 
 
 @dataclass
@@ -69,37 +70,64 @@ class RGBDConfig:
             raise ValueError(f"RGBDConfig.opacity must be in [0, 1], got {self.opacity}")
 
 
-class RGBDReconstructor(Reconstructor):
-    """Calibrated RGB + metric depth -> one Gaussian per valid pixel (see module docstring)."""
+class RGBDReconstructor(DepthReconstructor):
+    """Calibrated RGB + metric depth -> one Gaussian per valid pixel (see module docstring).
+
+    ``fast=True`` (default) builds the discs with the compiled twin in :mod:`.discs_fast`
+    (not differentiable); ``fast=False`` with the PyTorch rule below. Both give the same
+    Gaussians (to float32 round-off) and the same :meth:`identity`.
+    """
 
     name = "rgbd"
 
-    def __init__(self, config: RGBDConfig | None = None, **overrides) -> None:
+    def __init__(self, config: RGBDConfig | None = None, fast: bool = True, **overrides) -> None:
         self.cfg = RGBDConfig(**{**asdict(config or RGBDConfig()), **overrides})
+        self.fast = fast
 
     def config(self) -> dict:
         return asdict(self.cfg)
 
-    def reconstruct(self, views: Views) -> Reconstruction:
+    def predict_depth(self, views: Views) -> Views:
+        """The given depth, 0 where invalid (non-finite, <= 0 or beyond ``max_depth``)."""
         if views.cameras is None or views.depths is None:
             missing = [n for n in ("cameras", "depths") if getattr(views, n) is None]
             raise ValueError(f"RGBDReconstructor needs calibrated cameras and depth; missing: {missing}")
+        z = views.depths.float()
+        valid = torch.isfinite(z) & (z > 0)
+        if self.cfg.max_depth is not None:
+            valid &= z <= self.cfg.max_depth
+        return Views(views.images, views.cameras, torch.where(valid, z, torch.zeros_like(z)))
+
+    def assemble(self, views: Views) -> Reconstruction:
+        views = self.predict_depth(views)
         parts = [self._one_view(views, i) for i in range(len(views))]
         gaussians = Gaussians.cat([g for g, _ in parts])
         return Reconstruction(gaussians, views.cameras, torch.cat([ids for _, ids in parts]))
 
     def _one_view(self, views: Views, i: int) -> tuple[Gaussians, torch.Tensor]:
-        """Gaussians of view i and their pixel ids."""
+        """Gaussians of view i and their pixel ids (depth already cleaned: 0 = invalid)."""
         cfg = self.cfg
         cam = views.cameras[i].to(dtype=torch.float32)
         H, W = cam.height, cam.width
-        z = views.depths[i, 0].float()
-        valid = torch.isfinite(z) & (z > 0)
-        if cfg.max_depth is not None:
-            valid &= z <= cfg.max_depth
-        z = torch.where(valid, z, torch.zeros_like(z))
-        pts = cam.unproject(cam.pixel_centers()[None], z.reshape(1, -1))[0].reshape(H, W, 3)
+        z = views.depths[i, 0]
+        valid = z > 0
+        if self.fast:
+            means, quats, scales, dc, pixel_ids = surface_discs(
+                z, valid, views.images[i], cam.K[0], cam.c2w[0], cfg.stride, cfg.sigma_px, cfg.thickness,
+                cfg.max_stretch, cfg.edge_scale, offset=i * H * W,
+            )  # fmt: skip
+        else:
+            means, quats, scales, dc, pixel_ids = self._one_view_reference(views.images[i], cam, z, valid, i)
+        sh = torch.zeros(means.shape[0], num_sh_bases(cfg.sh_degree), 3)
+        sh[:, 0] = dc
+        g = Gaussians(means, quats, scales, torch.full((means.shape[0],), cfg.opacity), sh)
+        return g, pixel_ids
 
+    def _one_view_reference(self, image, cam, z, valid, i):
+        """The PyTorch rule: means, quats, scales, SH DC and pixel ids of one view."""
+        cfg = self.cfg
+        H, W = cam.height, cam.width
+        pts = cam.unproject(cam.pixel_centers()[None], z.reshape(1, -1))[0].reshape(H, W, 3)
         R = cam.c2w[0, :3, :3]
         a = _surface_step(pts, valid, z / cam.K[0, 0, 0], R[:, 0], cfg.max_stretch, cfg.edge_scale, dim=1)
         b = _surface_step(pts, valid, z / cam.K[0, 1, 1], R[:, 1], cfg.max_stretch, cfg.edge_scale, dim=0)
@@ -110,13 +138,9 @@ class RGBDReconstructor(Reconstructor):
         pixel_ids = (torch.arange(H * W).reshape(H, W)[sel].reshape(-1) + i * H * W)[keep]
         a, b = a[sel].reshape(-1, 3)[keep] * s, b[sel].reshape(-1, 3)[keep] * s
         means = pts[sel].reshape(-1, 3)[keep]
-        rgb = views.images[i].float().permute(1, 2, 0)[sel].reshape(-1, 3)[keep]
-
+        rgb = image.float().permute(1, 2, 0)[sel].reshape(-1, 3)[keep]
         quats, scales = _disc_shape(a, b, cfg.sigma_px, cfg.thickness)
-        sh = torch.zeros(means.shape[0], num_sh_bases(cfg.sh_degree), 3)
-        sh[:, 0] = rgb_to_sh_dc(rgb)
-        g = Gaussians(means, quats, scales, torch.full((means.shape[0],), cfg.opacity), sh)
-        return g, pixel_ids
+        return means, quats, scales, rgb_to_sh_dc(rgb), pixel_ids
 
 
 def _disc_shape(a: torch.Tensor, b: torch.Tensor, k: float, t: float) -> tuple[torch.Tensor, torch.Tensor]:
