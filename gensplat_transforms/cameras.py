@@ -18,6 +18,49 @@ import torch
 
 # OpenGL / nerfstudio / MuJoCo cameras look along -z with y up: flip y and z.
 _GL_TO_CV = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
+#: largest accepted |R^T R - I| entry, |det R - 1| and bottom-row error of a c2w (float32
+#: round-off of composed poses stays far below; a scale, shear or mirror is far above)
+RIGID_TOLERANCE = 1e-3
+_K_TOLERANCE = 1e-6  # on K's fixed entries: skew, K[1, 0], K[2, :2] (0) and K[2, 2] (1)
+
+
+def _check_intrinsics(K: torch.Tensor) -> None:
+    """Raise ``ValueError`` unless every (3, 3) of K is [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]
+    with fx, fy > 0."""
+    K = K.detach().double()
+    focal = torch.stack([K[:, 0, 0], K[:, 1, 1]], -1)
+    bad = ~(focal > 0).all(-1)
+    if bad.any():
+        i = int(bad.nonzero()[0])
+        raise ValueError(f"Cameras.K: focal lengths must be > 0, got fx, fy = {focal[i].tolist()} (camera {i})")
+    fixed = K[:, [0, 1, 2, 2, 2], [1, 0, 0, 1, 2]] - K.new_tensor([0.0, 0.0, 0.0, 0.0, 1.0])
+    bad = (fixed.abs() > _K_TOLERANCE).any(-1)
+    if bad.any():
+        i = int(bad.nonzero()[0])
+        raise ValueError(
+            f"Cameras.K: must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew, K[2, 2] = 1), "
+            f"got {K[i].tolist()} (camera {i})"
+        )
+
+
+def _check_rigid(c2w: torch.Tensor) -> None:
+    """Raise ``ValueError`` unless every (4, 4) of c2w is a rigid transform within
+    ``RIGID_TOLERANCE``: bottom row [0, 0, 0, 1], rotation orthonormal with determinant +1."""
+    T = c2w.detach().double()
+    bad = ((T[:, 3] - T.new_tensor([0.0, 0.0, 0.0, 1.0])).abs() > RIGID_TOLERANCE).any(-1)
+    if bad.any():
+        i = int(bad.nonzero()[0])
+        raise ValueError(f"Cameras.c2w: bottom row must be [0, 0, 0, 1], got {T[i, 3].tolist()} (camera {i})")
+    R = T[:, :3, :3]
+    eye = torch.eye(3, dtype=R.dtype, device=R.device)
+    error = torch.maximum((R.transpose(1, 2) @ R - eye).abs().amax((1, 2)), (torch.linalg.det(R) - 1).abs())
+    bad = error > RIGID_TOLERANCE
+    if bad.any():
+        i = int(bad.nonzero()[0])
+        raise ValueError(
+            f"Cameras.c2w: rotation is not orthonormal with det +1 (max error {float(error[i]):.3g} > "
+            f"{RIGID_TOLERANCE:g}, camera {i}): a camera-to-world matrix has no scale, shear or mirroring"
+        )
 
 
 @dataclass
@@ -25,9 +68,15 @@ class Cameras:
     """A batch of B pinhole cameras that share one image size.
 
     Attributes:
-        K: (B, 3, 3) pixel intrinsics.
-        c2w: (B, 4, 4) camera-to-world transforms, OpenCV convention.
+        K: (B, 3, 3) pixel intrinsics [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], fx, fy > 0.
+        c2w: (B, 4, 4) rigid camera-to-world transforms, OpenCV convention.
         width, height: image size in pixels.
+
+    Construction raises ``ValueError`` naming the field for anything that is not such a
+    camera: wrong shapes, NaN or Inf, focal lengths <= 0, skew or K[2, 2] != 1 (beyond
+    1e-6), a c2w rotation that is not orthonormal with determinant +1 (beyond
+    ``RIGID_TOLERANCE``: no scale, shear or mirroring), a c2w bottom row other than
+    [0, 0, 0, 1] (same tolerance).
     """
 
     K: torch.Tensor
@@ -52,7 +101,9 @@ class Cameras:
         self.width, self.height = int(self.width), int(self.height)
         for name in ("K", "c2w"):
             if not torch.isfinite(getattr(self, name)).all():
-                raise ValueError(f"Cameras: {name} contains NaN or Inf")
+                raise ValueError(f"Cameras.{name}: contains NaN or Inf")
+        _check_intrinsics(self.K)
+        _check_rigid(self.c2w)
 
     # ------------------------------------------------------------------ constructors
     @classmethod
@@ -144,8 +195,11 @@ class Cameras:
         return Cameras(self.K.to(device, dtype), self.c2w.to(device, dtype), self.width, self.height)
 
     def with_c2w(self, c2w: torch.Tensor) -> Cameras:
-        """Same intrinsics and size, new poses."""
-        return Cameras(self.K.expand(c2w.shape[0], 3, 3), c2w, self.width, self.height)
+        """Same intrinsics and size, new poses: (B, 4, 4), or (4, 4); one camera's intrinsics are
+        shared by any number of poses."""
+        c2w = c2w if c2w.ndim == 3 else c2w[None]
+        K = self.K.expand(c2w.shape[0], 3, 3) if len(self) == 1 else self.K
+        return Cameras(K, c2w, self.width, self.height)
 
     @staticmethod
     def cat(cameras: list[Cameras]) -> Cameras:

@@ -346,14 +346,68 @@ def _nan(t: torch.Tensor, idx) -> torch.Tensor:
         (_GOOD_K.expand(2, 3, 3), _GOOD_C2W.expand(3, 4, 4), W, H, "2 intrinsics but 3 poses"),
         (_GOOD_K, _GOOD_C2W, 0, H, "positive"),
         (_GOOD_K, _GOOD_C2W, W, -5, "positive"),
-        (_nan(_GOOD_K, (0, 0)), _GOOD_C2W, W, H, "K contains NaN"),
-        (_GOOD_K, _nan(_GOOD_C2W, (1, 3)), W, H, "c2w contains NaN"),
-        (_GOOD_K, _GOOD_C2W * float("inf"), W, H, "c2w contains NaN or Inf"),
+        (_nan(_GOOD_K, (0, 0)), _GOOD_C2W, W, H, "Cameras.K: contains NaN"),
+        (_GOOD_K, _nan(_GOOD_C2W, (1, 3)), W, H, "Cameras.c2w: contains NaN"),
+        (_GOOD_K, _GOOD_C2W * float("inf"), W, H, "Cameras.c2w: contains NaN or Inf"),
     ],
 )
 def test_bad_cameras_raise(K, c2w, width, height, match):
     with pytest.raises(ValueError, match=match):
         Cameras(K, c2w, width, height)
+
+
+def _edit(t: torch.Tensor, idx, value) -> torch.Tensor:
+    t = t.clone()
+    t[idx] = value
+    return t
+
+
+_POSE = look_at((0.3, -0.2, -1.0), (0.0, 0.1, 0.5))
+_MIRROR = _POSE @ torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0], dtype=DTYPE))
+
+
+@pytest.mark.parametrize(
+    ("K", "c2w", "match"),
+    [
+        (_edit(_GOOD_K, (0, 0), 0.0), _GOOD_C2W, r"Cameras.K: focal lengths must be > 0, got fx, fy = \[0.0, 1.0\]"),
+        (_edit(_GOOD_K, (1, 1), 0.0), _GOOD_C2W, "Cameras.K: focal lengths must be > 0"),
+        (_edit(_GOOD_K, (0, 0), -50.0), _GOOD_C2W, "Cameras.K: focal lengths must be > 0"),
+        (_edit(_GOOD_K, (0, 1), 0.5), _GOOD_C2W, r"Cameras.K: must be .* \(no skew, K\[2, 2\] = 1\)"),
+        (_edit(_GOOD_K, (2, 2), 2.0), _GOOD_C2W, r"Cameras.K: must be .*K\[2, 2\] = 1"),
+        (_edit(_GOOD_K, (2, 0), 0.1), _GOOD_C2W, "Cameras.K: must be"),
+        (_GOOD_K, _POSE * 2, "Cameras.c2w: bottom row must be"),
+        (_GOOD_K, _edit(_POSE, (slice(0, 3), slice(0, 3)), _POSE[:3, :3] * 2), "Cameras.c2w: rotation is not orthonormal"),
+        (_GOOD_K, _MIRROR, r"Cameras.c2w: rotation is not orthonormal with det \+1 \(max error 2 "),
+        (_GOOD_K, _edit(_POSE, (slice(0, 3), slice(0, 3)), 0.0), "Cameras.c2w: rotation is not orthonormal"),
+        (_GOOD_K, _edit(_POSE, (0, 1), _POSE[0, 1] + 0.01), "Cameras.c2w: rotation is not orthonormal"),
+        (_GOOD_K, _edit(_POSE, (3, 0), 2e-3), "Cameras.c2w: bottom row must be"),
+    ],
+)
+def test_what_no_camera_is_raises_naming_the_field(K, c2w, match):
+    with pytest.raises(ValueError, match=match):
+        Cameras(K, c2w, W, H)
+
+
+def test_every_constructor_validates_and_names_the_camera(cams):
+    with pytest.raises(ValueError, match="camera 1"):
+        cams[0].with_c2w(torch.stack([_POSE, _MIRROR]))
+    with pytest.raises(ValueError, match="3 intrinsics but 2 poses"):
+        cams.with_c2w(torch.stack([_POSE, _POSE]))
+    assert len(cams[0].with_c2w(_POSE)) == 1
+    with pytest.raises(ValueError, match="Cameras.K: focal"):
+        Cameras.from_intrinsics(0.0, 40.0, W / 2, H / 2, _POSE, W, H)
+    with pytest.raises(ValueError, match="Cameras.c2w"):
+        Cameras.from_opengl(_GOOD_K, _MIRROR, W, H)
+
+
+def test_float32_round_off_of_composed_poses_passes():
+    """Hundreds of float32 pose compositions drift by ~1e-6, far inside the tolerance."""
+    step = look_at((0.01, 0.02, -1.0), (0.0, 0.0, 0.0)).float()
+    pose = torch.eye(4)
+    for _ in range(500):
+        pose = step @ pose
+    Cameras(_GOOD_K.float(), pose, W, H)
+    Cameras(_GOOD_K.float(), _POSE.float(), W, H)
 
 
 def test_opengl_opencv_flip_only_touches_y_and_z_columns():
