@@ -6,11 +6,15 @@ import torch
 
 
 def normalize_quat(q: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
-    """Unit quaternions; an all-zero quaternion maps to the identity (1, 0, 0, 0)."""
-    n = q.norm(dim=-1, keepdim=True)
+    """(..., 4) -> unit quaternions; one of norm <= eps (e.g. all zero) maps to the identity
+    (1, 0, 0, 0). Any finite magnitude works (1e300 in float64, 3e38 in float32): the norm is
+    taken after dividing by the largest |component|, so it cannot overflow."""
+    m = q.detach().abs().amax(-1, keepdim=True).clamp_min(eps)  # the result does not depend on m
+    s = q / m
+    n = s.norm(dim=-1, keepdim=True)  # >= 1 wherever the true norm m * n exceeds eps
     ident = torch.zeros_like(q)
     ident[..., 0] = 1.0
-    return torch.where(n > eps, q / n.clamp_min(eps), ident)
+    return torch.where(m * n > eps, s / n.clamp_min(1.0), ident)
 
 
 def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:

@@ -1,4 +1,5 @@
-"""Hard cases shared by the renderer tests: one Gaussian each (plus the empty scene)."""
+"""Hard cases shared by the renderer tests: one Gaussian each (plus the empty scene), and
+the same cases with one field at an extreme magnitude."""
 
 import torch
 
@@ -33,3 +34,17 @@ HARD_CASES = {
     "empty_scene": Gaussians.empty(sh_degree=1),
     "far_away": one([0.0, 0.0, 1e7], scale=1.0),
 }
+
+#: factors that take a field far beyond float32's range, to its edge, or to its subnormals
+MAGNITUDES = (1e30, 1e300, 1e-300)
+#: fields that may take any finite magnitude (opacities live in [0, 1])
+SCALABLE_FIELDS = ("means", "quats", "scales", "sh")
+
+
+def scaled(g: Gaussians, field: str, factor: float, dtype=torch.float64) -> Gaussians:
+    """``g`` in ``dtype`` with ``field`` multiplied by ``factor`` in float64, kept within a
+    tenth of ``dtype``'s largest value (finite), then cast."""
+    t = {k: v.to(dtype) for k, v in g.tensors().items()}
+    top = torch.finfo(dtype).max / 10
+    t[field] = (g.tensors()[field].double() * factor).clamp(-top, top).to(dtype)
+    return Gaussians(**t)

@@ -17,14 +17,19 @@ import numba
 import numpy as np
 import pytest
 import torch
-from hard_cases import HARD_CASES
+from hard_cases import HARD_CASES, MAGNITUDES, SCALABLE_FIELDS, scaled
 
 from gensplat_transforms import Cameras, Gaussians, render
 from gensplat_transforms.cameras import look_at
 from gensplat_transforms.rendering import BACKENDS, fast
+from gensplat_transforms.rendering.projection import MAX_COLOR
 
 W, H = 45, 38  # not multiples of the 16-pixel tile: edge tiles are partial
 ATOL = 2e-5
+# float64 scenes: the reference composites in float64, the fast backend in float32; for the
+# needle (scales 1e3 and 1e-12 after the clamp) q = A dx^2 + 2B dx dy + C dy^2 cancels about
+# 100x in float32, so alpha differs by up to 3e-5 there
+ATOL_F64 = 1e-4
 
 
 def camera(dtype=torch.float64, c2w=None, f=40.0) -> Cameras:
@@ -44,8 +49,9 @@ def random_scene(n=300, seed=0, dtype=torch.float32, sh_degree=3, scale=0.08) ->
     )
 
 
-def both(g: Gaussians, cam: Cameras, atol=ATOL, **kwargs):
-    """Render with both backends, check agreement and finiteness; return the fast output."""
+def both(g: Gaussians, cam: Cameras, atol=ATOL, rtol=0.0, **kwargs):
+    """Render with both backends, check agreement and finiteness; return the fast output.
+    ``rtol`` adds a tolerance relative to each value (for huge colours and depths)."""
     ref = render(g, cam, backend="reference", **kwargs)
     out = render(g, cam, backend="fast", **kwargs)
     for name in ("rgb", "depth", "alpha"):
@@ -54,10 +60,11 @@ def both(g: Gaussians, cam: Cameras, atol=ATOL, **kwargs):
             assert f is None, name
             continue
         assert f.dtype == r.dtype and f.shape == r.shape, name
+        assert torch.isfinite(r).all(), f"reference {name} has non-finite values"
         assert torch.isfinite(f).all(), f"fast {name} has non-finite values"
         # depth is a ratio sum(w z) / alpha: compare it relative to the depth itself
         tol = atol * max(1.0, r.abs().max().item()) if name == "depth" else atol
-        torch.testing.assert_close(f, r, atol=tol, rtol=0, msg=lambda m, n=name: f"{n}: {m}")
+        torch.testing.assert_close(f, r, atol=tol, rtol=rtol, msg=lambda m, n=name: f"{n}: {m}")
     return out
 
 
@@ -189,6 +196,78 @@ def test_gaussians_changed_in_place_after_a_render_are_checked_again(backend):
 @pytest.mark.parametrize("name", sorted(HARD_CASES))
 def test_hard_cases_agree_with_reference(name):
     both(HARD_CASES[name], camera(torch.float32), background=(0.5, 0.25, 1.0))
+
+
+@pytest.mark.parametrize("name", sorted(HARD_CASES))
+def test_hard_cases_agree_in_float64(name):
+    g = HARD_CASES[name].to(dtype=torch.float64)
+    out = both(g, camera(), atol=ATOL_F64, background=(0.5, 0.25, 1.0))
+    assert out.rgb.dtype == torch.float64
+
+
+@pytest.mark.parametrize("factor", MAGNITUDES)
+@pytest.mark.parametrize("name", sorted(HARD_CASES))
+def test_hard_cases_agree_at_extreme_magnitudes_in_float64(name, factor):
+    """Means, quaternions, scales or SH far beyond float32's range (1e300 times), at its edge
+    (1e30) or below its subnormals (1e-300): both backends finite and equal."""
+    for field in SCALABLE_FIELDS:
+        g = scaled(HARD_CASES[name], field, factor)
+        try:
+            both(g, camera(), atol=ATOL_F64, rtol=ATOL_F64, background=(0.5, 0.25, 1.0))
+        except AssertionError as e:
+            raise AssertionError(f"{field} x {factor:g}: {e}") from None
+
+
+@pytest.mark.parametrize("name", sorted(HARD_CASES))
+def test_hard_cases_agree_at_float32_extremes(name):
+    """Float32 values near the top of its range: colours and depths must not overflow in the
+    float32 stages of either backend."""
+    for field in SCALABLE_FIELDS:
+        for factor in (1e30, 1e-30):
+            try:
+                both(scaled(HARD_CASES[name], field, factor, torch.float32), camera(torch.float32), rtol=ATOL)
+            except AssertionError as e:
+                raise AssertionError(f"{field} x {factor:g}: {e}") from None
+
+
+def test_float32_colour_and_depth_beyond_its_range_stay_finite():
+    """SH of 3e38 sum to a colour above float32's largest value, and a centre 5e38 m away has
+    a depth above it: the colour is clamped at MAX_COLOR, the far splat culled."""
+    g = Gaussians(
+        means=torch.tensor([[0.0, 0.0, 2.0], [0.0, 0.0, 3e38]]), quats=torch.tensor([[1.0, 0, 0, 0]] * 2),
+        scales=torch.full((2, 3), 0.3), opacities=torch.tensor([0.5, 0.9]), sh=torch.full((2, 9, 3), 3e38),
+    )  # fmt: skip
+    c2w = torch.eye(4)
+    c2w[2, 3] = -2e38
+    out = both(g, camera(torch.float32), rtol=ATOL)
+    centre = out.alpha.argmax()
+    assert out.rgb[0, 0].flatten()[centre] / out.alpha.flatten()[centre] == pytest.approx(MAX_COLOR, rel=1e-5)
+    assert (both(g[1:], camera(c2w=c2w)).alpha == 0).all()
+
+
+def test_float64_file_beyond_float32_range_renders_the_same_in_both_backends(tmp_path):
+    """SH of 1e39 and quaternions of 1e300 from a float64 safetensors file: the fast backend
+    used to return NaN for the first and another orientation for the second."""
+    g = random_scene(n=60, seed=11, dtype=torch.float64, sh_degree=2)
+    g.sh[:20] *= 1e39
+    g.quats[20:40] *= 1e300
+    g.save(tmp_path / "far.safetensors")
+    loaded, _ = Gaussians.load(tmp_path / "far.safetensors")
+    out = both(loaded, camera(), atol=ATOL_F64, rtol=ATOL_F64)
+    assert out.rgb.max() > 1e30  # colours are clamped at MAX_COLOR, not lost
+    unit = Gaussians(**{**g.tensors(), "quats": g.quats / g.quats.abs().amax(-1, keepdim=True)})
+    unit.sh[:20] = 0
+    plain = Gaussians(**{**g.tensors(), "sh": unit.sh})
+    torch.testing.assert_close(render(plain, camera(), backend="fast").alpha,
+                               render(unit, camera(), backend="fast").alpha)  # fmt: skip
+
+
+def test_camera_far_from_the_origin_in_float64():
+    """A float64 camera 1e300 m from the scene sees nothing, in both backends."""
+    c2w = torch.eye(4, dtype=torch.float64)
+    c2w[:3, 3] = torch.tensor([1e300, -1e300, 1e300], dtype=torch.float64)
+    out = both(random_scene(n=50, seed=12, dtype=torch.float64), camera(c2w=c2w), atol=ATOL_F64)
+    assert (out.alpha == 0).all()
 
 
 def test_hard_cases_all_at_once():

@@ -6,7 +6,7 @@ import math
 import pytest
 import torch
 from dense_renderer import dense_render
-from hard_cases import HARD_CASES
+from hard_cases import HARD_CASES, MAGNITUDES, SCALABLE_FIELDS, scaled
 
 from gensplat_transforms import Cameras, Gaussians, render
 from gensplat_transforms.sh import C0, eval_sh
@@ -199,6 +199,22 @@ def test_hard_cases_stay_finite_with_finite_gradients(name):
         loss.backward()
         for k, p in params.items():
             assert p.grad is None or torch.isfinite(p.grad).all(), f"{name}: non-finite grad for {k}"
+
+
+@pytest.mark.parametrize("factor", MAGNITUDES)
+@pytest.mark.parametrize("name", sorted(HARD_CASES))
+def test_hard_cases_at_extreme_magnitudes_stay_finite_with_finite_gradients(name, factor):
+    """float64 means, quaternions, scales or SH at 1e30, 1e300 or 1e-300 times their value."""
+    for field in SCALABLE_FIELDS:
+        g = scaled(HARD_CASES[name], field, factor)
+        params = {k: v.clone().requires_grad_(True) for k, v in g.tensors().items()}
+        out = render(Gaussians(**params), camera(), background=(0.5, 0.5, 0.5))
+        assert_finite(out)
+        loss = out.rgb.sum() + out.depth.sum() + out.alpha.sum()
+        if loss.requires_grad:
+            loss.backward()
+            for k, p in params.items():
+                assert p.grad is None or torch.isfinite(p.grad).all(), f"{field} x {factor:g}: grad of {k}"
 
 
 @pytest.mark.parametrize("name", ["behind_camera", "at_camera_centre", "on_near_plane", "zero_opacity",

@@ -112,6 +112,22 @@ def test_zero_quaternion_is_identity():
     torch.testing.assert_close(quat_to_rotmat(z), torch.eye(3, dtype=DTYPE).expand(3, 3, 3))
 
 
+@pytest.mark.parametrize(("dtype", "factor"), [(torch.float64, 1e300), (torch.float64, 1e-7),
+                                              (torch.float32, 1e38), (torch.float32, 1e-7)])  # fmt: skip
+def test_any_finite_magnitude_normalises_with_finite_gradients(dtype, factor):
+    """Squaring 1e300 (or 1e38 in float32) would overflow the norm; a norm of 1e-7 is above
+    the identity threshold 1e-8, so the direction is kept."""
+    q = torch.tensor([[0.9, 0.1, -0.3, 0.2], [0.0, 0.0, 3.0, 0.0]], dtype=torch.float64)
+    unit = q / q.norm(dim=-1, keepdim=True)
+    big = (q * factor).to(dtype).requires_grad_(True)
+    out = normalize_quat(big)
+    torch.testing.assert_close(out, unit.to(dtype))
+    out[:, 1].sum().backward()
+    assert torch.isfinite(big.grad).all()
+    torch.testing.assert_close(normalize_quat(torch.tensor([[5e-9, 0, 0, 0]], dtype=dtype)),
+                               torch.tensor([[1.0, 0, 0, 0]], dtype=dtype))  # fmt: skip
+
+
 def test_convention_is_w_first_and_right_handed():
     q = axis_angle_quat((1, 0, 0), 90.0)  # (cos 45, sin 45, 0, 0)
     torch.testing.assert_close(q, torch.tensor([S, S, 0, 0], dtype=DTYPE))

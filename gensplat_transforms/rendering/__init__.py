@@ -11,7 +11,7 @@ from ..cameras import Cameras
 from ..gaussians import Gaussians
 from .fast import render_fast
 from .gsplat_backend import render_gsplat
-from .projection import Projected, project
+from .projection import Projected, precondition, project
 from .reference import rasterize_reference
 
 __all__ = ["BACKENDS", "Projected", "RenderOutput", "project", "render"]
@@ -62,7 +62,9 @@ def render(
 
     Args:
         gaussians: the scene (any float dtype; half precision is computed in float32);
-            checked with ``Gaussians.check``, which skips a rescan of unchanged tensors.
+            checked with ``Gaussians.check``, which skips a rescan of unchanged tensors,
+            then passed through ``projection.precondition`` (float64 values beyond
+            float32's range are clamped, float64 quaternions normalised) for every backend.
         cameras: B cameras (OpenCV convention) sharing one image size.
         background: RGB added where the splats leave transmittance.
         near: splats whose centre is not beyond this camera-space z are culled.
@@ -76,7 +78,7 @@ def render(
     """
     if backend not in BACKENDS:
         raise ValueError(f"unknown render backend {backend!r}; available: {sorted(BACKENDS)}")
-    gaussians.check()
+    gaussians = precondition(gaussians.check())
     if not torch.isfinite(torch.as_tensor(near)) or near <= 0:
         raise ValueError(f"render: near must be a positive finite number, got {near}")
     out_dtype = torch.float64 if gaussians.dtype == torch.float64 else torch.float32

@@ -22,8 +22,9 @@ fastmath is off (IEEE arithmetic, like the reference) except fused multiply-adds
 the exponential's polynomial.
 
 Numbers: the projection runs in float64 like ``project()``, everything after it in float32
-whatever the input dtype (float64 Gaussians are rounded to float32 first; the outputs are
-returned in the API's dtype). Per (splat, pixel) pair the arithmetic follows the
+whatever the input dtype (float64 Gaussians are rounded to float32 first, after
+``render`` has brought them into float32's range with ``projection.precondition``; the
+outputs are returned in the API's dtype). Per (splat, pixel) pair the arithmetic follows the
 reference's float32 operations one by one except the exponential (a polynomial, relative
 error below 2e-6) and the transmittance (a running product instead of a float64 sum of
 logarithms), so images agree with the reference to about 1e-6.
@@ -60,7 +61,17 @@ from numba import prange
 from ..cameras import Cameras
 from ..gaussians import Gaussians
 from ..sh import sh_degree_from_bases
-from .projection import ALPHA_MAX, ALPHA_MIN, DILATION, MAX_SCALE, SIGMA_EXTENT, T_MIN, fov_limits
+from .projection import (
+    ALPHA_MAX,
+    ALPHA_MIN,
+    DILATION,
+    MAX_COLOR,
+    MAX_DEPTH,
+    MAX_SCALE,
+    SIGMA_EXTENT,
+    T_MIN,
+    fov_limits,
+)
 
 TILE = 16  # tile side in pixels: one tile row is one 16-lane vector
 # fields of a splat's float32 record: centre u, v; conic A, 2B, C; opacity; colour; depth
@@ -165,7 +176,7 @@ def _geometry(lo, hi, soa, opacities, cam, near, opac_min, width, height, geom, 
         geom[0, i], geom[1, i], geom[5, i], geom[6, i], geom[7, i] = u, v, z, sa, sc
         geom[2, i], geom[3, i], geom[4, i] = (nn + DILATION) * idet, -2 * mn * idet, (mm + DILATION) * idet
         boxes[0, i], boxes[1, i], boxes[2, i], boxes[3, i] = x0, y0, x1, y1
-        visible[i] = (z > near) & (opacities[i] >= opac_min) & (x0 <= x1) & (y0 <= y1)
+        visible[i] = (z > near) & (z < MAX_DEPTH) & (opacities[i] >= opac_min) & (x0 <= x1) & (y0 <= y1)
 
 
 @_jit()
@@ -222,8 +233,8 @@ def _sh_dot(sh, g, k0, basis):
 
 @_jit()
 def _sh_rgb(sh, g, dx, dy, dz, degree):
-    """max(0, sum_k sh[g, k] Y_k(d) + 0.5) in float64 for d = (dx, dy, dz) normalised, with
-    the basis of ``sh.sh_basis`` up to ``degree``; returns (r, g, b)."""
+    """sum_k sh[g, k] Y_k(d) + 0.5 clamped to [0, MAX_COLOR], in float64, for d = (dx, dy, dz)
+    normalised, with the basis of ``sh.sh_basis`` up to ``degree``; returns (r, g, b)."""
     r, gr, bl = _sh_dot(sh, g, 0, (0.28209479177387814,))
     if degree >= 1:
         n = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
@@ -264,7 +275,8 @@ def _sh_rgb(sh, g, dx, dy, dz, degree):
             0.6258357354491761 * (xx * (xx - 3 * yy) - yy * (3 * xx - yy)),
         ))  # fmt: skip
         r, gr, bl = r + band[0], gr + band[1], bl + band[2]
-    return max(r + 0.5, 0.0), max(gr + 0.5, 0.0), max(bl + 0.5, 0.0)
+    return (min(max(r + 0.5, 0.0), MAX_COLOR), min(max(gr + 0.5, 0.0), MAX_COLOR),
+            min(max(bl + 0.5, 0.0), MAX_COLOR))  # fmt: skip
 
 
 @_jit()

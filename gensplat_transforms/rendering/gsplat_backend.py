@@ -25,9 +25,11 @@ Conventions (ours -> gsplat), which match so that no data is reordered:
   whereas ours keeps only pixels with Mahalanobis q <= 9 (and a tighter box for opacity
   below 0.36). The differences touch only pixels where a splat's weight is small or
   alpha saturates, so images agree closely but not bit for bit (52.6 dB PSNR on the
-  standard scene). gsplat projects in float32: an extremely anisotropic splat (scales 1e3
-  and 1e-12, the "needle" hard case) loses its 2D covariance to cancellation and is
-  dropped, where our float64 projection draws it.
+  standard scene). gsplat neither culls centres beyond ``MAX_DEPTH`` (1e32 m) nor clamps
+  colours at ``MAX_COLOR`` (1e32), so only scenes beyond those limits differ there. gsplat
+  projects in float32: an extremely anisotropic splat (scales 1e3 and 1e-12, the "needle"
+  hard case) loses its 2D covariance to cancellation and is dropped, where our float64
+  projection draws it.
 * depth: ``render_mode="RGB+ED"`` returns the expected depth sum(w z) / alpha; this backend
   multiplies it back by alpha to return ``depth_sum`` as every backend does.
 """

@@ -2,14 +2,19 @@
 
 Rules (reference 3DGS / gsplat): cull Gaussians whose centre is not beyond the near plane
 or whose opacity is below 1/255; clamp the Jacobian's x/z, y/z to 1.3x the field of view;
-add 0.3 px^2 to the 2D covariance diagonal. The footprint is the 3-sigma ellipse
-(Mahalanobis q <= 9); a pixel receives a splat when it lies inside that ellipse and
-alpha = min(0.99, o exp(-q/2)) >= 1/255. Backends visit the tight pixel box of that region.
+add 0.3 px^2 to the 2D covariance diagonal. Two more keep every float32 stage finite: cull
+Gaussians whose centre lies beyond ``MAX_DEPTH``; clamp colours to [0, ``MAX_COLOR``]. The
+footprint is the 3-sigma ellipse (Mahalanobis q <= 9); a pixel receives a splat when it
+lies inside that ellipse and alpha = min(0.99, o exp(-q/2)) >= 1/255. Backends visit the
+tight pixel box of that region.
 
 The projection runs in float64 (cheap: O(N)) so that huge, tiny and very anisotropic
 Gaussians keep an exact, positive determinant: with M = J W R S (2x3),
 det(M M^T + 0.3 I) = 0.09 + 0.3 tr(M M^T) + |m_1 x m_2|^2 (Cauchy-Binet) has no
 cancellation, so no splat is lost or made NaN by round-off.
+
+``render`` passes the Gaussians through :func:`precondition` once, before any backend, so
+that backends computing in float32 see the values the float64 reference sees.
 """
 
 from __future__ import annotations
@@ -20,7 +25,7 @@ import torch
 
 from ..cameras import Cameras
 from ..gaussians import Gaussians
-from ..rotations import quat_to_rotmat
+from ..rotations import normalize_quat, quat_to_rotmat
 from ..sh import eval_sh
 
 ALPHA_MIN = 1.0 / 255.0
@@ -30,6 +35,27 @@ DILATION = 0.3
 SIGMA_EXTENT = 3.0
 FOV_CLAMP = 1.3
 MAX_SCALE = 1e3  # metres; larger scales are clamped (covers any image anyway)
+MAX_DEPTH = 1e32  # metres; farther centres are culled, so float32 depths and their sums stay finite
+MAX_COLOR = 1e32  # colours are clamped to [0, MAX_COLOR], so float32 colour sums stay finite
+F32_MAX = torch.finfo(torch.float32).max
+
+
+def precondition(gaussians: Gaussians) -> Gaussians:
+    """The Gaussians as every backend renders them: float64 tensors brought into float32's
+    finite range (means, scales and SH clamped to +-F32_MAX; quaternions normalised in
+    float64, so any finite magnitude is an orientation), so that a backend computing in
+    float32 sees what the float64 reference sees. Other dtypes already lie in that range
+    and are kept as they are. Differentiable; O(N) work only for float64 tensors."""
+    t = gaussians.tensors()
+    if all(v.dtype != torch.float64 for v in t.values()):
+        return gaussians
+
+    def fit(v: torch.Tensor) -> torch.Tensor:
+        return v.clamp(-F32_MAX, F32_MAX) if v.dtype == torch.float64 else v
+
+    quats = normalize_quat(t["quats"]) if t["quats"].dtype == torch.float64 else t["quats"]
+    return Gaussians(means=fit(t["means"]), quats=quats, scales=fit(t["scales"]),
+                     opacities=t["opacities"], sh=fit(t["sh"]), validate=False)  # fmt: skip
 
 
 @dataclass
@@ -84,7 +110,7 @@ def project(
 
     means = gaussians.means.to(f64)
     z_all = means @ Rwc[2] + twc[2]
-    keep = (z_all > near) & (gaussians.opacities >= ALPHA_MIN)
+    keep = (z_all > near) & (z_all < MAX_DEPTH) & (gaussians.opacities >= ALPHA_MIN)
     idx = keep.nonzero().squeeze(1)
     cam = means[idx] @ Rwc.T + twc
     x, y, z = cam.unbind(-1)
@@ -124,9 +150,8 @@ def project(
     sel = on_image.nonzero().squeeze(1)
     sel = sel[torch.argsort(z[sel].detach(), stable=True)]
     ids = idx[sel]
-    colors = eval_sh(
-        gaussians.sh[ids].to(f64), means[ids] - camera.centers[0].to(f64), sh_degree
-    )
+    dirs = means[ids] - camera.centers[0].to(f64)
+    colors = eval_sh(gaussians.sh[ids].to(f64), dirs, sh_degree).clamp(max=MAX_COLOR)
     boxes = torch.stack([x0, y0, x1, y1], -1)[sel]
     return Projected(
         ids=ids,
