@@ -4,7 +4,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from gensplat_transforms import PerturbationSampler, pivot_point, render
+from gensplat_transforms import Cameras, PerturbationSampler, pivot_point, render
 from gensplat_transforms.metrics import psnr
 from gensplat_transforms.reconstruction import RGBDReconstructor, Views
 from gensplat_transforms.rotations import quat_to_rotmat
@@ -126,6 +126,29 @@ def test_bad_inputs_raise_clear_errors(scene_views):
         Views(images, cams, depths[..., :-1])
     with pytest.raises(ValueError, match="sigma_px"):
         RGBDReconstructor(sigma_px=0.0)
+
+
+@pytest.mark.parametrize("fast", [True, False])
+def test_sentinel_depths_mark_pixels_without_depth(scene_views, fast):
+    """Depths of 1e7 m and more (sensor sentinels) are invalid like 0, negative, NaN and Inf:
+    those pixels get no Gaussian, instead of Gaussians that overflow float32 (which used to
+    raise an error about Gaussians.scales)."""
+    _, cams, images, depths = scene_views
+    bad = depths[:1].clone()
+    sentinels = [1e7, 1e19, 3.4e38, float("inf"), float("nan"), -1.0, 0.0]
+    for i, value in enumerate(sentinels):
+        bad[0, 0, i, :] = value
+    g = RGBDReconstructor(fast=fast).reconstruct(Views(images[:1], cams[0], bad)).gaussians
+    assert len(g) == SIZE * (SIZE - len(sentinels))
+    assert g.means[:, 2].max() < 10 and g.scales.max() < 1
+
+
+def test_a_camera_with_zero_focal_length_is_refused_naming_the_camera(scene_views):
+    _, cams, images, depths = scene_views
+    K = cams.K.clone()
+    K[0, 0, 0] = 0.0
+    with pytest.raises(ValueError, match=r"Cameras.K: focal lengths must be > 0"):
+        Views(images, Cameras(K, cams.c2w, SIZE, SIZE), depths)
 
 
 @pytest.mark.parametrize("overrides", [{}, {"stride": 2}, {"max_depth": 1.2, "edge_scale": 0.5}])

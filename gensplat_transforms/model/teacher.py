@@ -13,6 +13,7 @@ from typing import Protocol
 import torch
 
 from ..reconstruction import Views
+from ..reconstruction.base import valid_depth
 from .checkpoints import load_pi3_weights
 from .config import GenSplatConfig
 from .gensplat import GenSplatModel
@@ -32,10 +33,10 @@ class Teacher(Protocol):
 
 def camera_points(depth: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     """Camera-frame points (V, H, W, 3) of depth maps (V, 1, H, W) with intrinsics K (V, 3, 3)
-    (pixel centres at +0.5). Invalid depth (<= 0 or non-finite) gives the zero point."""
+    (pixel centres at +0.5). Invalid depth (see ``valid_depth``) gives the zero point."""
     _, _, H, W = depth.shape
     z = depth[:, 0].float()
-    z = torch.where(torch.isfinite(z) & (z > 0), z, torch.zeros_like(z))
+    z = torch.where(valid_depth(z), z, torch.zeros_like(z))
     K = K.float()
     v, u = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
     x = (u - K[:, None, None, 0, 2]) / K[:, None, None, 0, 0] * z

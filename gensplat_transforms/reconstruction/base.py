@@ -12,6 +12,17 @@ import torch
 from ..cameras import Cameras
 from ..gaussians import Gaussians
 
+#: Depths beyond this (metres) mark pixels without depth, like zero, negative and non-finite
+#: ones: no sensor measures that far (such values are sentinels), and Gaussians built from
+#: them would overflow float32.
+MAX_VIEW_DEPTH = 1e6
+
+
+def valid_depth(depth: torch.Tensor) -> torch.Tensor:
+    """Bool mask, same shape as ``depth``, of the values that are depths: > 0 and
+    <= ``MAX_VIEW_DEPTH`` (so NaN and +-Inf are not)."""
+    return (depth > 0) & (depth <= MAX_VIEW_DEPTH)
+
 
 @dataclass
 class Views:
@@ -20,8 +31,10 @@ class Views:
     Attributes:
         images: (V, 3, H, W) float in [0, 1].
         cameras: V calibrated cameras, or None for uncalibrated input.
-        depths: (V, 1, H, W) metric camera-z depth, or None. Zero, negative or non-finite
-            values mark pixels without depth.
+        depths: (V, 1, H, W) metric camera-z depth, or None. Any values are accepted; zero,
+            negative, non-finite and values beyond ``MAX_VIEW_DEPTH`` (1e6 m) mark pixels
+            without depth (see :func:`valid_depth`), so a sensor's sentinel for "no return"
+            (e.g. 1e10 or float32's largest value) yields no Gaussian.
     """
 
     images: torch.Tensor

@@ -26,7 +26,7 @@ import torch
 from ..gaussians import Gaussians
 from ..rotations import rotmat_to_quat
 from ..sh import num_sh_bases, rgb_to_sh_dc
-from .base import DepthReconstructor, Reconstruction, Views
+from .base import DepthReconstructor, Reconstruction, Views, valid_depth
 from .discs_fast import surface_discs
 
 
@@ -88,12 +88,13 @@ class RGBDReconstructor(DepthReconstructor):
         return asdict(self.cfg)
 
     def predict_depth(self, views: Views) -> Views:
-        """The given depth, 0 where invalid (non-finite, <= 0 or beyond ``max_depth``)."""
+        """The given depth, 0 where invalid (see :func:`.base.valid_depth`) or beyond
+        ``max_depth``."""
         if views.cameras is None or views.depths is None:
             missing = [n for n in ("cameras", "depths") if getattr(views, n) is None]
             raise ValueError(f"RGBDReconstructor needs calibrated cameras and depth; missing: {missing}")
         z = views.depths.float()
-        valid = torch.isfinite(z) & (z > 0)
+        valid = valid_depth(z)
         if self.cfg.max_depth is not None:
             valid &= z <= self.cfg.max_depth
         return Views(views.images, views.cameras, torch.where(valid, z, torch.zeros_like(z)))
