@@ -1,16 +1,20 @@
 """DataLoader throughput with and without GenSplat, where the transform's time goes, and
 what the cache costs in bytes and in fidelity.
 
-    python benchmarks/dataloader.py [--quick] [--backend fast] [--replace left right]
+    python benchmarks/dataloader.py [--quick] [--backend fast] [--replace left right] [--video]
 
-A simulated pick-and-place dataset is recorded (two external cameras with depth and a
-wrist camera; 224x224, or 96x96 with --quick), its Gaussian cache built, and the same
-DataLoader (same workers, batch size and sample order) is iterated with and without
-GenSplat (probability 1, level "train"). The per-sample split times one worker's steps
-directly (one thread): cache read, render of the replaced cameras, uint8 conversion, and
-the whole transform. The cache's fidelity cost is PSNR against the simulator's true image
-at perturbed poses, rendered from the cached (quantised) versus the raw Gaussians.
-Writes benchmarks/results/dataloader.json.
+A simulated pick-and-place dataset is recorded twice (two external cameras with depth and a
+wrist camera; 224x224, or 96x96 with --quick), once with PNG images and once with MP4 video,
+for the dataset's own bytes per timestep. On one of them (PNG, or MP4 with --video) the
+cache is built, and the same DataLoader (same workers, batch size and sample order) is
+iterated with and without GenSplat (probability 1, level "train"). The per-sample split
+times one worker's steps directly (one thread): LeRobot's frame decoding (the dataset's own
+cost, apart from GenSplat's), the cache read (depth decoding), rebuilding the Gaussians from
+the depth and the item's images, render of the replaced cameras, uint8 conversion, and the
+whole transform. The cache is compared with storing the quantised Gaussians themselves (the
+``gaussians`` encoding, what a non-depth reconstructor stores) in bytes, and in fidelity:
+PSNR against the simulator's true image at perturbed poses, rendered from the cached versus
+the raw Gaussians. Writes benchmarks/results/dataloader.json.
 """
 
 from __future__ import annotations
@@ -28,11 +32,13 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 import torch
 from gensplat_lerobot import LeRobotSource, enable_gensplat, prepare
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from machine import cpu_model
 from torch.utils.data import DataLoader, RandomSampler
 
+from gensplat_transforms.cache import GaussianCache
 from gensplat_transforms.metrics import psnr
 from gensplat_transforms.perturbation import PerturbationSampler
-from gensplat_transforms.reconstruction import RGBDReconstructor
+from gensplat_transforms.reconstruction import Reconstructor, RGBDReconstructor
 from gensplat_transforms.rendering import render
 from gensplat_transforms.sim.record import RecordConfig, record
 from gensplat_transforms.sim.truth import GroundTruth
@@ -58,24 +64,44 @@ def loader_rate(dataset, workers: int, batch: int, batches: int) -> float:
 def split_ms(ds, samples: int) -> dict:
     """Median per-sample milliseconds of the transform's steps, in this process."""
     tf = ds.gensplat
-    times = {"cache_read": [], "render": [], "to_uint8": [], "transform_total": []}
+    keys = [tf.cfg.image_key.format(name=n) for n in tf.cfg.cameras]
+    times = {k: [] for k in ("frame_decode", "cache_read", "assemble", "render", "to_uint8", "transform_total")}
     for idx in torch.linspace(0, len(ds) - 1, samples).long().tolist():
-        item = LeRobotDataset.__getitem__(ds, idx)
-        ep, fr = int(item["episode_index"]), int(item["frame_index"])
         t0 = time.perf_counter()
-        rec = tf.cache.read(ep, fr)
+        item = LeRobotDataset.__getitem__(ds, idx)
         t1 = time.perf_counter()
+        ep, fr = int(item["episode_index"]), int(item["frame_index"])
+        images = torch.stack([item[k].float() / 255 if item[k].dtype == torch.uint8 else item[k] for k in keys])
+        views = tf.cache._file(ep).depth_views(fr, images)
+        t2 = time.perf_counter()
+        rec = tf.cache.reconstructor.assemble(views)
+        t3 = time.perf_counter()
         for name in tf.cfg.replace:
             target = tf.sampler.sample(ep, fr).move(rec.cameras, tf.cfg.cameras.index(name))
             out = render_view(rec.gaussians, target, tf.cfg)
-        t2 = time.perf_counter()
-        (out.rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8)
-        t3 = time.perf_counter()
-        tf(item)
         t4 = time.perf_counter()
-        for k, v in zip(times, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
+        (out.rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8)
+        t5 = time.perf_counter()
+        tf(item)
+        t6 = time.perf_counter()
+        for k, v in zip(times, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4, t6 - t5)):
             times[k].append(v * 1e3)
     return {k: round(statistics.median(v), 2) for k, v in times.items()}
+
+
+class GaussiansOf(Reconstructor):
+    """The same Gaussians, stored as quantised Gaussians (not a DepthReconstructor)."""
+
+    name = "rgbd-gaussians"
+
+    def __init__(self, inner: Reconstructor) -> None:
+        self.inner = inner
+
+    def config(self) -> dict:
+        return self.inner.config()
+
+    def reconstruct(self, views):
+        return self.inner(views)
 
 
 def cache_fidelity(root: Path, ds, frames: int) -> dict:
@@ -86,7 +112,8 @@ def cache_fidelity(root: Path, ds, frames: int) -> dict:
     for k, idx in enumerate(torch.linspace(0, len(ds) - 1, frames).long().tolist()):
         item = LeRobotDataset.__getitem__(ds, idx)
         ep, fr = int(item["episode_index"]), int(item["frame_index"])
-        raw, cached = rgbd(source.views(ep, fr)), tf.cache.read(ep, fr)
+        views = source.views(ep, fr)
+        raw, cached = rgbd(views), tf.cache.read(ep, fr, views.images)
         target = PerturbationSampler("large", seed=k).sample(ep).move(raw.cameras, 0)
         true_rgb, _ = truth.render(ep, fr, target)
         a = render(raw.gaussians, target, backend="fast")
@@ -99,6 +126,14 @@ def cache_fidelity(root: Path, ds, frames: int) -> dict:
             "psnr_lost_db": round(raw_mean - cached_mean, 3), "frames": frames}  # fmt: skip
 
 
+def dataset_bytes_per_timestep(root: Path) -> float:
+    """Bytes of the recorded frames (parquet data, videos, images) per timestep, depth excluded."""
+    frames = json.loads((root / "meta" / "info.json").read_text())["total_frames"]
+    size = sum(f.stat().st_size for d in ("data", "videos", "images") if (root / d).is_dir()
+               for f in (root / d).rglob("*") if f.is_file())  # fmt: skip
+    return size / frames
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="small dataset, few batches (< 1 min)")
@@ -107,18 +142,25 @@ def main() -> None:
     parser.add_argument("--fill-holes", action=argparse.BooleanOptionalAction, default=True,
                         help="fill uncovered pixels (the transform's default)")
     parser.add_argument("--replace", nargs="+", default=["left", "right"], help="cameras replaced per sample")
+    parser.add_argument("--video", action="store_true", help="run on the MP4-encoded recording (default: PNG)")
     args = parser.parse_args()
     torch.set_num_threads(1)  # as in a dataloader worker
     size, episodes, batches, samples = (96, 1, 3, 4) if args.quick else (224, 2, 10, 12)
-    root = Path(tempfile.mkdtemp()) / "ds"
-    record(RecordConfig(root, "pick_place", episodes, seed=0, use_videos=False, repo_id=REPO,
-                        world=WorldConfig(width=size, height=size)), progress=False)  # fmt: skip
+    roots = {}
+    for video in (False, True):
+        roots[video] = Path(tempfile.mkdtemp()) / "ds"
+        record(RecordConfig(roots[video], "pick_place", episodes, seed=0, use_videos=video, repo_id=REPO,
+                            world=WorldConfig(width=size, height=size)), progress=False)  # fmt: skip
+    root = roots[args.video]
     config = GenSplatConfig(probability=1.0, level="train", backend=args.backend, replace=tuple(args.replace),
                             fill_holes=args.fill_holes)
     t0 = time.perf_counter()
     stats = prepare(root, REPO, config, progress=False)
     build_s = time.perf_counter() - t0
     frames = sum(s.num_frames for s in stats.values())
+    source = LeRobotSource(root, REPO)
+    gaussians = GaussianCache(Path(tempfile.mkdtemp()), GaussiansOf(RGBDReconstructor()), source.fingerprint)
+    gaussian_bytes = sum(gaussians.ensure(ep, source).bytes for ep in stats)
 
     plain = LeRobotDataset(REPO, root=root)
     gensplat = enable_gensplat(LeRobotDataset(REPO, root=root))
@@ -130,15 +172,20 @@ def main() -> None:
         "samples_per_s_plain": round(loader_rate(plain, args.workers, 4, batches), 2),
         "samples_per_s_gensplat": round(loader_rate(gensplat, args.workers, 4, batches), 2),
         "transform_ms": split["transform_total"], "split_ms": split,
+        "video": args.video,
         "cache_bytes_per_timestep": round(sum(s.bytes for s in stats.values()) / frames),
+        "gaussians_encoding_bytes_per_timestep": round(gaussian_bytes / frames),
+        "dataset_bytes_per_timestep": {"png": round(dataset_bytes_per_timestep(roots[False])),
+                                       "mp4": round(dataset_bytes_per_timestep(roots[True]))},
         "cache_build_ms_per_timestep": round(build_s / frames * 1e3, 1),
         "cache_fidelity": cache_fidelity(root, gensplat, samples // 2),
+        "machine": {"cpus": os.cpu_count(), **cpu_model()},
         "load_average": os.getloadavg(),
     }  # fmt: skip
     for k in ("samples_per_s_plain", "samples_per_s_gensplat", "transform_ms", "cache_bytes_per_timestep",
-              "cache_build_ms_per_timestep"):  # fmt: skip
+              "gaussians_encoding_bytes_per_timestep", "cache_build_ms_per_timestep"):  # fmt: skip
         print(f"{k:30}{result[k]:>12}")
-    for k, v in {**split, **result["cache_fidelity"]}.items():
+    for k, v in {**split, **result["cache_fidelity"], **result["dataset_bytes_per_timestep"]}.items():
         print(f"  {k:28}{v:>12}")
     out = Path(__file__).parent / "results" / "dataloader.json"
     out.parent.mkdir(exist_ok=True)

@@ -37,6 +37,7 @@ import numba
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from machine import cpu_model
 from standard_scene import standard_scene
 
 from gensplat_transforms import render
@@ -188,7 +189,7 @@ def run(quick: bool) -> dict:
         "machine": {
             "cpus": os.cpu_count(),
             "processor": platform.processor() or platform.machine(),
-            **_cpu_model(),
+            **cpu_model(),
             "numba": numba.__version__,
             "numba_threading_layer": numba.threading_layer(),
             "torch_threads": torch.get_num_threads(),
@@ -196,23 +197,6 @@ def run(quick: bool) -> dict:
             "load_average_before_after": [load_before, os.getloadavg()[0]],
         },
     }
-
-
-def _cpu_model() -> dict:
-    """CPU model and widest SIMD from /proc/cpuinfo (the fast backend's speed follows it)."""
-    try:
-        info = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return {}
-    fields = {}
-    for line in info.splitlines():
-        if not line.strip():
-            break  # the first processor's block is enough
-        key, _, value = line.partition(":")
-        fields[key.strip()] = value.strip()
-    flags = set(fields.get("flags", "").split())
-    simd = next((f for f in ("avx512f", "avx2", "avx", "sse4_2") if f in flags), "none")
-    return {"cpu_model": fields.get("model name", ""), "simd": simd}
 
 
 def _split(t: dict) -> str:

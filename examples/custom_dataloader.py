@@ -20,8 +20,8 @@ def main() -> None:
     source = SceneEpisodes(num_episodes=2, num_frames=8, size=96)
     dataset = SceneDataset(source)
     reconstructor = RGBDReconstructor()
-    cache = GaussianCache(tempfile.mkdtemp(), reconstructor.identity(), source.fingerprint)
-    build_cache(cache, source, reconstructor, range(source.num_episodes))
+    cache = GaussianCache(tempfile.mkdtemp(), reconstructor, source.fingerprint)
+    build_cache(cache, source, range(source.num_episodes))
 
     config = GenSplatConfig(cameras=("left", "right"), probability=0.5, level="train", report=True)
     augmented = AugmentedDataset(dataset, GenSplatTransform(config, cache))

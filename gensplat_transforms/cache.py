@@ -1,18 +1,27 @@
-"""Per-episode cache of reconstructed Gaussians (safetensors, memory-mapped reads).
+"""Per-episode cache of what a reconstructor computed (safetensors, memory-mapped reads).
 
-One file per episode, ``<root>/episode_<index:06d>.safetensors``, holding every timestep:
+One file per episode, ``<root>/episode_<index:06d>.safetensors``, holding every timestep.
+What it stores depends on the reconstructor:
 
-* Gaussians are stored quantised: means as uint16 inside the episode's bounding box,
-  quaternions as int8, opacities as uint8, scales and SH as float16 (23 bytes per
-  Gaussian at SH degree 0 instead of 56).
-* The static part of the scene is stored once: pixel-aligned Gaussians whose quantised
-  values are identical in every frame of the episode (a fixed camera looking at a static
-  table) go into a shared ``static`` group; each frame stores only the rest.
-* The header (safetensors metadata) holds the format version, the reconstructor identity
-  (name + configuration hash), the dataset fingerprint and a CRC-32 per group. A mismatch
-  is reported as :class:`StaleCacheError`; a truncated or corrupted file as
-  :class:`CorruptCacheError`. Writes go to a temporary file that is atomically renamed,
-  under a lock file so that two workers never build the same episode twice.
+* ``depth`` (any :class:`~.reconstruction.DepthReconstructor`, e.g. RGB-D): only what the
+  worker cannot recompute cheaply: each view's depth, compressed with a bounded error
+  (:mod:`.depth_codec`: 16-bit log codes, the static scene once, zlib), and the cameras. The
+  worker rebuilds the Gaussians from the item's own images with
+  ``reconstructor.assemble`` (a few milliseconds per timestep). About 10-20 kB per
+  timestep for two 224x224 views.
+* ``gaussians`` (any other reconstructor, e.g. the feed-forward model's Gaussian head):
+  the Gaussians themselves, quantised (means as uint16 inside the episode's bounding box,
+  quaternions int8, opacities uint8, scales and SH float16: 23 bytes per Gaussian at SH
+  degree 0); pixel-aligned Gaussians identical in every frame are stored once.
+
+Trust: the header (safetensors metadata) names the format version, the kind, the
+reconstructor identity and the dataset fingerprint; a mismatch is :class:`StaleCacheError`.
+Every tensor has a CRC-32 over its name, dtype, shape and bytes, and the header has a CRC-32
+over all its other fields, so no edit of a label or a field goes unnoticed: a file that is
+truncated, edited or fails a checksum is :class:`CorruptCacheError`. Writes go to a
+temporary file that is atomically renamed, under a per-episode lock, so concurrent builders
+never build one episode twice; a builder killed mid-write leaves a temporary file that the
+next builder of that episode removes.
 """
 
 from __future__ import annotations
@@ -24,22 +33,28 @@ import os
 import uuid
 import zlib
 from collections import OrderedDict
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
+import numpy as np
 import torch
 from safetensors import safe_open
-from safetensors.torch import save_file
+from safetensors.torch import save
 
+from . import depth_codec
 from .cameras import Cameras
 from .gaussians import Gaussians
-from .reconstruction import Reconstruction
+from .reconstruction import DepthReconstructor, Reconstruction, Reconstructor, Views
 
 FORMAT = "gensplat-cache"
-FORMAT_VERSION = 1
+FORMAT_VERSION = "2"
 _FIELDS = ("means", "quats", "scales", "opacities", "sh")
+#: safetensors dtype of every stored tensor, by the last part of its name (frame digits dropped)
+_DTYPES = {"means": "U16", "quats": "I8", "scales": "F16", "opacities": "U8", "sh": "F16", "K": "F64", "c2w": "F64",
+           "reference": "U8", "f": "U8"}  # fmt: skip
 
 
 class CacheError(RuntimeError):
@@ -47,11 +62,27 @@ class CacheError(RuntimeError):
 
 
 class StaleCacheError(CacheError):
-    """The file was built by another reconstructor, configuration or dataset."""
+    """The file was built by another format, reconstructor, configuration or dataset."""
 
 
 class CorruptCacheError(CacheError):
-    """The file is truncated, unreadable or fails its checksum."""
+    """The file is truncated, unreadable, malformed or fails a checksum."""
+
+
+class EpisodeSource(Protocol):
+    """Views of the reconstructed cameras, per timestep (see :mod:`.episodes`).
+
+    Attributes:
+        camera_names: names of the cameras ``views`` returns, in order.
+        fingerprint: changes whenever the content changes (keys the cache).
+    """
+
+    camera_names: tuple[str, ...]
+    fingerprint: str
+
+    def num_frames(self, episode: int) -> int: ...
+
+    def views(self, episode: int, frame: int) -> Views: ...
 
 
 # ---------------------------------------------------------------------------- quantisation
@@ -93,11 +124,19 @@ def _row_bytes(d: dict[str, torch.Tensor]) -> torch.Tensor:
     return torch.cat([d[k].contiguous().view(torch.uint8).reshape(n, w) for k, w in zip(_FIELDS, width)], 1)
 
 
-def _crc(tensors: dict[str, torch.Tensor]) -> str:
-    c = 0
-    for name in sorted(tensors):
-        c = zlib.crc32(tensors[name].contiguous().view(torch.uint8).numpy().tobytes(), c)
-    return f"{c:08x}"
+def _tensor_crc(name: str, t: torch.Tensor) -> str:
+    """CRC-32 of a tensor's name, dtype, shape and bytes."""
+    head = f"{name}\0{t.dtype}\0{tuple(t.shape)}\0".encode()
+    return f"{zlib.crc32(t.contiguous().view(torch.uint8).numpy().tobytes(), zlib.crc32(head)):08x}"
+
+
+def _header_crc(meta: dict[str, str]) -> str:
+    body = {k: v for k, v in meta.items() if k != "header_crc"}
+    return f"{zlib.crc32(json.dumps(body, sort_keys=True).encode()):08x}"
+
+
+def _blob(data: bytes) -> torch.Tensor:
+    return torch.frombuffer(bytearray(data), dtype=torch.uint8)
 
 
 # ---------------------------------------------------------------------------- the cache
@@ -108,7 +147,6 @@ class CacheStats:
     """Sizes of one episode file."""
 
     num_frames: int
-    num_static: int
     bytes: int
 
     @property
@@ -121,14 +159,20 @@ class GaussianCache:
 
     Args:
         root: folder of the episode files (created on first write).
-        reconstructor: identity string of the reconstructor (``Reconstructor.identity()``).
+        reconstructor: what builds the episodes; its :meth:`~.Reconstructor.identity` keys
+            the files, and a :class:`~.reconstruction.DepthReconstructor` makes this a
+            ``depth`` cache (see the module docstring).
         dataset: fingerprint of the dataset (anything that changes when its content does).
         max_open: episode files kept open (memory-mapped) per process.
     """
 
-    def __init__(self, root: str | Path, reconstructor: str, dataset: str, max_open: int = 8) -> None:
+    def __init__(self, root: str | Path, reconstructor: Reconstructor, dataset: str, max_open: int = 8) -> None:
+        if not isinstance(reconstructor, Reconstructor):
+            raise TypeError(f"GaussianCache: expected a Reconstructor, got {type(reconstructor).__name__}")
         self.root = Path(root)
         self.reconstructor = reconstructor
+        self.identity = reconstructor.identity()
+        self.kind = "depth" if isinstance(reconstructor, DepthReconstructor) else "gaussians"
         self.dataset = dataset
         self.max_open = max_open
         self._open: OrderedDict[int, _EpisodeFile] = OrderedDict()
@@ -139,84 +183,84 @@ class GaussianCache:
     def path(self, episode: int) -> Path:
         return self.root / f"episode_{int(episode):06d}.safetensors"
 
-    # ------------------------------------------------------------------ writing
-    def write_episode(self, episode: int, frames: Sequence[Reconstruction]) -> CacheStats:
-        """Quantise and store every frame of an episode (atomic)."""
-        if not frames:
-            raise ValueError(f"GaussianCache.write_episode: episode {episode} has no frames")
-        means = torch.cat([f.gaussians.means.float() for f in frames])
-        lo, hi = (means.amin(0), means.amax(0)) if means.numel() else (torch.zeros(3), torch.ones(3))
-        qs = [quantize(f.gaussians, lo, hi) for f in frames]
-        static = _static_mask(frames, qs)
-        tensors: dict[str, torch.Tensor] = {}
-        crcs: dict[str, str] = {}
-        groups = {"static": {k: v[static[0]] for k, v in qs[0].items()}}
-        for t, (f, q) in enumerate(zip(frames, qs)):
-            group = {k: v[~static[t]] for k, v in q.items()}
-            group["K"] = f.cameras.K.float().clone()
-            group["c2w"] = f.cameras.c2w.double().clone()
-            groups[f"f{t}"] = group
-        for name, group in groups.items():
-            crcs[name] = _crc(group)
-            tensors.update({f"{name}.{k}": v.contiguous() for k, v in group.items()})
-        cam = frames[0].cameras
-        meta = {
-            "format": FORMAT, "format_version": str(FORMAT_VERSION),
-            "reconstructor": self.reconstructor, "dataset": self.dataset,
-            "episode_index": str(int(episode)), "num_frames": str(len(frames)),
-            "image_size": json.dumps([cam.width, cam.height]),
-            "bbox": json.dumps([lo.tolist(), hi.tolist()]), "crc": json.dumps(crcs),
-        }  # fmt: skip
-        self.root.mkdir(parents=True, exist_ok=True)
-        path = self.path(episode)
-        tmp = str(self.root / f".{path.name}.{uuid.uuid4().hex}.tmp")
-        os.close(os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666))
-        mode = os.stat(tmp).st_mode & 0o777  # 0o666 less the umask, as any new file
+    # ------------------------------------------------------------------ building
+    def ensure(self, episode: int, source: EpisodeSource, verify: bool = False) -> CacheStats | None:
+        """Build ``episode`` from ``source`` unless a valid file exists; returns the new file's
+        stats, or None when it was already valid. Stale and corrupt files are rebuilt; with
+        ``verify`` every checksum is read first (else only the header's). Safe when several
+        processes or machines sharing the folder call it at once: the first builds, the
+        others wait and find it valid."""
+        if not verify and self.status(episode) == "ok":
+            return None
+        with self.lock(episode):
+            self._open.pop(int(episode), None)  # another process may have replaced the file
+            if self.status(episode) == "ok" and (not verify or self.verify(episode)):
+                return None
+            return self._build(episode, source)
+
+    def _build(self, episode: int, source: EpisodeSource) -> CacheStats:
+        """Reconstruct and write one episode (the caller holds its lock)."""
+        if source.fingerprint != self.dataset:
+            raise StaleCacheError(
+                f"{self.root}: the source's fingerprint {source.fingerprint!r} is not this cache's {self.dataset!r}"
+            )
+        n = source.num_frames(episode)
+        if n < 1:
+            raise ValueError(f"GaussianCache: episode {episode} has no frames")
+        rec = self.reconstructor
+        predict = rec.predict_depth if self.kind == "depth" else rec
+        tmp = self.root / f".{self.path(episode).name}.{uuid.uuid4().hex}.tmp"
+        fd = os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)  # the umask applies
         try:
-            save_file(tensors, tmp, metadata=meta)  # (recreates the file owner-only)
-            os.chmod(tmp, mode)
-            os.replace(tmp, path)
+            fcntl.flock(fd, fcntl.LOCK_EX)  # tells later builders this file is being written
+            frames = [predict(source.views(episode, t)) for t in range(n)]
+            tensors, meta = (_encode_depth if self.kind == "depth" else _encode_gaussians)(frames)
+            meta.update(format=FORMAT, format_version=FORMAT_VERSION, kind=self.kind, reconstructor=self.identity,
+                        dataset=self.dataset, episode_index=str(int(episode)), num_frames=str(n))  # fmt: skip
+            meta["crc"] = json.dumps({k: _tensor_crc(k, v) for k, v in tensors.items()}, sort_keys=True)
+            meta["header_crc"] = _header_crc(meta)
+            data = save(tensors, metadata=meta)
+            with os.fdopen(os.dup(fd), "wb") as fh:
+                fh.write(data)
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.replace(tmp, self.path(episode))
         finally:
             if os.path.exists(tmp):
                 os.unlink(tmp)
+            os.close(fd)
         self._open.pop(int(episode), None)
-        return CacheStats(len(frames), int(static[0].sum()), path.stat().st_size)
+        return CacheStats(n, len(data))
 
     @contextmanager
     def lock(self, episode: int):
-        """Exclusive per-episode lock (a lock file beside the episode file)."""
+        """Exclusive per-episode lock (``.episode_<index>.lock`` beside the file).
+
+        Robust to the lock file being deleted: a lock taken on a file that is no longer at its
+        path is retried, and temporary files still locked by a builder whose lock file was
+        removed are waited for; unlocked ones (a builder was killed) are removed."""
         self.root.mkdir(parents=True, exist_ok=True)
-        with open(self.root / f".episode_{int(episode):06d}.lock", "w") as fh:
-            fcntl.flock(fh, fcntl.LOCK_EX)
+        path = self.root / f".episode_{int(episode):06d}.lock"
+        while True:
+            fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o666)
+            fcntl.flock(fd, fcntl.LOCK_EX)
             try:
-                yield
-            finally:
-                fcntl.flock(fh, fcntl.LOCK_UN)
-
-    def ensure(self, episode: int, build: Callable[[], Sequence[Reconstruction]], verify: bool = False) -> None:
-        """Build the episode with ``build()`` unless a valid file exists; stale files and files
-        with a bad header are rebuilt, and with ``verify`` also files that fail a checksum
-        (reads the whole file). Safe when several processes call it at once."""
-        if not verify and self.status(episode) == "ok":
-            return
-        with self.lock(episode):
-            self._open.pop(int(episode), None)  # another process may have replaced the file
-            if self.status(episode) != "ok" or (verify and not self.verify(episode)):
-                self.write_episode(episode, build())
-
-    def verify(self, episode: int) -> bool:
-        """Whether every group of a readable episode file passes its checksum."""
-        f = self._file(episode)
+                if os.fstat(fd).st_ino == os.stat(path).st_ino:
+                    break
+            except FileNotFoundError:
+                pass
+            os.close(fd)
         try:
-            for name in f.crc:
-                f.group(name)
-        except CorruptCacheError:
-            return False
-        return True
+            for tmp in self.root.glob(f".{self.path(episode).name}.*.tmp"):
+                _remove_or_wait(tmp)
+            yield
+        finally:
+            fcntl.flock(fd, fcntl.LOCK_UN)
+            os.close(fd)
 
     # ------------------------------------------------------------------ reading
     def status(self, episode: int) -> str:
-        """'ok', 'missing', 'stale' or 'corrupt' (checks the header, not the checksums)."""
+        """'ok', 'missing', 'stale' or 'corrupt' (checks the whole header, not the data)."""
         if not self.path(episode).exists():
             return "missing"
         try:
@@ -225,30 +269,113 @@ class GaussianCache:
             return "stale"
         except CorruptCacheError:
             return "corrupt"
+        except FileNotFoundError:
+            return "missing"
         return "ok"
+
+    def verify(self, episode: int) -> bool:
+        """Whether every tensor of a readable episode file passes its checksum."""
+        try:
+            f = self._file(episode)
+            for name in f.crc:
+                f.tensor(name)
+        except (CacheError, FileNotFoundError):
+            return False
+        return True
 
     def num_frames(self, episode: int) -> int:
         return self._file(episode).num_frames
 
-    def read(self, episode: int, frame: int) -> Reconstruction:
+    def image_size(self, episode: int) -> tuple[int, int]:
+        """(width, height) of the cached cameras."""
+        f = self._file(episode)
+        return f.width, f.height
+
+    def read(self, episode: int, frame: int, images: torch.Tensor | None = None) -> Reconstruction:
         """Gaussians (float32) and source cameras of one timestep.
 
+        Args:
+            images: (V, 3, H, W) float in [0, 1], the reconstructed cameras' images of this
+                timestep at the cached size; required by a ``depth`` cache, which builds the
+                Gaussians from them, ignored otherwise.
         Raises:
             FileNotFoundError: the episode is not cached.
+            IndexError: ``frame`` is outside the episode.
             StaleCacheError, CorruptCacheError: see the module docstring.
         """
-        return self._file(episode).read(frame)
+        f = self._file(episode)
+        if self.kind == "gaussians":
+            return f.gaussians(frame)
+        if images is None:
+            raise ValueError(f"GaussianCache.read: a depth cache ({self.identity}) needs the views' images")
+        return self.reconstructor.assemble(f.depth_views(frame, images))
 
     def _file(self, episode: int) -> _EpisodeFile:
         episode = int(episode)
         if episode in self._open:
             self._open.move_to_end(episode)
             return self._open[episode]
-        f = _EpisodeFile(self.path(episode), episode, self.reconstructor, self.dataset)
+        f = _EpisodeFile(self.path(episode), episode, self)
         self._open[episode] = f
         while len(self._open) > self.max_open:
             self._open.popitem(last=False)
         return f
+
+
+def _remove_or_wait(tmp: Path) -> None:
+    """Remove a builder's temporary file if no live process holds it, else wait for it."""
+    try:
+        fd = os.open(tmp, os.O_RDONLY)
+    except FileNotFoundError:
+        return
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:  # a live builder: wait until it has renamed or dropped the file
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            return
+        if os.path.exists(tmp) and os.stat(tmp).st_ino == os.fstat(fd).st_ino:
+            os.unlink(tmp)
+    finally:
+        os.close(fd)
+
+
+# ---------------------------------------------------------------------------- encodings
+
+
+def _cameras(frames) -> dict[str, torch.Tensor]:
+    return {"K": torch.stack([f.cameras.K.double() for f in frames]).contiguous(),
+            "c2w": torch.stack([f.cameras.c2w.double() for f in frames]).contiguous()}  # fmt: skip
+
+
+def _encode_depth(frames: Sequence[Views]) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+    """Tensors and header fields of a depth episode (frames from ``predict_depth``)."""
+    depths = torch.stack([f.depths[:, 0] for f in frames])  # (T, V, H, W)
+    ref, blobs = depth_codec.encode_episode(depths)
+    tensors = {"depth.reference": _blob(ref), **{f"depth.f{t}": _blob(b) for t, b in enumerate(blobs)}}
+    _, v, h, w = depths.shape
+    cam = frames[0].cameras
+    meta = {"image_size": json.dumps([cam.width, cam.height]), "num_views": str(v),
+            "depth_codec": json.dumps({"step": depth_codec.STEP, "d_min": depth_codec.D_MIN,
+                                       "d_max": depth_codec.D_MAX})}  # fmt: skip
+    if (h, w) != (cam.height, cam.width):
+        raise ValueError(f"GaussianCache: depth maps are {w}x{h}, the cameras {cam.width}x{cam.height}")
+    return {**tensors, **_cameras(frames)}, meta
+
+
+def _encode_gaussians(frames: Sequence[Reconstruction]) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+    """Tensors and header fields of a Gaussians episode."""
+    means = torch.cat([f.gaussians.means.float() for f in frames])
+    lo, hi = (means.amin(0), means.amax(0)) if means.numel() else (torch.zeros(3), torch.ones(3))
+    qs = [quantize(f.gaussians, lo, hi) for f in frames]
+    static = _static_mask(frames, qs)
+    tensors = {f"static.{k}": v[static[0]].contiguous() for k, v in qs[0].items()}
+    for t, q in enumerate(qs):
+        tensors.update({f"f{t}.{k}": v[~static[t]].contiguous() for k, v in q.items()})
+    cam = frames[0].cameras
+    meta = {"image_size": json.dumps([cam.width, cam.height]), "num_views": str(len(cam)),
+            "bbox": json.dumps([lo.tolist(), hi.tolist()])}  # fmt: skip
+    return {**tensors, **_cameras(frames)}, meta
 
 
 def _static_mask(frames: Sequence[Reconstruction], qs: list[dict]) -> list[torch.Tensor]:
@@ -271,9 +398,9 @@ def _static_mask(frames: Sequence[Reconstruction], qs: list[dict]) -> list[torch
 
 
 class _EpisodeFile:
-    """An open, validated episode file; decodes frames on demand."""
+    """An open episode file whose whole header was validated; decodes frames on demand."""
 
-    def __init__(self, path: Path, episode: int, reconstructor: str, dataset: str) -> None:
+    def __init__(self, path: Path, episode: int, cache: GaussianCache) -> None:
         if not path.exists():
             raise FileNotFoundError(f"{path}: episode not cached")
         self.path = path
@@ -281,41 +408,90 @@ class _EpisodeFile:
             self.handle = safe_open(str(path), framework="pt")
             meta = self.handle.metadata() or {}
         except Exception as e:  # safetensors raises its own error types on bad files
-            raise CorruptCacheError(f"{path}: unreadable cache file ({e}); delete it to rebuild") from e
+            raise CorruptCacheError(f"{path}: unreadable cache file ({e}); it is rebuilt on the next build") from e
         if meta.get("format") != FORMAT:
             raise CorruptCacheError(f"{path}: not a GenSplat cache file")
-        for key, want in (("format_version", str(FORMAT_VERSION)), ("reconstructor", reconstructor),
-                          ("dataset", dataset)):  # fmt: skip
+        if meta.get("format_version") != FORMAT_VERSION:
+            raise StaleCacheError(f"{path}: cache format {meta.get('format_version')!r}, expected {FORMAT_VERSION!r}")
+        if meta.get("header_crc") != _header_crc(meta):
+            raise CorruptCacheError(f"{path}: header checksum mismatch (the header was edited or damaged)")
+        for key, want in (("kind", cache.kind), ("reconstructor", cache.identity), ("dataset", cache.dataset)):
             if meta.get(key) != want:
                 raise StaleCacheError(f"{path}: built with {key}={meta.get(key)!r}, expected {want!r}")
-        if meta.get("episode_index") != str(episode):
-            raise CorruptCacheError(f"{path}: holds episode {meta.get('episode_index')}, not {episode}")
-        self.num_frames = int(meta["num_frames"])
-        self.width, self.height = json.loads(meta["image_size"])
-        lo, hi = json.loads(meta["bbox"])
-        self.lo, self.hi = torch.tensor(lo), torch.tensor(hi)
-        if not (torch.isfinite(self.lo).all() and torch.isfinite(self.hi).all()):
-            raise CorruptCacheError(f"{path}: bounding box {meta['bbox']} is not finite; delete it to rebuild")
-        self.crc = json.loads(meta["crc"])
-        self._static: Gaussians | None = None
-
-    def group(self, name: str) -> dict[str, torch.Tensor]:
-        """The tensors of one group (``static`` or ``f<t>``), checksum verified."""
-        keys = [k for k in self.handle.keys() if k.startswith(name + ".")]  # noqa: SIM118 (not a dict)
         try:
-            group = {k[len(name) + 1 :]: self.handle.get_tensor(k) for k in keys}
-        except Exception as e:
-            raise CorruptCacheError(f"{self.path}: cannot read group {name!r} ({e})") from e
-        if not keys or _crc(group) != self.crc.get(name):
-            raise CorruptCacheError(f"{self.path}: checksum mismatch in {name!r}; delete the file to rebuild")
-        return group
+            self._parse(meta, episode)
+        except (KeyError, ValueError, TypeError) as e:
+            raise CorruptCacheError(f"{path}: malformed header ({type(e).__name__}: {e})") from e
+        self._static: Gaussians | None = None
+        self._reference: np.ndarray | None = None
 
-    def read(self, frame: int) -> Reconstruction:
+    def _parse(self, meta: dict[str, str], episode: int) -> None:
+        if int(meta["episode_index"]) != episode:
+            raise ValueError(f"holds episode {meta['episode_index']}, not {episode}")
+        self.num_frames, self.num_views = int(meta["num_frames"]), int(meta["num_views"])
+        self.width, self.height = (int(x) for x in json.loads(meta["image_size"]))
+        if min(self.num_frames, self.num_views, self.width, self.height) < 1:
+            raise ValueError("num_frames, num_views and image_size must be positive")
+        self.crc = dict(json.loads(meta["crc"]))
+        if set(self.crc) != set(self.handle.keys()):
+            raise ValueError("the checksum list and the stored tensors differ")
+        for name in self.crc:
+            dtype, want = self.handle.get_slice(name).get_dtype(), _DTYPES[name.rsplit(".", 1)[-1].rstrip("0123456789")]
+            if dtype != want:
+                raise ValueError(f"tensor {name!r} is labelled {dtype}, expected {want}")
+        if meta["kind"] == "gaussians":
+            lo, hi = json.loads(meta["bbox"])
+            self.lo, self.hi = torch.tensor(lo, dtype=torch.float32), torch.tensor(hi, dtype=torch.float32)
+            if self.lo.shape != (3,) or self.hi.shape != (3,) or not torch.isfinite(torch.cat([self.lo, self.hi])).all():
+                raise ValueError(f"bounding box {meta['bbox']} is not two finite 3-vectors")
+        K, c2w = self.tensor("K"), self.tensor("c2w")
+        want = (self.num_frames, self.num_views)
+        if K.shape != (*want, 3, 3) or c2w.shape != (*want, 4, 4) or K.dtype != torch.float64:
+            raise ValueError(f"cameras of shape {tuple(K.shape)} / {tuple(c2w.shape)}, expected {want} views")
+        self.K, self.c2w = K, c2w
+
+    def tensor(self, name: str) -> torch.Tensor:
+        """One stored tensor, checksum verified."""
+        try:
+            t = self.handle.get_tensor(name)
+        except Exception as e:
+            raise CorruptCacheError(f"{self.path}: cannot read {name!r} ({e})") from e
+        if _tensor_crc(name, t) != self.crc.get(name):
+            raise CorruptCacheError(f"{self.path}: checksum mismatch in {name!r}; it is rebuilt on the next build")
+        return t
+
+    def _check_frame(self, frame: int) -> None:
         if not 0 <= frame < self.num_frames:
             raise IndexError(f"{self.path}: frame {frame} outside 0..{self.num_frames - 1}")
-        if self._static is None:  # decoded once per process and episode, then reused
-            self._static = dequantize(self.group("static"), self.lo, self.hi)
-        group = self.group(f"f{frame}")
-        g = Gaussians.cat([self._static, dequantize(group, self.lo, self.hi)])
-        cams = Cameras(group["K"], group["c2w"], self.width, self.height)
-        return Reconstruction(g, cams)
+
+    def cameras(self, frame: int) -> Cameras:
+        return Cameras(self.K[frame], self.c2w[frame], self.width, self.height)
+
+    def depth_views(self, frame: int, images: torch.Tensor) -> Views:
+        """Views of one frame: the given images, the cached cameras and depth."""
+        self._check_frame(frame)
+        if self._reference is None:  # decoded once per process and episode, then reused
+            blob = self.tensor("depth.reference").numpy().tobytes()
+            try:
+                self._reference = depth_codec.decode_reference(blob, (self.num_views, self.height, self.width))
+            except (zlib.error, ValueError) as e:
+                raise CorruptCacheError(f"{self.path}: undecodable depth reference ({e})") from e
+        blob = self.tensor(f"depth.f{frame}").numpy().tobytes()
+        try:
+            depth = depth_codec.decode_frame(self._reference, blob)
+        except (zlib.error, ValueError) as e:
+            raise CorruptCacheError(f"{self.path}: undecodable depth of frame {frame} ({e})") from e
+        want = (self.num_views, 3, self.height, self.width)
+        if tuple(images.shape) != want:
+            raise ValueError(f"GaussianCache.read: images of shape {tuple(images.shape)}, the cache holds {want}")
+        return Views(images, self.cameras(frame), depth)
+
+    def gaussians(self, frame: int) -> Reconstruction:
+        self._check_frame(frame)
+        if self._static is None:
+            self._static = dequantize(self._group("static"), self.lo, self.hi)
+        g = Gaussians.cat([self._static, dequantize(self._group(f"f{frame}"), self.lo, self.hi)])
+        return Reconstruction(g, self.cameras(frame))
+
+    def _group(self, name: str) -> dict[str, torch.Tensor]:
+        return {k: self.tensor(f"{name}.{k}") for k in _FIELDS}

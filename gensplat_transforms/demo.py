@@ -55,7 +55,7 @@ def run_demo(out_dir: str | Path, episodes: int = 2, size: int = 224, seed: int 
     dataset = enable_gensplat(LeRobotDataset(REPO_ID, root=root))
     tf = dataset.gensplat
     preview_tf = GenSplatTransform(GenSplatConfig(**{**tf.cfg.__dict__, "probability": 1.0, "level": "large",
-                                                     "views_per_source": 1}), tf.cache)  # fmt: skip
+                                                     "views_per_source": 1}), tf.cache, tf.source)  # fmt: skip
     length = int(dataset.meta.episodes["length"][0])
     items = [LeRobotDataset.__getitem__(dataset, i) for i in range(length)]
     paths = write_preview(items, preview_tf, list(tf.cfg.cameras), out_dir)
@@ -70,7 +70,7 @@ def run_demo(out_dir: str | Path, episodes: int = 2, size: int = 224, seed: int 
 def _levels(tf: GenSplatTransform, truth, item: dict, path: Path, log) -> dict:
     """Perturb the first external camera at every level; compare with the simulator."""
     ep, fr = int(item["episode_index"]), int(item["frame_index"])
-    rec = tf.cache.read(ep, fr)
+    rec = tf.cache.read(ep, fr, tf.source.views(ep, fr).images)
     rows, labels, out = [], [], {}
     for level in EVAL_LEVELS:
         p = PerturbationSampler(level, seed=tf.cfg.seed).sample(ep)

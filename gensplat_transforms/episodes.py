@@ -11,52 +11,27 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 from collections.abc import Iterable
-from typing import Protocol
 
 import torch
 from torch.utils.data import Dataset
 from tqdm.auto import tqdm
 
-from .cache import CacheStats, GaussianCache
-from .reconstruction import Reconstructor, Views
+from .cache import CacheStats, EpisodeSource, GaussianCache
+from .reconstruction import Views
 from .scenes import TabletopScene, default_cameras
 
 
-class EpisodeSource(Protocol):
-    """Views of the reconstructed cameras, per timestep.
-
-    Attributes:
-        camera_names: names of the cameras ``views`` returns, in order.
-        fingerprint: changes whenever the content changes (keys the cache).
-    """
-
-    camera_names: tuple[str, ...]
-    fingerprint: str
-
-    def num_frames(self, episode: int) -> int: ...
-
-    def views(self, episode: int, frame: int) -> Views: ...
-
-
 def build_cache(
-    cache: GaussianCache,
-    source: EpisodeSource,
-    reconstructor: Reconstructor,
-    episodes: Iterable[int],
-    progress: bool = True,
+    cache: GaussianCache, source: EpisodeSource, episodes: Iterable[int], progress: bool = True
 ) -> dict[int, CacheStats | None]:
-    """Reconstruct and cache every frame of ``episodes``. Resumable: episodes whose file is
-    already valid are skipped (their value in the result is None)."""
+    """Reconstruct and cache every frame of ``episodes`` with the cache's reconstructor.
+
+    Resumable and idempotent: an episode whose file passes every checksum is skipped (its
+    value in the result is None); stale, corrupt or half-written ones are rebuilt. Several
+    processes may run it on the same episodes at once (see :meth:`GaussianCache.ensure`)."""
     episodes = list(episodes)
-    out: dict[int, CacheStats | None] = {}
-    for ep in tqdm(episodes, desc="caching Gaussians", unit="episode", disable=not progress):
-        if cache.status(ep) == "ok":
-            out[ep] = None
-            continue
-        with cache.lock(ep):
-            frames = [reconstructor(source.views(ep, t)) for t in range(source.num_frames(ep))]
-            out[ep] = cache.write_episode(ep, frames)
-    return out
+    return {ep: cache.ensure(ep, source, verify=True)
+            for ep in tqdm(episodes, desc="caching", unit="episode", disable=not progress)}  # fmt: skip
 
 
 class SceneEpisodes:

@@ -10,13 +10,12 @@ import torch
 import torch.nn.functional as F
 from torch.utils.data import Dataset
 
-from .cache import CorruptCacheError, GaussianCache
+from .cache import CorruptCacheError, EpisodeSource, GaussianCache
 from .cameras import Cameras
-from .episodes import EpisodeSource
 from .gaussians import Gaussians
 from .holes import fill_holes
 from .perturbation import AXES, Perturbation, PerturbationRange, PerturbationSampler
-from .reconstruction import Reconstruction, Reconstructor
+from .reconstruction import Reconstruction
 from .rendering import BACKENDS, RenderOutput, render
 
 logger = logging.getLogger(__name__)
@@ -96,25 +95,18 @@ class GenSplatTransform:
     """Callable on a dataset item (a dict); returns a new dict, never modifies its input.
 
     Gaussians come from ``cache``; episodes missing from it are built on first use from
-    ``source`` with ``reconstructor`` (safe with several workers), or raise if those are
-    not given; an episode file whose data fails its checksum is rebuilt the same way.
+    ``source`` with the cache's reconstructor (safe with several workers), or raise if no
+    source is given; an episode file whose data fails its checksum is rebuilt the same way.
+    A ``depth`` cache (see :mod:`.cache`) builds the Gaussians from the item's own images,
+    so the item must carry the images of every reconstructed camera.
     Picklable (spawn workers). The ``gsplat`` backend renders on CUDA: use it with spawn
     workers (CUDA cannot be initialised in a forked worker) or in the main process.
     """
 
-    def __init__(
-        self,
-        config: GenSplatConfig,
-        cache: GaussianCache,
-        source: EpisodeSource | None = None,
-        reconstructor: Reconstructor | None = None,
-    ) -> None:
+    def __init__(self, config: GenSplatConfig, cache: GaussianCache, source: EpisodeSource | None = None) -> None:
         self.cfg = config
         self.cache = cache
         self.source = source
-        self.reconstructor = reconstructor
-        if (source is None) != (reconstructor is None):
-            raise ValueError("GenSplatTransform: pass both source and reconstructor, or neither")
         if source is not None and tuple(source.camera_names) != config.cameras:
             raise ValueError(
                 f"GenSplatTransform: the source reconstructs {tuple(source.camera_names)}, "
@@ -127,10 +119,13 @@ class GenSplatTransform:
         for key in ("episode_index", "frame_index"):
             if key not in item:
                 raise KeyError(f"GenSplatTransform: item has no {key!r}; keys: {sorted(item)}")
-        keys = [self.cfg.image_key.format(name=n) for n in self.cfg.replace]
-        missing = [k for k in keys if k not in item]
+        keys = {n: self.cfg.image_key.format(name=n) for n in self.cfg.cameras}
+        needed = self.cfg.cameras if self.cache.kind == "depth" else self.cfg.replace
+        missing = [keys[n] for n in needed if keys[n] not in item]
         if missing:
             raise KeyError(f"GenSplatTransform: item lacks camera image(s) {missing}; keys: {sorted(item)}")
+        for n in needed:
+            _check_image(keys[n], item[keys[n]])
         episode, frame = int(item["episode_index"]), int(item["frame_index"])
         out = dict(item)
         applied = bool(torch.rand(()) < self.cfg.probability)
@@ -138,11 +133,14 @@ class GenSplatTransform:
         report = []
         if applied:
             self._ensure(episode)
+            last = self.cache.num_frames(episode) - 1
+            if not 0 <= frame <= last:
+                raise IndexError(f"GenSplatTransform: frame_index {frame} outside episode {episode} (0..{last})")
         read: dict[int, Reconstruction] = {}  # frame -> Gaussians, read once per item
-        for ci, (name, key) in enumerate(zip(self.cfg.replace, keys)):
+        for ci, name in enumerate(self.cfg.replace):
             p = self.sampler.sample(episode, frame, view=view * len(self.cfg.replace) + ci)
             if applied:
-                out[key] = self._render_like(item[key], episode, frame, name, p, read)
+                out[keys[name]] = self._render_like(item, keys, episode, frame, name, p, read)
             report.append([float(applied), float(AXES.index(p.axis)), p.theta_deg, p.mu_m])
         if self.cfg.report:
             r = torch.tensor(report) if applied else torch.zeros(len(report), 4)
@@ -152,21 +150,21 @@ class GenSplatTransform:
             out["gensplat.mu_m"] = r[:, 3]
         return out
 
-    def _render_like(self, image: torch.Tensor, episode: int, frame: int, name: str, p: Perturbation,
-                     read: dict[int, Reconstruction]) -> torch.Tensor:
-        """Rendered replacement with the shape and dtype of ``image``: uint8 in [0, 255], or
-        float in [0, 1] (float images are taken to be in [0, 1], as LeRobot's are)."""
-        if image.ndim not in (3, 4) or image.shape[-3] != 3:
-            raise ValueError(f"GenSplatTransform: expected (3, H, W) or (T, 3, H, W) images, got {tuple(image.shape)}")
+    def _render_like(self, item: dict, keys: dict[str, str], episode: int, frame: int, name: str,
+                     p: Perturbation, read: dict[int, Reconstruction]) -> torch.Tensor:
+        """Rendered replacement of ``item[keys[name]]`` with its shape and dtype: uint8 in
+        [0, 255], or float in [0, 1] (float images are taken to be in [0, 1], as LeRobot's are)."""
+        image = item[keys[name]]
         stack = image if image.ndim == 4 else image[None]
         offsets = (0,) if image.ndim == 3 else self.cfg.frame_offsets or tuple(range(1 - stack.shape[0], 1))
         if len(offsets) != stack.shape[0]:
             raise ValueError(f"GenSplatTransform: {len(offsets)} frame_offsets for a stack of {stack.shape[0]}")
         last = self.cache.num_frames(episode) - 1
         rgbs = []
-        for f in (min(max(frame + o, 0), last) for o in offsets):
+        for k, o in enumerate(offsets):
+            f = min(max(frame + o, 0), last)  # a stack reaching past the episode repeats its ends
             if f not in read:
-                read[f] = self._read(episode, f)
+                read[f] = self._read(episode, f, lambda k=k, o=o: self._source_images(item, keys, k, o, episode))
             target = p.move(read[f].cameras, self.cfg.cameras.index(name))
             rgbs.append(render_view(read[f].gaussians, target, self.cfg).rgb[0])
         rgb = torch.stack(rgbs)
@@ -179,6 +177,29 @@ class GenSplatTransform:
             rgb = rgb.to(stack.dtype)
         return rgb if image.ndim == 4 else rgb[0]
 
+    def _source_images(self, item: dict, keys: dict[str, str], k: int, offset: int, episode: int) -> torch.Tensor:
+        """(V, 3, H, W) float images of the reconstructed cameras at stack index ``k`` (frame
+        offset ``offset``), at the cache's size (a depth cache builds the Gaussians from them)."""
+        width, height = self.cache.image_size(episode)
+        if any(item[keys[n]].ndim == 3 for n in self.cfg.cameras) and offset != 0:
+            if self.source is None:
+                raise ValueError(f"GenSplatTransform: frame offset {offset} is rendered but not every reconstructed "
+                                 "camera's images are stacked in the item (a depth cache needs them), and no source "
+                                 "was given to read them from")  # fmt: skip
+            last = self.cache.num_frames(episode) - 1
+            return self.source.views(episode, min(max(int(item["frame_index"]) + offset, 0), last)).images
+        views = []
+        for n in self.cfg.cameras:
+            image = item[keys[n]]
+            image = (image if image.ndim == 3 else image[k]).float()
+            if item[keys[n]].dtype == torch.uint8:
+                image = image / 255
+            if image.shape[-2:] != (height, width):
+                image = F.interpolate(image[None], size=(height, width), mode="bilinear", antialias=True,
+                                      align_corners=False)[0]  # fmt: skip
+            views.append(image.clamp(0, 1))
+        return torch.stack(views)
+
     def _ensure(self, episode: int, verify: bool = False) -> None:
         """Build the episode unless the cache holds it (with ``verify``: every checksum passes)."""
         status = self.cache.status(episode)
@@ -186,26 +207,33 @@ class GenSplatTransform:
             if self.source is None:
                 raise FileNotFoundError(
                     f"GenSplatTransform: episode {episode} is {status} in the cache at {self.cache.root} "
-                    "and no source/reconstructor was given to build it; run the cache command first"
+                    "and no source was given to build it; run the cache command first"
                 )
-            src, rec = self.source, self.reconstructor
+            self.cache.ensure(episode, self.source, verify=verify)
 
-            def build() -> list[Reconstruction]:
-                return [rec(src.views(episode, t)) for t in range(src.num_frames(episode))]
-
-            self.cache.ensure(episode, build, verify=verify)
-
-    def _read(self, episode: int, frame: int) -> Reconstruction:
-        """One cached frame; a file whose data fails its checksum is rebuilt once (when a
-        source is given) instead of stopping the training run."""
+    def _read(self, episode: int, frame: int, images) -> Reconstruction:
+        """One cached frame (``images()`` gives the views' images, for a depth cache); a file
+        whose data fails its checksum is rebuilt once (when a source is given) instead of
+        stopping the training run."""
+        views = images() if self.cache.kind == "depth" else None
         try:
-            return self.cache.read(episode, frame)
+            return self.cache.read(episode, frame, views)
         except CorruptCacheError as e:
             if self.source is None:
                 raise
             logger.warning("%s: rebuilding episode %d", e, episode)
             self._ensure(episode, verify=True)
-            return self.cache.read(episode, frame)
+            return self.cache.read(episode, frame, views)
+
+
+def _check_image(key: str, image: torch.Tensor) -> None:
+    """A camera image the transform can replace: (3, H, W) or (T, 3, H, W), uint8 or float."""
+    if not isinstance(image, torch.Tensor):
+        raise TypeError(f"GenSplatTransform: {key} is a {type(image).__name__}, expected a torch.Tensor")
+    if image.ndim not in (3, 4) or image.shape[-3] != 3 or 0 in image.shape:
+        raise ValueError(f"GenSplatTransform: {key}: expected (3, H, W) or (T, 3, H, W) images, got {tuple(image.shape)}")
+    if image.dtype != torch.uint8 and not image.is_floating_point():
+        raise ValueError(f"GenSplatTransform: {key}: images must be uint8 in [0, 255] or float in [0, 1], got {image.dtype}")
 
 
 class AugmentedDataset(Dataset):

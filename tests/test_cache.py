@@ -1,15 +1,24 @@
-"""The Gaussian cache: quantisation loss, static dedup, staleness and corruption."""
+"""The cache: depth and Gaussian encodings, staleness, and that nothing wrong ever passes."""
 
+import json
+import os
+import struct
+import subprocess
+import sys
 import threading
+import time
 
+import numpy as np
 import pytest
 import torch
 
+from gensplat_transforms import depth_codec as dc
 from gensplat_transforms import render
 from gensplat_transforms.cache import CorruptCacheError, GaussianCache, StaleCacheError, dequantize, quantize
 from gensplat_transforms.episodes import SceneEpisodes, build_cache
+from gensplat_transforms.gaussians import Gaussians
 from gensplat_transforms.metrics import psnr
-from gensplat_transforms.reconstruction import RGBDReconstructor
+from gensplat_transforms.reconstruction import Reconstruction, Reconstructor, RGBDReconstructor
 
 
 @pytest.fixture(scope="module")
@@ -17,12 +26,151 @@ def source():
     return SceneEpisodes(num_episodes=2, num_frames=3, size=48)
 
 
+class Replay(Reconstructor):
+    """A non-depth reconstructor (as the model's Gaussian head): returns prepared frames in order."""
+
+    name = "replay"
+
+    def __init__(self, frames):
+        self.frames, self.calls = frames, 0
+
+    def config(self):
+        return {"frames": len(self.frames)}
+
+    def reconstruct(self, views):
+        self.calls += 1
+        return self.frames[(self.calls - 1) % len(self.frames)]
+
+
+class CountingSource:
+    """Wraps a source; counts ``views`` calls and can sleep in them (a slow build)."""
+
+    def __init__(self, source, sleep=0.0):
+        self.source, self.sleep, self.calls = source, sleep, 0
+        self.camera_names, self.fingerprint = source.camera_names, source.fingerprint
+
+    def num_frames(self, episode):
+        return self.source.num_frames(episode)
+
+    def views(self, episode, frame):
+        self.calls += 1
+        time.sleep(self.sleep)
+        return self.source.views(episode, frame)
+
+
 @pytest.fixture
 def built(tmp_path, source):
+    cache = GaussianCache(tmp_path / "cache", RGBDReconstructor(), source.fingerprint)
+    stats = build_cache(cache, source, range(2), progress=False)
+    return cache, stats
+
+
+@pytest.fixture
+def built_gaussians(tmp_path, source):
+    frames = [RGBDReconstructor()(source.views(0, t)) for t in range(3)]
+    cache = GaussianCache(tmp_path / "gcache", Replay(frames), source.fingerprint)
+    cache.ensure(0, source)
+    return cache, frames
+
+
+def fresh(cache):
+    return GaussianCache(cache.root, cache.reconstructor, cache.dataset)
+
+
+# ---------------------------------------------------------------------------- depth codec
+
+
+def test_depth_codec_error_is_bounded_and_invalid_stays_invalid():
+    g = torch.Generator().manual_seed(0)
+    d = torch.exp(torch.empty(4, 2, 16, 16).uniform_(-13, 13, generator=g))  # 2 um .. 400 km
+    d[0, 0, 0, :5] = torch.tensor([0.0, -1.0, float("nan"), float("inf"), 2e6])  # no depth / out of range
+    ref, blobs = dc.encode_episode(d)
+    codes = dc.decode_reference(ref, (2, 16, 16))
+    out = torch.stack([dc.decode_frame(codes, b)[:, 0] for b in blobs])
+    ok = (d >= dc.D_MIN) & (d <= dc.D_MAX)
+    assert torch.equal(out > 0, ok)
+    rel = ((out - d).abs() / d)[ok]
+    assert rel.max() <= dc.MAX_RELATIVE_ERROR * 1.001 + 1e-7  # float32 output
+    # decoding is exact: codes survive the reference + residual + zlib path unchanged
+    assert np.array_equal(dc.quantize_depth(out), dc.quantize_depth(d))
+
+
+def test_depth_codec_rejects_a_blob_of_the_wrong_size():
+    ref, _ = dc.encode_episode(torch.ones(2, 1, 4, 4))
+    with pytest.raises(ValueError, match="expected 32"):
+        dc.decode_reference(ref, (2, 4, 4))
+
+
+# ---------------------------------------------------------------------------- depth cache
+
+
+def test_depth_cache_round_trip_is_small_and_faithful(built, source):
+    cache, stats = built
+    assert cache.kind == "depth"
     rec = RGBDReconstructor()
-    cache = GaussianCache(tmp_path / "cache", rec.identity(), source.fingerprint)
-    stats = build_cache(cache, source, rec, range(2), progress=False)
-    return cache, rec, stats
+    for ep in range(2):
+        assert stats[ep].num_frames == 3
+        # 2 views of 48x48: the quantised Gaussians took 23 B per pixel; depth codes a small fraction
+        assert stats[ep].bytes_per_timestep < 0.15 * 2 * 48 * 48 * 23
+        for t in range(3):
+            views = source.views(ep, t)
+            direct, cached = rec(views), cache.read(ep, t, views.images)
+            assert torch.equal(cached.pixel_ids, direct.pixel_ids)
+            torch.testing.assert_close(cached.cameras.c2w, direct.cameras.c2w.double())
+            a = render(direct.gaussians, direct.cameras[:1]).rgb
+            b = render(cached.gaussians, cached.cameras[:1]).rgb
+            assert psnr(b, a) > 45.0
+
+
+def test_depth_cache_needs_images_of_the_right_shape(built, source):
+    cache, _ = built
+    with pytest.raises(ValueError, match="needs the views' images"):
+        cache.read(0, 0)
+    with pytest.raises(ValueError, match="images of shape"):
+        cache.read(0, 0, torch.rand(1, 3, 48, 48))
+
+
+def test_resumable_build_skips_valid_episodes(built, source):
+    cache, _ = built
+    mtime = cache.path(0).stat().st_mtime_ns
+    cache.path(1).unlink()
+    stats = build_cache(cache, source, range(2), progress=False)
+    assert stats[0] is None and stats[1] is not None
+    assert cache.path(0).stat().st_mtime_ns == mtime
+
+
+def test_stale_cache_is_detected(built):
+    cache, _ = built
+    other_rec = GaussianCache(cache.root, RGBDReconstructor(sigma_px=0.3), cache.dataset)
+    other_data = GaussianCache(cache.root, cache.reconstructor, "another-dataset")
+    for c in (other_rec, other_data):
+        assert c.status(0) == "stale"
+        with pytest.raises(StaleCacheError):
+            c.read(0, 0, torch.zeros(2, 3, 48, 48))
+
+
+def test_a_source_of_another_dataset_is_refused(tmp_path, source):
+    cache = GaussianCache(tmp_path, RGBDReconstructor(), "not-this-dataset")
+    with pytest.raises(StaleCacheError, match="fingerprint"):
+        cache.ensure(0, source)
+
+
+def test_the_compiled_and_reference_rgbd_share_a_cache(built):
+    cache, _ = built
+    assert fresh(cache).status(0) == "ok"
+    assert GaussianCache(cache.root, RGBDReconstructor(fast=False), cache.dataset).status(0) == "ok"
+
+
+# ---------------------------------------------------------------------------- gaussians cache
+
+
+def test_gaussian_cache_round_trip(built_gaussians):
+    cache, frames = built_gaussians
+    assert cache.kind == "gaussians"
+    for t, f in enumerate(frames):
+        got = cache.read(0, t)
+        a = render(f.gaussians, f.cameras[:1]).rgb
+        assert psnr(render(got.gaussians, got.cameras[:1]).rgb, a) > 45.0
 
 
 def test_quantisation_costs_far_less_than_a_tenth_of_a_db(source):
@@ -31,195 +179,282 @@ def test_quantisation_costs_far_less_than_a_tenth_of_a_db(source):
     lo, hi = g.means.amin(0), g.means.amax(0)
     gq = dequantize(quantize(g, lo, hi), lo, hi)
     assert (gq.means - g.means).abs().max() <= (hi - lo).max() / 65535
-    a = render(g, rec.cameras).rgb
-    b = render(gq, rec.cameras).rgb
-    # 45 dB against the unquantised render is an error 30x below the ~30 dB the
-    # reconstruction itself reaches against the truth: far under the 0.3 dB budget.
-    assert psnr(b, a) > 45.0
-
-
-def test_round_trip_and_static_part_stored_once(built, source):
-    cache, rec, stats = built
-    for ep in range(2):
-        s = stats[ep]
-        assert s.num_frames == 3
-        assert s.num_static > 0.8 * 2 * 48 * 48  # one small object moves; the rest is static
-        for t in range(3):
-            direct = rec(source.views(ep, t))
-            cached = cache.read(ep, t)
-            assert len(cached.gaussians) == len(direct.gaussians)
-            torch.testing.assert_close(cached.cameras.c2w, direct.cameras.c2w.double())
-            a = render(direct.gaussians, direct.cameras[:1]).rgb
-            b = render(cached.gaussians, cached.cameras[:1]).rgb
-            assert psnr(b, a) > 45.0
-    # dedup makes a file much smaller than frames x full storage (23 B per Gaussian)
-    assert stats[0].bytes < 0.5 * 3 * 2 * 48 * 48 * 23
-
-
-def test_resumable_build_skips_valid_episodes(built, source):
-    cache, rec, _ = built
-    mtime = cache.path(0).stat().st_mtime_ns
-    cache.path(1).unlink()
-    stats = build_cache(cache, source, rec, range(2), progress=False)
-    assert stats[0] is None and stats[1] is not None
-    assert cache.path(0).stat().st_mtime_ns == mtime
-
-
-def test_stale_cache_is_detected(built):
-    cache, _, _ = built
-    other_rec = GaussianCache(cache.root, RGBDReconstructor(sigma_px=0.3).identity(), cache.dataset)
-    other_data = GaussianCache(cache.root, cache.reconstructor, "another-dataset")
-    for c in (other_rec, other_data):
-        assert c.status(0) == "stale"
-        with pytest.raises(StaleCacheError):
-            c.read(0, 0)
-
-
-def test_truncated_and_corrupted_files_are_detected(built):
-    cache, _, _ = built
-    path = cache.path(0)
-    data = path.read_bytes()
-    path.write_bytes(data[: len(data) // 2])
-    fresh = GaussianCache(cache.root, cache.reconstructor, cache.dataset)
-    assert fresh.status(0) == "corrupt"
-    with pytest.raises(CorruptCacheError):
-        fresh.read(0, 0)
-    # flip bytes inside the tensor data: the header parses, the checksum catches it
-    corrupted = bytearray(data)
-    for i in range(len(data) - 200, len(data) - 100):
-        corrupted[i] ^= 0xFF
-    path.write_bytes(bytes(corrupted))
-    fresh = GaussianCache(cache.root, cache.reconstructor, cache.dataset)
-    assert fresh.status(0) == "ok"  # the header is intact
-    with pytest.raises(CorruptCacheError, match="checksum"):
-        for t in range(3):
-            fresh.read(0, t)
-    path.write_bytes(b"not a safetensors file at all")
-    assert GaussianCache(cache.root, cache.reconstructor, cache.dataset).status(0) == "corrupt"
-
-
-def test_missing_episode_and_frame_raise(built):
-    cache, _, _ = built
-    with pytest.raises(FileNotFoundError):
-        cache.read(7, 0)
-    with pytest.raises(IndexError):
-        cache.read(0, 3)
-
-
-def test_concurrent_builders_build_once(tmp_path, source):
-    rec = RGBDReconstructor()
-    cache = GaussianCache(tmp_path, rec.identity(), source.fingerprint)
-    calls = []
-
-    def build():
-        calls.append(1)
-        return [rec(source.views(0, t)) for t in range(3)]
-
-    threads = [threading.Thread(target=lambda: GaussianCache(tmp_path, cache.reconstructor, cache.dataset).ensure(0, build))
-               for _ in range(3)]  # fmt: skip
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    assert len(calls) == 1
-    assert cache.status(0) == "ok"
-    assert not list(tmp_path.glob("*.tmp"))  # no temporary files left behind
-
-
-def test_verify_reads_every_checksum(built):
-    cache, _, _ = built
-    assert cache.verify(0)
-    path = cache.path(0)
-    data = bytearray(path.read_bytes())
-    for i in range(len(data) - 200, len(data) - 100):
-        data[i] ^= 0xFF
-    path.write_bytes(bytes(data))
-    fresh = GaussianCache(cache.root, cache.reconstructor, cache.dataset)
-    assert fresh.status(0) == "ok" and not fresh.verify(0)
-
-
-def test_ensure_with_verify_rebuilds_a_file_that_fails_its_checksum(built, source):
-    cache, rec, _ = built
-    path = cache.path(0)
-    data = bytearray(path.read_bytes())
-    for i in range(len(data) - 200, len(data) - 100):
-        data[i] ^= 0xFF
-    path.write_bytes(bytes(data))
-    calls = []
-
-    def build():
-        calls.append(1)
-        return [rec(source.views(0, t)) for t in range(3)]
-
-    cache.ensure(0, build)  # the header is fine: not rebuilt without verify
-    assert not calls
-    cache.ensure(0, build, verify=True)
-    assert len(calls) == 1 and cache.verify(0)
-    cache.ensure(0, build, verify=True)  # valid now: not rebuilt again
-    assert len(calls) == 1
-
-
-def test_a_file_renamed_to_another_episode_is_corrupt(built):
-    cache, _, _ = built
-    cache.path(0).replace(cache.path(5))
-    assert cache.status(5) == "corrupt"
-    with pytest.raises(CorruptCacheError, match="holds episode 0"):
-        cache.read(5, 0)
-
-
-def test_written_files_follow_the_umask(built):
-    cache, _, _ = built
-    import os
-
-    mask = os.umask(0)
-    os.umask(mask)
-    assert cache.path(0).stat().st_mode & 0o777 == 0o666 & ~mask
+    assert psnr(render(gq, rec.cameras).rgb, render(g, rec.cameras).rgb) > 45.0
 
 
 def _frame(gaussians, cameras, ids):
-    from gensplat_transforms.reconstruction import Reconstruction
-
     return Reconstruction(gaussians, cameras, torch.tensor(ids, dtype=torch.int64))
 
 
 def test_two_gaussians_at_one_pixel_are_never_static(tmp_path, source):
     """Frame 0 holds A and B at pixel 0, frame 1 holds C and B: each frame reads back as written."""
-    from gensplat_transforms.gaussians import Gaussians
-
     full = RGBDReconstructor()(source.views(0, 0))
     cams, g = full.cameras, full.gaussians
     a, b, c = (g[i : i + 1] for i in (0, 100, 200))
     frames = [_frame(Gaussians.cat([a, b]), cams, [0, 0]), _frame(Gaussians.cat([c, b]), cams, [0, 0])]
-    cache = GaussianCache(tmp_path, "test", "test")
-    stats = cache.write_episode(0, frames)
-    assert stats.num_static == 0
+    two = SceneEpisodes(num_episodes=1, num_frames=2, size=48)
+    cache = GaussianCache(tmp_path, Replay(frames), two.fingerprint)
+    cache.ensure(0, two)
     for t, f in enumerate(frames):
-        got = cache.read(0, t).gaussians
-        torch.testing.assert_close(got.means, f.gaussians.means, atol=1e-3, rtol=0)
+        torch.testing.assert_close(cache.read(0, t).gaussians.means, f.gaussians.means, atol=1e-3, rtol=0)
 
 
 def test_an_empty_frame_is_stored_and_read_back(tmp_path, source):
-    from gensplat_transforms.gaussians import Gaussians
-
     full = RGBDReconstructor()(source.views(0, 0))
-    empty = _frame(Gaussians.empty(), full.cameras, [])
-    cache = GaussianCache(tmp_path, "test", "test")
-    stats = cache.write_episode(0, [full, empty, full])
-    assert stats.num_static == 0  # nothing is in every frame
+    cache = GaussianCache(tmp_path, Replay([full, _frame(Gaussians.empty(), full.cameras, []), full]), source.fingerprint)
+    cache.ensure(0, source)
     assert len(cache.read(0, 1).gaussians) == 0
     assert len(cache.read(0, 2).gaussians) == len(full.gaussians)
     out = render(cache.read(0, 1).gaussians, full.cameras[:1])
     assert torch.isfinite(out.rgb).all() and out.alpha.max() == 0
 
 
-def test_reconstruction_checks_pixel_ids(source):
-    from gensplat_transforms.reconstruction import Reconstruction
+# ---------------------------------------------------------------------------- corruption
 
-    full = RGBDReconstructor()(source.views(0, 0))
-    n = len(full.gaussians)
-    with pytest.raises(ValueError, match="pixel_ids: expected int64"):
-        Reconstruction(full.gaussians, full.cameras, torch.zeros(n - 1, dtype=torch.int64))
-    with pytest.raises(ValueError, match="pixel_ids: expected int64"):
-        Reconstruction(full.gaussians, full.cameras, torch.zeros(n, dtype=torch.int32))
-    with pytest.raises(ValueError, match=">= 0"):
-        Reconstruction(full.gaussians, full.cameras, -torch.ones(n, dtype=torch.int64))
+
+def read_header(path):
+    data = path.read_bytes()
+    (n,) = struct.unpack("<Q", data[:8])
+    return json.loads(data[8 : 8 + n]), data[8 + n :]
+
+
+def write_header(path, header, body):
+    raw = json.dumps(header).encode()
+    raw += b" " * (-len(raw) % 8)
+    path.write_bytes(struct.pack("<Q", len(raw)) + raw + body)
+
+
+def edit_header(path, fn):
+    header, body = read_header(path)
+    fn(header)
+    write_header(path, header, body)
+
+
+def set_meta(key, value):
+    def fn(h):
+        if value is None:
+            h["__metadata__"].pop(key)
+        else:
+            h["__metadata__"][key] = value
+
+    return fn
+
+
+def relabel(dtype, prefix=""):
+    """Relabel the first tensor (whose name starts with ``prefix``) with another dtype of the same size."""
+
+    def fn(h):
+        name = next(k for k in sorted(h) if k != "__metadata__" and k.startswith(prefix))
+        h[name]["dtype"] = dtype
+
+    return fn
+
+
+def shift_bbox(h):
+    lo, hi = json.loads(h["__metadata__"]["bbox"])
+    h["__metadata__"]["bbox"] = json.dumps([[x + 0.3 for x in lo], [x + 0.3 for x in hi]])
+
+
+HEADER_EDITS = {
+    "image_size changed": set_meta("image_size", "[40, 40]"),
+    "num_frames lowered": set_meta("num_frames", "2"),
+    "num_frames missing": set_meta("num_frames", None),
+    "num_frames not a number": set_meta("num_frames", "abc"),
+    "crc missing": set_meta("crc", None),
+    "crc not JSON": set_meta("crc", "{not json"),
+    "c2w relabelled I64": relabel("I64", "c2w"),
+    "depth blob relabelled I8": relabel("I8", "depth.f1"),
+    "header checksum removed": set_meta("header_crc", None),
+}
+GAUSSIAN_EDITS = {
+    "bbox shifted by 0.3 m": shift_bbox,
+    "bbox garbage": set_meta("bbox", "garbage"),
+    "bbox too short": set_meta("bbox", "[[0, 0], [1, 1]]"),
+    "scales relabelled F16 -> BF16": relabel("BF16", "f1.scales"),
+    "opacities relabelled U8 -> I8": relabel("I8", "f1.opacities"),
+}
+
+
+def _header_is_still_consistent(header):
+    """Recompute the header checksum after an edit, as a forger would: the tensor checksums still catch it."""
+    from gensplat_transforms.cache import _header_crc
+
+    header["__metadata__"]["header_crc"] = _header_crc(header["__metadata__"])
+
+
+@pytest.mark.parametrize("edit", list(HEADER_EDITS))
+def test_every_header_edit_of_a_depth_file_is_corrupt(built, edit):
+    cache, _ = built
+    edit_header(cache.path(0), HEADER_EDITS[edit])
+    c = fresh(cache)
+    assert c.status(0) == "corrupt"
+    assert not c.verify(0)
+    with pytest.raises(CorruptCacheError):
+        c.read(0, 1, torch.zeros(2, 3, 48, 48))
+
+
+@pytest.mark.parametrize("edit", list(GAUSSIAN_EDITS))
+def test_every_header_edit_of_a_gaussian_file_is_corrupt(built_gaussians, edit):
+    cache, _ = built_gaussians
+    edit_header(cache.path(0), GAUSSIAN_EDITS[edit])
+    c = fresh(cache)
+    assert c.status(0) == "corrupt"
+    with pytest.raises(CorruptCacheError):
+        for t in range(3):
+            c.read(0, t)
+
+
+def test_a_forged_header_checksum_does_not_hide_edited_data(built_gaussians):
+    """An edit that also recomputes the header checksum: the tensor checksums still catch it."""
+    cache, _ = built_gaussians
+    header, body = read_header(cache.path(0))
+    start, _ = header["f1.means"]["data_offsets"]
+    body = bytearray(body)
+    body[start : start + 8] = bytes(8)  # move some means
+    write_header(cache.path(0), header, bytes(body))
+    c = fresh(cache)
+    assert c.status(0) == "ok"  # the header checks out...
+    assert not c.verify(0)  # ...the data does not
+    with pytest.raises(CorruptCacheError, match="checksum"):
+        c.read(0, 1)
+    _header_is_still_consistent(header)  # a forged header checksum changes nothing
+    write_header(cache.path(0), header, bytes(body))
+    assert not fresh(cache).verify(0)
+
+
+def test_invalid_json_header_is_corrupt_not_a_crash(built):
+    cache, _ = built
+    data = cache.path(0).read_bytes()
+    (n,) = struct.unpack("<Q", data[:8])
+    cache.path(0).write_bytes(data[:8] + b"{" * n + data[8 + n :])
+    assert fresh(cache).status(0) == "corrupt"
+
+
+def test_truncated_flipped_and_foreign_files_are_detected(built):
+    cache, _ = built
+    path = cache.path(0)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    assert fresh(cache).status(0) == "corrupt"
+    corrupted = bytearray(data)
+    for i in range(len(data) - 60, len(data) - 20):
+        corrupted[i] ^= 0xFF
+    path.write_bytes(bytes(corrupted))
+    assert fresh(cache).status(0) == "ok"  # the header is intact, the data is not
+    assert not fresh(cache).verify(0)
+    path.write_bytes(b"not a safetensors file at all")
+    assert fresh(cache).status(0) == "corrupt"
+
+
+def test_an_old_format_file_is_stale(built):
+    cache, _ = built
+    edit_header(cache.path(0), set_meta("format_version", "1"))
+    assert fresh(cache).status(0) == "stale"
+
+
+def test_build_rebuilds_every_bad_file_and_keeps_good_ones(built, source):
+    """`gensplat cache` reads every checksum: a file failing one is rebuilt, not reported valid."""
+    cache, _ = built
+    data = bytearray(cache.path(0).read_bytes())
+    data[-30] ^= 0xFF
+    cache.path(0).write_bytes(bytes(data))
+    edit_header(cache.path(1), HEADER_EDITS["num_frames lowered"])
+    counting = CountingSource(source)
+    stats = build_cache(fresh(cache), counting, range(2), progress=False)
+    assert stats[0] is not None and stats[1] is not None and counting.calls == 6
+    assert build_cache(fresh(cache), counting, range(2), progress=False) == {0: None, 1: None}
+    assert counting.calls == 6
+
+
+def test_missing_episode_and_frame_raise(built):
+    cache, _ = built
+    with pytest.raises(FileNotFoundError):
+        cache.read(7, 0, torch.zeros(2, 3, 48, 48))
+    with pytest.raises(IndexError):
+        cache.read(0, 3, torch.zeros(2, 3, 48, 48))
+
+
+def test_a_file_renamed_to_another_episode_is_corrupt(built):
+    cache, _ = built
+    cache.path(0).replace(cache.path(5))
+    assert cache.status(5) == "corrupt"
+    with pytest.raises(CorruptCacheError, match="holds episode 0"):
+        cache.read(5, 0, torch.zeros(2, 3, 48, 48))
+
+
+def test_written_files_follow_the_umask(built):
+    cache, _ = built
+    mask = os.umask(0)
+    os.umask(mask)
+    assert cache.path(0).stat().st_mode & 0o777 == 0o666 & ~mask
+
+
+# ---------------------------------------------------------------------------- concurrency
+
+
+def test_concurrent_builders_build_once(tmp_path, source):
+    counting = CountingSource(source)
+    cache = GaussianCache(tmp_path, RGBDReconstructor(), source.fingerprint)
+    threads = [threading.Thread(target=lambda: fresh(cache).ensure(0, counting)) for _ in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert counting.calls == 3  # one build of 3 frames
+    assert cache.status(0) == "ok"
+    assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_concurrent_builds_with_verify_build_once(tmp_path, source):
+    """Two `gensplat cache` runs at once: the second re-checks inside the lock and skips."""
+    counting = CountingSource(source, sleep=0.05)
+    cache = GaussianCache(tmp_path, RGBDReconstructor(), source.fingerprint)
+    threads = [threading.Thread(target=lambda: build_cache(fresh(cache), counting, [0], progress=False))
+               for _ in range(2)]  # fmt: skip
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert counting.calls == 3
+
+
+KILLED_BUILDER = """
+import sys, time
+from gensplat_transforms.cache import GaussianCache
+from gensplat_transforms.episodes import SceneEpisodes
+from gensplat_transforms.reconstruction import RGBDReconstructor
+src = SceneEpisodes(num_episodes=2, num_frames=3, size=48)
+slow = type("Slow", (), {"camera_names": src.camera_names, "fingerprint": src.fingerprint,
+                         "num_frames": src.num_frames, "views": lambda self, e, t: time.sleep(60)})()
+GaussianCache(sys.argv[1], RGBDReconstructor(), src.fingerprint).ensure(0, slow)
+"""
+
+
+def test_a_killed_builders_temporary_file_is_removed(tmp_path, source):
+    proc = subprocess.Popen([sys.executable, "-c", KILLED_BUILDER, str(tmp_path)])
+    deadline = time.time() + 60
+    while not list(tmp_path.glob("*.tmp")) and time.time() < deadline:
+        time.sleep(0.05)
+    proc.kill()  # SIGKILL in the middle of the build
+    proc.wait()
+    assert len(list(tmp_path.glob("*.tmp"))) == 1
+    cache = GaussianCache(tmp_path, RGBDReconstructor(), source.fingerprint)
+    cache.ensure(0, source)
+    assert cache.status(0) == "ok"
+    assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_deleting_the_lock_file_of_a_running_build_does_not_let_a_second_builder_in(tmp_path, source):
+    slow = CountingSource(source, sleep=0.3)
+    cache = GaussianCache(tmp_path, RGBDReconstructor(), source.fingerprint)
+    first = threading.Thread(target=lambda: fresh(cache).ensure(0, slow))
+    first.start()
+    lock = tmp_path / ".episode_000000.lock"
+    deadline = time.time() + 10
+    while not list(tmp_path.glob("*.tmp")) and time.time() < deadline:  # the first builder is writing
+        time.sleep(0.01)
+    lock.unlink()
+    fresh(cache).ensure(0, slow)  # takes a new lock file, then waits for the first builder's file
+    first.join()
+    assert slow.calls == 3
+    assert cache.status(0) == "ok"

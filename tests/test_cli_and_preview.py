@@ -33,8 +33,8 @@ def test_demo_records_caches_and_previews(tmp_path, capsys):
 def test_preview_png_and_mp4(tmp_path):
     source = SceneEpisodes(num_episodes=1, num_frames=4, size=32)
     rec = RGBDReconstructor()
-    cache = GaussianCache(tmp_path / "c", rec.identity(), source.fingerprint)
-    build_cache(cache, source, rec, [0], progress=False)
+    cache = GaussianCache(tmp_path / "c", rec, source.fingerprint)
+    build_cache(cache, source, [0], progress=False)
     ds = SceneDataset(source)
     tf = GenSplatTransform(GenSplatConfig(probability=1.0, level="medium"), cache)
     paths = write_preview([ds[i] for i in range(4)], tf, ["left", "right"], tmp_path / "p", max_rows=2)

@@ -15,14 +15,15 @@ from gensplat_transforms.reconstruction import RGBDReconstructor
 from gensplat_transforms.transform import AugmentedDataset, GenSplatConfig, GenSplatTransform, render_view
 
 LEFT = "observation.images.left"
+RIGHT = "observation.images.right"
 
 
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):
     source = SceneEpisodes(num_episodes=2, num_frames=3, size=48)
     rec = RGBDReconstructor()
-    cache = GaussianCache(tmp_path_factory.mktemp("cache"), rec.identity(), source.fingerprint)
-    build_cache(cache, source, rec, range(2), progress=False)
+    cache = GaussianCache(tmp_path_factory.mktemp("cache"), rec, source.fingerprint)
+    build_cache(cache, source, range(2), progress=False)
     return source, rec, cache, SceneDataset(source)
 
 
@@ -85,13 +86,18 @@ def test_probability_zero_returns_originals(setup):
 
 
 def test_uint8_and_temporal_stacks_keep_shape_dtype_and_range(setup):
-    *_, cache, ds = setup
+    source, _, cache, ds = setup
     item = ds[2]
     u8 = {**item, LEFT: (item[LEFT] * 255).round().to(torch.uint8)}
     out = make(cache, level="small", replace=("left",))(u8)
     assert out[LEFT].dtype == torch.uint8 and out[LEFT].shape == u8[LEFT].shape
-    stack = {**item, LEFT: torch.stack([ds[0][LEFT], ds[1][LEFT], item[LEFT]])}  # frames 0,1,2
     one_view = make(cache, level="small", replace=("left",), views_per_source=1)
+    left_only = {**item, LEFT: torch.stack([ds[0][LEFT], ds[1][LEFT], item[LEFT]])}
+    with pytest.raises(ValueError, match="not every reconstructed camera's images are stacked"):
+        one_view(left_only)  # the right camera's frames 0 and 1 are not in the item and there is no source
+    with_source = GenSplatTransform(one_view.cfg, cache, source)  # reads them from the source instead
+    assert torch.equal(with_source(left_only)[LEFT][0], one_view(ds[0])[LEFT])
+    stack = {**item, **{k: torch.stack([ds[0][k], ds[1][k], item[k]]) for k in (LEFT, RIGHT)}}  # frames 0,1,2
     out = one_view(stack)
     assert out[LEFT].shape == (3, 3, 48, 48)
     # frame 0 of the stack is the render of frame 0 with the same perturbation
@@ -119,7 +125,7 @@ def test_bad_inputs_raise_clear_errors(setup, tmp_path):
     with pytest.raises(ValueError, match=r"\(3, H, W\)"):
         make(cache, replace=("left",))({**item, LEFT: item[LEFT][:2]})
     empty = GaussianCache(tmp_path, cache.reconstructor, cache.dataset)
-    with pytest.raises(FileNotFoundError, match="no source/reconstructor"):
+    with pytest.raises(FileNotFoundError, match="no source was given"):
         make(empty)(item)
     with pytest.raises(ValueError, match="replace"):
         GenSplatConfig(replace=("wrist",))
@@ -131,8 +137,8 @@ def test_bad_inputs_raise_clear_errors(setup, tmp_path):
 
 def test_lazy_build_in_the_transform(setup, tmp_path):
     source, rec, _, ds = setup
-    cache = GaussianCache(tmp_path, rec.identity(), source.fingerprint)
-    tf = GenSplatTransform(GenSplatConfig(probability=1.0, level="small"), cache, source, rec)
+    cache = GaussianCache(tmp_path, rec, source.fingerprint)
+    tf = GenSplatTransform(GenSplatConfig(probability=1.0, level="small"), cache, source)
     out = tf(ds[0])
     assert cache.status(0) == "ok" and cache.status(1) == "missing"
     assert torch.isfinite(out[LEFT]).all()
@@ -151,8 +157,8 @@ def test_spawn_workers(setup):
 
 
 def test_fill_holes_paints_only_what_the_gaussians_leave_uncovered(setup):
-    *_, cache, _ = setup
-    rec = cache.read(0, 1)
+    source, _, cache, _ = setup
+    rec = cache.read(0, 1, source.views(0, 1).images)
     target = PerturbationSampler("extreme", seed=0).sample(0, view=0).move(rec.cameras, 0)
     filled = render_view(rec.gaussians, target, GenSplatConfig())
     black = render_view(rec.gaussians, target, GenSplatConfig(fill_holes=False))
@@ -167,11 +173,11 @@ def test_fill_holes_paints_only_what_the_gaussians_leave_uncovered(setup):
 
 def test_a_cache_file_failing_its_checksum_is_rebuilt_or_reported(setup, tmp_path):
     source, rec, _, ds = setup
-    cache = GaussianCache(tmp_path, rec.identity(), source.fingerprint)
-    build_cache(cache, source, rec, [0], progress=False)
+    cache = GaussianCache(tmp_path, rec, source.fingerprint)
+    build_cache(cache, source, [0], progress=False)
     path = cache.path(0)
     data = bytearray(path.read_bytes())
-    for i in range(len(data) - 200, len(data) - 100):  # the data, not the header
+    for i in range(len(data) - 40, len(data) - 20):  # the data, not the header
         data[i] ^= 0xFF
     path.write_bytes(bytes(data))
     items = [ds[i] for i in range(3)]  # episode 0, every frame: one of them meets the damage
@@ -181,6 +187,21 @@ def test_a_cache_file_failing_its_checksum_is_rebuilt_or_reported(setup, tmp_pat
         for item in items:
             reader(item)
     fresh = GaussianCache(tmp_path, cache.reconstructor, cache.dataset)
-    tf = GenSplatTransform(GenSplatConfig(probability=1.0, level="small"), fresh, source, rec)
+    tf = GenSplatTransform(GenSplatConfig(probability=1.0, level="small"), fresh, source)
     assert all(torch.isfinite(tf(item)[LEFT]).all() for item in items)
     assert cache.verify(0)
+
+
+def test_out_of_range_frames_and_unusable_images_raise_clear_errors(setup):
+    *_, cache, ds = setup
+    item, tf = ds[0], make(cache, level="small")
+    for frame in (500, -3):
+        with pytest.raises(IndexError, match=f"frame_index {frame} outside episode 0"):
+            tf({**item, "frame_index": torch.tensor(frame)})
+    for dtype in (torch.int16, torch.int32, torch.int64):
+        with pytest.raises(ValueError, match=f"uint8 .* or float .*got {dtype}"):
+            tf({**item, LEFT: (item[LEFT] * 255).to(dtype)})
+    with pytest.raises(ValueError, match=r"got \(3, 0, 0\)"):
+        tf({**item, LEFT: torch.zeros(3, 0, 0)})
+    with pytest.raises(TypeError, match="ndarray"):
+        tf({**item, LEFT: item[LEFT].numpy()})

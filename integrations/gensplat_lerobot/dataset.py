@@ -70,8 +70,8 @@ def default_reconstructor(source: LeRobotSource) -> dict:
 
 def dataset_cache(root: str | Path, reconstructor, source: LeRobotSource) -> GaussianCache:
     """The cache of a dataset: ``<root>/gensplat/cache/<reconstructor identity>/``."""
-    rid = reconstructor.identity()
-    return GaussianCache(Path(root) / SETTINGS_DIR / "cache" / rid, rid, source.fingerprint)
+    return GaussianCache(Path(root) / SETTINGS_DIR / "cache" / reconstructor.identity(), reconstructor,
+                         source.fingerprint)  # fmt: skip
 
 
 class GenSplatLeRobotDataset(LeRobotDataset):
@@ -109,7 +109,7 @@ def enable_gensplat(dataset: LeRobotDataset, config: GenSplatConfig | None = Non
     if deltas is not None and config.frame_offsets is None:
         offsets = tuple(round(d * dataset.meta.fps) for d in deltas)
         config = replace(config, frame_offsets=offsets)
-    transform = GenSplatTransform(config, dataset_cache(dataset.root, rec, source), source, rec)
+    transform = GenSplatTransform(config, dataset_cache(dataset.root, rec, source), source)
     two_d = dataset.image_transforms
     dataset.set_image_transforms(None)  # re-applied after GenSplat, see __getitem__
     dataset.__class__ = GenSplatLeRobotDataset
@@ -132,4 +132,4 @@ def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructo
     save_settings(root, config, reconstructor)
     total = len(source.dataset.meta.episodes["length"])
     episodes = range(total) if episodes is None else episodes
-    return build_cache(dataset_cache(root, rec, source), source, rec, episodes, progress)
+    return build_cache(dataset_cache(root, rec, source), source, episodes, progress)
