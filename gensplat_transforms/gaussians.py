@@ -68,9 +68,9 @@ class Gaussians:
         opacities outside [0, 1], negative scales.
 
         A check that passed is remembered until a tensor is replaced or changed in place
-        through torch (its version counter moves), so rendering the same Gaussians again
-        does not rescan them. Writes through a NumPy view are invisible to torch: pass
-        ``force=True`` after those.
+        through torch (its version counter moves), so calling ``check()`` again does not
+        rescan unchanged tensors. Writes through ``.data`` or a NumPy view do not move the
+        version counter: ``force=True`` rescans regardless (``render`` always passes it).
         """
         if not force and self._checked is not None and self._checked == self._fingerprint():
             return self

@@ -193,6 +193,22 @@ def test_gaussians_changed_in_place_after_a_render_are_checked_again(backend):
         render(g, camera(), backend=backend)
 
 
+@pytest.mark.parametrize("backend", ["reference", "fast"])
+def test_writes_that_bypass_torchs_version_counter_are_caught_by_the_next_render(backend):
+    """``.data`` and NumPy views share the storage but not the version counter: render
+    rescans in full every time, so it still names the field instead of returning NaN."""
+    g = random_scene(n=50, seed=10)
+    render(g, camera(), backend=backend)
+    g.sh.data[7, 0, 1] = float("nan")
+    with pytest.raises(ValueError, match=r"Gaussians.sh: 1 Gaussian\(s\) have NaN or Inf"):
+        render(g, camera(), backend=backend)
+    g = random_scene(n=50, seed=10)
+    render(g, camera(), backend=backend)
+    g.scales.numpy()[3, 2] = -1.0
+    with pytest.raises(ValueError, match=r"Gaussians.scales: scales must be >= 0"):
+        render(g, camera(), backend=backend)
+
+
 @pytest.mark.parametrize("name", sorted(HARD_CASES))
 def test_hard_cases_agree_with_reference(name):
     both(HARD_CASES[name], camera(torch.float32), background=(0.5, 0.25, 1.0))

@@ -62,9 +62,11 @@ def render(
 
     Args:
         gaussians: the scene (any float dtype; half precision is computed in float32);
-            checked with ``Gaussians.check``, which skips a rescan of unchanged tensors,
-            then passed through ``projection.precondition`` (float64 values beyond
-            float32's range are clamped, float64 quaternions normalised) for every backend.
+            checked in full on every call (``Gaussians.check(force=True)``: writes through
+            ``.data`` or a NumPy view are caught too; about 0.5 ms per 150k Gaussians at SH
+            degree 0, 3 ms at degree 3), then passed through ``projection.precondition``
+            (float64 values beyond float32's range are clamped, float64 quaternions
+            normalised) for every backend.
         cameras: B cameras (OpenCV convention) sharing one image size.
         background: RGB added where the splats leave transmittance.
         near: splats whose centre is not beyond this camera-space z are culled.
@@ -78,7 +80,7 @@ def render(
     """
     if backend not in BACKENDS:
         raise ValueError(f"unknown render backend {backend!r}; available: {sorted(BACKENDS)}")
-    gaussians = precondition(gaussians.check())
+    gaussians = precondition(gaussians.check(force=True))
     if not torch.isfinite(torch.as_tensor(near)) or near <= 0:
         raise ValueError(f"render: near must be a positive finite number, got {near}")
     out_dtype = torch.float64 if gaussians.dtype == torch.float64 else torch.float32
