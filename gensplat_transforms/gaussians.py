@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -254,38 +255,52 @@ class Gaussians:
 
     @staticmethod
     def from_ply(path: str | Path) -> Gaussians:
-        """Read a 3DGS binary little-endian PLY (float properties)."""
+        """Read a 3DGS binary little-endian PLY (scalar properties of any PLY type).
+
+        A malformed file raises ``ValueError`` naming the file and the problem."""
         data = Path(path).read_bytes()
         end = data.find(b"end_header\n")
         if not data.startswith(b"ply") or end < 0:
             raise ValueError(f"{path}: not a PLY file")
-        header = data[:end].decode("ascii").splitlines()
+        try:
+            header = data[:end].decode("ascii").splitlines()
+        except UnicodeDecodeError as e:
+            raise ValueError(f"{path}: PLY header is not ASCII (byte {e.start})") from None
         if "format binary_little_endian 1.0" not in header:
             raise ValueError(f"{path}: only binary_little_endian PLY is supported")
         n, props, elements = 0, [], []
         for line in header:
             parts = line.split()
             if parts and parts[0] == "element":
+                if len(parts) != 3 or not parts[2].isdigit():
+                    raise ValueError(f"{path}: bad PLY line {line!r}: expected 'element <name> <count >= 0>'")
                 elements.append(parts[1])
                 if parts[1] == "vertex":
                     n = int(parts[2])
             elif parts and parts[0] == "property" and elements[-1:] == ["vertex"]:
-                if parts[1] not in _PLY_TYPES:
-                    raise ValueError(f"{path}: unsupported PLY vertex property type {parts[1]!r}")
+                if len(parts) != 3 or parts[1] not in _PLY_TYPES:
+                    raise ValueError(
+                        f"{path}: unsupported PLY vertex property {line!r}: expected "
+                        "'property <scalar type> <name>'"
+                    )
                 props.append((parts[2], _PLY_TYPES[parts[1]]))
         if not elements or elements[0] != "vertex":
             raise ValueError(f"{path}: PLY must start with a 'vertex' element, got {elements}")
-        dtype = np.dtype(props)
-        body = data[end + len(b"end_header\n") :]
-        if len(body) < n * dtype.itemsize:
-            raise ValueError(f"{path}: truncated PLY ({len(body)} bytes for {n} vertices)")
-        arr = np.frombuffer(body, dtype=dtype, count=n)
-        names = set(dtype.names)
+        counts = Counter(name for name, _ in props)
+        names = set(counts)
+        duplicated = sorted(name for name, count in counts.items() if count > 1)
+        if duplicated:
+            raise ValueError(f"{path}: PLY vertex properties {duplicated} occur more than once")
         need = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"] + [f"scale_{i}" for i in range(3)]
         need += [f"rot_{i}" for i in range(4)]
         missing = [p for p in need if p not in names]
         if missing:
             raise ValueError(f"{path}: PLY lacks 3DGS properties {missing}")
+        dtype = np.dtype(props)
+        body = data[end + len(b"end_header\n") :]
+        if len(body) < n * dtype.itemsize:
+            raise ValueError(f"{path}: truncated PLY ({len(body)} bytes for {n} vertices)")
+        arr = np.frombuffer(body, dtype=dtype, count=n)
 
         def col(*ps):
             return torch.from_numpy(np.stack([arr[p].astype(np.float32) for p in ps], -1))
@@ -307,10 +322,13 @@ class Gaussians:
             sh = torch.cat([dc, rest], 1)
         else:
             sh = dc
-        return Gaussians(
-            means=col("x", "y", "z"),
-            quats=col("rot_0", "rot_1", "rot_2", "rot_3"),
-            scales=torch.exp(col("scale_0", "scale_1", "scale_2")),
-            opacities=torch.sigmoid(col("opacity")[:, 0]),
-            sh=sh.contiguous(),
-        )
+        try:
+            return Gaussians(
+                means=col("x", "y", "z"),
+                quats=col("rot_0", "rot_1", "rot_2", "rot_3"),
+                scales=torch.exp(col("scale_0", "scale_1", "scale_2")),
+                opacities=torch.sigmoid(col("opacity")[:, 0]),
+                sh=sh.contiguous(),
+            )
+        except ValueError as e:  # e.g. NaN values, or log-scales whose exp overflows
+            raise ValueError(f"{path}: {e}") from None

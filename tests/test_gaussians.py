@@ -335,11 +335,21 @@ def test_ply_reader_ignores_other_elements_and_reads_doubles(tmp_path):
     assert g.sh.shape == (1, 1, 3)
 
 
-def test_bad_ply_files_raise_value_error(tmp_path):
+_BAD_PLY = ["truncated", "garbage", "ascii", "no_end", "missing_rot", "odd_f_rest", "vertex_not_first",
+            "negative_count", "float_count", "empty_count", "empty_element", "non_ascii_header",
+            "property_without_name", "list_property", "duplicate_property", "nan_value",
+            "overflowing_log_scale"]  # fmt: skip
+
+
+@pytest.mark.parametrize("case", _BAD_PLY)
+def test_bad_ply_files_raise_value_error_naming_the_file(tmp_path, case):
     good = tmp_path / "good.ply"
     make(4, degree=1).to_ply(good)
     data = good.read_bytes()
     header_end = data.index(b"end_header\n")
+    body_start = header_end + len(b"end_header\n")
+    huge_scale = read_ply(good)[1].copy()
+    huge_scale["scale_0"][1] = 100.0  # a log-scale whose exp overflows float32
     cases = {
         "truncated": (data[:-5], "truncated PLY"),
         "garbage": (b"\x00\x01 not a ply at all", "not a PLY file"),
@@ -354,9 +364,25 @@ def test_bad_ply_files_raise_value_error(tmp_path):
             data.replace(b"element vertex", b"element face 0\nelement vertex", 1),
             "'vertex' element",
         ),
+        "negative_count": (data.replace(b"element vertex 4", b"element vertex -5", 1), "'element vertex -5'"),
+        "float_count": (data.replace(b"element vertex 4", b"element vertex 1e3", 1), "'element vertex 1e3'"),
+        "empty_count": (data.replace(b"element vertex 4", b"element vertex", 1), "expected 'element <name>"),
+        "empty_element": (data.replace(b"element vertex 4", b"element", 1), "expected 'element <name>"),
+        "non_ascii_header": (data.replace(b"ply\n", "ply\ncomment caf\u00e9\n".encode(), 1), "header is not ASCII"),
+        "property_without_name": (data.replace(b"property float rot_3", b"property float", 1), "'property float'"),
+        "list_property": (
+            data.replace(b"property float rot_3", b"property list uchar float rot_3", 1), "unsupported PLY vertex"
+        ),
+        "duplicate_property": (
+            data.replace(b"property float rot_3", b"property float rot_2", 1), r"\['rot_2'\] occur more than once"
+        ),
+        "nan_value": (data[:-4] + np.float32(np.nan).tobytes(), r"Gaussians.quats: 1 Gaussian\(s\) have NaN"),
+        "overflowing_log_scale": (data[:body_start] + huge_scale.tobytes(), r"Gaussians.scales: .*Inf"),
     }
-    for name, (content, match) in cases.items():
-        path = tmp_path / f"{name}.ply"
-        path.write_bytes(content)
-        with pytest.raises(ValueError, match=match):
-            Gaussians.from_ply(path)
+    assert sorted(cases) == sorted(_BAD_PLY)
+    content, match = cases[case]
+    path = tmp_path / f"{case}.ply"
+    path.write_bytes(content)
+    with pytest.raises(ValueError, match=match) as error:
+        Gaussians.from_ply(path)
+    assert str(error.value).startswith(f"{path}: ")
