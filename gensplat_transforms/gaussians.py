@@ -220,7 +220,10 @@ class Gaussians:
         missing = [k for k in _FIELDS if k not in tensors]
         if missing:
             raise ValueError(f"{path}: missing tensors {missing}")
-        return Gaussians(**{k: tensors[k] for k in _FIELDS}), meta
+        try:
+            return Gaussians(**{k: tensors[k] for k in _FIELDS}), meta
+        except ValueError as e:
+            raise ValueError(f"{path}: {e}") from None
 
     # ------------------------------------------------------------------ PLY (3DGS layout)
     def to_ply(self, path: str | Path) -> None:

@@ -215,12 +215,20 @@ def test_load_detects_wrong_format_version_and_content(tmp_path, meta, drop, mat
         Gaussians.load(path)
 
 
-def test_load_validates_the_tensors(tmp_path):
+@pytest.mark.parametrize(
+    ("field", "fn", "match"),
+    [("opacities", lambda t: t + 2, "Gaussians.opacities"),
+     ("sh", lambda t: t / 0, r"Gaussians.sh: 3 Gaussian\(s\) have NaN"),
+     ("means", lambda t: t.long(), "Gaussians.means: expected a floating-point tensor")],
+)  # fmt: skip
+def test_load_validates_the_tensors_naming_the_file(tmp_path, field, fn, match):
     tensors = make(3).tensors()
-    tensors["opacities"] = tensors["opacities"] + 2
+    tensors[field] = fn(tensors[field])
     meta = {"format": FORMAT_NAME, "format_version": str(FORMAT_VERSION)}
-    with pytest.raises(ValueError, match="Gaussians.opacities"):
-        Gaussians.load(_write_raw(tmp_path / "x.safetensors", tensors, meta))
+    path = _write_raw(tmp_path / "x.safetensors", tensors, meta)
+    with pytest.raises(ValueError, match=match) as error:
+        Gaussians.load(path)
+    assert str(error.value).startswith(f"{path}: ")
 
 
 @pytest.mark.parametrize("keep", [0, 5, 8, 40, 0.5, -1])
