@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -27,7 +28,13 @@ def main(argv: list[str] | None = None) -> int:
     record.add_argument("--images", action="store_true", help="store lossless PNG images instead of MP4 video")
     record.add_argument("--shadows", action="store_true", help="render shadows and reflections (slower)")
 
-    cache = sub.add_parser("cache", help="write GenSplat settings beside a LeRobot dataset and build its Gaussian cache")
+    cache = sub.add_parser(
+        "cache", help="write GenSplat settings beside a LeRobot dataset and build its Gaussian cache",
+        description="Write GenSplat settings beside a LeRobot dataset and build its Gaussian cache. Runs as one "
+                    "process, or as one of several started by torchrun or SLURM's srun, which then share the "
+                    "episodes (e.g. torchrun --nproc-per-node 8 -m gensplat_transforms.cli cache ...; see "
+                    "docs/cache_at_scale.md). Resumable: valid episodes are skipped.",
+    )  # fmt: skip
     cache.add_argument("--root", required=True, help="local LeRobot dataset root")
     cache.add_argument("--repo-id", required=True, help="the dataset's repo id")
     cache.add_argument("--cameras", nargs="+", default=None, help="external cameras to reconstruct (default: all)")
@@ -108,6 +115,7 @@ def _cache(args) -> None:
         from gensplat_lerobot import LeRobotSource, prepare
     except ImportError as e:
         raise SystemExit(f"gensplat cache needs the LeRobot extra: pip install 'gensplat-transforms[lerobot]' ({e})")
+    from .distributed import Shard, gather
     from .transform import GenSplatConfig
 
     cameras = tuple(args.cameras or LeRobotSource(args.root, args.repo_id).camera_names)
@@ -118,12 +126,23 @@ def _cache(args) -> None:
     spec = None if args.reconstructor is None else {"name": args.reconstructor}
     if args.model:
         spec = {"name": "gensplat", "model": args.model}
-    stats = prepare(args.root, args.repo_id, config, spec, args.episodes)
+    shard = Shard.from_env()
+    start = time.perf_counter()
+    stats = prepare(args.root, args.repo_id, config, spec, args.episodes, shard=shard)
+    ranks = gather(shard, (stats, time.perf_counter() - start))
+    if ranks is None:
+        return
+    stats = {e: s for part, _ in ranks for e, s in part.items()}
     built = {e: s for e, s in stats.items() if s is not None}
     size = sum(s.bytes for s in built.values())
     frames = sum(s.num_frames for s in built.values())
-    print(f"cached {len(built)} episode(s) ({len(stats) - len(built)} already valid): {frames} timesteps, "
-          f"{size / 1e6:.1f} MB, {size / max(frames, 1) / 1e3:.0f} kB per timestep")
+    seconds = max(t for _, t in ranks)
+    who = "" if len(ranks) == shard.world else f"rank {shard.rank} of {shard.world}: "
+    counts = ", ".join(str(sum(s is not None for s in part.values())) for part, _ in ranks)
+    per = "" if len(ranks) == 1 else f" [built per process: {counts}]"
+    print(f"{who}cached {len(built)} episode(s) ({len(stats) - len(built)} already valid) on {len(ranks)} "
+          f"process(es) in {seconds:.1f} s ({len(built) / seconds:.3f} episodes/s): {frames} timesteps, "
+          f"{size / 1e6:.1f} MB, {size / max(frames, 1) / 1e3:.0f} kB per timestep{per}")
 
 
 if __name__ == "__main__":

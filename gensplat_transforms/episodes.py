@@ -17,21 +17,26 @@ from torch.utils.data import Dataset
 from tqdm.auto import tqdm
 
 from .cache import CacheStats, EpisodeSource, GaussianCache
+from .distributed import Shard
 from .reconstruction import Views
 from .scenes import TabletopScene, default_cameras
 
 
 def build_cache(
-    cache: GaussianCache, source: EpisodeSource, episodes: Iterable[int], progress: bool = True
+    cache: GaussianCache, source: EpisodeSource, episodes: Iterable[int], progress: bool = True,
+    shard: Shard | None = None,
 ) -> dict[int, CacheStats | None]:
     """Reconstruct and cache every frame of ``episodes`` with the cache's reconstructor.
 
     Resumable and idempotent: an episode whose file passes every checksum is skipped (its
     value in the result is None); stale, corrupt or half-written ones are rebuilt. Several
-    processes may run it on the same episodes at once (see :meth:`GaussianCache.ensure`)."""
-    episodes = list(episodes)
+    processes may run it on the same episodes at once (see :meth:`GaussianCache.ensure`).
+    With ``shard``, only that shard's share of ``episodes`` is built, longest first (see
+    :meth:`~.distributed.Shard.select`); the result holds only those."""
+    episodes = list(episodes) if shard is None else shard.select(episodes, source.num_frames)
+    desc = "caching" if shard is None or shard.world == 1 else f"caching (rank {shard.rank}/{shard.world})"
     return {ep: cache.ensure(ep, source, verify=True)
-            for ep in tqdm(episodes, desc="caching", unit="episode", disable=not progress)}  # fmt: skip
+            for ep in tqdm(episodes, desc=desc, unit="episode", disable=not progress)}  # fmt: skip
 
 
 class SceneEpisodes:

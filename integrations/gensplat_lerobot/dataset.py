@@ -9,6 +9,7 @@ from pathlib import Path
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from gensplat_transforms.cache import GaussianCache
+from gensplat_transforms.distributed import OnDevice, Shard
 from gensplat_transforms.perturbation import PerturbationRange
 from gensplat_transforms.reconstruction import RGBDReconstructor
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
@@ -119,17 +120,25 @@ def enable_gensplat(dataset: LeRobotDataset, config: GenSplatConfig | None = Non
 
 
 def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructor: dict | None = None,
-            episodes=None, progress: bool = True) -> dict:
+            episodes=None, progress: bool = True, shard: Shard | None = None) -> dict:
     """Write the settings beside the dataset and build its Gaussian cache (resumable).
 
-    Returns per-episode :class:`~gensplat_transforms.cache.CacheStats` (None when the
+    ``shard`` is this process's place among several (see :mod:`gensplat_transforms.distributed`;
+    default: the only process): it builds only its share of the episodes, and only rank 0
+    writes the settings. The feed-forward model runs on ``shard.device`` (``cuda:<local
+    rank>`` when CUDA is available). Returns per-episode
+    :class:`~gensplat_transforms.cache.CacheStats` of this process's episodes (None when the
     episode was already cached)."""
     from gensplat_transforms.episodes import build_cache
 
+    shard = shard or Shard()
     source = LeRobotSource(root, repo_id, config.cameras)
     reconstructor = reconstructor or default_reconstructor(source)
     rec = make_reconstructor(reconstructor)
-    save_settings(root, config, reconstructor)
+    if reconstructor["name"] == "gensplat" and shard.device.type == "cuda":
+        rec = OnDevice(rec, shard.device)
+    if shard.rank == 0:
+        save_settings(root, config, reconstructor)
     total = len(source.dataset.meta.episodes["length"])
     episodes = range(total) if episodes is None else episodes
-    return build_cache(dataset_cache(root, rec, source), source, episodes, progress)
+    return build_cache(dataset_cache(root, rec, source), source, episodes, progress, shard)
