@@ -27,6 +27,10 @@ def main(argv: list[str] | None = None) -> int:
     record.add_argument("--fps", type=int, default=10)
     record.add_argument("--images", action="store_true", help="store lossless PNG images instead of MP4 video")
     record.add_argument("--shadows", action="store_true", help="render shadows and reflections (slower)")
+    record.add_argument(
+        "--sensor-depth", action="store_true",
+        help="record depth as a RealSense D435 measures it (noise, holes, 1 mm steps, 1 px shift)",
+    )  # fmt: skip
 
     cache = sub.add_parser(
         "cache", help="write GenSplat settings beside a LeRobot dataset and build its Gaussian cache",
@@ -48,9 +52,13 @@ def main(argv: list[str] | None = None) -> int:
                        help="paint pixels no source camera saw black instead of filling them")
     cache.add_argument("--backend", default="fast", help="render backend used in the workers (default: fast)")
     cache.add_argument("--episodes", type=int, nargs="+", default=None, help="only these episodes")
-    cache.add_argument("--reconstructor", choices=["rgbd", "gensplat"], default=None,
-                       help="default: rgbd when the cameras have depth, else the feed-forward model")
-    cache.add_argument("--model", default=None, help="gensplat weights directory (default: the shipped model)")
+    cache.add_argument("--reconstructor", choices=["rgbd", "geometry", "gensplat"], default=None,
+                       help="rgbd: the dataset's depth; geometry: depth from a Pi3-compatible model, RGB-D discs; "
+                            "gensplat: the model's own Gaussian head (default: rgbd when the cameras have depth, "
+                            "else gensplat)")
+    cache.add_argument("--model", default=None,
+                       help="weights directory or hub id of the geometry or gensplat model, e.g. a Pi3 checkpoint "
+                            "(default: the shipped small model)")
 
     train = sub.add_parser("train-model", help="train the GenSplat model with 3D-prior distillation")
     train.add_argument("--out", required=True, help="run directory (resumes when it holds a checkpoint)")
@@ -125,7 +133,9 @@ def _cache(args) -> None:
     )  # fmt: skip
     spec = None if args.reconstructor is None else {"name": args.reconstructor}
     if args.model:
-        spec = {"name": "gensplat", "model": args.model}
+        if args.reconstructor == "rgbd":
+            raise SystemExit("gensplat cache: --model needs --reconstructor geometry or gensplat")
+        spec = {"name": args.reconstructor or "gensplat", "model": args.model}
     shard = Shard.from_env()
     start = time.perf_counter()
     stats = prepare(args.root, args.repo_id, config, spec, args.episodes, shard=shard)
@@ -141,7 +151,7 @@ def _cache(args) -> None:
     counts = ", ".join(str(sum(s is not None for s in part.values())) for part, _ in ranks)
     per = "" if len(ranks) == 1 else f" [built per process: {counts}]"
     print(f"{who}cached {len(built)} episode(s) ({len(stats) - len(built)} already valid) on {len(ranks)} "
-          f"process(es) in {seconds:.1f} s ({len(built) / seconds:.3f} episodes/s): {frames} timesteps, "
+          f"process(es) in {seconds:.2f} s ({len(built) / seconds:.3f} episodes/s): {frames} timesteps, "
           f"{size / 1e6:.1f} MB, {size / max(frames, 1) / 1e3:.0f} kB per timestep{per}")
 
 

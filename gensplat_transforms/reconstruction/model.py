@@ -74,14 +74,10 @@ class GenSplatReconstructor(Reconstructor):
         self._weights_hash: str | None = None
 
     def weights_hash(self) -> str:
-        """SHA-256 (16 hex digits) of the state dict; computed once, so build a new reconstructor
-        after changing the weights."""
+        """:func:`weights_hash` of the model, computed once: build a new reconstructor after
+        changing the weights."""
         if self._weights_hash is None:
-            h = hashlib.sha256()
-            for key, value in sorted(self.model.state_dict().items()):
-                h.update(key.encode())
-                h.update(value.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
-            self._weights_hash = h.hexdigest()[:16]
+            self._weights_hash = weights_hash(self.model)
         return self._weights_hash
 
     def config(self) -> dict:
@@ -133,6 +129,15 @@ class GenSplatReconstructor(Reconstructor):
         if self.min_conf is not None:
             gaussians = gaussians[conf.reshape(-1) >= self.min_conf]
         return Reconstruction(gaussians, cameras)
+
+
+def weights_hash(model: torch.nn.Module) -> str:
+    """SHA-256 (16 hex digits) of a model's state dict (keys and bytes)."""
+    h = hashlib.sha256()
+    for key, value in sorted(model.state_dict().items()):
+        h.update(key.encode())
+        h.update(value.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()[:16]
 
 
 #: How calibrated views' Gaussians are placed (see :class:`GenSplatReconstructor`).

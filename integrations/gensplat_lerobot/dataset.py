@@ -11,7 +11,7 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from gensplat_transforms.cache import GaussianCache
 from gensplat_transforms.distributed import OnDevice, Shard
 from gensplat_transforms.perturbation import PerturbationRange
-from gensplat_transforms.reconstruction import RGBDReconstructor
+from gensplat_transforms.reconstruction import make_reconstructor
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 
 from .source import LeRobotSource
@@ -49,19 +49,6 @@ def load_settings(root: str | Path) -> tuple[GenSplatConfig, dict]:
         if cfg.get(key) is not None:
             cfg[key] = tuple(cfg[key])
     return GenSplatConfig(**cfg), data["reconstructor"]
-
-
-def make_reconstructor(spec: dict):
-    """The reconstructor named in the settings: ``{"name": "rgbd", "config": {...}}`` or
-    ``{"name": "gensplat", "model": <weights dir or hub id; default: the shipped model>}``."""
-    if spec.get("name") == "rgbd":
-        return RGBDReconstructor(**spec.get("config", {}))
-    if spec.get("name") == "gensplat":
-        from gensplat_transforms.reconstruction.model import GenSplatReconstructor
-        from gensplat_transforms.weights import DEFAULT_MODEL_DIR
-
-        return GenSplatReconstructor(spec.get("model") or DEFAULT_MODEL_DIR)
-    raise ValueError(f"unknown reconstructor {spec.get('name')!r} in the GenSplat settings")
 
 
 def default_reconstructor(source: LeRobotSource) -> dict:
@@ -134,9 +121,10 @@ def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructo
     shard = shard or Shard()
     source = LeRobotSource(root, repo_id, config.cameras)
     reconstructor = reconstructor or default_reconstructor(source)
-    rec = make_reconstructor(reconstructor)
     if reconstructor["name"] == "gensplat" and shard.device.type == "cuda":
-        rec = OnDevice(rec, shard.device)
+        rec = OnDevice(make_reconstructor(reconstructor), shard.device)
+    else:  # the geometry path returns its depth on the CPU itself
+        rec = make_reconstructor(reconstructor, shard.device if reconstructor["name"] == "geometry" else None)
     if shard.rank == 0:
         save_settings(root, config, reconstructor)
     total = len(source.dataset.meta.episodes["length"])

@@ -1,0 +1,123 @@
+"""Gaussians from RGB only: depth from a Pi3-compatible model, discs by the RGB-D rule.
+
+The model (the official Pi3 checkpoint in the full configuration, or the shipped small
+GenSplat model) predicts per-view depth (the z of its camera-frame point maps), confidences
+and camera poses in one forward pass; only the geometry is used. The Gaussians are then the
+RGB-D path's surface discs (:mod:`.rgbd`), coloured by the images, so a model whose Gaussian
+head was never trained (Pi3's) still gives good Gaussians, and the cache stores only depth.
+
+Frame and scale:
+
+* calibrated views: every pixel sits on its ray of the calibrated camera at the predicted
+  depth. With ``scale="metric"`` the depth is used as predicted (a model trained on metric
+  geometry, as the shipped one); with ``"fit"`` it is multiplied by the ratio of the calibrated
+  to the predicted camera-centre spread (what Pi3 needs: its geometry is up to scale). A
+  single view has no spread: ``"fit"`` raises, say ``"metric"`` for it. ``"auto"`` is
+  ``"fit"`` for two or more views and ``"metric"`` for one.
+* uncalibrated views: the predicted cameras, the first view's camera frame as the world,
+  focal lengths estimated from the point maps; depth as predicted.
+
+The model runs at the nearest multiple of 14 of the input size; the returned views (and so
+the cache) are at that size, with the cameras scaled to it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+from ..cameras import Cameras, rigid_inverse
+from ..model import PATCH_SIZE, GenSplatModel
+from ..model.geometry import align_similarity, estimate_focal, transform_poses
+from ..weights import DEFAULT_MODEL_DIR
+from .base import DepthReconstructor, Reconstruction, Views, valid_depth
+from .model import weights_hash
+from .rgbd import RGBDConfig, RGBDReconstructor
+
+SCALES = ("auto", "metric", "fit")
+
+
+class GeometryReconstructor(DepthReconstructor):
+    """Images (calibrated or not) -> model depth -> RGB-D surface discs (module docstring).
+
+    Args:
+        model: a :class:`GenSplatModel`, or a checkpoint directory / hub id for
+            ``GenSplatModel.from_pretrained`` (a Pi3 directory loads the full configuration;
+            default: the shipped small model).
+        min_conf: drop pixels whose sigmoid(confidence) is below this.
+        scale: ``"auto"``, ``"metric"`` or ``"fit"`` (see the module docstring).
+        discs: the surface-disc settings (``RGBDConfig``).
+        device, autocast_dtype: where the model runs, and e.g. torch.bfloat16 for autocast.
+    """
+
+    name = "geometry"
+
+    def __init__(
+        self,
+        model: GenSplatModel | str | Path = DEFAULT_MODEL_DIR,
+        *,
+        min_conf: float | None = None,
+        scale: str = "auto",
+        discs: RGBDConfig | None = None,
+        device: str | torch.device | None = None,
+        autocast_dtype: torch.dtype | None = None,
+    ) -> None:
+        if scale not in SCALES:
+            raise ValueError(f"GeometryReconstructor: scale must be one of {SCALES}, got {scale!r}")
+        if min_conf is not None and not 0 <= min_conf <= 1:
+            raise ValueError(f"GeometryReconstructor: min_conf must be in [0, 1], got {min_conf}")
+        if not isinstance(model, GenSplatModel):
+            model = GenSplatModel.from_pretrained(model)
+        self.model = model.eval() if device is None else model.to(device).eval()
+        self.min_conf, self.scale, self.autocast_dtype = min_conf, scale, autocast_dtype
+        self.discs = RGBDReconstructor(discs)
+        self._weights = weights_hash(self.model)  # once: build a new reconstructor after changing weights
+
+    def config(self) -> dict:
+        return {
+            "model": self.model.config.to_dict(), "weights": self._weights, "min_conf": self.min_conf,
+            "scale": self.scale, "discs": asdict(self.discs.cfg),
+            "autocast_dtype": str(self.autocast_dtype) if self.autocast_dtype else None,
+        }  # fmt: skip
+
+    @torch.no_grad()
+    def predict_depth(self, views: Views) -> Views:
+        H, W = views.images.shape[-2:]
+        h, w = (max(1, round(s / PATCH_SIZE)) * PATCH_SIZE for s in (H, W))
+        device = self.model.image_mean.device
+        images = views.images.to(device, torch.float32)
+        if (h, w) != (H, W):
+            images = F.interpolate(images, size=(h, w), mode="bilinear", antialias=True, align_corners=False)
+        with torch.autocast(device.type, dtype=self.autocast_dtype, enabled=self.autocast_dtype is not None):
+            out = self.model(images[None])
+        local, c2w = out["local_points"][0].float(), out["camera_poses"][0].float()
+        depth = local[..., 2]  # (V, h, w)
+        if views.cameras is not None:
+            cameras = views.cameras.resize(w, h)
+            depth = depth * self._scale(c2w, cameras.c2w.to(c2w))
+        else:
+            first = rigid_inverse(c2w[0])
+            poses = transform_poses(c2w, torch.ones((), device=device), first[:3, :3], first[:3, 3])
+            focal = estimate_focal(local, torch.sigmoid(out["conf"][0])).clamp_min(1.0)
+            cameras = Cameras.from_intrinsics(focal, focal, w / 2, h / 2, poses, w, h)
+        keep = valid_depth(depth)
+        if self.min_conf is not None:
+            keep &= torch.sigmoid(out["conf"][0].float()) >= self.min_conf
+        depth = torch.where(keep, depth, torch.zeros_like(depth))
+        return Views(images.cpu(), cameras.to(device="cpu"), depth[:, None].cpu())
+
+    def _scale(self, predicted: torch.Tensor, calibrated: torch.Tensor) -> torch.Tensor:
+        """Depth scale for calibrated views: 1, or calibrated / predicted camera-centre spread."""
+        mode = self.scale if self.scale != "auto" else ("fit" if len(predicted) > 1 else "metric")
+        if mode == "metric":
+            return torch.ones((), device=predicted.device)
+        if len(predicted) < 2:
+            raise ValueError("GeometryReconstructor: scale='fit' needs two or more views (one view's scale is "
+                             "unobservable); use scale='metric' with a metric model")  # fmt: skip
+        return align_similarity(predicted.double(), calibrated.double())[0].float()
+
+    def assemble(self, views: Views) -> Reconstruction:
+        return self.discs.assemble(views)

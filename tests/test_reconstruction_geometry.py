@@ -1,0 +1,114 @@
+"""The geometry path: model depth + RGB-D discs, calibrated or not, cached as depth."""
+
+import json
+
+import pytest
+import torch
+from safetensors.torch import save_file
+from tiny_model import TINY, tiny_model
+
+from gensplat_transforms.cache import GaussianCache
+from gensplat_transforms.episodes import SceneEpisodes
+from gensplat_transforms.model import GenSplatConfig
+from gensplat_transforms.reconstruction import (
+    RECONSTRUCTORS,
+    GeometryReconstructor,
+    RGBDReconstructor,
+    Views,
+    make_reconstructor,
+)
+from gensplat_transforms.scenes import TabletopScene, default_cameras
+
+
+@pytest.fixture(scope="module")
+def views():
+    cams = default_cameras(64, 50)  # 64x50, not multiples of 14: the model runs at 70x56
+    images, _ = TabletopScene(0).render(cams)
+    return Views(images[:2], cams[:2])
+
+
+def test_calibrated_views_give_depth_on_the_calibrated_cameras(views):
+    rec = GeometryReconstructor(tiny_model())
+    out = rec.predict_depth(views)
+    assert out.images.shape == (2, 3, 56, 70) and out.depths.shape == (2, 1, 56, 70)
+    assert (out.cameras.width, out.cameras.height) == (70, 56)
+    torch.testing.assert_close(out.cameras.c2w, views.cameras.c2w)
+    assert (out.depths > 0).all() and torch.isfinite(out.depths).all()
+    g = rec(views)
+    assert len(g.gaussians) == 2 * 56 * 70 and torch.equal(g.cameras.c2w, out.cameras.c2w)
+
+
+def test_fit_scales_depth_with_the_calibrated_baseline_and_metric_does_not(views):
+    far = views.cameras.with_c2w(views.cameras.c2w.clone())
+    far.c2w[:, :3, 3] *= 2  # the same rig, twice the size
+    wide = Views(views.images, far)
+    fit, metric = GeometryReconstructor(tiny_model(), scale="fit"), GeometryReconstructor(tiny_model(), scale="metric")
+    torch.testing.assert_close(fit.predict_depth(wide).depths, 2 * fit.predict_depth(views).depths, rtol=1e-4, atol=0)
+    torch.testing.assert_close(metric.predict_depth(wide).depths, metric.predict_depth(views).depths)
+
+
+def test_one_view_needs_a_metric_scale(views):
+    one = Views(views.images[:1], views.cameras[:1])
+    with pytest.raises(ValueError, match="two or more views"):
+        GeometryReconstructor(tiny_model(), scale="fit").predict_depth(one)
+    auto = GeometryReconstructor(tiny_model()).predict_depth(one)  # "auto" is metric for one view
+    torch.testing.assert_close(auto.depths, GeometryReconstructor(tiny_model(), scale="metric").predict_depth(one).depths)
+
+
+def test_uncalibrated_views_get_the_predicted_cameras(views):
+    out = GeometryReconstructor(tiny_model()).predict_depth(Views(views.images))
+    torch.testing.assert_close(out.cameras.c2w[0], torch.eye(4), atol=1e-5, rtol=0)  # first view = world
+    assert (out.cameras.K[:, 0, 0] >= 1).all()
+
+
+def test_confidence_masks_pixels(views):
+    everything = GeometryReconstructor(tiny_model(), min_conf=0.0).predict_depth(views)
+    nothing = GeometryReconstructor(tiny_model(), min_conf=1.0).predict_depth(views)
+    assert (everything.depths > 0).all() and (nothing.depths == 0).all()
+    assert len(GeometryReconstructor(tiny_model(), min_conf=1.0)(views).gaussians) == 0
+    with pytest.raises(ValueError, match="min_conf"):
+        GeometryReconstructor(tiny_model(), min_conf=2.0)
+    with pytest.raises(ValueError, match="scale"):
+        GeometryReconstructor(tiny_model(), scale="guess")
+
+
+def test_identity_follows_weights_and_settings():
+    a, b = GeometryReconstructor(tiny_model(seed=0)), GeometryReconstructor(tiny_model(seed=0))
+    assert a.identity() == b.identity()
+    assert a.identity() != GeometryReconstructor(tiny_model(seed=1)).identity()
+    assert a.identity() != GeometryReconstructor(tiny_model(seed=0), min_conf=0.5).identity()
+
+
+def test_a_pi3_checkpoint_directory_loads_by_path_and_through_the_registry(tmp_path, monkeypatch, views):
+    """A Pi3 directory (its own config.json, no Gaussian head) builds the full configuration,
+    swapped for the tiny one so the test stays small."""
+    monkeypatch.setattr(GenSplatConfig, "full", classmethod(lambda cls: TINY))
+    state = {k: v for k, v in tiny_model(seed=5).state_dict().items() if not k.startswith("gaussian_head.")}
+    save_file(state, str(tmp_path / "model.safetensors"))
+    (tmp_path / "config.json").write_text(json.dumps({"pos_type": "rope100", "decoder_size": "large"}))
+    with pytest.warns(UserWarning, match="Pi3 checkpoint"):
+        rec = make_reconstructor({"name": "geometry", "model": str(tmp_path), "options": {"scale": "fit"}})
+    assert isinstance(rec, GeometryReconstructor) and rec.scale == "fit"
+    assert torch.isfinite(rec(views).gaussians.means).all()
+
+
+def test_registry_names_every_reconstructor():
+    assert sorted(RECONSTRUCTORS) == ["gensplat", "geometry", "rgbd"]
+    assert isinstance(make_reconstructor({"name": "rgbd"}), RGBDReconstructor)
+    with pytest.raises(ValueError, match="available"):
+        make_reconstructor({"name": "nope"})
+
+
+def test_geometry_cache_stores_depth_and_rebuilds_the_same_gaussians(tmp_path):
+    source = SceneEpisodes(num_episodes=1, num_frames=2, size=42)
+    rec = GeometryReconstructor(tiny_model())
+    cache = GaussianCache(tmp_path, rec, source.fingerprint)
+    assert cache.kind == "depth"
+    cache.ensure(0, source)
+    for t in range(2):
+        views = source.views(0, t)
+        direct = rec(Views(views.images, views.cameras))
+        cached = cache.read(0, t, views.images)
+        assert torch.equal(cached.pixel_ids, direct.pixel_ids)
+        # the depth codec's relative error bound (2.4e-4) carries over to the centres' distance from the camera
+        torch.testing.assert_close(cached.gaussians.means, direct.gaussians.means, rtol=5e-4, atol=1e-5)
