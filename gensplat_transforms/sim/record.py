@@ -11,7 +11,9 @@ Dataset contents (see :mod:`gensplat_transforms.dataset_format` for calibration 
 * ``observation.state``: (12,) float32, names :data:`~.world.STATE_NAMES`;
 * ``action``: (5,) float32 ``[x, y, z, yaw, gripper]`` (see :mod:`.control`);
 * ``task``: the instruction, e.g. "put the red cube on the blue plate";
-* ``depth/<left|right>/episode_*.safetensors`` and ``sim/`` sidecars.
+* ``depth/<left|right>/episode_*.safetensors`` and ``sim/`` sidecars: the exact rendered
+  depth, or with ``RecordConfig.sensor_depth`` set the depth a real RGB-D camera would give
+  (:mod:`.sensor`; seeded by the episode seed, recorded in ``sim/world.json``).
 """
 
 from __future__ import annotations
@@ -21,13 +23,13 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 import torch
 from tqdm import tqdm
 
 from ..dataset_format import IMAGE_KEY_PREFIX, camera_info, save_depth
 from .control import ACTION_NAMES
 from .experts import ExpertConfig, run_expert
+from .sensor import SensorDepthConfig, sensor_depth
 from .tasks import episode_seed
 from .truth import save_sim_episode, save_world
 from .world import CAMERA_NAMES, EXTERNAL_CAMERAS, STATE_NAMES, SimWorld, WorldConfig
@@ -44,6 +46,8 @@ class RecordConfig:
     repo_id: LeRobot repo id written into the metadata (default ``gensplat/sim_<task>``).
     max_attempts: give up after this many expert attempts (default ``2 * episodes + 10``).
     world, expert: scene and expert settings.
+    sensor_depth: record the external cameras' depth as this simulated sensor measures it
+        (:mod:`.sensor`); None (default) records the exact depth.
     """
 
     root: Path
@@ -55,6 +59,7 @@ class RecordConfig:
     max_attempts: int | None = None
     world: WorldConfig = field(default_factory=WorldConfig)
     expert: ExpertConfig = field(default_factory=ExpertConfig)
+    sensor_depth: SensorDepthConfig | None = None
 
 
 @dataclass
@@ -115,7 +120,8 @@ def record(config: RecordConfig, progress: bool = True) -> RecordResult:
         use_videos=config.use_videos,
         image_writer_threads=4,
     )
-    save_world(root, world)
+    save_world(root, world, config.sensor_depth)
+    intrinsics = world.cameras(EXTERNAL_CAMERAS).K
     max_attempts = config.max_attempts or 2 * config.episodes + 10
     saved = attempts = frames = 0
     start = time.perf_counter()
@@ -129,6 +135,7 @@ def record(config: RecordConfig, progress: bool = True) -> RecordResult:
             if not success:
                 continue
             depth = {name: [] for name in EXTERNAL_CAMERAS}
+            noise = torch.Generator().manual_seed(episode.seed)
             for state, action in zip(states, actions):
                 world.set_state(state)
                 rendered = world.render(CAMERA_NAMES, depth=True)
@@ -137,11 +144,14 @@ def record(config: RecordConfig, progress: bool = True) -> RecordResult:
                     {"observation.state": world.robot_state(), "action": action, "task": episode.instruction}
                 )
                 dataset.add_frame(frame)
-                for name in EXTERNAL_CAMERAS:
-                    depth[name].append(rendered[name][1])
+                for name, K in zip(EXTERNAL_CAMERAS, intrinsics):
+                    rgb, z = (torch.from_numpy(a) for a in rendered[name])
+                    if config.sensor_depth is not None:
+                        z = sensor_depth(z, rgb.permute(2, 0, 1) / 255.0, K, config.sensor_depth, noise)
+                    depth[name].append(z)
             dataset.save_episode(parallel_encoding=False)  # no fork() of this multi-threaded GL process
             for name in EXTERNAL_CAMERAS:
-                save_depth(root, name, saved, torch.from_numpy(np.stack(depth[name])))
+                save_depth(root, name, saved, torch.stack(depth[name]))
             save_sim_episode(root, saved, episode, states)
             saved += 1
             frames += len(states)
@@ -173,6 +183,7 @@ def record_from_cli(args) -> RecordResult:
             seed=args.seed,
             use_videos=not args.images,
             world=world,
+            sensor_depth=SensorDepthConfig() if args.sensor_depth else None,
         )
     )
     print(

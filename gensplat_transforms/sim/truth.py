@@ -4,7 +4,8 @@ it from any camera.
 A recorded dataset carries its simulation sidecar beside LeRobot's files:
 
 * ``<root>/sim/world.json``: ``{"format": "gensplat-sim", "format_version": "1",
-  "task": name, "world": WorldConfig.to_dict()}``;
+  "task": name, "world": WorldConfig.to_dict(), "sensor_depth": SensorDepthConfig as a dict,
+  or null for exact depth}``;
 * ``<root>/sim/episode_{episode_index:06d}.safetensors``: float64 tensors ``qpos`` (T, nq),
   ``qvel`` (T, nv) and ``ctrl`` (T, nu), the full MuJoCo state observed at every frame,
   with metadata ``{"episode": EpisodeSpec JSON (seed, layout, colours, instruction)}``.
@@ -21,6 +22,7 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +31,7 @@ from safetensors import safe_open
 from safetensors.numpy import save_file
 
 from ..cameras import Cameras
+from .sensor import SensorDepthConfig
 from .tasks import EpisodeSpec
 from .world import CAMERA_NAMES, SimState, SimWorld, WorldConfig
 
@@ -52,13 +55,16 @@ def sim_episode_path(root: str | os.PathLike, episode_index: int) -> Path:
     return Path(root) / "sim" / f"episode_{int(episode_index):06d}.safetensors"
 
 
-def save_world(root: str | os.PathLike, world: SimWorld) -> None:
-    """Write ``sim/world.json`` (task and world configuration)."""
+def save_world(
+    root: str | os.PathLike, world: SimWorld, sensor_depth: SensorDepthConfig | None = None
+) -> None:
+    """Write ``sim/world.json`` (task, world configuration and the depth sensor model)."""
     doc = {
         "format": SIM_FORMAT,
         "format_version": SIM_FORMAT_VERSION,
         "task": world.task.name,
         "world": world.config.to_dict(),
+        "sensor_depth": None if sensor_depth is None else asdict(sensor_depth),
     }
     _atomic_write(
         Path(root) / "sim" / "world.json", lambda tmp: Path(tmp).write_text(json.dumps(doc, indent=2))
