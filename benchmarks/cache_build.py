@@ -1,0 +1,146 @@
+"""Cache build throughput of ``gensplat cache`` with 1 and 2 processes on one machine.
+
+    python benchmarks/cache_build.py [--episodes 6] [--size 224] [--processes 1 2] [--repeats 3]
+
+Records a simulated pick-and-place dataset once (MP4 video like LeRobot's default, depth
+sidecars of the two external cameras; reused when ``--root`` already holds it), then builds
+its cache from scratch (RGB-D reconstructor) with each process count: a plain ``gensplat
+cache`` for 1, ``torchrun --standalone --nproc-per-node N`` for N > 1, one thread per
+process (what torchrun sets; two threads in one process on a busy 2-core machine were 2-3x
+slower than one). ``--repeats`` rounds alternate the counts
+and the fastest build of each is reported (the machine may be shared). Reported: the
+build's episodes and timesteps per second (the time ``gensplat cache`` prints: from the
+start of ``prepare`` to the last process's end), end to end (the whole command, with
+interpreter start and imports), and cache bytes per timestep. For a plan at DROID's size,
+both reconstructors also build a few timesteps of the procedural scene seen by two 320x180
+cameras in this process (one thread): cache bytes and CPU seconds per timestep. Writes
+benchmarks/results/cache_build.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
+import torch
+from machine import cpu_model
+
+from gensplat_transforms.cache import GaussianCache
+from gensplat_transforms.episodes import SceneEpisodes
+from gensplat_transforms.reconstruction import GenSplatReconstructor, RGBDReconstructor, Views
+from gensplat_transforms.scenes import default_cameras
+from gensplat_transforms.sim.record import RecordConfig, record
+from gensplat_transforms.sim.world import WorldConfig
+
+REPO = "gensplat/bench_cache_build"
+
+
+def build(root: Path, processes: int) -> dict:
+    """Build the cache of ``root`` from scratch with ``processes`` processes; times and sizes."""
+    shutil.rmtree(root / "gensplat", ignore_errors=True)
+    torchrun = ["-m", "torch.distributed.run", "--standalone", "--nproc-per-node", str(processes)]
+    cli = ["-m", "gensplat_transforms.cli", "cache", "--root", str(root), "--repo-id", REPO]
+    cmd = [sys.executable, *(torchrun if processes > 1 else []), *cli]
+    t0 = time.perf_counter()
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    run = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env)
+    wall = time.perf_counter() - t0
+    line = next(x for x in run.stdout.splitlines() if x.startswith("cached "))
+    seconds = float(re.search(r" in ([\d.]+) s ", line).group(1))
+    info = json.loads((root / "meta" / "info.json").read_text())
+    episodes, timesteps = info["total_episodes"], info["total_frames"]
+    size = sum(f.stat().st_size for f in (root / "gensplat" / "cache").rglob("episode_*.safetensors"))
+    return {"processes": processes, "build_s": seconds, "episodes_per_s": round(episodes / seconds, 3),
+            "timesteps_per_s": round(timesteps / seconds, 2), "end_to_end_s": round(wall, 1),
+            "end_to_end_episodes_per_s": round(episodes / wall, 3), "cache_bytes": size,
+            "bytes_per_timestep": round(size / timesteps), "summary": line}  # fmt: skip
+
+
+class Rendered:
+    """The views of :class:`SceneEpisodes` episode 0 (one object sliding across the table) seen by
+    two ``width`` x ``height`` cameras, rendered once up front."""
+
+    camera_names = ("left", "right")
+
+    def __init__(self, width: int, height: int, frames: int) -> None:
+        scene = SceneEpisodes(num_episodes=1, num_frames=frames)
+        scene.cameras = default_cameras(width, height)
+        self.frames = [scene.views(0, t) for t in range(frames)]
+        self.fingerprint = f"scene-{width}x{height}-{frames}"
+
+    def num_frames(self, episode: int) -> int:
+        return len(self.frames)
+
+    def views(self, episode: int, frame: int) -> Views:
+        return self.frames[frame]
+
+
+def droid_size(frames: int) -> dict:
+    """Cache bytes and CPU seconds per timestep of both reconstructors at 320x180 (this process,
+    one thread)."""
+    torch.set_num_threads(1)
+    source, out = Rendered(320, 180, frames), {}
+    for rec in (RGBDReconstructor(), GenSplatReconstructor()):
+        cache = GaussianCache(tempfile.mkdtemp(), rec, source.fingerprint)
+        t0 = time.perf_counter()
+        stats = cache.ensure(0, source)
+        out[rec.name] = {"bytes_per_timestep": round(stats.bytes_per_timestep),
+                         "cpu_s_per_timestep": round((time.perf_counter() - t0) / frames, 3)}  # fmt: skip
+    return {"resolution": [320, 180], "timesteps": frames, "threads": 1, **out}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--episodes", type=int, default=6, help="episodes to record, if not reused (default: 6)")
+    parser.add_argument("--size", type=int, default=224, help="image size to record, if not reused (default: 224)")
+    parser.add_argument("--processes", type=int, nargs="+", default=[1, 2],
+                        help="process counts (default: 1 2)")
+    parser.add_argument("--repeats", type=int, default=3,
+                        help="builds per process count; the fastest is reported (default: 3)")
+    parser.add_argument("--droid-frames", type=int, default=4,
+                        help="timesteps built at DROID's size per reconstructor (default: 4)")
+    parser.add_argument("--root", default="outputs/benchmarks/cache_build_ds",
+                        help="the dataset, recorded if absent (default: outputs/benchmarks/cache_build_ds)")
+    args = parser.parse_args()
+    root = Path(args.root)
+    if not (root / "meta" / "info.json").exists():
+        record(RecordConfig(root, "pick_place", args.episodes, seed=0, repo_id=REPO,
+                            world=WorldConfig(width=args.size, height=args.size)), progress=False)  # fmt: skip
+    info = json.loads((root / "meta" / "info.json").read_text())
+    runs = []
+    for _ in range(args.repeats):  # alternated, so a busy spell of a shared machine hits both
+        for n in args.processes:
+            load = os.getloadavg()[0]
+            runs.append({**build(root, n), "load_average_before": round(load, 2)})
+    best = [min((r for r in runs if r["processes"] == n), key=lambda r: r["build_s"])
+            for n in args.processes]  # fmt: skip
+    result = {
+        "dataset": {"episodes": info["total_episodes"], "timesteps": info["total_frames"],
+                    "resolution": info["features"]["observation.images.left"]["shape"][:2], "reconstructed_cameras": 2, "video": True},
+        "reconstructor": "rgbd", "best": best, "runs": runs, "droid_size": droid_size(args.droid_frames),
+        "machine": {"cpus": os.cpu_count(), **cpu_model()}, "gpu": None,
+    }  # fmt: skip
+    print(f"best of {args.repeats} runs (fastest build)")
+    print(f"{'processes':>10}{'episodes/s':>12}{'timesteps/s':>13}{'build s':>9}{'end-to-end s':>14}"
+          f"{'B/timestep':>12}")
+    for r in best:
+        print(f"{r['processes']:>10}{r['episodes_per_s']:>12}{r['timesteps_per_s']:>13}{r['build_s']:>9}"
+              f"{r['end_to_end_s']:>14}{r['bytes_per_timestep']:>12}")
+    print("at 320x180:", json.dumps(result["droid_size"]))
+    out = Path(__file__).parent / "results" / "cache_build.json"
+    out.write_text(json.dumps(result, indent=2) + "\n")
+    print("wrote", out)
+
+
+if __name__ == "__main__":
+    main()
