@@ -11,6 +11,12 @@ each method's view at that pose is compared with ``GroundTruth.render`` there:
   rendered with the fast CPU renderer at the perturbed pose;
 * ``rgbd_fill``: the same render with the uncovered pixels filled from their surroundings
   (``holes.fill_holes``, what the training transform does by default);
+* ``rgbd_sensor``: ``rgbd`` on the depth a real RGB-D camera would give
+  (``sim.sensor.sensor_depth`` with the default, RealSense D435-like ``SensorDepthConfig``,
+  seeded per timestep);
+* ``forward_warp`` / ``forward_warp_sensor``: every left + right pixel forward-projected with
+  its clean / sensor depth to the perturbed camera (``warp.forward_warp``: nearest pixel,
+  z-buffer, no Gaussians), the baseline the RGB-D path must beat;
 * ``gensplat_small``: the feed-forward model (``GenSplatReconstructor``) on the left + right
   RGB images only; like the training transform, it perturbs the camera it predicted about
   the pivot of its predicted cameras. Included when the weights exist (default: the
@@ -24,9 +30,12 @@ each method's view at that pose is compared with ``GroundTruth.render`` there:
 Metrics: PSNR and SSIM over the whole image and over the pixels the source cameras saw
 (alpha > 0.5 of the RGB-D render at that pose; for SSIM, windows centred on those pixels),
 averaged over comparisons (PSNR null: identical images, +inf dB); ``coverage`` is that
-pixel fraction. Times (ms per novel view,
+pixel fraction. ``psnr_warp_mask``: PSNR over exactly the pixels the forward warp fills
+(of the sensor depth for the ``*_sensor`` methods, of the clean depth for the others), the
+fraction of which is ``warp_coverage``. Times (ms per novel view,
 one CPU thread, as in a dataloader worker): ``reconstruct_ms`` once per timestep (cached in
-training), ``render_ms`` per view (the warp for ``homography``), ``ms`` their sum.
+training), ``render_ms`` per view (the warp for ``homography`` and ``forward_warp``), ``ms``
+their sum.
 
 Writes ``benchmarks/results/nvs_fidelity.json`` (``{method: {level: {psnr, ssim, ms, ...}}}``
 plus ``settings`` and ``unavailable``) and ``nvs_fidelity.png`` (PSNR vs level).
@@ -40,6 +49,7 @@ import os
 import statistics
 import tempfile
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
@@ -57,13 +67,17 @@ from gensplat_transforms.perturbation import EVAL_LEVELS, PerturbationSampler
 from gensplat_transforms.reconstruction import GenSplatReconstructor, RGBDReconstructor, Views
 from gensplat_transforms.rendering import render
 from gensplat_transforms.sim.record import RecordConfig, record
+from gensplat_transforms.sim.sensor import SensorDepthConfig, sensor_depth
 from gensplat_transforms.sim.truth import GroundTruth
 from gensplat_transforms.sim.world import WorldConfig
+from gensplat_transforms.warp import forward_warp
 from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 
 REPO = "gensplat/sim_pick_place_heldout"
 HELDOUT_SEED = 1000
-METHODS = ("rgbd", "rgbd_fill", "gensplat_small", "source_image", "homography")
+METHODS = ("rgbd", "rgbd_fill", "rgbd_sensor", "forward_warp", "forward_warp_sensor", "gensplat_small",
+           "source_image", "homography")  # fmt: skip
+SENSOR = SensorDepthConfig()
 RESULTS = Path(__file__).parent / "results"
 PLOT_MAX_DB = 40.0
 
@@ -108,6 +122,14 @@ def load_model(path: Path) -> GenSplatReconstructor | str:
     return GenSplatReconstructor(path)
 
 
+def sensor_views(views: Views, seed: int) -> Views:
+    """``views`` with each depth map as the simulated RGB-D sensor (``SENSOR``) measures it."""
+    gen = torch.Generator().manual_seed(seed)
+    depths = [sensor_depth(d[0], image, K, SENSOR, gen)[None]
+              for d, image, K in zip(views.depths, views.images, views.cameras.K)]  # fmt: skip
+    return Views(views.images, views.cameras, torch.stack(depths))
+
+
 def timed(fn, *args, **kwargs):
     """(result, milliseconds)."""
     t0 = time.perf_counter()
@@ -115,12 +137,13 @@ def timed(fn, *args, **kwargs):
     return out, (time.perf_counter() - t0) * 1e3
 
 
-def score(pred: torch.Tensor, truth: torch.Tensor, seen: torch.Tensor) -> dict:
+def score(pred: torch.Tensor, truth: torch.Tensor, seen: torch.Tensor, filled: torch.Tensor) -> dict:
     """Metrics of (3, H, W) ``pred`` against ``truth``; ``seen`` (1, H, W) marks the pixels the
-    source cameras saw."""
+    source cameras saw, ``filled`` (1, H, W) those the forward warp fills."""
     pred = pred.clamp(0, 1)
     return {"psnr": psnr(pred, truth), "ssim": ssim(pred, truth),
-            "psnr_visible": psnr(pred, truth, seen), "ssim_visible": ssim(pred, truth, seen)}  # fmt: skip
+            "psnr_visible": psnr(pred, truth, seen), "ssim_visible": ssim(pred, truth, seen),
+            "psnr_warp_mask": psnr(pred, truth, filled), "warp_coverage": float(filled.float().mean())}  # fmt: skip
 
 
 def warm_up(views: Views, model) -> None:
@@ -128,6 +151,7 @@ def warm_up(views: Views, model) -> None:
     cams = views.cameras
     render(RGBDReconstructor().reconstruct(views).gaussians, cams[0], backend="fast", return_depth=False)
     homography_warp(views.images[0], cams[0], cams[0])
+    forward_warp(views.images, views.depths, cams, cams[0])
     if not isinstance(model, str):
         model.reconstruct(Views(views.images, cams))
 
@@ -136,6 +160,8 @@ def compare_frame(views: Views, truth: GroundTruth, ep: int, fr: int, model, arg
     """Append one row per (method, level, draw) for one timestep: metrics and times."""
     cams = views.cameras
     rgbd, rgbd_ms = timed(RGBDReconstructor().reconstruct, views)
+    sensor = sensor_views(views, seed=1000 * ep + fr)
+    rgbd_s, rgbd_s_ms = timed(RGBDReconstructor().reconstruct, sensor)
     if not isinstance(model, str):
         mrec, model_ms = timed(model.reconstruct, Views(views.images, cams))  # RGB only
     for level in EVAL_LEVELS:
@@ -151,14 +177,21 @@ def compare_frame(views: Views, truth: GroundTruth, ep: int, fr: int, model, arg
             views_of["rgbd_fill"] = (filled[0], rgbd_ms, ms + fill_ms)
             warped, ms = timed(homography_warp, views.images[0], cams[0], target)
             views_of["homography"] = (warped, 0.0, ms)
+            out_s, ms = timed(render, rgbd_s.gaussians, target, backend="fast", return_depth=False)
+            views_of["rgbd_sensor"] = (out_s.rgb[0], rgbd_s_ms, ms)
+            (fw, warp_mask), ms = timed(forward_warp, views.images, views.depths, cams, target)
+            views_of["forward_warp"] = (fw[0], 0.0, ms)
+            (fw_s, warp_mask_s), ms = timed(forward_warp, sensor.images, sensor.depths, cams, target)
+            views_of["forward_warp_sensor"] = (fw_s[0], 0.0, ms)
             if not isinstance(model, str):
                 mtarget = p.move(mrec.cameras, 0)
                 out_m, ms = timed(render, mrec.gaussians, mtarget, backend="fast", return_depth=False)
                 views_of["gensplat_small"] = (out_m.rgb[0], model_ms, ms)
             coverage = float(seen.float().mean())
             for method, (image, rec_ms, ren_ms) in views_of.items():
+                mask = warp_mask_s[0] if method.endswith("_sensor") else warp_mask[0]
                 rows.append({"method": method, "level": level, "episode": ep, "frame": fr, **p.as_dict(),
-                             **score(image, gt, seen), "coverage": coverage,
+                             **score(image, gt, seen, mask), "coverage": coverage,
                              "reconstruct_ms": rec_ms, "render_ms": ren_ms})  # fmt: skip
 
 
@@ -173,10 +206,12 @@ def summarise(rows: list) -> dict:
             continue
         table[method] = {}
         for level, rs in out[method].items():
-            entry = {k: _mean([r[k] for r in rs]) for k in ("psnr", "ssim", "psnr_visible", "ssim_visible")}
+            entry = {k: _mean([r[k] for r in rs])
+                     for k in ("psnr", "ssim", "psnr_visible", "ssim_visible", "psnr_warp_mask")}  # fmt: skip
             rec, ren = (statistics.median(r[k] for r in rs) for k in ("reconstruct_ms", "render_ms"))
             entry.update(ms=round(rec + ren, 1), reconstruct_ms=round(rec, 1), render_ms=round(ren, 1),
-                         coverage=round(_mean([r["coverage"] for r in rs]), 4), n=len(rs))  # fmt: skip
+                         coverage=_mean([r["coverage"] for r in rs]),
+                         warp_coverage=_mean([r["warp_coverage"] for r in rs]), n=len(rs))  # fmt: skip
             table[method][level] = entry
     return table
 
@@ -188,11 +223,14 @@ def _mean(values: list[float]) -> float | None:
 
 
 def plot(table: dict, path: Path) -> None:
-    """Two panels, PSNR over the whole image and over the visible pixels, against the level;
-    values above ``PLOT_MAX_DB`` (exact baselines at "none") are drawn at the top edge."""
-    panels = (("psnr", "PSNR, whole image (dB)"), ("psnr_visible", "PSNR, pixels seen by the sources (dB)"))
-    colours = {"rgbd": (31, 119, 180), "rgbd_fill": (255, 127, 14), "gensplat_small": (44, 160, 44), "source_image": (214, 39, 40),
-               "homography": (148, 103, 189)}  # fmt: skip
+    """Three panels, PSNR over the whole image, the visible pixels and the pixels the forward
+    warp fills, against the level; values above ``PLOT_MAX_DB`` (exact baselines at "none") are
+    drawn at the top edge."""
+    panels = (("psnr", "PSNR, whole image (dB)"), ("psnr_visible", "PSNR, pixels seen by the sources (dB)"),
+              ("psnr_warp_mask", "PSNR, pixels the forward warp fills (dB)"))  # fmt: skip
+    colours = {"rgbd": (31, 119, 180), "rgbd_fill": (255, 127, 14), "rgbd_sensor": (23, 190, 207),
+               "forward_warp": (140, 86, 75), "forward_warp_sensor": (227, 119, 194),
+               "gensplat_small": (44, 160, 44), "source_image": (214, 39, 40), "homography": (148, 103, 189)}  # fmt: skip
     values = [e[k] for m in table.values() for e in m.values() for k, _ in panels if e[k] is not None]
     lo, hi = np.floor(min(values) / 5) * 5, min(np.ceil(max(values) / 5) * 5, PLOT_MAX_DB)
     x_ticks = list(enumerate(EVAL_LEVELS))
@@ -208,27 +246,44 @@ def plot(table: dict, path: Path) -> None:
     line_panels(path, plots, {m: colours[m] for m in table}, note)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument(
-        "--quick", action="store_true", help="1 episode, 2 frames, 2 draws at 112 px (< 1 min)"
-    )
+def sampling_parser(description: str) -> argparse.ArgumentParser:
+    """The options shared with ``nvs_warp_gap.py``: dataset, sampled frames and draws, output."""
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--quick", action="store_true", help="1 episode, 2 frames, 2 draws at 112 px")
     parser.add_argument(
         "--root", type=Path, help="a recorded simulated dataset (default: record held-out episodes)"
     )
     parser.add_argument("--repo-id", default=REPO)
-    parser.add_argument("--model", type=Path, default=DEFAULT_MODEL_DIR, help="GenSplat weights directory")
     parser.add_argument("--size", type=int, help="image size when recording (default 224; quick 112)")
     parser.add_argument("--episodes", type=int, help="episodes (default 3; quick 1)")
     parser.add_argument("--frames", type=int, help="frames per episode (default 4; quick 2)")
     parser.add_argument("--draws", type=int, help="perturbations per level and frame (default 4; quick 2)")
     parser.add_argument("--seed", type=int, default=0, help="perturbation seed")
     parser.add_argument("--out", type=Path, default=RESULTS)
-    args = parser.parse_args()
+    return parser
+
+
+def with_defaults(args: argparse.Namespace) -> argparse.Namespace:
+    """Fill the unset sizes and counts (full or ``--quick``); torch on one thread."""
     defaults = (112, 1, 2, 2) if args.quick else (224, 3, 4, 4)
     for k, v in zip(("size", "episodes", "frames", "draws"), defaults):
         setattr(args, k, getattr(args, k) or v)
     torch.set_num_threads(1)
+    return args
+
+
+def sampled_frames(source: LeRobotSource, episodes: int, frames: int):
+    """(episode, frame) pairs: ``frames`` evenly spaced inner frames of each episode."""
+    for ep in range(episodes):
+        length = source.num_frames(ep)
+        for fr in np.linspace(0, length - 1, frames + 2)[1:-1].round().astype(int).tolist():
+            yield ep, fr
+
+
+def main() -> None:
+    parser = sampling_parser(__doc__.splitlines()[0])
+    parser.add_argument("--model", type=Path, default=DEFAULT_MODEL_DIR, help="GenSplat weights directory")
+    args = with_defaults(parser.parse_args())
 
     t0 = time.perf_counter()
     root = args.root or heldout_dataset(args.size, args.episodes)
@@ -237,10 +292,8 @@ def main() -> None:
     model = load_model(args.model)
     warm_up(source.views(0, 0), model)
     rows: list = []
-    for ep in range(args.episodes):
-        length = source.num_frames(ep)
-        for fr in np.linspace(0, length - 1, args.frames + 2)[1:-1].round().astype(int).tolist():
-            compare_frame(source.views(ep, fr), truth, ep, fr, model, args, rows)
+    for ep, fr in sampled_frames(source, args.episodes, args.frames):
+        compare_frame(source.views(ep, fr), truth, ep, fr, model, args, rows)
     table = summarise(rows)
     result = {
         **table,
@@ -253,6 +306,9 @@ def main() -> None:
             "source_cameras": ["left", "right"], "perturbation_seed": args.seed, "torch_threads": 1,
             "model": None if isinstance(model, str) else str(args.model),
             "homography": "plane-induced, table plane z = 0", "visible": "alpha > 0.5 of the rgbd render",
+            "forward_warp": "left + right pixels, nearest target pixel, z-buffer",
+            "warp_mask": "pixels the forward warp fills (sensor depth for *_sensor methods)",
+            "sensor_depth": asdict(SENSOR), "sensor_seed": "1000 * episode + frame",
             "seconds": round(time.perf_counter() - t0, 1),
         },
     }  # fmt: skip
@@ -260,12 +316,16 @@ def main() -> None:
     (args.out / "nvs_fidelity.json").write_text(json.dumps(result, indent=2, allow_nan=False) + "\n")
     plot(table, args.out / "nvs_fidelity.png")
 
-    print(f"{'method':>15} {'level':>8} {'PSNR':>7} {'SSIM':>6} {'PSNR vis':>8} {'SSIM vis':>8} {'ms':>8}")
+    print(f"{'method':>19} {'level':>8} {'PSNR':>7} {'SSIM':>6} {'PSNR vis':>8} {'SSIM vis':>8} "
+          f"{'PSNR warp':>9} {'ms':>8}")  # fmt: skip
     for method, levels in table.items():
         for level, e in levels.items():
-            db = [f"{e[k]:.2f}" if e[k] is not None else "exact" for k in ("psnr", "psnr_visible")]
-            print(f"{method:>15} {level:>8} {db[0]:>7} {e['ssim']:6.3f} {db[1]:>8} "
-                  f"{e['ssim_visible']:8.3f} {e['ms']:8.1f}")  # fmt: skip
+            db = [
+                f"{e[k]:.2f}" if e[k] is not None else "exact"
+                for k in ("psnr", "psnr_visible", "psnr_warp_mask")
+            ]
+            print(f"{method:>19} {level:>8} {db[0]:>7} {e['ssim']:6.3f} {db[1]:>8} "
+                  f"{e['ssim_visible']:8.3f} {db[2]:>9} {e['ms']:8.1f}")  # fmt: skip
     for method, reason in result["unavailable"].items():
         print(f"{method}: unavailable, {reason}")
     print(
