@@ -6,15 +6,16 @@ Records a simulated pick-and-place dataset once (MP4 video like LeRobot's defaul
 sidecars of the two external cameras; reused when ``--root`` already holds it), then builds
 its cache from scratch (RGB-D reconstructor) with each process count: a plain ``gensplat
 cache`` for 1, ``torchrun --standalone --nproc-per-node N`` for N > 1, one thread per
-process (what torchrun sets; two threads in one process on a busy 2-core machine were 2-3x
-slower than one). ``--repeats`` rounds alternate the counts
-and the fastest build of each is reported (the machine may be shared). Reported: the
-build's episodes and timesteps per second (the time ``gensplat cache`` prints: from the
-start of ``prepare`` to the last process's end), end to end (the whole command, with
-interpreter start and imports), and cache bytes per timestep. For a plan at DROID's size,
-both reconstructors also build a few timesteps of the procedural scene seen by two 320x180
-cameras in this process (one thread): cache bytes and CPU seconds per timestep. Writes
-benchmarks/results/cache_build.json.
+process (what torchrun sets). ``--repeats`` rounds alternate the counts and the fastest
+build of each is reported (the machine may be shared). Reported: the build's episodes and
+timesteps per second (the time ``gensplat cache`` prints: from the start of ``prepare`` to
+the last process's end), timesteps per CPU second of the build (all processes' CPU time:
+what a core-hour estimate needs, and less sensitive to other jobs than the wall time), end
+to end (the whole command, with interpreter start and imports), and cache bytes per
+timestep. For a plan at DROID's size, each reconstructor (rgbd, geometry and gensplat, the
+models being the shipped small one) also builds a few timesteps of the procedural scene
+seen by two 320x180 cameras, in this process with one thread: cache bytes and CPU seconds
+per timestep. Writes benchmarks/results/cache_build.json.
 """
 
 from __future__ import annotations
@@ -37,7 +38,12 @@ from machine import cpu_model
 
 from gensplat_transforms.cache import GaussianCache
 from gensplat_transforms.episodes import SceneEpisodes
-from gensplat_transforms.reconstruction import GenSplatReconstructor, RGBDReconstructor, Views
+from gensplat_transforms.reconstruction import (
+    GenSplatReconstructor,
+    GeometryReconstructor,
+    RGBDReconstructor,
+    Views,
+)
 from gensplat_transforms.scenes import default_cameras
 from gensplat_transforms.sim.record import RecordConfig, record
 from gensplat_transforms.sim.world import WorldConfig
@@ -56,12 +62,13 @@ def build(root: Path, processes: int) -> dict:
     run = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env)
     wall = time.perf_counter() - t0
     line = next(x for x in run.stdout.splitlines() if x.startswith("cached "))
-    seconds = float(re.search(r" in ([\d.]+) s ", line).group(1))
+    seconds, cpu = (float(x) for x in re.search(r" in ([\d.]+) s, ([\d.]+) CPU s ", line).groups())
     info = json.loads((root / "meta" / "info.json").read_text())
     episodes, timesteps = info["total_episodes"], info["total_frames"]
     size = sum(f.stat().st_size for f in (root / "gensplat" / "cache").rglob("episode_*.safetensors"))
     return {"processes": processes, "build_s": seconds, "episodes_per_s": round(episodes / seconds, 3),
-            "timesteps_per_s": round(timesteps / seconds, 2), "end_to_end_s": round(wall, 1),
+            "timesteps_per_s": round(timesteps / seconds, 2), "build_cpu_s": cpu,
+            "timesteps_per_cpu_s": round(timesteps / cpu, 2), "end_to_end_s": round(wall, 1),
             "end_to_end_episodes_per_s": round(episodes / wall, 3), "cache_bytes": size,
             "bytes_per_timestep": round(size / timesteps), "summary": line}  # fmt: skip
 
@@ -86,11 +93,11 @@ class Rendered:
 
 
 def droid_size(frames: int) -> dict:
-    """Cache bytes and CPU seconds per timestep of both reconstructors at 320x180 (this process,
+    """Cache bytes and CPU seconds per timestep of each reconstructor at 320x180 (this process,
     one thread)."""
     torch.set_num_threads(1)
     source, out = Rendered(320, 180, frames), {}
-    for rec in (RGBDReconstructor(), GenSplatReconstructor()):
+    for rec in (RGBDReconstructor(), GeometryReconstructor(), GenSplatReconstructor()):
         cache = GaussianCache(tempfile.mkdtemp(), rec, source.fingerprint)
         t0 = time.perf_counter()
         stats = cache.ensure(0, source)
@@ -107,8 +114,8 @@ def main() -> None:
                         help="process counts (default: 1 2)")
     parser.add_argument("--repeats", type=int, default=3,
                         help="builds per process count; the fastest is reported (default: 3)")
-    parser.add_argument("--droid-frames", type=int, default=4,
-                        help="timesteps built at DROID's size per reconstructor (default: 4)")
+    parser.add_argument("--droid-frames", type=int, default=8,
+                        help="timesteps built at DROID's size per reconstructor (default: 8)")
     parser.add_argument("--root", default="outputs/benchmarks/cache_build_ds",
                         help="the dataset, recorded if absent (default: outputs/benchmarks/cache_build_ds)")
     args = parser.parse_args()
@@ -131,11 +138,12 @@ def main() -> None:
         "machine": {"cpus": os.cpu_count(), **cpu_model()}, "gpu": None,
     }  # fmt: skip
     print(f"best of {args.repeats} runs (fastest build)")
-    print(f"{'processes':>10}{'episodes/s':>12}{'timesteps/s':>13}{'build s':>9}{'end-to-end s':>14}"
-          f"{'B/timestep':>12}")
+    print(f"{'processes':>10}{'episodes/s':>12}{'timesteps/s':>13}{'build s':>9}{'CPU s':>8}"
+          f"{'timesteps/CPU s':>17}{'end-to-end s':>14}{'B/timestep':>12}")
     for r in best:
         print(f"{r['processes']:>10}{r['episodes_per_s']:>12}{r['timesteps_per_s']:>13}{r['build_s']:>9}"
-              f"{r['end_to_end_s']:>14}{r['bytes_per_timestep']:>12}")
+              f"{r['build_cpu_s']:>8}{r['timesteps_per_cpu_s']:>17}{r['end_to_end_s']:>14}"
+              f"{r['bytes_per_timestep']:>12}")
     print("at 320x180:", json.dumps(result["droid_size"]))
     out = Path(__file__).parent / "results" / "cache_build.json"
     out.write_text(json.dumps(result, indent=2) + "\n")

@@ -137,23 +137,22 @@ def _cache(args) -> None:
             raise SystemExit("gensplat cache: --model needs --reconstructor geometry or gensplat")
         spec = {"name": args.reconstructor or "gensplat", "model": args.model}
     shard = Shard.from_env()
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     stats = prepare(args.root, args.repo_id, config, spec, args.episodes, shard=shard)
-    ranks = gather(shard, (stats, time.perf_counter() - start))
+    ranks = gather(shard, (stats, time.perf_counter() - start, time.process_time() - cpu))
     if ranks is None:
         return
-    stats = {e: s for part, _ in ranks for e, s in part.items()}
+    stats = {e: s for part, _, _ in ranks for e, s in part.items()}
     built = {e: s for e, s in stats.items() if s is not None}
     size = sum(s.bytes for s in built.values())
     frames = sum(s.num_frames for s in built.values())
-    seconds = max(t for _, t in ranks)
+    seconds, cpu_s = max(r[1] for r in ranks), sum(r[2] for r in ranks)
     who = "" if len(ranks) == shard.world else f"rank {shard.rank} of {shard.world}: "
-    counts = ", ".join(str(sum(s is not None for s in part.values())) for part, _ in ranks)
+    counts = ", ".join(str(sum(s is not None for s in part.values())) for part, _, _ in ranks)
     per = "" if len(ranks) == 1 else f" [built per process: {counts}]"
     print(f"{who}cached {len(built)} episode(s) ({len(stats) - len(built)} already valid) on {len(ranks)} "
-          f"process(es) in {seconds:.2f} s ({len(built) / seconds:.3f} episodes/s): {frames} timesteps, "
-          f"{size / 1e6:.1f} MB, {size / max(frames, 1) / 1e3:.0f} kB per timestep{per}")
-
+          f"process(es) in {seconds:.2f} s, {cpu_s:.2f} CPU s ({len(built) / seconds:.3f} episodes/s): "
+          f"{frames} timesteps, {size / 1e6:.1f} MB, {size / max(frames, 1) / 1e3:.0f} kB per timestep{per}")
 
 if __name__ == "__main__":
     sys.exit(main())
