@@ -154,5 +154,6 @@ def _cache(args) -> None:
           f"process(es) in {seconds:.2f} s, {cpu_s:.2f} CPU s ({len(built) / seconds:.3f} episodes/s): "
           f"{frames} timesteps, {size / 1e6:.1f} MB, {size / max(frames, 1) / 1e3:.0f} kB per timestep{per}")
 
+
 if __name__ == "__main__":
     sys.exit(main())
