@@ -21,11 +21,14 @@ def main(argv: list[str] | None = None) -> int:
     record = sub.add_parser("record", help="record scripted demonstrations of the simulated tabletop (LeRobot v3)")
     record.add_argument("--out", required=True, help="dataset root to create (must not exist)")
     record.add_argument("--task", default="pick_place", help="pick_place or stack (default: pick_place)")
-    record.add_argument("--episodes", type=int, default=10)
-    record.add_argument("--seed", type=int, default=0)
-    record.add_argument("--size", type=int, default=224, help="image size in pixels (default: 224)")
-    record.add_argument("--fps", type=int, default=10)
-    record.add_argument("--images", action="store_true", help="store lossless PNG images instead of MP4 video")
+    record.add_argument("--episodes", type=int, default=10, help="demonstrations to record (default: 10)")
+    record.add_argument("--seed", type=int, default=0, help="run seed (default: 0)")
+    record.add_argument("--size", type=int, default=224, help="square image side in pixels (default: 224)")
+    record.add_argument("--height", type=int, default=None, help="image height in pixels (default: --size)")
+    record.add_argument("--width", type=int, default=None, help="image width in pixels (default: --size)")
+    record.add_argument("--fps", type=int, default=10, help="control and recording rate (default: 10)")
+    record.add_argument("--images", action="store_true",
+                        help="store lossless PNG images (default: MP4 video, LeRobot's default)")
     record.add_argument("--shadows", action="store_true", help="render shadows and reflections (slower)")
     record.add_argument(
         "--sensor-depth", action="store_true",

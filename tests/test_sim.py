@@ -106,7 +106,7 @@ def test_reach_expert_starts_away_from_the_goal():
     assert success and 10 <= len(actions) <= 40
 
 
-def _marker_world() -> tuple[SimWorld, int]:
+def _marker_world(height: int = 224, width: int = 224) -> tuple[SimWorld, int]:
     """A pick-and-place world with a 8 mm ball (segmentation marker) floating at a known point."""
     base = TASKS["pick_place"]
     task = Task(
@@ -118,7 +118,7 @@ def _marker_world() -> tuple[SimWorld, int]:
         "plate",
         0.06,
     )
-    w = SimWorld(task, WorldConfig(height=224, width=224))
+    w = SimWorld(task, WorldConfig(height=height, width=width))
     w.reset(0)
     return w, w.model.geom("ball").id
 
@@ -135,11 +135,19 @@ def _centroid(seg: np.ndarray, geom: int) -> np.ndarray:
     return np.array([cols.mean() + 0.5, rows.mean() + 0.5])  # pixel centres at +0.5
 
 
-def test_calibration_round_trip():
-    w, ball = _marker_world()
+@pytest.mark.parametrize("height, width", [(224, 224), (168, 224)])
+def test_calibration_round_trip(height, width):
+    """Projection through the calibration lands on the rendered marker, square or not (MuJoCo's
+    fovy is vertical: f = (H / 2) / tan(fovy / 2), principal point at (W / 2, H / 2))."""
+    w, ball = _marker_world(height, width)
     point = np.array([0.52, 0.07, 0.15])
     _place_ball(w, point)
     cams = w.cameras(CAMERA_NAMES)
+    assert (cams.width, cams.height) == (width, height)
+    f = height / 2 / np.tan(np.radians(w.model.cam_fovy[[w.model.camera(n).id for n in CAMERA_NAMES]]) / 2)
+    np.testing.assert_allclose(cams.K[:, 0, 0], f)
+    np.testing.assert_allclose(cams.K[:, 1, 1], f)
+    np.testing.assert_allclose(cams.K[:, :2, 2], np.tile([width / 2, height / 2], (3, 1)))
     uv, z = cams.project(torch.tensor(point)[None])
     for i, name in enumerate(CAMERA_NAMES):
         c = _centroid(w.segmentation(name), ball)
@@ -152,7 +160,7 @@ def test_calibration_round_trip():
     pivot = pivot_point(cams.c2w[0], cams.c2w[1])
     moved = cams[0].with_c2w(Perturbation("x", 25.0, 0.05).apply(cams.c2w[:1], pivot))
     rgb, depth = w.render_at(moved)
-    assert rgb.shape == (1, 3, 224, 224) and depth.shape == (1, 1, 224, 224)
+    assert rgb.shape == (1, 3, height, width) and depth.shape == (1, 1, height, width)
     seg = w.renderer().segmentation(w.data, w.model.camera("probe").id)
     uv, _ = moved.project(torch.tensor(point)[None])
     assert np.abs(_centroid(seg, ball) - uv[0, 0].numpy()).max() < 0.5

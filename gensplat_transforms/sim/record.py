@@ -173,7 +173,11 @@ def record(config: RecordConfig, progress: bool = True) -> RecordResult:
 def record_from_cli(args) -> RecordResult:
     """``gensplat record``: build the config from parsed arguments, record, print a summary."""
     world = WorldConfig(
-        height=args.size, width=args.size, fps=args.fps, shadows=args.shadows, reflections=args.shadows
+        height=args.height or args.size,
+        width=args.width or args.size,
+        fps=args.fps,
+        shadows=args.shadows,
+        reflections=args.shadows,
     )
     result = record(
         RecordConfig(
