@@ -112,7 +112,7 @@ def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructo
 
     ``shard`` is this process's place among several (see :mod:`gensplat_transforms.distributed`;
     default: the only process): it builds only its share of the episodes, and only rank 0
-    writes the settings. The feed-forward model runs on ``shard.device`` (``cuda:<local
+    writes the settings. The models (geometry, gensplat) run on ``shard.device`` (``cuda:<local
     rank>`` when CUDA is available). Returns per-episode
     :class:`~gensplat_transforms.cache.CacheStats` of this process's episodes (None when the
     episode was already cached)."""
