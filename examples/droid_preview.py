@@ -73,6 +73,8 @@ def colorize(depth: torch.Tensor, near: float, far: float) -> torch.Tensor:
 
 
 def main(argv: list[str] | None = None) -> dict:
+    """Run the preview; return what ``droid_preview.json`` holds plus ``renders``, the
+    (levels, 3, H, W) rendered views."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the droid_sample folder")
     parser.add_argument("--out", type=Path, default=Path("outputs/droid_preview"))
@@ -116,15 +118,14 @@ def main(argv: list[str] | None = None) -> dict:
         return F.interpolate(image[None], size=tile, mode="bilinear", antialias=True, align_corners=False)[0]
 
     source = to_tile(with_depth.images[0])
-    rows, labels, levels = [], [], {}
+    rows, labels, levels, renders = [], [], {}, []
     for level in EVAL_LEVELS:
         p = PerturbationSampler(level, seed=args.seed).sample(0)
         t0 = time.perf_counter()
         out = render_view(rec.gaussians, p.move(rec.cameras, 0), cfg)
         ms = (time.perf_counter() - t0) * 1e3
         coverage = float((out.alpha > 0.5).float().mean())
-        if not torch.isfinite(out.rgb).all():
-            raise RuntimeError(f"{level}: the render has non-finite values")
+        renders.append(out.rgb[0])
         levels[level] = {**p.as_dict(), "coverage": round(coverage, 4), "render_ms": round(ms, 1)}
         print(f"{level:>8}: rotate {p.theta_deg:+6.1f} deg about world {p.axis}, forward {p.mu_m * 100:4.1f} cm"
               f" -> coverage {coverage:.1%}, render {ms:.0f} ms")  # fmt: skip
@@ -143,7 +144,7 @@ def main(argv: list[str] | None = None) -> dict:
                "levels": levels, "figure": str(path)}  # fmt: skip
     (args.out / "droid_preview.json").write_text(json.dumps(summary, indent=2))
     print(f"wrote {path}")
-    return summary
+    return {**summary, "renders": torch.stack(renders)}
 
 
 if __name__ == "__main__":
