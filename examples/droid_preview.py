@@ -1,9 +1,9 @@
 """One real DROID timestep through the geometry path, perturbed at every evaluation level.
 
 The two external 1280x720 ZED views of the DROID sample (with their calibration, no depth)
-are resized to 224x126, their depth is predicted by the shipped small model (trained only on procedural
-and simulated tabletops at 112x112, never on real images), and the RGB-D surface discs built
-from it are rendered from the first camera moved about the pivot of the two cameras at every
+are resized to 224x126, their depth is predicted by the shipped small model (trained only on
+procedural and simulated tabletops at 112x112, never on real images), and the RGB-D surface
+discs built from it are rendered from the first camera moved about the pivot of the two cameras at every
 level of ``EVAL_LEVELS`` (fixed seed), hole-filled as the training transform does.
 
 Why 224x126 and ``scale="metric"``: the model was trained on 8x8 patches (112x112); at 448x252
