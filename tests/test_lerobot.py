@@ -1,4 +1,5 @@
-"""LeRobot integration: a real local LeRobotDataset, the one-line lerobot-train hook, pi0."""
+"""LeRobot integration: a real local LeRobotDataset, the one-line lerobot-train hook, pi0, and
+simulated recordings in LeRobot's default MP4 video at a non-square size."""
 
 import json
 import os
@@ -24,6 +25,7 @@ from gensplat_transforms.perturbation import PerturbationRange
 from gensplat_transforms.transform import GenSplatConfig
 
 REPO = "local/gensplat_scene"
+SIM_REPO = "gensplat/sim_pick_place"
 POLICIES = Path(__file__).resolve().parents[1] / "policies"
 LEFT = "observation.images.left"
 
@@ -40,6 +42,56 @@ def dataset_root(recorded, tmp_path):
     root = tmp_path / "ds"
     shutil.copytree(recorded, root)
     return root
+
+
+def record_and_cache(root: Path, height: int, width: int, frames: int | None = None) -> Path:
+    """A simulated pick-and-place episode (the first ``frames`` timesteps, or all) in LeRobot's
+    default MP4 video at ``height x width``, its depth cache built by ``gensplat cache`` with
+    every sample augmented (probability 1)."""
+    import gensplat_transforms.sim  # noqa: F401  (selects the headless GL backend before MuJoCo loads)
+
+    pytest.importorskip("mujoco", reason="recording needs the 'sim' extra (mujoco)")
+    from gensplat_transforms.cli import main
+    from gensplat_transforms.sim.record import RecordConfig, record
+    from gensplat_transforms.sim.world import WorldConfig
+
+    if frames is None:
+        main(["record", "--out", str(root), "--episodes", "1", "--height", str(height), "--width", str(width)])
+    else:  # a short clip: the command records whole demonstrations
+        world = WorldConfig(height=height, width=width)
+        record(RecordConfig(root, episodes=1, max_frames=frames, world=world), progress=False)
+    main(["cache", "--root", str(root), "--repo-id", SIM_REPO, "--probability", "1"])
+    return root
+
+
+@pytest.fixture(scope="module")
+def sim_video(tmp_path_factory):
+    """A whole simulated episode recorded by ``gensplat record`` at 48x64 (HxW), MP4, cached."""
+    return record_and_cache(tmp_path_factory.mktemp("sim") / "ds", 48, 64)
+
+
+def assert_augmented_at_own_size(root: Path, index: int, height: int, width: int) -> None:
+    """The one-line hook replaces the external cameras' images of ``root[index]`` with renders
+    at the dataset's own size (no resize) and dtype; the wrist camera is kept."""
+    info = json.loads((root / "meta" / "info.json").read_text())
+    assert info["features"][LEFT]["dtype"] == "video"  # LeRobot's default storage
+    plain = LeRobotDataset(SIM_REPO, root=root)
+    ds = enable_gensplat(LeRobotDataset(SIM_REPO, root=root))
+    assert ds.gensplat.cache.image_size(0) == (width, height)  # rendered at the dataset's size
+    item, ref = ds[index], plain[index]
+    for cam in ("left", "right"):
+        key = f"observation.images.{cam}"
+        assert item[key].shape == ref[key].shape == (3, height, width) and item[key].dtype == ref[key].dtype
+        assert not torch.equal(item[key], ref[key])
+    assert torch.equal(item["observation.images.wrist"], ref["observation.images.wrist"])
+
+
+def test_video_non_square_recording_is_cached_and_transformed(sim_video):
+    assert_augmented_at_own_size(sim_video, 10, 48, 64)
+
+
+def test_video_480x640_recording_is_cached_and_transformed(tmp_path):
+    assert_augmented_at_own_size(record_and_cache(tmp_path / "ds", 480, 640, frames=3), 1, 480, 640)
 
 
 def test_recorded_dataset_carries_calibration_and_depth(recorded):
@@ -172,12 +224,21 @@ def test_pi0_config_parses_and_its_dataset_path_runs(dataset_root):
     assert item["gensplat.applied"].all() and item[LEFT].shape == (3, 48, 48)
 
 
-def test_lerobot_train_diffusion_policy_with_the_one_line(dataset_root, tmp_path):
-    save_settings(dataset_root, GenSplatConfig(probability=1.0), {"name": "rgbd"})
+@pytest.mark.parametrize("data", ["png_square", "mp4_non_square"])
+def test_lerobot_train_diffusion_policy_with_the_one_line(data, request, tmp_path):
+    """Two lerobot-train steps with the one GenSplat line: on the procedural 48x48 PNG dataset,
+    and on the simulated 48x64 (HxW) MP4 recording (``gensplat record``, ``gensplat cache``)."""
+    if data == "png_square":
+        dataset_root, repo = request.getfixturevalue("dataset_root"), REPO
+        save_settings(dataset_root, GenSplatConfig(probability=1.0), {"name": "rgbd"})
+    else:
+        dataset_root, repo = tmp_path / "sim", SIM_REPO
+        shutil.copytree(request.getfixturevalue("sim_video"), dataset_root)
+        shutil.rmtree(dataset_root / "gensplat" / "cache")  # settings kept; the workers rebuild it
     out = tmp_path / "out"
     cmd = [
         "bash", str(POLICIES / "train.sh"), "diffusion", "gensplat",
-        f"--dataset.repo_id={REPO}", f"--dataset.root={dataset_root}", f"--output_dir={out}",
+        f"--dataset.repo_id={repo}", f"--dataset.root={dataset_root}", f"--output_dir={out}",
         "--steps=2", "--batch_size=2", "--num_workers=2", "--save_freq=2", "--log_freq=1",
     ]  # fmt: skip
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}", "HF_HUB_OFFLINE": "1"}

@@ -45,6 +45,8 @@ class RecordConfig:
     use_videos: store images as MP4 video (LeRobot's default) or as PNG images (lossless).
     repo_id: LeRobot repo id written into the metadata (default ``gensplat/sim_<task>``).
     max_attempts: give up after this many expert attempts (default ``2 * episodes + 10``).
+    max_frames: keep only the first ``max_frames`` timesteps of each demonstration (short clips,
+        e.g. for tests at a large image size); None (default) keeps them all.
     world, expert: scene and expert settings.
     sensor_depth: record the external cameras' depth as this simulated sensor measures it
         (:mod:`.sensor`); None (default) records the exact depth.
@@ -57,6 +59,7 @@ class RecordConfig:
     use_videos: bool = True
     repo_id: str | None = None
     max_attempts: int | None = None
+    max_frames: int | None = None
     world: WorldConfig = field(default_factory=WorldConfig)
     expert: ExpertConfig = field(default_factory=ExpertConfig)
     sensor_depth: SensorDepthConfig | None = None
@@ -134,6 +137,7 @@ def record(config: RecordConfig, progress: bool = True) -> RecordResult:
             attempts += 1
             if not success:
                 continue
+            states, actions = states[: config.max_frames], actions[: config.max_frames]
             depth = {name: [] for name in EXTERNAL_CAMERAS}
             noise = torch.Generator().manual_seed(episode.seed)
             for state, action in zip(states, actions):
