@@ -2,19 +2,21 @@
 what the cache costs in bytes and in fidelity.
 
     python benchmarks/dataloader.py [--quick] [--backend fast] [--replace left right] [--video]
+        [--height H --width W] [--episodes N] [--out results/dataloader.json]
 
 A simulated pick-and-place dataset is recorded twice (two external cameras with depth and a
-wrist camera; 224x224, or 96x96 with --quick), once with PNG images and once with MP4 video,
-for the dataset's own bytes per timestep. On one of them (PNG, or MP4 with --video) the
-cache is built, and the same DataLoader (same workers, batch size and sample order) is
-iterated with and without GenSplat (probability 1, level "train"). The per-sample split
-times one worker's steps directly (one thread): LeRobot's frame decoding (the dataset's own
-cost, apart from GenSplat's), the cache read (depth decoding), rebuilding the Gaussians from
-the depth and the item's images, render of the replaced cameras, uint8 conversion, and the
-whole transform. The cache is compared with storing the quantised Gaussians themselves (the
-``gaussians`` encoding, what a non-depth reconstructor stores) in bytes, and in fidelity:
-PSNR against the simulator's true image at perturbed poses, rendered from the cached versus
-the raw Gaussians. Writes benchmarks/results/dataloader.json.
+wrist camera; 224x224, 96x96 with --quick, or --height x --width), once with PNG images and
+once with MP4 video, for the dataset's own bytes per timestep. On one of them (PNG, or MP4
+with --video) the cache is built, and the same DataLoader (same workers, batch size and
+sample order) is iterated with and without GenSplat (probability 1, level "train"). The
+per-sample split times one worker's steps directly (one thread): LeRobot's frame decoding (the
+dataset's own cost, apart from GenSplat's), the cache read (depth decoding), rebuilding the
+Gaussians from the depth and the item's images, render of the replaced cameras, uint8
+conversion, and the whole transform. The cache is compared with storing the quantised
+Gaussians themselves (the ``gaussians`` encoding, what a non-depth reconstructor stores) in
+bytes, and in fidelity: PSNR against the simulator's true image at perturbed poses, rendered
+from the cached versus the raw Gaussians. Writes benchmarks/results/dataloader.json (or --out);
+``resolution`` is [height, width].
 """
 
 from __future__ import annotations
@@ -143,14 +145,20 @@ def main() -> None:
                         help="fill uncovered pixels (the transform's default)")
     parser.add_argument("--replace", nargs="+", default=["left", "right"], help="cameras replaced per sample")
     parser.add_argument("--video", action="store_true", help="run on the MP4-encoded recording (default: PNG)")
+    parser.add_argument("--height", type=int, default=None, help="image height (default: 224, 96 with --quick)")
+    parser.add_argument("--width", type=int, default=None, help="image width (default: 224, 96 with --quick)")
+    parser.add_argument("--episodes", type=int, default=None, help="episodes recorded (default: 2, 1 with --quick)")
+    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "dataloader.json",
+                        help="result file (default: benchmarks/results/dataloader.json)")
     args = parser.parse_args()
     torch.set_num_threads(1)  # as in a dataloader worker
     size, episodes, batches, samples = (96, 1, 3, 4) if args.quick else (224, 2, 10, 12)
+    height, width, episodes = args.height or size, args.width or size, args.episodes or episodes
     roots = {}
     for video in (False, True):
         roots[video] = Path(tempfile.mkdtemp()) / "ds"
         record(RecordConfig(roots[video], "pick_place", episodes, seed=0, use_videos=video, repo_id=REPO,
-                            world=WorldConfig(width=size, height=size)), progress=False)  # fmt: skip
+                            world=WorldConfig(width=width, height=height)), progress=False)  # fmt: skip
     root = roots[args.video]
     config = GenSplatConfig(probability=1.0, level="train", backend=args.backend, replace=tuple(args.replace),
                             fill_holes=args.fill_holes)
@@ -166,7 +174,8 @@ def main() -> None:
     gensplat = enable_gensplat(LeRobotDataset(REPO, root=root))
     split = split_ms(gensplat, samples)
     result = {
-        "quick": args.quick, "backend": args.backend, "workers": args.workers, "resolution": [size, size],
+        "quick": args.quick, "backend": args.backend, "workers": args.workers, "resolution": [height, width],
+        "episodes": episodes,
         "fill_holes": args.fill_holes,
         "cameras_reconstructed": list(config.cameras), "cameras_replaced": list(config.replace),
         "samples_per_s_plain": round(loader_rate(plain, args.workers, 4, batches), 2),
@@ -187,10 +196,9 @@ def main() -> None:
         print(f"{k:30}{result[k]:>12}")
     for k, v in {**split, **result["cache_fidelity"], **result["dataset_bytes_per_timestep"]}.items():
         print(f"  {k:28}{v:>12}")
-    out = Path(__file__).parent / "results" / "dataloader.json"
-    out.parent.mkdir(exist_ok=True)
-    out.write_text(json.dumps(result, indent=2) + "\n")
-    print("wrote", out)
+    args.out.parent.mkdir(exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    print("wrote", args.out)
 
 
 if __name__ == "__main__":
