@@ -21,6 +21,9 @@ each method's view at that pose is compared with ``GroundTruth.render`` there:
   RGB images only; like the training transform, it perturbs the camera it predicted about
   the pivot of its predicted cameras. Included when the weights exist (default: the
   package's ``weights/small``), reported under ``unavailable`` otherwise;
+* ``geometry_small`` / ``geometry_small_metric``: the same model through the geometry path
+  (``GeometryReconstructor``: only its depth, on the calibrated rays, scale fitted to the
+  calibrated camera baseline / kept as predicted; the RGB-D discs coloured by the images);
 * ``source_image``: the unchanged left image (what a policy sees without augmentation);
 * ``homography``: the left image warped by the homography that the table plane z = 0
   induces between the source and the perturbed camera (exact for the table top, which
@@ -64,7 +67,12 @@ from gensplat_transforms.cameras import Cameras
 from gensplat_transforms.holes import fill_holes
 from gensplat_transforms.metrics import psnr, ssim
 from gensplat_transforms.perturbation import EVAL_LEVELS, PerturbationSampler
-from gensplat_transforms.reconstruction import GenSplatReconstructor, RGBDReconstructor, Views
+from gensplat_transforms.reconstruction import (
+    GenSplatReconstructor,
+    GeometryReconstructor,
+    RGBDReconstructor,
+    Views,
+)
 from gensplat_transforms.rendering import render
 from gensplat_transforms.sim.record import RecordConfig, record
 from gensplat_transforms.sim.sensor import SensorDepthConfig, sensor_depth
@@ -76,7 +84,7 @@ from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 REPO = "gensplat/sim_pick_place_heldout"
 HELDOUT_SEED = 1000
 METHODS = ("rgbd", "rgbd_fill", "rgbd_sensor", "forward_warp", "forward_warp_sensor", "gensplat_small",
-           "source_image", "homography")  # fmt: skip
+           "geometry_small", "geometry_small_metric", "source_image", "homography")  # fmt: skip
 SENSOR = SensorDepthConfig()
 RESULTS = Path(__file__).parent / "results"
 PLOT_MAX_DB = 40.0
@@ -154,6 +162,7 @@ def warm_up(views: Views, model) -> None:
     forward_warp(views.images, views.depths, cams, cams[0])
     if not isinstance(model, str):
         model.reconstruct(Views(views.images, cams))
+        GeometryReconstructor(model.model).reconstruct(Views(views.images, cams))
 
 
 def compare_frame(views: Views, truth: GroundTruth, ep: int, fr: int, model, args, rows: list) -> None:
@@ -164,6 +173,8 @@ def compare_frame(views: Views, truth: GroundTruth, ep: int, fr: int, model, arg
     rgbd_s, rgbd_s_ms = timed(RGBDReconstructor().reconstruct, sensor)
     if not isinstance(model, str):
         mrec, model_ms = timed(model.reconstruct, Views(views.images, cams))  # RGB only
+        geometry = {name: timed(GeometryReconstructor(model.model, scale=scale).reconstruct, Views(views.images, cams))
+                    for name, scale in (("geometry_small", "fit"), ("geometry_small_metric", "metric"))}  # fmt: skip
     for level in EVAL_LEVELS:
         sampler = PerturbationSampler(level, seed=args.seed)
         for d in range(1 if level == "none" else args.draws):
@@ -187,6 +198,10 @@ def compare_frame(views: Views, truth: GroundTruth, ep: int, fr: int, model, arg
                 mtarget = p.move(mrec.cameras, 0)
                 out_m, ms = timed(render, mrec.gaussians, mtarget, backend="fast", return_depth=False)
                 views_of["gensplat_small"] = (out_m.rgb[0], model_ms, ms)
+                for name, (grec, grec_ms) in geometry.items():  # calibrated cameras: move them as for rgbd
+                    out_g, ms = timed(render, grec.gaussians, p.move(grec.cameras, 0), backend="fast",
+                                      return_depth=False)  # fmt: skip
+                    views_of[name] = (out_g.rgb[0], grec_ms, ms)
             coverage = float(seen.float().mean())
             for method, (image, rec_ms, ren_ms) in views_of.items():
                 mask = warp_mask_s[0] if method.endswith("_sensor") else warp_mask[0]
@@ -230,7 +245,8 @@ def plot(table: dict, path: Path) -> None:
               ("psnr_warp_mask", "PSNR, pixels the forward warp fills (dB)"))  # fmt: skip
     colours = {"rgbd": (31, 119, 180), "rgbd_fill": (255, 127, 14), "rgbd_sensor": (23, 190, 207),
                "forward_warp": (140, 86, 75), "forward_warp_sensor": (227, 119, 194),
-               "gensplat_small": (44, 160, 44), "source_image": (214, 39, 40), "homography": (148, 103, 189)}  # fmt: skip
+               "gensplat_small": (44, 160, 44), "geometry_small": (90, 90, 90),
+               "geometry_small_metric": (188, 189, 34), "source_image": (214, 39, 40), "homography": (148, 103, 189)}  # fmt: skip
     values = [e[k] for m in table.values() for e in m.values() for k, _ in panels if e[k] is not None]
     lo, hi = np.floor(min(values) / 5) * 5, min(np.ceil(max(values) / 5) * 5, PLOT_MAX_DB)
     x_ticks = list(enumerate(EVAL_LEVELS))
@@ -297,7 +313,7 @@ def main() -> None:
     table = summarise(rows)
     result = {
         **table,
-        "unavailable": {} if not isinstance(model, str) else {"gensplat_small": model},
+        "unavailable": {} if not isinstance(model, str) else {m: model for m in METHODS if "_small" in m},
         "settings": {
             "quick": args.quick, "dataset": "recorded held-out" if args.root is None else str(root),
             "heldout_seed": HELDOUT_SEED if args.root is None else None,

@@ -19,9 +19,9 @@ reconstructor identity and the dataset fingerprint; a mismatch is :class:`StaleC
 Every tensor has a CRC-32 over its name, dtype, shape and bytes, and the header has a CRC-32
 over all its other fields, so no edit of a label or a field goes unnoticed: a file that is
 truncated, edited or fails a checksum is :class:`CorruptCacheError`. Writes go to a
-temporary file that is atomically renamed, under a per-episode lock, so concurrent builders
-never build one episode twice; a builder killed mid-write leaves a temporary file that the
-next builder of that episode removes.
+temporary file (``.episode_<index>.safetensors.tmp``) that is atomically renamed, under a
+per-episode lock, so concurrent builders never build one episode twice; a builder killed
+mid-write leaves a temporary file that the next builder of that episode removes.
 """
 
 from __future__ import annotations
@@ -30,7 +30,6 @@ import fcntl
 import json
 import math
 import os
-import uuid
 import zlib
 from collections import OrderedDict
 from collections.abc import Sequence
@@ -209,8 +208,13 @@ class GaussianCache:
             raise ValueError(f"GaussianCache: episode {episode} has no frames")
         rec = self.reconstructor
         predict = rec.predict_depth if self.kind == "depth" else rec
-        tmp = self.root / f".{self.path(episode).name}.{uuid.uuid4().hex}.tmp"
-        fd = os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)  # the umask applies
+        tmp = self._tmp(episode)
+        while True:  # normally once: lock() removed or waited for any earlier temporary file
+            try:
+                fd = os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)  # the umask applies
+                break
+            except FileExistsError:
+                _remove_or_wait(tmp)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX)  # tells later builders this file is being written
             frames = [predict(source.views(episode, t)) for t in range(n)]
@@ -232,6 +236,10 @@ class GaussianCache:
         self._open.pop(int(episode), None)
         return CacheStats(n, len(data))
 
+    def _tmp(self, episode: int) -> Path:
+        """The one temporary file a builder of ``episode`` writes (named without listing the folder)."""
+        return self.root / f".{self.path(episode).name}.tmp"
+
     @contextmanager
     def lock(self, episode: int):
         """Exclusive per-episode lock (``.episode_<index>.lock`` beside the file).
@@ -251,8 +259,7 @@ class GaussianCache:
                 pass
             os.close(fd)
         try:
-            for tmp in self.root.glob(f".{self.path(episode).name}.*.tmp"):
-                _remove_or_wait(tmp)
+            _remove_or_wait(self._tmp(episode))
             yield
         finally:
             fcntl.flock(fd, fcntl.LOCK_UN)

@@ -58,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     cache.add_argument("--reconstructor", choices=["rgbd", "geometry", "gensplat"], default=None,
                        help="rgbd: the dataset's depth; geometry: depth from a Pi3-compatible model, RGB-D discs; "
                             "gensplat: the model's own Gaussian head (default: rgbd when the cameras have depth, "
-                            "else gensplat)")
+                            "else geometry)")
     cache.add_argument("--model", default=None,
                        help="weights directory or hub id of the geometry or gensplat model, e.g. a Pi3 checkpoint "
                             "(default: the shipped small model)")
@@ -138,7 +138,7 @@ def _cache(args) -> None:
     if args.model:
         if args.reconstructor == "rgbd":
             raise SystemExit("gensplat cache: --model needs --reconstructor geometry or gensplat")
-        spec = {"name": args.reconstructor or "gensplat", "model": args.model}
+        spec = {"name": args.reconstructor or "geometry", "model": args.model}
     shard = Shard.from_env()
     start, cpu = time.perf_counter(), time.process_time()
     stats = prepare(args.root, args.repo_id, config, spec, args.episodes, shard=shard)

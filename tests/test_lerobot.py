@@ -195,13 +195,14 @@ def test_missing_settings_or_depth_raise_clear_errors(dataset_root):
         LeRobotSource(dataset_root, REPO, ("left", "wrist"))
 
 
-def test_rgb_only_dataset_uses_the_feed_forward_model(dataset_root):
+def test_rgb_only_dataset_uses_the_geometry_path(dataset_root):
     shutil.rmtree(dataset_root / "depth")
     stats = prepare(dataset_root, REPO, GenSplatConfig(probability=1.0, level="small"), episodes=[0],
                     progress=False)  # fmt: skip
     assert stats[0].num_frames == 20
     _, reconstructor = load_settings(dataset_root)
-    assert reconstructor["name"] == "gensplat"
+    assert reconstructor["name"] == "geometry"
+    assert stats[0].bytes_per_timestep < 64_000  # depth only
     ds = enable_gensplat(LeRobotDataset(REPO, root=dataset_root))
     item, ref = ds[3], LeRobotDataset(REPO, root=dataset_root)[3]
     assert item[LEFT].shape == ref[LEFT].shape and torch.isfinite(item[LEFT]).all()

@@ -11,9 +11,10 @@ Frame and scale:
 * calibrated views: every pixel sits on its ray of the calibrated camera at the predicted
   depth. With ``scale="metric"`` the depth is used as predicted (a model trained on metric
   geometry, as the shipped one); with ``"fit"`` it is multiplied by the ratio of the calibrated
-  to the predicted camera-centre spread (what Pi3 needs: its geometry is up to scale). A
-  single view has no spread: ``"fit"`` raises, say ``"metric"`` for it. ``"auto"`` is
-  ``"fit"`` for two or more views and ``"metric"`` for one.
+  to the predicted camera-centre spread (what Pi3 needs: its geometry is up to scale; it
+  relies on the predicted poses, which the small model gets wrong on wide real rigs). A
+  single view has no spread: ``"fit"`` raises. ``"auto"`` is ``"fit"`` for a Pi3 checkpoint
+  given by path or hub id with two or more views, ``"metric"`` otherwise.
 * uncalibrated views: the predicted cameras, the first view's camera frame as the world,
   focal lengths estimated from the point maps; depth as predicted.
 
@@ -23,6 +24,7 @@ the cache) are at that size, with the cameras scaled to it.
 
 from __future__ import annotations
 
+import json
 from dataclasses import asdict
 from pathlib import Path
 
@@ -31,6 +33,7 @@ import torch.nn.functional as F
 
 from ..cameras import Cameras, rigid_inverse
 from ..model import PATCH_SIZE, GenSplatModel
+from ..model.checkpoints import CONFIG_FILE, FORMAT_NAME, resolve
 from ..model.geometry import align_similarity, estimate_focal, transform_poses
 from ..weights import DEFAULT_MODEL_DIR
 from .base import DepthReconstructor, Reconstruction, Views, valid_depth
@@ -38,6 +41,13 @@ from .model import weights_hash
 from .rgbd import RGBDConfig, RGBDReconstructor
 
 SCALES = ("auto", "metric", "fit")
+
+
+def is_gensplat_checkpoint(source: str | Path) -> bool:
+    """Whether a checkpoint directory / hub id holds this project's format (metric depth)
+    rather than an official Pi3 checkpoint (depth up to scale)."""
+    meta = json.loads((resolve(source) / CONFIG_FILE).read_text())
+    return meta.get("format") == FORMAT_NAME
 
 
 class GeometryReconstructor(DepthReconstructor):
@@ -69,7 +79,9 @@ class GeometryReconstructor(DepthReconstructor):
             raise ValueError(f"GeometryReconstructor: scale must be one of {SCALES}, got {scale!r}")
         if min_conf is not None and not 0 <= min_conf <= 1:
             raise ValueError(f"GeometryReconstructor: min_conf must be in [0, 1], got {min_conf}")
+        self.metric = True  # the model's depth is metric: this project's checkpoints are
         if not isinstance(model, GenSplatModel):
+            self.metric = is_gensplat_checkpoint(model)
             model = GenSplatModel.from_pretrained(model)
         self.model = model.eval() if device is None else model.to(device).eval()
         self.min_conf, self.scale, self.autocast_dtype = min_conf, scale, autocast_dtype
@@ -79,7 +91,7 @@ class GeometryReconstructor(DepthReconstructor):
     def config(self) -> dict:
         return {
             "model": self.model.config.to_dict(), "weights": self._weights, "min_conf": self.min_conf,
-            "scale": self.scale, "discs": asdict(self.discs.cfg),
+            "scale": self.scale, "metric_model": self.metric, "discs": asdict(self.discs.cfg),
             "autocast_dtype": str(self.autocast_dtype) if self.autocast_dtype else None,
         }  # fmt: skip
 
@@ -111,7 +123,7 @@ class GeometryReconstructor(DepthReconstructor):
 
     def _scale(self, predicted: torch.Tensor, calibrated: torch.Tensor) -> torch.Tensor:
         """Depth scale for calibrated views: 1, or calibrated / predicted camera-centre spread."""
-        mode = self.scale if self.scale != "auto" else ("fit" if len(predicted) > 1 else "metric")
+        mode = self.scale if self.scale != "auto" else ("metric" if self.metric or len(predicted) < 2 else "fit")
         if mode == "metric":
             return torch.ones((), device=predicted.device)
         if len(predicted) < 2:
