@@ -22,149 +22,143 @@ _TINY = 1e-20
 
 
 @_jit(inline=True)
-def _step(pts, valid, fp, h, w, y, x, dy, dx, axis, max_stretch, edge_scale, s, out):
-    """One surface step of pixel (y, x) towards (dy, dx), times the stride ``s``, into ``out``."""
-    best = math.inf
-    edge = False
+def _step(z, valid, h, w, y, x, dy, dx, ifx, ify, cx, cy, finv, p0, p1, p2, ax, max_stretch, edge_scale, s):
+    """Surface step of pixel (y, x), camera point (p0, p1, p2), towards (dy, dx), in the camera
+    frame (norms do not depend on the frame), times the stride ``s``. ``finv``: 1 / focal along
+    the step, so a pixel's fronto-parallel footprint is z * finv; ``ax``: 0 (u) or 1 (v)."""
+    best, edge = math.inf, False
+    o0 = o1 = o2 = 0.0
     for sign in (1, -1):  # forward first: ties keep the forward step, as the reference
-        y0, x0 = (y, x) if sign == 1 else (y - dy, x - dx)  # the pair (y0, x0) -> (y0 + dy, x0 + dx)
-        y1, x1 = y0 + dy, x0 + dx
-        if y0 < 0 or x0 < 0 or y1 >= h or x1 >= w:
+        yn, xn = y + sign * dy, x + sign * dx
+        if yn < 0 or xn < 0 or yn >= h or xn >= w:
             continue
-        if not (valid[y0, x0] and valid[y1, x1]):
+        if not valid[yn, xn]:
             edge = True
             continue
-        d0 = pts[y1, x1, 0] - pts[y0, x0, 0]
-        d1 = pts[y1, x1, 1] - pts[y0, x0, 1]
-        d2 = pts[y1, x1, 2] - pts[y0, x0, 2]
+        d = z[yn, xn]
+        q0, q1, q2 = (xn + 0.5 - cx) * ifx * d, (yn + 0.5 - cy) * ify * d, d
+        d0, d1, d2 = (q0 - p0, q1 - p1, q2 - p2) if sign == 1 else (p0 - q0, p1 - q1, p2 - q2)
         n = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-        if n > max_stretch * fp[y0, x0]:
+        if n > max_stretch * (p2 if sign == 1 else d) * finv:  # the pair's first pixel's footprint
             edge = True
         if n < best:
-            best = n
-            out[0], out[1], out[2] = d0, d1, d2
-    if not best <= max_stretch * fp[y, x]:
-        out[0], out[1], out[2] = fp[y, x] * axis[0], fp[y, x] * axis[1], fp[y, x] * axis[2]
+            best, o0, o1, o2 = n, d0, d1, d2
+    fp = p2 * finv
+    if not best <= max_stretch * fp:
+        o0, o1, o2 = (fp, 0.0, 0.0) if ax == 0 else (0.0, fp, 0.0)
     k = s * (edge_scale if edge else 1.0)
-    out[0] *= k
-    out[1] *= k
-    out[2] *= k
+    return o0 * k, o1 * k, o2 * k
 
 
 @_jit(inline=True)
-def _quat(r, q):
-    """Unit quaternion w-x-y-z (w >= 0) of the 3x3 rotation ``r`` (Shepperd, largest diagonal)."""
-    tr = r[0, 0] + r[1, 1] + r[2, 2]
-    case, big = 0, tr
-    for i in range(3):
-        if r[i, i] > big:
-            case, big = i + 1, r[i, i]
-    if case == 0:
+def _quat(r00, r01, r02, r10, r11, r12, r20, r21, r22):
+    """Unit quaternion w-x-y-z (w >= 0) of a rotation matrix (Shepperd, largest diagonal)."""
+    tr = r00 + r11 + r22
+    if tr >= r00 and tr >= r11 and tr >= r22:
         s = math.sqrt(max(1 + tr, 1e-12)) * 2
         i = 1 / s
-        q[0], q[1], q[2], q[3] = s / 4, (r[2, 1] - r[1, 2]) * i, (r[0, 2] - r[2, 0]) * i, (r[1, 0] - r[0, 1]) * i
-    elif case == 1:
-        s = math.sqrt(max(1 + r[0, 0] - r[1, 1] - r[2, 2], 1e-12)) * 2
+        w, x, y, z = s / 4, (r21 - r12) * i, (r02 - r20) * i, (r10 - r01) * i
+    elif r00 >= r11 and r00 >= r22:
+        s = math.sqrt(max(1 + r00 - r11 - r22, 1e-12)) * 2
         i = 1 / s
-        q[0], q[1], q[2], q[3] = (r[2, 1] - r[1, 2]) * i, s / 4, (r[0, 1] + r[1, 0]) * i, (r[0, 2] + r[2, 0]) * i
-    elif case == 2:
-        s = math.sqrt(max(1 - r[0, 0] + r[1, 1] - r[2, 2], 1e-12)) * 2
+        w, x, y, z = (r21 - r12) * i, s / 4, (r01 + r10) * i, (r02 + r20) * i
+    elif r11 >= r22:
+        s = math.sqrt(max(1 - r00 + r11 - r22, 1e-12)) * 2
         i = 1 / s
-        q[0], q[1], q[2], q[3] = (r[0, 2] - r[2, 0]) * i, (r[0, 1] + r[1, 0]) * i, s / 4, (r[1, 2] + r[2, 1]) * i
+        w, x, y, z = (r02 - r20) * i, (r01 + r10) * i, s / 4, (r12 + r21) * i
     else:
-        s = math.sqrt(max(1 - r[0, 0] - r[1, 1] + r[2, 2], 1e-12)) * 2
+        s = math.sqrt(max(1 - r00 - r11 + r22, 1e-12)) * 2
         i = 1 / s
-        q[0], q[1], q[2], q[3] = (r[1, 0] - r[0, 1]) * i, (r[0, 2] + r[2, 0]) * i, (r[1, 2] + r[2, 1]) * i, s / 4
-    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    if n > 1e-8:
-        f = (-1.0 if q[0] < 0 else 1.0) / n
-        for k in range(4):
-            q[k] *= f
-    else:
-        q[0], q[1], q[2], q[3] = 1.0, 0.0, 0.0, 0.0
+        w, x, y, z = (r10 - r01) * i, (r02 + r20) * i, (r12 + r21) * i, s / 4
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    if not n > 1e-8:
+        return 1.0, 0.0, 0.0, 0.0
+    f = (-1.0 if w < 0 else 1.0) / n
+    return w * f, x * f, y * f, z * f
 
 
 @_jit()
-def _discs(z, valid, rgb, intr, rot, trans, stride, sigma, thickness, max_stretch, edge_scale, offset,
+def _discs(z, valid, rgb, intr, rot, trans, stride, sigma, thickness, max_stretch, edge_scale, offset, start,
            means, quats, scales, dc, ids):
-    """Fill the outputs (rows 0..n-1, n = valid pixels on the stride grid); see module docstring."""
+    """Fill rows ``start``.. of the outputs (one per valid pixel on the stride grid); returns the
+    next free row. All geometry in the camera frame, rotated into the world at the end."""
     h, w = z.shape
     fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
-    pts = np.empty((h, w, 3))
-    fpu = np.empty((h, w))
-    fpv = np.empty((h, w))
-    for y in range(h):
-        for x in range(w):
-            d = z[y, x]
-            cam0, cam1 = (x + 0.5 - cx) / fx * d, (y + 0.5 - cy) / fy * d
-            for i in range(3):
-                pts[y, x, i] = rot[i, 0] * cam0 + rot[i, 1] * cam1 + rot[i, 2] * d + trans[i]
-            fpu[y, x], fpv[y, x] = d / fx, d / fy
-    ax_u, ax_v = rot[:, 0].copy(), rot[:, 1].copy()
-    a, b, n, e1, e2 = np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3)
-    r, q = np.empty((3, 3)), np.empty(4)
-    k = 0
+    ifx, ify = 1.0 / fx, 1.0 / fy
+    R00, R01, R02, R10, R11, R12, R20, R21, R22 = (rot[0, 0], rot[0, 1], rot[0, 2], rot[1, 0], rot[1, 1],
+                                                   rot[1, 2], rot[2, 0], rot[2, 1], rot[2, 2])  # fmt: skip
+    k = start
     for y in range(stride // 2, h, stride):
         for x in range(stride // 2, w, stride):
             if not valid[y, x]:
                 continue
-            _step(pts, valid, fpu, h, w, y, x, 0, 1, ax_u, max_stretch, edge_scale, stride, a)
-            _step(pts, valid, fpv, h, w, y, x, 1, 0, ax_v, max_stretch, edge_scale, stride, b)
-            n[0], n[1], n[2] = a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]
-            nn = max(math.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]), _TINY)
-            la = max(math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2]), _TINY)
-            lb = math.sqrt(b[0] * b[0] + b[1] * b[1] + b[2] * b[2])
-            for i in range(3):
-                n[i] /= nn
-                e1[i] = a[i] / la
-            e2[0], e2[1], e2[2] = n[1] * e1[2] - n[2] * e1[1], n[2] * e1[0] - n[0] * e1[2], n[0] * e1[1] - n[1] * e1[0]
-            b1 = b[0] * e1[0] + b[1] * e1[1] + b[2] * e1[2]
-            b2 = b[0] * e2[0] + b[1] * e2[1] + b[2] * e2[2]
-            g11, g12, g22 = la * la + b1 * b1, b1 * b2, b2 * b2
+            d = z[y, x]
+            p0, p1, p2 = (x + 0.5 - cx) * ifx * d, (y + 0.5 - cy) * ify * d, d
+            a0, a1, a2 = _step(z, valid, h, w, y, x, 0, 1, ifx, ify, cx, cy, ifx, p0, p1, p2, 0, max_stretch,
+                               edge_scale, stride)  # fmt: skip
+            b0, b1, b2 = _step(z, valid, h, w, y, x, 1, 0, ifx, ify, cx, cy, ify, p0, p1, p2, 1, max_stretch,
+                               edge_scale, stride)  # fmt: skip
+            n0, n1, n2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+            inv = 1 / max(math.sqrt(n0 * n0 + n1 * n1 + n2 * n2), _TINY)
+            n0, n1, n2 = n0 * inv, n1 * inv, n2 * inv
+            la = max(math.sqrt(a0 * a0 + a1 * a1 + a2 * a2), _TINY)
+            lb = math.sqrt(b0 * b0 + b1 * b1 + b2 * b2)
+            e10, e11, e12 = a0 / la, a1 / la, a2 / la
+            e20, e21, e22 = n1 * e12 - n2 * e11, n2 * e10 - n0 * e12, n0 * e11 - n1 * e10
+            bb1 = b0 * e10 + b1 * e11 + b2 * e12
+            bb2 = b0 * e20 + b1 * e21 + b2 * e22
+            g11, g12, g22 = la * la + bb1 * bb1, bb1 * bb2, bb2 * bb2
             mid, rad = 0.5 * (g11 + g22), math.sqrt((0.5 * (g11 - g22)) ** 2 + g12 * g12)
             c, s = 1.0, 0.0  # cos and sin of phi = atan2(2 g12, g11 - g22) / 2, by half angles
             if rad > 0:
                 c2 = 0.5 * (g11 - g22) / rad
                 c, s = math.sqrt(max(0.5 * (1 + c2), 0.0)), math.copysign(math.sqrt(max(0.5 * (1 - c2), 0.0)), g12)
+            # disc axes in the camera frame (columns), then in the world: R_world = rot @ R_cam
+            u0, u1, u2 = c * e10 + s * e20, c * e11 + s * e21, c * e12 + s * e22
+            v0, v1, v2 = c * e20 - s * e10, c * e21 - s * e11, c * e22 - s * e12
+            qw, qx, qy, qz = _quat(
+                R00 * u0 + R01 * u1 + R02 * u2, R00 * v0 + R01 * v1 + R02 * v2, R00 * n0 + R01 * n1 + R02 * n2,
+                R10 * u0 + R11 * u1 + R12 * u2, R10 * v0 + R11 * v1 + R12 * v2, R10 * n0 + R11 * n1 + R12 * n2,
+                R20 * u0 + R21 * u1 + R22 * u2, R20 * v0 + R21 * v1 + R22 * v2, R20 * n0 + R21 * n1 + R22 * n2,
+            )  # fmt: skip
             for i in range(3):
-                r[i, 0], r[i, 1], r[i, 2] = c * e1[i] + s * e2[i], c * e2[i] - s * e1[i], n[i]
-            _quat(r, q)
-            for i in range(3):
-                means[k, i] = pts[y, x, i]
+                means[k, i] = rot[i, 0] * p0 + rot[i, 1] * p1 + rot[i, 2] * p2 + trans[i]
                 dc[k, i] = (rgb[y, x, i] - 0.5) / C0
-            for i in range(4):
-                quats[k, i] = q[i]
+            quats[k, 0], quats[k, 1], quats[k, 2], quats[k, 3] = qw, qx, qy, qz
             scales[k, 0] = sigma * math.sqrt(mid + rad)
             scales[k, 1] = sigma * math.sqrt(max(mid - rad, 0.0))
             scales[k, 2] = thickness * sigma * min(la, lb)
             ids[k] = offset + y * w + x
             k += 1
+    return k
 
 
 def surface_discs(
-    depth: torch.Tensor, valid: torch.Tensor, rgb: torch.Tensor, K: torch.Tensor, c2w: torch.Tensor,
-    stride: int, sigma_px: float, thickness: float, max_stretch: float, edge_scale: float, offset: int = 0,
+    depths: torch.Tensor, images: torch.Tensor, K: torch.Tensor, c2w: torch.Tensor, stride: int, sigma_px: float,
+    thickness: float, max_stretch: float, edge_scale: float,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Disc Gaussians of one view.
+    """Disc Gaussians of V views.
 
     Args:
-        depth: (H, W) camera-z depth; valid: (H, W) bool; rgb: (3, H, W) in [0, 1];
-        K: (3, 3) intrinsics; c2w: (4, 4) camera-to-world; the rest as in ``RGBDConfig``;
-        offset: added to the pixel ids (``view * H * W``).
+        depths: (V, H, W) camera-z depth, 0 where no disc; images: (V, 3, H, W) in [0, 1];
+        K: (V, 3, 3) intrinsics; c2w: (V, 4, 4) camera-to-world; the rest as in ``RGBDConfig``.
     Returns:
         means (N, 3), quats (N, 4), scales (N, 3), SH DC (N, 3), all float32, and pixel ids
-        (N,) int64, for the N valid pixels on the stride grid, in row-major order.
+        (N,) int64 (``view * H * W + row * W + col``), for the N pixels with depth on the
+        stride grid, view by view in row-major order.
     """
-    z = np.ascontiguousarray(depth.detach().cpu().numpy(), dtype=np.float32)
-    ok = np.ascontiguousarray(valid.detach().cpu().numpy(), dtype=np.bool_)
-    col = np.ascontiguousarray(rgb.detach().cpu().permute(1, 2, 0).numpy(), dtype=np.float32)
+    z = np.ascontiguousarray(depths.detach().cpu().numpy(), dtype=np.float32)
+    ok = z > 0
+    col = np.ascontiguousarray(images.detach().cpu().permute(0, 2, 3, 1).numpy(), dtype=np.float32)
     Kd, T = K.detach().cpu().double().numpy(), c2w.detach().cpu().double().numpy()
-    intr = np.array([Kd[0, 0], Kd[1, 1], Kd[0, 2], Kd[1, 2]])
+    V, H, W = z.shape
     s = stride // 2
-    n = int(ok[s::stride, s::stride].sum())
+    n = int(ok[:, s::stride, s::stride].sum())
     out = [np.empty((n, c), np.float32) for c in (3, 4, 3, 3)]
     ids = np.empty(n, np.int64)
-    _discs(z, ok, col, intr, np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), stride,
-           sigma_px, thickness, max_stretch, edge_scale, offset, *out, ids)  # fmt: skip
+    k = 0
+    for v in range(V):
+        intr = np.array([Kd[v, 0, 0], Kd[v, 1, 1], Kd[v, 0, 2], Kd[v, 1, 2]])
+        k = _discs(z[v], ok[v], col[v], intr, np.ascontiguousarray(T[v, :3, :3]), np.ascontiguousarray(T[v, :3, 3]),
+                   stride, sigma_px, thickness, max_stretch, edge_scale, v * H * W, k, *out, ids)  # fmt: skip
     return (*(torch.from_numpy(o) for o in out), torch.from_numpy(ids))
-

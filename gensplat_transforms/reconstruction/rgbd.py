@@ -101,32 +101,29 @@ class RGBDReconstructor(DepthReconstructor):
 
     def assemble(self, views: Views) -> Reconstruction:
         views = self.predict_depth(views)
-        parts = [self._one_view(views, i) for i in range(len(views))]
-        gaussians = Gaussians.cat([g for g, _ in parts])
-        return Reconstruction(gaussians, views.cameras, torch.cat([ids for _, ids in parts]))
-
-    def _one_view(self, views: Views, i: int) -> tuple[Gaussians, torch.Tensor]:
-        """Gaussians of view i and their pixel ids (depth already cleaned: 0 = invalid)."""
         cfg = self.cfg
-        cam = views.cameras[i].to(dtype=torch.float32)
-        H, W = cam.height, cam.width
-        z = views.depths[i, 0]
-        valid = z > 0
-        if self.fast:
+        if self.fast:  # all views in one compiled pass, into one set of arrays
             means, quats, scales, dc, pixel_ids = surface_discs(
-                z, valid, views.images[i], cam.K[0], cam.c2w[0], cfg.stride, cfg.sigma_px, cfg.thickness,
-                cfg.max_stretch, cfg.edge_scale, offset=i * H * W,
+                views.depths[:, 0], views.images, views.cameras.K, views.cameras.c2w, cfg.stride, cfg.sigma_px,
+                cfg.thickness, cfg.max_stretch, cfg.edge_scale,
             )  # fmt: skip
         else:
-            means, quats, scales, dc, pixel_ids = self._one_view_reference(views.images[i], cam, z, valid, i)
-        sh = torch.zeros(means.shape[0], num_sh_bases(cfg.sh_degree), 3)
-        sh[:, 0] = dc
-        g = Gaussians(means, quats, scales, torch.full((means.shape[0],), cfg.opacity), sh)
-        return g, pixel_ids
+            parts = [self._one_view_reference(views, i) for i in range(len(views))]
+            means, quats, scales, dc, pixel_ids = (torch.cat(p) for p in zip(*parts))
+        n = means.shape[0]
+        sh = dc[:, None]  # DC only; higher degrees are zero
+        if cfg.sh_degree > 0:
+            sh = torch.cat([sh, dc.new_zeros(n, num_sh_bases(cfg.sh_degree) - 1, 3)], 1)
+        g = Gaussians(means, quats, scales, torch.full((n,), cfg.opacity), sh)
+        return Reconstruction(g, views.cameras, pixel_ids)
 
-    def _one_view_reference(self, image, cam, z, valid, i):
-        """The PyTorch rule: means, quats, scales, SH DC and pixel ids of one view."""
+    def _one_view_reference(self, views: Views, i: int):
+        """The PyTorch rule: means, quats, scales, SH DC and pixel ids of view ``i`` (depth
+        already cleaned: 0 = invalid)."""
         cfg = self.cfg
+        cam, image = views.cameras[i].to(dtype=torch.float32), views.images[i]
+        z = views.depths[i, 0]
+        valid = z > 0
         H, W = cam.height, cam.width
         pts = cam.unproject(cam.pixel_centers()[None], z.reshape(1, -1))[0].reshape(H, W, 3)
         R = cam.c2w[0, :3, :3]
