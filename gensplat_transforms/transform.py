@@ -209,6 +209,9 @@ class GenSplatTransform:
                     f"GenSplatTransform: episode {episode} is {status} in the cache at {self.cache.root} "
                     "and no source was given to build it; run the cache command first"
                 )
+            if status != "ok":
+                logger.warning("GenSplat cache at %s: episode %d is %s; building it in this process (run the "
+                               "cache command beforehand to build ahead)", self.cache.root, episode, status)  # fmt: skip
             self.cache.ensure(episode, self.source, verify=verify)
 
     def _read(self, episode: int, frame: int, images) -> Reconstruction:

@@ -135,11 +135,13 @@ def test_bad_inputs_raise_clear_errors(setup, tmp_path):
         GenSplatConfig(backend="nope")
 
 
-def test_lazy_build_in_the_transform(setup, tmp_path):
+def test_lazy_build_in_the_transform(setup, tmp_path, caplog):
     source, rec, _, ds = setup
     cache = GaussianCache(tmp_path, rec, source.fingerprint)
     tf = GenSplatTransform(GenSplatConfig(probability=1.0, level="small"), cache, source)
-    out = tf(ds[0])
+    with caplog.at_level("WARNING"):
+        out = tf(ds[0])
+    assert "episode 0 is missing; building it" in caplog.text  # never a silent rebuild
     assert cache.status(0) == "ok" and cache.status(1) == "missing"
     assert torch.isfinite(out[LEFT]).all()
 
