@@ -25,14 +25,14 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import cpu_model
 
-from gensplat_transforms.model import GenSplatConfig, GenSplatModel
+from gensplat_transforms.model import GenSplatModel, ModelConfig
 from gensplat_transforms.reconstruction import GeometryReconstructor, Views
 from gensplat_transforms.scenes import TabletopScene, default_cameras
 
 
 def time_config(name: str, size: int, repeats: int, device: str, threads: int) -> dict:
     torch.manual_seed(0)
-    config = GenSplatConfig.full() if name == "full" else GenSplatConfig.small()
+    config = ModelConfig.full() if name == "full" else ModelConfig.small()
     model = GenSplatModel(config).eval()
     rec = GeometryReconstructor(model, device=device)
     cams = default_cameras(size, size)

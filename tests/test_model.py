@@ -10,7 +10,7 @@ import torch
 from safetensors.torch import save_file
 
 from gensplat_transforms.cameras import Cameras, look_at
-from gensplat_transforms.model import GenSplatConfig, GenSplatModel, load_pi3_weights, to_gaussians
+from gensplat_transforms.model import GenSplatModel, ModelConfig, load_pi3_weights, to_gaussians
 from gensplat_transforms.model.geometry import (
     align_similarity,
     estimate_focal,
@@ -25,7 +25,7 @@ from gensplat_transforms.rotations import quat_to_rotmat
 from gensplat_transforms.sh import sh_basis
 
 MANIFEST = Path(__file__).resolve().parents[1].parent / "shared" / "pi3_state_dict_manifest.json"
-TINY = GenSplatConfig(
+TINY = ModelConfig(
     dim=32, enc_depth=2, enc_heads=2, enc_pos_grid=4, dec_depth=4, dec_heads=2, head_dim=32, head_depth=1,
     head_heads=2, head_out_dim=32, camera_dim=32, gs_taps=(0, 1, 2, 3), gs_features=16, gs_rgb_features=8,
     sh_degree=2,
@@ -158,7 +158,7 @@ def test_to_gaussians_one_per_pixel_and_confidence_mask(model):
 )  # fmt: skip
 def test_invalid_configs_raise(change, message):
     with pytest.raises(ValueError, match=message):
-        GenSplatConfig(**{**TINY.to_dict(), **change})
+        ModelConfig(**{**TINY.to_dict(), **change})
 
 
 # ---------------------------------------------------------------- Pi3 compatibility
@@ -168,7 +168,7 @@ def test_full_size_state_dict_matches_pi3_manifest():
     manifest = json.loads(MANIFEST.read_text())
     expected = {e["name"]: tuple(e["shape"]) for e in manifest["keys"]}
     with torch.device("meta"):
-        model = GenSplatModel(GenSplatConfig.full())
+        model = GenSplatModel(ModelConfig.full())
     state = {k: tuple(v.shape) for k, v in model.state_dict().items()}
     assert [k for k in expected if k not in state] == []
     assert {k: (state[k], s) for k, s in expected.items() if state[k] != s} == {}
@@ -197,7 +197,7 @@ def test_load_pi3_weights_reports_missing_and_unexpected(tmp_path):
 
 def test_load_pi3_weights_rejects_another_size(tmp_path):
     save_file({k: v for k, v in tiny_model().state_dict().items()}, str(tmp_path / "model.safetensors"))
-    other = GenSplatModel(GenSplatConfig(**{**TINY.to_dict(), "dim": 48, "enc_heads": 3, "dec_heads": 3}))
+    other = GenSplatModel(ModelConfig(**{**TINY.to_dict(), "dim": 48, "enc_heads": 3, "dec_heads": 3}))
     with pytest.raises(ValueError, match="shape mismatch"):
         load_pi3_weights(other, tmp_path)
 
@@ -205,7 +205,7 @@ def test_load_pi3_weights_rejects_another_size(tmp_path):
 def test_from_pretrained_reads_a_pi3_directory(tmp_path, monkeypatch):
     """A Pi3 hub snapshot (its own config.json) builds the full size; the size is swapped for the
     tiny one here so the test stays small."""
-    monkeypatch.setattr(GenSplatConfig, "full", classmethod(lambda cls: TINY))
+    monkeypatch.setattr(ModelConfig, "full", classmethod(lambda cls: TINY))
     source = tiny_model(seed=5)
     state = {k: v for k, v in source.state_dict().items() if not k.startswith("gaussian_head.")}
     save_file(state, str(tmp_path / "model.safetensors"))

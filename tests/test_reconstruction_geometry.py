@@ -9,7 +9,7 @@ from tiny_model import TINY, tiny_model
 
 from gensplat_transforms.cache import GaussianCache
 from gensplat_transforms.episodes import SceneEpisodes
-from gensplat_transforms.model import GenSplatConfig
+from gensplat_transforms.model import ModelConfig
 from gensplat_transforms.reconstruction import (
     RECONSTRUCTORS,
     GeometryReconstructor,
@@ -82,7 +82,7 @@ def test_identity_follows_weights_and_settings():
 def test_a_pi3_checkpoint_directory_loads_by_path_and_through_the_registry(tmp_path, monkeypatch, views):
     """A Pi3 directory (its own config.json, no Gaussian head) builds the full configuration,
     swapped for the tiny one so the test stays small."""
-    monkeypatch.setattr(GenSplatConfig, "full", classmethod(lambda cls: TINY))
+    monkeypatch.setattr(ModelConfig, "full", classmethod(lambda cls: TINY))
     state = {k: v for k, v in tiny_model(seed=5).state_dict().items() if not k.startswith("gaussian_head.")}
     save_file(state, str(tmp_path / "model.safetensors"))
     (tmp_path / "config.json").write_text(json.dumps({"pos_type": "rope100", "decoder_size": "large"}))

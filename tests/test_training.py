@@ -11,7 +11,7 @@ from safetensors.torch import save_file
 from tiny_model import TINY
 
 from gensplat_transforms.cli import main as cli_main
-from gensplat_transforms.model import GenSplatConfig, GenSplatModel
+from gensplat_transforms.model import GenSplatModel, ModelConfig
 from gensplat_transforms.model.data import ProceduralViews, RigConfig, resize_views
 from gensplat_transforms.model.losses import LossWeights
 from gensplat_transforms.model.teacher import Pi3Teacher, TrueGeometryTeacher, camera_points
@@ -125,7 +125,7 @@ def test_resume_from_checkpoint_gives_the_same_state(tmp_path):
 
 def test_checkpoint_of_another_model_size_is_refused(tmp_path):
     tiny_trainer(tmp_path).save()
-    other = GenSplatConfig(**{**TINY.to_dict(), "dim": 64, "head_dim": 64, "head_out_dim": 64})
+    other = ModelConfig(**{**TINY.to_dict(), "dim": 64, "head_dim": 64, "head_out_dim": 64})
     trainer = Trainer(GenSplatModel(other), ProceduralViews(2, SIZE, 2), TrueGeometryTeacher(),
                       TrainConfig(out=tmp_path, steps=1))  # fmt: skip
     with pytest.raises(ValueError, match="another model configuration"):
@@ -349,7 +349,7 @@ def test_cli_trains_and_exports(tmp_path):
     assert [r["step"] for r in lines] == [1, 2]
     assert {"rgb", "points", "cam_rot", "total", "lr"} <= set(lines[0])
     model = GenSplatModel.from_pretrained(out / EXPORT_DIR)
-    assert model.config == GenSplatConfig.small()
+    assert model.config == ModelConfig.small()
 
 
 def test_cli_mixes_procedural_and_lerobot_data(tmp_path, monkeypatch):
@@ -380,7 +380,7 @@ def test_cli_mixes_procedural_and_lerobot_data(tmp_path, monkeypatch):
 # ---------------------------------------------------------------- shipped weights
 def test_shipped_default_weights_load_and_give_finite_output():
     model = GenSplatModel.from_pretrained(DEFAULT_MODEL_DIR)
-    assert model.config == GenSplatConfig.small()
+    assert model.config == ModelConfig.small()
     views = ProceduralViews(1, 112, 2, seed=10_000)[0]
     with torch.no_grad():
         out = model(views.images[None])

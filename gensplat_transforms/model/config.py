@@ -8,7 +8,7 @@ PATCH_SIZE = 14  # ViT/14: input height and width must be multiples of this
 
 
 @dataclass(frozen=True)
-class GenSplatConfig:
+class ModelConfig:
     """Architecture hyper-parameters. The defaults are the full (Pi3-compatible) size.
 
     Attributes:
@@ -62,7 +62,7 @@ class GenSplatConfig:
             n for n in ("enc_registers", "dec_registers") if getattr(self, n) < 0
         ]
         if bad:
-            raise ValueError(f"GenSplatConfig: {bad} must be positive (registers: >= 0)")
+            raise ValueError(f"ModelConfig: {bad} must be positive (registers: >= 0)")
         taps = self.gs_taps
         checks = {
             "dim divisible by the heads": self.dim % self.enc_heads == self.dim % self.dec_heads == 0,
@@ -76,15 +76,15 @@ class GenSplatConfig:
         }  # fmt: skip
         failed = [k for k, ok in checks.items() if not ok]
         if failed:
-            raise ValueError(f"GenSplatConfig: need {'; '.join(failed)}")
+            raise ValueError(f"ModelConfig: need {'; '.join(failed)}")
 
     @classmethod
-    def full(cls) -> GenSplatConfig:
+    def full(cls) -> ModelConfig:
         """Pi3 size (ViT-L encoder, 36 decoder blocks, about 0.96 B parameters + Gaussian head)."""
         return cls()
 
     @classmethod
-    def small(cls) -> GenSplatConfig:
+    def small(cls) -> ModelConfig:
         """CPU size: the same architecture, 128 wide, 4 + 4 blocks, 16 x 16 position grid (224 px)."""
         return cls(
             dim=128, enc_depth=4, enc_heads=4, enc_pos_grid=16, dec_depth=4, dec_heads=4,
@@ -98,9 +98,9 @@ class GenSplatConfig:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict) -> GenSplatConfig:
+    def from_dict(cls, d: dict) -> ModelConfig:
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(d) - known)
         if unknown:
-            raise ValueError(f"GenSplatConfig: unknown fields {unknown}")
+            raise ValueError(f"ModelConfig: unknown fields {unknown}")
         return cls(**d)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from .config import GenSplatConfig
+from .config import ModelConfig
 from .layers import Block, run_block
 
 
@@ -27,7 +27,7 @@ class Decoder(nn.ModuleList):
 
     checkpointing = False
 
-    def __init__(self, cfg: GenSplatConfig):
+    def __init__(self, cfg: ModelConfig):
         super().__init__(
             Block(
                 cfg.dim,

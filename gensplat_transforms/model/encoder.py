@@ -6,7 +6,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .config import PATCH_SIZE, GenSplatConfig
+from .config import PATCH_SIZE, ModelConfig
 from .layers import Block, run_block
 
 
@@ -28,7 +28,7 @@ class Encoder(nn.Module):
 
     checkpointing = False
 
-    def __init__(self, cfg: GenSplatConfig):
+    def __init__(self, cfg: ModelConfig):
         super().__init__()
         d = cfg.dim
         self.cls_token = nn.Parameter(torch.zeros(1, 1, d))

@@ -19,7 +19,7 @@ from ..gaussians import Gaussians
 from ..rotations import rotmat_to_quat
 from ..sh import rgb_to_sh_dc
 from .checkpoints import CONFIG_FILE, FORMAT_NAME, FORMAT_VERSION, WEIGHTS_FILE, load_pi3_weights, resolve
-from .config import PATCH_SIZE, GenSplatConfig
+from .config import PATCH_SIZE, ModelConfig
 from .decoder import Decoder, token_positions
 from .encoder import Encoder
 from .gaussian_head import GaussianHead
@@ -30,7 +30,7 @@ from .heads import CameraHead, HeadDecoder, PixelHead
 class GenSplatModel(nn.Module):
     """Pi3 geometry (encoder, equivariant decoder, point / confidence / camera heads) + Gaussian head."""
 
-    def __init__(self, config: GenSplatConfig):
+    def __init__(self, config: ModelConfig):
         super().__init__()
         self.config = cfg = config
         self.encoder = Encoder(cfg)
@@ -141,10 +141,10 @@ class GenSplatModel(nn.Module):
                 raise ValueError(
                     f"{path}: format version {meta.get('format_version')} is not {FORMAT_VERSION}"
                 )
-            model = cls(GenSplatConfig.from_dict(meta["config"]))
+            model = cls(ModelConfig.from_dict(meta["config"]))
             model.load_state_dict(load_file(str(path / WEIGHTS_FILE)))
         elif meta.get("decoder_size", "large") == "large" and meta.get("pos_type", "rope100") == "rope100":
-            model = cls(GenSplatConfig.full())
+            model = cls(ModelConfig.full())
             report = load_pi3_weights(model, path / WEIGHTS_FILE)
             warnings.warn(f"{path}: Pi3 checkpoint, {report}", stacklevel=2)
         else:

@@ -7,7 +7,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .config import PATCH_SIZE, GenSplatConfig
+from .config import PATCH_SIZE, ModelConfig
 from .layers import Block, run_block
 
 
@@ -17,7 +17,7 @@ class HeadDecoder(nn.Module):
 
     checkpointing = False
 
-    def __init__(self, in_dim: int, out_dim: int, cfg: GenSplatConfig):
+    def __init__(self, in_dim: int, out_dim: int, cfg: ModelConfig):
         super().__init__()
         self.projects = nn.Linear(in_dim, cfg.head_dim)
         self.blocks = nn.ModuleList(

@@ -15,7 +15,7 @@ import torch
 from ..reconstruction import Views
 from ..reconstruction.base import valid_depth
 from .checkpoints import load_pi3_weights
-from .config import GenSplatConfig
+from .config import ModelConfig
 from .gensplat import GenSplatModel
 
 
@@ -67,9 +67,9 @@ class Pi3Teacher:
 
     metric = False
 
-    def __init__(self, weights: str | Path, config: GenSplatConfig | None = None,
+    def __init__(self, weights: str | Path, config: ModelConfig | None = None,
                  device: str | torch.device = "cpu", autocast_dtype: torch.dtype | None = None) -> None:  # fmt: skip
-        model = GenSplatModel(config or GenSplatConfig.full())
+        model = GenSplatModel(config or ModelConfig.full())
         self.report = load_pi3_weights(model, weights)  # raises FileNotFoundError without the file
         if self.report.missing_outside_gaussian_head:
             raise ValueError(f"{weights}: not a complete Pi3 geometry checkpoint: {self.report}")

@@ -42,7 +42,7 @@ from ..cameras import Cameras
 from ..reconstruction import Views
 from ..rendering import render
 from .checkpoints import GAUSSIAN_PREFIX, load_pi3_weights
-from .config import GenSplatConfig
+from .config import ModelConfig
 from .gensplat import GenSplatModel, to_gaussians
 from .geometry import estimate_focal
 from .losses import LossWeights, camera_loss, depth_loss, points_loss, rgb_loss
@@ -404,7 +404,7 @@ def pretrained_names(model: torch.nn.Module, weights: str | Path) -> set[str]:
     return {n for n, _ in model.named_parameters() if n not in missing and not n.startswith(GAUSSIAN_PREFIX)}
 
 
-def train(config: TrainConfig, model_config: GenSplatConfig, dataset: Dataset, teacher: Teacher | None = None,
+def train(config: TrainConfig, model_config: ModelConfig, dataset: Dataset, teacher: Teacher | None = None,
           init_weights: str | Path | None = None, progress: bool = True) -> Path:  # fmt: skip
     """Build a model (optionally initialised from Pi3 weights), train it and return the exported
     EMA model directory."""
@@ -429,7 +429,7 @@ def train_from_cli(args) -> Path:
         render_views=args.render_views, render_crop=args.render_crop, seed=args.seed, log_every=args.log_every, save_every=args.save_every,
         threads=args.threads,
     )  # fmt: skip
-    model_config = GenSplatConfig.full() if args.model == "full" else GenSplatConfig.small()
+    model_config = ModelConfig.full() if args.model == "full" else ModelConfig.small()
     datasets = []
     for kind in dict.fromkeys(args.data):
         if kind == "lerobot":
