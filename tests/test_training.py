@@ -323,10 +323,10 @@ def test_resize_views_keeps_intrinsics_consistent():
 def test_lerobot_views_train_with_the_recorded_geometry(tmp_path, monkeypatch):
     pytest.importorskip("lerobot", reason="the LeRobot extra is not installed")
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    from gensplat_lerobot import LeRobotViews
     from gensplat_lerobot.record import record_scene_dataset
 
     from gensplat_transforms.episodes import SceneEpisodes
-    from gensplat_transforms.model.data import LeRobotViews
 
     record_scene_dataset(tmp_path / "ds", SceneEpisodes(num_episodes=1, num_frames=3, size=42), "local/t",
                          progress=False)  # fmt: skip

@@ -1,16 +1,15 @@
 """Training samples for the GenSplat model: the external cameras of one timestep as :class:`Views`.
 
 :class:`ProceduralViews` draws endless procedural tabletops (``TabletopScene``) seen by random
-DROID-like camera rigs, with exact RGB-D and calibration; :class:`LeRobotViews` reads the
-external cameras of a local LeRobot dataset through ``gensplat_lerobot.LeRobotSource``.
-Both return images whose size is a multiple of the patch size, ready for the model.
+DROID-like camera rigs, with exact RGB-D and calibration; ``gensplat_lerobot.LeRobotViews``
+reads the external cameras of a local LeRobot dataset. Both return images whose size is a
+multiple of the patch size, ready for the model.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -110,28 +109,3 @@ def resize_views(views: Views, height: int, width: int) -> Views:
     cameras = None if views.cameras is None else views.cameras.resize(width, height)
     return Views(images, cameras, depths)
 
-
-class LeRobotViews(Dataset):
-    """Every timestep of a local LeRobot dataset: its external cameras resized to ``size x size``.
-
-    A thin index over ``gensplat_lerobot.LeRobotSource`` (needs the LeRobot extra). Depth is
-    present only where the dataset has depth sidecars (then :class:`TrueGeometryTeacher`
-    works); otherwise use :class:`Pi3Teacher`.
-    """
-
-    def __init__(
-        self, root: str | Path, repo_id: str, size: int = 112, cameras: tuple[str, ...] | None = None
-    ):
-        from gensplat_lerobot import LeRobotSource
-
-        if size % PATCH_SIZE:
-            raise ValueError(f"LeRobotViews: size must be a multiple of {PATCH_SIZE}, got {size}")
-        self.source, self.size = LeRobotSource(root, repo_id, cameras), size
-        episodes = range(self.source.dataset.meta.total_episodes)
-        self.index = [(e, t) for e in episodes for t in range(self.source.num_frames(e))]
-
-    def __len__(self) -> int:
-        return len(self.index)
-
-    def __getitem__(self, i: int) -> Views:
-        return resize_views(self.source.views(*self.index[i]), self.size, self.size)

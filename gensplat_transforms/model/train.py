@@ -35,7 +35,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import torch
-from torch.utils.data import ConcatDataset, Dataset
+from torch.utils.data import Dataset
 from tqdm.auto import tqdm
 
 from ..cameras import Cameras
@@ -412,43 +412,3 @@ def train(config: TrainConfig, model_config: ModelConfig, dataset: Dataset, teac
     model = GenSplatModel(model_config)
     pretrained = pretrained_names(model, init_weights) if init_weights else set()
     return Trainer(model, dataset, teacher, config, pretrained).fit(progress)
-
-
-def train_from_cli(args) -> Path:
-    """``gensplat train-model``: see ``gensplat train-model --help``."""
-    from .data import LeRobotViews, ProceduralViews
-    from .teacher import Pi3Teacher, TrueGeometryTeacher
-
-    loss = LossWeights(l1=args.l1, perceptual=args.perceptual, depth=args.l_depth, points=args.l_3d,
-                       camera=args.l_cam)  # fmt: skip
-    if args.no_distill:
-        loss = LossWeights(l1=args.l1, perceptual=args.perceptual, depth=0.0, points=0.0, camera=0.0)
-    config = TrainConfig(
-        out=args.out, steps=args.steps, batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup,
-        pretrained_lr_scale=args.pretrained_lr_scale, ema_decay=args.ema_decay, bf16=args.bf16, grad_checkpointing=args.grad_checkpointing, loss=loss,
-        render_views=args.render_views, render_crop=args.render_crop, seed=args.seed, log_every=args.log_every, save_every=args.save_every,
-        threads=args.threads,
-    )  # fmt: skip
-    model_config = ModelConfig.full() if args.model == "full" else ModelConfig.small()
-    datasets = []
-    for kind in dict.fromkeys(args.data):
-        if kind == "lerobot":
-            if not (args.root and args.repo_id):
-                raise SystemExit("gensplat train-model --data lerobot needs --root and --repo-id")
-            cameras = tuple(args.cameras) if args.cameras else None
-            datasets.append(LeRobotViews(args.root, args.repo_id, args.size, cameras))
-        else:
-            length = args.scenes or args.steps * args.batch_size
-            datasets.append(ProceduralViews(length, args.size, args.views, seed=args.seed))
-    dataset = datasets[0] if len(datasets) == 1 else ConcatDataset(datasets)
-    teacher = None
-    if config.distills:
-        if args.teacher == "pi3":
-            if not args.teacher_weights:
-                raise SystemExit("--teacher pi3 needs --teacher-weights (Pi3 model.safetensors)")
-            teacher = Pi3Teacher(args.teacher_weights)
-        else:
-            teacher = TrueGeometryTeacher()
-    exported = train(config, model_config, dataset, teacher, args.init_weights)
-    print(f"trained {args.steps} steps; EMA model written to {exported}")
-    return exported

@@ -12,8 +12,9 @@ package itself has no side effects.
 """
 
 from .dataset import GenSplatLeRobotDataset, enable_gensplat, load_settings, prepare, save_settings
-from .source import LeRobotSource
+from .source import LeRobotSource, LeRobotViews
 
 __all__ = [
-    "GenSplatLeRobotDataset", "LeRobotSource", "enable_gensplat", "load_settings", "prepare", "save_settings",
+    "GenSplatLeRobotDataset", "LeRobotSource", "LeRobotViews", "enable_gensplat", "load_settings", "prepare",
+    "save_settings",
 ]  # fmt: skip

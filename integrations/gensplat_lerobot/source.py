@@ -1,4 +1,5 @@
-"""A LeRobot dataset as an :class:`~gensplat_transforms.episodes.EpisodeSource`."""
+"""A LeRobot dataset as an :class:`~gensplat_transforms.episodes.EpisodeSource`, and as training
+samples of the GenSplat model (:class:`LeRobotViews`)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from functools import cached_property
 from pathlib import Path
 
 import torch
+from torch.utils.data import Dataset
 
 from gensplat_transforms.dataset_format import (
     IMAGE_KEY_PREFIX,
@@ -16,6 +18,8 @@ from gensplat_transforms.dataset_format import (
     load_calibration,
     load_depth,
 )
+from gensplat_transforms.model import PATCH_SIZE
+from gensplat_transforms.model.data import resize_views
 from gensplat_transforms.reconstruction import Views
 
 
@@ -88,6 +92,30 @@ class LeRobotSource:
             return Views(images, self.cameras)  # RGB only: needs a model reconstructor
         depths = torch.stack([load_depth(self.root, n, episode, frame) for n in self.camera_names])
         return Views(images, self.cameras, depths)
+
+
+class LeRobotViews(Dataset):
+    """Every timestep of a local LeRobot dataset: its external cameras resized to ``size x size``,
+    as training samples of the GenSplat model (``gensplat train-model --data lerobot``).
+
+    A thin index over :class:`LeRobotSource`. Depth is present only where the dataset has depth
+    sidecars (then ``TrueGeometryTeacher`` works); otherwise use ``Pi3Teacher``.
+    """
+
+    def __init__(
+        self, root: str | Path, repo_id: str, size: int = 112, cameras: tuple[str, ...] | None = None
+    ):
+        if size % PATCH_SIZE:
+            raise ValueError(f"LeRobotViews: size must be a multiple of {PATCH_SIZE}, got {size}")
+        self.source, self.size = LeRobotSource(root, repo_id, cameras), size
+        episodes = range(self.source.dataset.meta.total_episodes)
+        self.index = [(e, t) for e in episodes for t in range(self.source.num_frames(e))]
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def __getitem__(self, i: int) -> Views:
+        return resize_views(self.source.views(*self.index[i]), self.size, self.size)
 
 
 def files_digest(root: Path, dirs: list[str], sample: int = 16384) -> str:

@@ -1,0 +1,116 @@
+"""Layers point down: the core library never imports the bench (the simulator, the demo, the
+command line) or LeRobot, the LeRobot integration imports only the core, and no modules of
+the package import each other in a cycle. Read from the source (ast), nothing is imported."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = "gensplat_transforms"
+#: The bench: may import the core and gensplat_lerobot; nothing in the core imports it.
+BENCH = (f"{PACKAGE}.sim", f"{PACKAGE}.demo", f"{PACKAGE}.cli")
+INTEGRATION = "gensplat_lerobot"
+
+
+def _name(path: Path, base: Path) -> str:
+    parts = path.relative_to(base).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+MODULES = {_name(p, ROOT): p for p in sorted((ROOT / PACKAGE).rglob("*.py"))}
+INTEGRATION_MODULES = {
+    _name(p, ROOT / "integrations"): p for p in sorted((ROOT / "integrations").rglob("*.py"))
+}
+
+
+def _under(name: str, prefixes) -> bool:
+    return any(name == p or name.startswith(p + ".") for p in prefixes)
+
+
+def _statements(tree: ast.Module, module_level: bool):
+    """Import statements anywhere, or only those that run on import (not inside functions)."""
+    todo = list(tree.body)
+    while todo:
+        node = todo.pop()
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            yield node
+        elif not (module_level and isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda))):
+            todo.extend(ast.iter_child_nodes(node))
+
+
+def imports(name: str, path: Path, modules: dict, module_level: bool = False) -> set[str]:
+    """Absolute names of what ``name`` imports: ``from a import b`` gives ``a.b`` when that is
+    a module of ``modules``, else ``a``."""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    out = set()
+    for node in _statements(ast.parse(path.read_text()), module_level):
+        if isinstance(node, ast.Import):
+            out |= {a.name for a in node.names}
+            continue
+        base = node.module or ""
+        if node.level:
+            parts = package.split(".")[: len(package.split(".")) - node.level + 1]
+            base = ".".join(parts + ([node.module] if node.module else []))
+        out |= {f"{base}.{a.name}" if f"{base}.{a.name}" in modules else base for a in node.names}
+    return out
+
+
+def test_the_core_imports_neither_the_bench_nor_lerobot():
+    forbidden = (*BENCH, INTEGRATION, "lerobot")
+    bad = {m: sorted(i for i in imports(m, p, MODULES) if _under(i, forbidden))
+           for m, p in MODULES.items() if not _under(m, BENCH)}  # fmt: skip
+    assert not {m: i for m, i in bad.items() if i}, "core modules import the bench or LeRobot"
+
+
+def test_the_lerobot_integration_imports_only_the_core():
+    bad = {m: sorted(i for i in imports(m, p, INTEGRATION_MODULES) if _under(i, BENCH))
+           for m, p in INTEGRATION_MODULES.items()}  # fmt: skip
+    assert not {m: i for m, i in bad.items() if i}
+
+
+def _graph() -> dict[str, set[str]]:
+    """Module-level imports between the package's modules; importing ``a.b.c`` from outside
+    ``a.b`` also runs ``a.b``'s ``__init__``."""
+    graph = {}
+    for m, p in MODULES.items():
+        edges = set()
+        for target in imports(m, p, MODULES, module_level=True):
+            parts = target.split(".")
+            for k in range(1, len(parts) + 1):
+                parent = ".".join(parts[:k])
+                if parent in MODULES and parent != m and not _under(m, [parent]):
+                    edges.add(parent)
+        graph[m] = edges
+    return graph
+
+
+def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    state, path = {}, []
+
+    def visit(u):
+        state[u] = "open"
+        path.append(u)
+        for v in sorted(graph[u]):
+            if state.get(v) == "open":
+                return path[path.index(v) :] + [v]
+            if v not in state and (cycle := visit(v)):
+                return cycle
+        path.pop()
+        state[u] = "done"
+        return None
+
+    return next((c for u in sorted(graph) if u not in state and (c := visit(u))), None)
+
+
+def test_no_import_cycles():
+    graph = _graph()
+    assert f"{PACKAGE}.model" in graph[f"{PACKAGE}.reconstruction.model"]  # the graph sees imports
+    cycle = find_cycle(graph)
+    assert cycle is None, " -> ".join(cycle)
+
+
+def test_the_cycle_finder_finds_a_cycle():
+    assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == ["a", "b", "c", "a"]
+    assert find_cycle({"a": {"b"}, "b": set()}) is None
