@@ -4,7 +4,7 @@ poses, from cached Gaussians, inside dataloader workers."""
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import torch
 import torch.nn.functional as F
@@ -77,6 +77,29 @@ class GenSplatConfig:
             raise ValueError(f"GenSplatConfig.views_per_source must be >= 1, got {self.views_per_source}")
         if self.backend not in BACKENDS:
             raise ValueError(f"GenSplatConfig.backend: unknown {self.backend!r}; available {sorted(BACKENDS)}")
+
+    def to_dict(self) -> dict:
+        """The settings as plain values for JSON (a ``PerturbationRange`` level as a dict)."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> GenSplatConfig:
+        """The inverse of :meth:`to_dict`, also after JSON turned its tuples into lists.
+
+        Example:
+            >>> import json
+            >>> config = GenSplatConfig(level=PerturbationRange((2.0, 4.0), (0.01, 0.02)), frame_offsets=(-1, 0))
+            >>> GenSplatConfig.from_dict(json.loads(json.dumps(config.to_dict()))) == config
+            True
+        """
+        d = _tuples(d)
+        if isinstance(d.get("level"), dict):
+            d["level"] = PerturbationRange(**_tuples(d["level"]))
+        return cls(**d)
+
+
+def _tuples(d: dict) -> dict:
+    return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
 
 
 def render_view(gaussians: Gaussians, camera: Cameras, config: GenSplatConfig) -> RenderOutput:

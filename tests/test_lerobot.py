@@ -110,6 +110,12 @@ def test_recorded_dataset_carries_calibration_and_depth(recorded):
     torch.testing.assert_close(views.cameras.c2w, truth.cameras.c2w[:2])
 
 
+def test_settings_round_trip(tmp_path):
+    config = GenSplatConfig(cameras=("left", "right"), replace=("left",), level=PerturbationRange((2.0, 4.0), (0.0, 0.0)))
+    save_settings(tmp_path, config, {"name": "geometry", "model": "weights"})
+    assert load_settings(tmp_path) == (config, {"name": "geometry", "model": "weights"})
+
+
 def test_enable_gensplat_renders_external_views_only(dataset_root):
     save_settings(dataset_root, GenSplatConfig(probability=1.0, level="large", report=True), {"name": "rgbd"})
     plain = LeRobotDataset(REPO, root=dataset_root)

@@ -1,5 +1,6 @@
 """The online transform: identity, determinism, dtypes, stacks, workers, bad inputs."""
 
+import json
 import pickle
 
 import pytest
@@ -10,7 +11,7 @@ from gensplat_transforms import render
 from gensplat_transforms.cache import CorruptCacheError, GaussianCache
 from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
 from gensplat_transforms.metrics import psnr
-from gensplat_transforms.perturbation import PerturbationSampler
+from gensplat_transforms.perturbation import PerturbationRange, PerturbationSampler
 from gensplat_transforms.reconstruction import RGBDReconstructor
 from gensplat_transforms.transform import AugmentedDataset, GenSplatConfig, GenSplatTransform, render_view
 
@@ -133,6 +134,17 @@ def test_bad_inputs_raise_clear_errors(setup, tmp_path):
         make(cache, level="huge")
     with pytest.raises(ValueError, match="backend"):
         GenSplatConfig(backend="nope")
+
+
+def test_config_round_trips_through_a_dict_and_json():
+    level = PerturbationRange((2.0, 4.0), (0.01, 0.02), random_sign=False)
+    configs = [GenSplatConfig(), GenSplatConfig(cameras=("a", "b", "c"), replace=("b",), level=level, seed=3,
+                                                frame_offsets=(-2, -1, 0), background=(0.5, 0.5, 0.5),
+                                                render_options={"threads": 2}, fill_holes=False)]  # fmt: skip
+    for config in configs:
+        assert GenSplatConfig.from_dict(config.to_dict()) == config
+        again = GenSplatConfig.from_dict(json.loads(json.dumps(config.to_dict())))
+        assert again == config and type(again.level) is type(config.level)
 
 
 def test_lazy_build_in_the_transform(setup, tmp_path, caplog):

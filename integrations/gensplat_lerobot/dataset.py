@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, replace
+from dataclasses import replace
 from pathlib import Path
 
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from gensplat_transforms.cache import GaussianCache
 from gensplat_transforms.distributed import OnDevice, Shard
-from gensplat_transforms.perturbation import PerturbationRange
 from gensplat_transforms.reconstruction import make_reconstructor
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 
@@ -25,12 +24,9 @@ def settings_path(root: str | Path) -> Path:
 
 def save_settings(root: str | Path, config: GenSplatConfig, reconstructor: dict) -> Path:
     """Store the transform settings beside the dataset (read by :func:`enable_gensplat`)."""
-    cfg = asdict(config)
-    if isinstance(config.level, PerturbationRange):
-        cfg["level"] = asdict(config.level)
     path = settings_path(root)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps({"transform": cfg, "reconstructor": reconstructor}, indent=2))
+    path.write_text(json.dumps({"transform": config.to_dict(), "reconstructor": reconstructor}, indent=2))
     return path
 
 
@@ -42,13 +38,7 @@ def load_settings(root: str | Path) -> tuple[GenSplatConfig, dict]:
             "--repo-id <id>` once to write the settings and build the Gaussian cache"
         )
     data = json.loads(path.read_text())
-    cfg = data["transform"]
-    if isinstance(cfg["level"], dict):
-        cfg["level"] = PerturbationRange(**{k: tuple(v) if isinstance(v, list) else v for k, v in cfg["level"].items()})
-    for key in ("cameras", "replace", "background", "frame_offsets"):
-        if cfg.get(key) is not None:
-            cfg[key] = tuple(cfg[key])
-    return GenSplatConfig(**cfg), data["reconstructor"]
+    return GenSplatConfig.from_dict(data["transform"]), data["reconstructor"]
 
 
 def default_reconstructor(source: LeRobotSource) -> dict:
