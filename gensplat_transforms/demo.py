@@ -25,7 +25,7 @@ def run_demo(out_dir: str | Path, episodes: int = 2, size: int = 224, seed: int 
     """Write ``sim_dataset/`` (unless present), ``preview.png``/``preview.mp4``,
     ``levels.png`` and ``demo.json`` to ``out_dir``; return the summary."""
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
-    from gensplat_lerobot import enable_gensplat, prepare
+    from gensplat_lerobot import enable_gensplat, prepare, video_backend
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     from .sim.record import RecordConfig, record
@@ -52,7 +52,7 @@ def run_demo(out_dir: str | Path, episodes: int = 2, size: int = 224, seed: int 
         log(f"cached Gaussians of {len(built)} episode(s) in {time.perf_counter() - t0:.0f} s, "
             f"{per_step / 1e3:.0f} kB per timestep")
 
-    dataset = enable_gensplat(LeRobotDataset(REPO_ID, root=root))
+    dataset = enable_gensplat(LeRobotDataset(REPO_ID, root=root, video_backend=video_backend()))
     tf = dataset.gensplat
     preview_tf = GenSplatTransform(GenSplatConfig(**{**tf.cfg.__dict__, "probability": 1.0, "level": "large",
                                                      "views_per_source": 1}), tf.cache, tf.source)  # fmt: skip

@@ -110,6 +110,7 @@ def record(config: RecordConfig, progress: bool = True) -> RecordResult:
     """Record ``config.episodes`` successful expert demonstrations; see the module docstring."""
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     os.environ.setdefault("SVT_LOG", "1")  # AV1 encoder: errors only
+    from gensplat_lerobot import video_backend
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     root = Path(config.root)
@@ -122,6 +123,7 @@ def record(config: RecordConfig, progress: bool = True) -> RecordResult:
         robot_type="franka_panda_robotiq_2f85",
         use_videos=config.use_videos,
         image_writer_threads=4,
+        video_backend=video_backend(),
     )
     save_world(root, world, config.sensor_depth)
     intrinsics = world.cameras(EXTERNAL_CAMERAS).K

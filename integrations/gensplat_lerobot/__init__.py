@@ -12,9 +12,9 @@ package itself has no side effects.
 """
 
 from .dataset import GenSplatLeRobotDataset, enable_gensplat, load_settings, prepare, save_settings
-from .source import LeRobotSource, LeRobotViews
+from .source import LeRobotSource, LeRobotViews, video_backend
 
 __all__ = [
     "GenSplatLeRobotDataset", "LeRobotSource", "LeRobotViews", "enable_gensplat", "load_settings", "prepare",
-    "save_settings",
+    "save_settings", "video_backend",
 ]  # fmt: skip

@@ -12,6 +12,8 @@ from tqdm.auto import tqdm
 from gensplat_transforms.dataset_format import camera_info, save_depth
 from gensplat_transforms.episodes import SceneEpisodes
 
+from .source import video_backend
+
 
 def record_scene_dataset(root: str | Path, source: SceneEpisodes, repo_id: str = "local/gensplat_scene",
                          fps: int = 10, progress: bool = True) -> LeRobotDataset:
@@ -32,7 +34,7 @@ def record_scene_dataset(root: str | Path, source: SceneEpisodes, repo_id: str =
     }  # fmt: skip
     features["observation.state"] = {"dtype": "float32", "shape": (3,), "names": ["x", "y", "z"]}
     features["action"] = {"dtype": "float32", "shape": (3,), "names": ["x", "y", "z"]}
-    ds = LeRobotDataset.create(repo_id, fps, features, root=root, use_videos=False)
+    ds = LeRobotDataset.create(repo_id, fps, features, root=root, use_videos=False, video_backend=video_backend())
     for ep in tqdm(range(source.num_episodes), desc="recording", unit="episode", disable=not progress):
         depths = []
         positions = [torch.tensor(source.scene(ep, t).objects[0].center) for t in range(source.frames + 1)]

@@ -4,8 +4,9 @@ samples of the GenSplat model (:class:`LeRobotViews`)."""
 from __future__ import annotations
 
 import hashlib
+import importlib
 import json
-from functools import cached_property
+from functools import cache, cached_property
 from pathlib import Path
 
 import torch
@@ -74,7 +75,7 @@ class LeRobotSource:
         if self._dataset is None:
             from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-            self._dataset = LeRobotDataset(self.repo_id, root=self.root)
+            self._dataset = LeRobotDataset(self.repo_id, root=self.root, video_backend=video_backend())
         return self._dataset
 
     def has_depth(self) -> bool:
@@ -116,6 +117,18 @@ class LeRobotViews(Dataset):
 
     def __getitem__(self, i: int) -> Views:
         return resize_views(self.source.views(*self.index[i]), self.size, self.size)
+
+
+@cache
+def video_backend() -> str:
+    """LeRobot's video decoder on this machine: ``"torchcodec"`` when it loads (it needs FFmpeg's
+    shared libraries), else ``"pyav"``. Chosen quietly: asked to choose, LeRobot logs every
+    library torchcodec failed to load, with its traceback, before it falls back to PyAV."""
+    try:
+        importlib.import_module("torchcodec")
+    except (ImportError, OSError, RuntimeError):
+        return "pyav"
+    return "torchcodec"
 
 
 def files_digest(root: Path, dirs: list[str], sample: int = 16384) -> str:
