@@ -8,10 +8,15 @@ import tempfile
 import torch
 from torch.utils.data import DataLoader
 
-from gensplat_transforms.cache import GaussianCache
-from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
-from gensplat_transforms.reconstruction import RGBDReconstructor
-from gensplat_transforms.transform import AugmentedDataset, GenSplatConfig, GenSplatTransform
+from gensplat_transforms import (
+    AugmentedDataset,
+    GaussianCache,
+    GenSplatConfig,
+    GenSplatTransform,
+    RGBDReconstructor,
+    build_cache,
+)
+from gensplat_transforms.episodes import SceneDataset, SceneEpisodes
 
 
 def main() -> None:

@@ -1,21 +1,62 @@
-"""gensplat-transforms: camera-pose augmentation for robot policy learning with 3D Gaussians."""
+"""gensplat-transforms: camera-pose augmentation for robot policy learning with 3D Gaussians.
 
+The public API: cameras and Gaussians (:class:`Cameras`, :func:`look_at`, :class:`Gaussians`),
+the perturbation protocol (:class:`PerturbationSampler`, :class:`PerturbationRange`,
+:class:`Perturbation`, :func:`pivot_point`, :data:`LEVELS`), reconstructors (:class:`Views` in,
+Gaussians out: :class:`RGBDReconstructor`, :class:`GeometryReconstructor`,
+:class:`GenSplatReconstructor`, :func:`make_reconstructor`), :func:`render`, the cache
+(:class:`GaussianCache`, :func:`build_cache`) and the online transform
+(:class:`GenSplatTransform`, :class:`GenSplatConfig`, :class:`AugmentedDataset`). The
+simulator (``gensplat_transforms.sim``) and LeRobot (``gensplat_lerobot``) are imported only
+where used.
+
+Example: two calibrated RGB-D views of one timestep, seen from a camera moved at "large":
+    >>> from gensplat_transforms import PerturbationSampler, RGBDReconstructor, Views, render
+    >>> from gensplat_transforms.scenes import TabletopScene, default_cameras
+    >>> cameras = default_cameras(32, 32)[:2]
+    >>> images, depths = TabletopScene(seed=1).render(cameras)
+    >>> recon = RGBDReconstructor().reconstruct(Views(images, cameras, depths))
+    >>> moved = PerturbationSampler("large", seed=0).sample(episode_index=7).move(cameras, 0)
+    >>> render(recon.gaussians, moved, backend="fast").rgb.shape
+    torch.Size([1, 3, 32, 32])
+"""
+
+from .cache import GaussianCache
 from .cameras import Cameras, look_at
+from .episodes import build_cache
 from .gaussians import Gaussians
 from .perturbation import LEVELS, Perturbation, PerturbationRange, PerturbationSampler, pivot_point
+from .reconstruction import (
+    GenSplatReconstructor,
+    GeometryReconstructor,
+    RGBDReconstructor,
+    Views,
+    make_reconstructor,
+)
 from .rendering import RenderOutput, render
+from .transform import AugmentedDataset, GenSplatConfig, GenSplatTransform
 
 __version__ = "0.1.0"
 
 __all__ = [
     "LEVELS",
+    "AugmentedDataset",
     "Cameras",
+    "GaussianCache",
     "Gaussians",
+    "GenSplatConfig",
+    "GenSplatReconstructor",
+    "GenSplatTransform",
+    "GeometryReconstructor",
     "Perturbation",
     "PerturbationRange",
     "PerturbationSampler",
+    "RGBDReconstructor",
     "RenderOutput",
+    "Views",
+    "build_cache",
     "look_at",
+    "make_reconstructor",
     "pivot_point",
     "render",
 ]

@@ -163,6 +163,18 @@ class GaussianCache:
             ``depth`` cache (see the module docstring).
         dataset: fingerprint of the dataset (anything that changes when its content does).
         max_open: episode files kept open (memory-mapped) per process.
+
+    Example: cache the procedural RGB-D episodes (a ``depth`` cache)
+        >>> import tempfile
+        >>> from gensplat_transforms import RGBDReconstructor
+        >>> from gensplat_transforms.episodes import SceneEpisodes
+        >>> source = SceneEpisodes(num_episodes=1, num_frames=2, size=16)
+        >>> folder = tempfile.TemporaryDirectory()
+        >>> cache = GaussianCache(folder.name, RGBDReconstructor(), source.fingerprint)
+        >>> cache.ensure(0, source).num_frames, cache.status(0)
+        (2, 'ok')
+        >>> result = cache.read(0, 1, source.views(0, 1).images)  # Gaussians rebuilt from the images
+        >>> folder.cleanup()
     """
 
     def __init__(self, root: str | Path, reconstructor: Reconstructor, dataset: str, max_open: int = 8) -> None:

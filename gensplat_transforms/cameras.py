@@ -77,6 +77,13 @@ class Cameras:
     1e-6), a c2w rotation that is not orthonormal with determinant +1 (beyond
     ``RIGID_TOLERANCE``: no scale, shear or mirroring), a c2w bottom row other than
     [0, 0, 0, 1] (same tolerance).
+
+    Example:
+        >>> c2w = look_at(eye=(1.0, 0.0, 0.5), target=(0.0, 0.0, 0.0))
+        >>> cameras = Cameras.from_intrinsics(40.0, 40.0, 32.0, 24.0, c2w, width=64, height=48)
+        >>> uv, z = cameras.project(torch.zeros(1, 3, dtype=torch.float64))  # the world origin
+        >>> uv  # is seen at the principal point
+        tensor([[[32., 24.]]], dtype=torch.float64)
     """
 
     K: torch.Tensor
@@ -303,7 +310,12 @@ opencv_to_opengl = opengl_to_opencv  # the flip is its own inverse
 
 
 def look_at(eye, target, up=(0.0, 0.0, 1.0), dtype=torch.float64) -> torch.Tensor:
-    """OpenCV camera-to-world (4, 4) at ``eye`` looking at ``target`` with world ``up``."""
+    """OpenCV camera-to-world (4, 4) at ``eye`` looking at ``target`` with world ``up``.
+
+    Example:
+        >>> look_at(eye=(1.0, 0.0, 0.0), target=(0.0, 0.0, 0.0))[:3, 2]  # +z, the viewing axis
+        tensor([-1.,  0.,  0.], dtype=torch.float64)
+    """
     eye = torch.as_tensor(eye, dtype=dtype)
     target = torch.as_tensor(target, dtype=dtype)
     up = torch.as_tensor(up, dtype=dtype)

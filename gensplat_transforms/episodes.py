@@ -32,7 +32,20 @@ def build_cache(
     value in the result is None); stale, corrupt or half-written ones are rebuilt. Several
     processes may run it on the same episodes at once (see :meth:`GaussianCache.ensure`).
     With ``shard``, only that shard's share of ``episodes`` is built, longest first (see
-    :meth:`~.distributed.Shard.select`); the result holds only those."""
+    :meth:`~.distributed.Shard.select`); the result holds only those.
+
+    Example:
+        >>> import tempfile
+        >>> from gensplat_transforms import RGBDReconstructor
+        >>> episodes = SceneEpisodes(num_episodes=2, num_frames=3, size=16)
+        >>> folder = tempfile.TemporaryDirectory()
+        >>> cache = GaussianCache(folder.name, RGBDReconstructor(), episodes.fingerprint)
+        >>> {e: s.num_frames for e, s in build_cache(cache, episodes, range(2), progress=False).items()}
+        {0: 3, 1: 3}
+        >>> build_cache(cache, episodes, range(2), progress=False)  # a rerun skips valid episodes
+        {0: None, 1: None}
+        >>> folder.cleanup()
+    """
     episodes = list(episodes) if shard is None else shard.select(episodes, source.num_frames)
     desc = "caching" if shard is None or shard.world == 1 else f"caching (rank {shard.rank}/{shard.world})"
     return {ep: cache.ensure(ep, source, verify=True)

@@ -38,6 +38,12 @@ class Gaussians:
 
     Construction validates shapes and finiteness and raises ``ValueError`` naming the
     offending field. Pass ``validate=False`` only for tensors already checked.
+
+    Example:
+        >>> g = Gaussians(means=torch.zeros(2, 3), quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(2, 1),
+        ...               scales=torch.full((2, 3), 0.05), opacities=torch.ones(2), sh=torch.zeros(2, 1, 3))
+        >>> len(g), g.sh_degree
+        (2, 0)
     """
 
     means: torch.Tensor

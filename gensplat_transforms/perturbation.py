@@ -7,6 +7,12 @@ A novel view is made in two steps:
 
 The pivot is the midpoint of the shortest segment between the optical axes of the two
 external cameras (the midpoint of their centres when the axes are parallel).
+
+Example: the named levels
+    >>> list(LEVELS)
+    ['none', 'small', 'medium', 'large', 'extreme', 'train']
+    >>> LEVELS["large"]
+    PerturbationRange(theta_deg=(18.0, 30.0), mu_m=(0.04, 0.06), random_sign=True)
 """
 
 from __future__ import annotations
@@ -31,6 +37,12 @@ class PerturbationRange:
             range and the sign is drawn uniformly.
         mu_m: (low, high) forward translation in metres.
         random_sign: draw the sign of theta at random.
+
+    Example: 5 to 10 degrees either way, up to 1 cm forward
+        >>> custom = PerturbationRange(theta_deg=(5.0, 10.0), mu_m=(0.0, 0.01))
+        >>> p = PerturbationSampler(custom, seed=0).sample(episode_index=0)
+        >>> 5.0 <= abs(p.theta_deg) <= 10.0 and 0.0 <= p.mu_m <= 0.01
+        True
     """
 
     theta_deg: tuple[float, float]
@@ -73,7 +85,13 @@ def get_range(level: str | PerturbationRange) -> PerturbationRange:
 @dataclass(frozen=True)
 class Perturbation:
     """One camera move: rotation ``theta_deg`` about world ``axis`` through the pivot, then
-    ``mu_m`` metres forward along the camera's viewing axis."""
+    ``mu_m`` metres forward along the camera's viewing axis.
+
+    Example:
+        >>> p = Perturbation(axis="y", theta_deg=0.0, mu_m=0.1)
+        >>> p.apply(torch.eye(4, dtype=torch.float64), pivot=torch.zeros(3))[:3, 3]  # 10 cm along +z
+        tensor([0.0000, 0.0000, 0.1000], dtype=torch.float64)
+    """
 
     axis: str = "y"
     theta_deg: float = 0.0
@@ -156,6 +174,12 @@ def pivot_point(c2w_a: torch.Tensor, c2w_b: torch.Tensor, parallel_tol: float = 
     """(3,) pivot: midpoint of the shortest segment between two cameras' optical axes.
 
     Falls back to the midpoint of the camera centres when the axes are (near) parallel.
+
+    Example: two cameras looking at the origin
+        >>> from gensplat_transforms import look_at
+        >>> pivot = pivot_point(look_at((1.0, 0.5, 0.5), (0, 0, 0)), look_at((1.0, -0.5, 0.5), (0, 0, 0)))
+        >>> torch.allclose(pivot, torch.zeros(3, dtype=torch.float64))
+        True
     """
     pts = closest_points_between_axes(c2w_a, c2w_b, parallel_tol)
     if pts is None:

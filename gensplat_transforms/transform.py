@@ -46,6 +46,11 @@ class GenSplatConfig:
             source camera saw) and soften silhouette edges with the surrounding colours
             (``holes.fill_holes``), instead of ``background``.
         report: add ``gensplat.*`` keys describing the perturbation to the item.
+
+    Example:
+        >>> config = GenSplatConfig(cameras=("left", "right"), replace=("left",), level="small")
+        >>> config.replace, config.probability, config.views_per_source
+        (('left',), 0.5, 3)
     """
 
     cameras: tuple[str, ...] = ("left", "right")
@@ -124,6 +129,20 @@ class GenSplatTransform:
     so the item must carry the images of every reconstructed camera.
     Picklable (spawn workers). The ``gsplat`` backend renders on CUDA: use it with spawn
     workers (CUDA cannot be initialised in a forked worker) or in the main process.
+
+    Example: augment every item of the procedural dataset
+        >>> import tempfile
+        >>> from gensplat_transforms import RGBDReconstructor, build_cache
+        >>> from gensplat_transforms.episodes import SceneDataset, SceneEpisodes
+        >>> source = SceneEpisodes(num_episodes=1, num_frames=2, size=16)
+        >>> folder = tempfile.TemporaryDirectory()
+        >>> cache = GaussianCache(folder.name, RGBDReconstructor(), source.fingerprint)
+        >>> stats = build_cache(cache, source, [0], progress=False)
+        >>> transform = GenSplatTransform(GenSplatConfig(probability=1.0, report=True), cache)
+        >>> item = transform(SceneDataset(source)[1])
+        >>> item["observation.images.left"].shape, item["gensplat.applied"]  # left and right replaced
+        (torch.Size([3, 16, 16]), tensor([True, True]))
+        >>> folder.cleanup()
     """
 
     def __init__(self, config: GenSplatConfig, cache: GaussianCache, source: EpisodeSource | None = None) -> None:
@@ -265,7 +284,22 @@ def _check_image(key: str, image: torch.Tensor) -> None:
 class AugmentedDataset(Dataset):
     """Wrap any map-style dataset whose items are dicts: ``item = transform(dataset[i])``.
 
-    The way to use GenSplat in a custom PyTorch DataLoader (works with spawn workers)."""
+    The way to use GenSplat in a custom PyTorch DataLoader (works with spawn workers).
+
+    Example: a DataLoader over the procedural dataset, about half the samples augmented
+        >>> import tempfile
+        >>> from torch.utils.data import DataLoader
+        >>> from gensplat_transforms import RGBDReconstructor
+        >>> from gensplat_transforms.episodes import SceneDataset, SceneEpisodes
+        >>> source = SceneEpisodes(num_episodes=1, num_frames=4, size=16)
+        >>> folder = tempfile.TemporaryDirectory()
+        >>> cache = GaussianCache(folder.name, RGBDReconstructor(), source.fingerprint)
+        >>> transform = GenSplatTransform(GenSplatConfig(probability=0.5), cache, source)  # builds if missing
+        >>> batch = next(iter(DataLoader(AugmentedDataset(SceneDataset(source), transform), batch_size=4)))
+        >>> batch["observation.images.left"].shape
+        torch.Size([4, 3, 16, 16])
+        >>> folder.cleanup()
+    """
 
     def __init__(self, dataset, transform: GenSplatTransform) -> None:
         self.dataset = dataset

@@ -35,6 +35,13 @@ class Views:
             negative, non-finite and values beyond ``MAX_VIEW_DEPTH`` (1e6 m) mark pixels
             without depth (see :func:`valid_depth`), so a sensor's sentinel for "no return"
             (e.g. 1e10 or float32's largest value) yields no Gaussian.
+
+    Example:
+        >>> from gensplat_transforms.scenes import TabletopScene, default_cameras
+        >>> cameras = default_cameras(16, 16)[:2]
+        >>> images, depths = TabletopScene(seed=0).render(cameras)
+        >>> len(Views(images, cameras, depths)), len(Views(images))  # calibrated RGB-D; RGB only
+        (2, 2)
     """
 
     images: torch.Tensor

@@ -61,6 +61,14 @@ class GeometryReconstructor(DepthReconstructor):
         scale: ``"auto"``, ``"metric"`` or ``"fit"`` (see the module docstring).
         discs: the surface-disc settings (``RGBDConfig``).
         device, autocast_dtype: where the model runs, and e.g. torch.bfloat16 for autocast.
+
+    Example: calibrated RGB, depth from the shipped small model
+        >>> from gensplat_transforms.scenes import TabletopScene, default_cameras
+        >>> cameras = default_cameras(28, 28)[:2]  # the model takes multiples of 14 pixels
+        >>> images, _ = TabletopScene(seed=0).render(cameras)
+        >>> result = GeometryReconstructor().reconstruct(Views(images, cameras))
+        >>> result.gaussians.means.shape
+        torch.Size([1568, 3])
     """
 
     name = "geometry"

@@ -48,6 +48,13 @@ class GenSplatReconstructor(Reconstructor):
         metric: with ``per_view``, keep the model's scale (True) or use the camera spread's.
         device: where the model runs (default: where its weights are).
         autocast_dtype: e.g. torch.bfloat16 to run the transformer under autocast.
+
+    Example: uncalibrated RGB, the shipped small model predicts the cameras too
+        >>> from gensplat_transforms.scenes import TabletopScene, default_cameras
+        >>> images, _ = TabletopScene(seed=0).render(default_cameras(28, 28)[:2])
+        >>> result = GenSplatReconstructor().reconstruct(Views(images))
+        >>> len(result.cameras), result.gaussians.means.shape
+        (2, torch.Size([1568, 3]))
     """
 
     name = "gensplat"

@@ -76,6 +76,14 @@ class RGBDReconstructor(DepthReconstructor):
     ``fast=True`` (default) builds the discs with the compiled twin in :mod:`.discs_fast`
     (not differentiable); ``fast=False`` with the PyTorch rule below. Both give the same
     Gaussians (to float32 round-off) and the same :meth:`identity`.
+
+    Example:
+        >>> from gensplat_transforms.scenes import TabletopScene, default_cameras
+        >>> cameras = default_cameras(16, 16)[:2]
+        >>> images, depths = TabletopScene(seed=0).render(cameras)
+        >>> result = RGBDReconstructor().reconstruct(Views(images, cameras, depths))
+        >>> len(result.gaussians)  # one per pixel with depth
+        512
     """
 
     name = "rgbd"

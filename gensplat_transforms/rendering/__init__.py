@@ -25,6 +25,11 @@ class RenderOutput:
         rgb: (B, 3, H, W) colour including the background.
         depth: (B, 1, H, W) expected depth sum(w z) / sum(w); 0 where nothing was hit.
         alpha: (B, 1, H, W) accumulated opacity in [0, 1].
+
+    Example:
+        >>> out = RenderOutput(rgb=torch.zeros(2, 3, 8, 8))  # what :func:`render` returns
+        >>> out.rgb.shape[0], out.depth is None
+        (2, True)
     """
 
     rgb: torch.Tensor
@@ -77,6 +82,15 @@ def render(
         options: backend-specific settings (reference: ``max_pairs`` per chunk).
     Returns:
         RenderOutput with (B, C, H, W) images, float32 (float64 for float64 inputs).
+
+    Example: one Gaussian at the origin, seen from 1 m away
+        >>> from gensplat_transforms import look_at
+        >>> g = Gaussians(torch.zeros(1, 3), torch.tensor([[1.0, 0, 0, 0]]), torch.full((1, 3), 0.05),
+        ...               torch.ones(1), torch.ones(1, 1, 3))
+        >>> camera = Cameras.from_intrinsics(20.0, 20.0, 8.0, 8.0, look_at((0, -1, 0), (0, 0, 0)), 16, 16)
+        >>> out = render(g, camera, backend="fast")
+        >>> out.rgb.shape, round(float(out.depth[0, 0, 8, 8]), 3)
+        (torch.Size([1, 3, 16, 16]), 1.0)
     """
     if backend not in BACKENDS:
         raise ValueError(f"unknown render backend {backend!r}; available: {sorted(BACKENDS)}")

@@ -15,9 +15,10 @@ success (reward 1) or is truncated after the task's step budget. Besides success
 :func:`evaluate` records how far each episode got (closest pinch-to-pick distance, whether
 the pick was lifted), which separates policies that are still far from succeeding.
 
-Example:
-    >>> env = PerturbedCameraEnv(EvalConfig(task="pick_place", level="large"))
-    >>> evaluate(my_policy, env, episodes=20).success_rate
+Example (``my_policy``: any ``policy(obs) -> action``)::
+
+    env = PerturbedCameraEnv(EvalConfig(task="pick_place", level="large"))
+    evaluate(my_policy, env, episodes=20).success_rate
 """
 
 from __future__ import annotations

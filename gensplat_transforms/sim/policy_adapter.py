@@ -10,9 +10,10 @@ is the ``policy(obs) -> action`` callable that :func:`~.evaluate.evaluate` expec
   key and tensor format, so no environment processor is needed;
 * out: the (5,) float32 action on the CPU.
 
-Example:
-    >>> policy = LeRobotPolicy("outputs/dp/checkpoints/last/pretrained_model")
-    >>> evaluate(policy, PerturbedCameraEnv(EvalConfig(level="large")), 30, reset=policy.reset)
+Example (a checkpoint written by ``lerobot-train``)::
+
+    policy = LeRobotPolicy("outputs/dp/checkpoints/last/pretrained_model")
+    evaluate(policy, PerturbedCameraEnv(EvalConfig(level="large")), 30, reset=policy.reset)
 """
 
 from __future__ import annotations

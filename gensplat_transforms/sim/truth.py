@@ -10,11 +10,12 @@ A recorded dataset carries its simulation sidecar beside LeRobot's files:
   ``qvel`` (T, nv) and ``ctrl`` (T, nu), the full MuJoCo state observed at every frame,
   with metadata ``{"episode": EpisodeSpec JSON (seed, layout, colours, instruction)}``.
 
-Example:
-    >>> truth = GroundTruth(root)
-    >>> cams = truth.cameras(episode_index=0, frame_index=10, names=("left",))
-    >>> moved = cams.with_c2w(Perturbation("y", 20.0, 0.04).apply(cams.c2w, pivot))
-    >>> rgb, depth = truth.render(0, 10, moved)            # (1, 3, H, W), (1, 1, H, W)
+Example (a recorded dataset at ``root``, a ``pivot``)::
+
+    truth = GroundTruth(root)
+    cams = truth.cameras(episode_index=0, frame_index=10, names=("left",))
+    moved = cams.with_c2w(Perturbation("y", 20.0, 0.04).apply(cams.c2w, pivot))
+    rgb, depth = truth.render(0, 10, moved)            # (1, 3, H, W), (1, 1, H, W)
 """
 
 from __future__ import annotations

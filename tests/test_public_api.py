@@ -1,0 +1,26 @@
+"""The public API: ``gensplat_transforms`` exports what users call, each name with a docstring
+example (run by ``--doctest-modules``), and importing it loads neither the simulator nor LeRobot."""
+
+import json
+import subprocess
+import sys
+
+import gensplat_transforms
+from gensplat_transforms import perturbation
+
+
+def test_every_public_name_has_a_docstring_example():
+    def doc(name):
+        obj = getattr(gensplat_transforms, name)
+        return obj.__doc__ if callable(obj) else perturbation.__doc__  # LEVELS: the module's example
+
+    assert not [name for name in gensplat_transforms.__all__ if ">>> " not in (doc(name) or "")]
+    assert "LEVELS" in perturbation.__doc__
+
+
+def test_importing_the_package_loads_neither_the_simulator_nor_lerobot():
+    code = "import sys, json, gensplat_transforms; print(json.dumps(sorted(sys.modules)))"
+    loaded = json.loads(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                                       check=True).stdout)  # fmt: skip
+    heavy = ("gensplat_transforms.sim", "gensplat_transforms.demo", "gensplat_lerobot", "lerobot", "mujoco")
+    assert not [m for m in loaded if m.startswith(heavy)]
