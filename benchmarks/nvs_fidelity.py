@@ -138,6 +138,13 @@ def sensor_views(views: Views, seed: int) -> Views:
     return Views(views.images, views.cameras, torch.stack(depths))
 
 
+def _shown(path: Path) -> str:
+    """``path`` relative to the repository when inside it (results hold no machine's paths)."""
+    repo = Path(__file__).resolve().parents[1]
+    path = Path(path).resolve()
+    return str(path.relative_to(repo)) if path.is_relative_to(repo) else path.name
+
+
 def timed(fn, *args, **kwargs):
     """(result, milliseconds)."""
     t0 = time.perf_counter()
@@ -320,7 +327,7 @@ def main() -> None:
             "image_size": [source.cameras.height, source.cameras.width], "episodes": args.episodes,
             "frames_per_episode": args.frames, "draws_per_level": args.draws, "perturbed_camera": "left",
             "source_cameras": ["left", "right"], "perturbation_seed": args.seed, "torch_threads": 1,
-            "model": None if isinstance(model, str) else str(args.model),
+            "model": None if isinstance(model, str) else _shown(args.model),
             "homography": "plane-induced, table plane z = 0", "visible": "alpha > 0.5 of the rgbd render",
             "forward_warp": "left + right pixels, nearest target pixel, z-buffer",
             "warp_mask": "pixels the forward warp fills (sensor depth for *_sensor methods)",
