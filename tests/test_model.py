@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 from safetensors.torch import save_file
+from tiny_model import tiny_model as perturbed_model
 
 from gensplat_transforms.cameras import Cameras, look_at
 from gensplat_transforms.model import GenSplatModel, ModelConfig, load_pi3_weights, to_gaussians
@@ -34,17 +35,8 @@ KEYS = ("camera_poses", "local_points", "points", "conf", "opacity", "quats", "s
 
 
 def tiny_model(seed: int = 0) -> GenSplatModel:
-    """A tiny model with every parameter perturbed, so that LayerScale, registers and the
-    cross-view (global) blocks all matter."""
-    torch.manual_seed(seed)
-    model = GenSplatModel(TINY).eval()
-    with torch.no_grad():
-        for name, p in model.named_parameters():
-            if name.endswith("gamma"):  # LayerScale starts at 0.01 in the decoder
-                p.uniform_(0.5, 1.0)
-            else:
-                p.add_(torch.randn_like(p) * 0.05)
-    return model
+    """The tiny model of this file's configuration (SH degree 2), every parameter perturbed."""
+    return perturbed_model(seed, TINY)
 
 
 def images(b=1, v=3, h=42, w=56, seed=1) -> torch.Tensor:

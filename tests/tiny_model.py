@@ -9,15 +9,15 @@ TINY = ModelConfig(
 )  # fmt: skip
 
 
-def tiny_model(seed: int = 0):
-    """A model of the tiny configuration with every parameter perturbed (LayerScale, registers
-    and the cross-view blocks all matter), in eval mode."""
+def tiny_model(seed: int = 0, config: ModelConfig = TINY):
+    """A model of ``config`` with every parameter perturbed (LayerScale, registers and the
+    cross-view blocks all matter), in eval mode."""
     import torch
 
     from gensplat_transforms.model import GenSplatModel
 
     torch.manual_seed(seed)
-    model = GenSplatModel(TINY).eval()
+    model = GenSplatModel(config).eval()
     with torch.no_grad():
         for name, p in model.named_parameters():
             if name.endswith("gamma"):  # LayerScale starts at 0.01 in the decoder

@@ -29,15 +29,14 @@ from dataclasses import asdict
 from pathlib import Path
 
 import torch
-import torch.nn.functional as F
 
 from ..cameras import Cameras, rigid_inverse
-from ..model import PATCH_SIZE, GenSplatModel
+from ..model import GenSplatModel
 from ..model.checkpoints import CONFIG_FILE, FORMAT_NAME, resolve
 from ..model.geometry import align_similarity, estimate_focal, transform_poses
 from ..weights import DEFAULT_MODEL_DIR
 from .base import DepthReconstructor, Reconstruction, Views, valid_depth
-from .model import weights_hash
+from .model import run_model, weights_hash
 from .rgbd import RGBDConfig, RGBDReconstructor
 
 SCALES = ("auto", "metric", "fit")
@@ -105,14 +104,9 @@ class GeometryReconstructor(DepthReconstructor):
 
     @torch.no_grad()
     def predict_depth(self, views: Views) -> Views:
-        H, W = views.images.shape[-2:]
-        h, w = (max(1, round(s / PATCH_SIZE)) * PATCH_SIZE for s in (H, W))
-        device = self.model.image_mean.device
-        images = views.images.to(device, torch.float32)
-        if (h, w) != (H, W):
-            images = F.interpolate(images, size=(h, w), mode="bilinear", antialias=True, align_corners=False)
-        with torch.autocast(device.type, dtype=self.autocast_dtype, enabled=self.autocast_dtype is not None):
-            out = self.model(images[None])
+        out, images = run_model(self.model, views.images, self.autocast_dtype)
+        h, w = images.shape[-2:]
+        device = images.device
         local, c2w = out["local_points"][0].float(), out["camera_poses"][0].float()
         depth = local[..., 2]  # (V, h, w)
         if views.cameras is not None:

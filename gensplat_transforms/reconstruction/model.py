@@ -100,13 +100,9 @@ class GenSplatReconstructor(Reconstructor):
     @torch.no_grad()
     def reconstruct(self, views: Views) -> Reconstruction:
         V, _, H, W = views.images.shape
-        h, w = (max(1, round(s / PATCH_SIZE)) * PATCH_SIZE for s in (H, W))
-        device = self.model.image_mean.device
-        images = views.images.to(device, torch.float32)
-        if (h, w) != (H, W):
-            images = F.interpolate(images, size=(h, w), mode="bilinear", antialias=True, align_corners=False)
-        with torch.autocast(device.type, dtype=self.autocast_dtype, enabled=self.autocast_dtype is not None):
-            out = self.model(images[None])
+        out, images = run_model(self.model, views.images, self.autocast_dtype)
+        h, w = images.shape[-2:]
+        device = images.device
         gaussians = to_gaussians(out, 0)
         c2w = out["camera_poses"][0]
         conf = torch.sigmoid(out["conf"][0])
@@ -136,6 +132,19 @@ class GenSplatReconstructor(Reconstructor):
         if self.min_conf is not None:
             gaussians = gaussians[conf.reshape(-1) >= self.min_conf]
         return Reconstruction(gaussians, cameras)
+
+
+def run_model(model: GenSplatModel, images: torch.Tensor, autocast_dtype: torch.dtype | None = None):
+    """One forward pass on (V, 3, H, W) images resized to the nearest multiples of 14 on the
+    model's device. Returns the model's outputs (batch of one) and the images it saw."""
+    H, W = images.shape[-2:]
+    h, w = (max(1, round(s / PATCH_SIZE)) * PATCH_SIZE for s in (H, W))
+    device = model.image_mean.device
+    images = images.to(device, torch.float32)
+    if (h, w) != (H, W):
+        images = F.interpolate(images, size=(h, w), mode="bilinear", antialias=True, align_corners=False)
+    with torch.autocast(device.type, dtype=autocast_dtype, enabled=autocast_dtype is not None):
+        return model(images[None]), images
 
 
 def weights_hash(model: torch.nn.Module) -> str:
