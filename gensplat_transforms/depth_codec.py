@@ -57,7 +57,7 @@ def _unpack(blob: bytes, shape: tuple[int, ...]) -> np.ndarray:
 def encode_episode(depths: torch.Tensor) -> tuple[bytes, list[bytes]]:
     """(T, V, H, W) depth of an episode -> (reference blob, one blob per frame)."""
     codes = quantize_depth(depths)
-    ref = np.median(codes, axis=0).astype(np.uint16) if len(codes) else np.zeros(codes.shape[1:], np.uint16)
+    ref = np.median(codes, axis=0).astype(np.uint16)  # T >= 1
     return _pack(ref), [_pack(c - ref) for c in codes]  # uint16 arithmetic wraps modulo 2^16
 
 

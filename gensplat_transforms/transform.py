@@ -206,7 +206,7 @@ class GenSplatTransform:
         for k, o in enumerate(offsets):
             f = min(max(frame + o, 0), last)  # a stack reaching past the episode repeats its ends
             if f not in read:
-                read[f] = self._read(episode, f, lambda k=k, o=o: self._source_images(item, keys, k, o, episode))
+                read[f] = self._read(episode, f, lambda k=k, o=o, f=f: self._source_images(item, keys, k, o, episode, f))
             target = p.move(read[f].cameras, self.cfg.cameras.index(name))
             rgbs.append(render_view(read[f].gaussians, target, self.cfg).rgb[0])
         rgb = torch.stack(rgbs)
@@ -219,23 +219,23 @@ class GenSplatTransform:
             rgb = rgb.to(stack.dtype)
         return rgb if image.ndim == 4 else rgb[0]
 
-    def _source_images(self, item: dict, keys: dict[str, str], k: int, offset: int, episode: int) -> torch.Tensor:
+    def _source_images(self, item: dict, keys: dict[str, str], k: int, offset: int, episode: int,
+                       frame: int) -> torch.Tensor:
         """(V, 3, H, W) float images of the reconstructed cameras at stack index ``k`` (frame
-        offset ``offset``), at the cache's size (a depth cache builds the Gaussians from them)."""
-        width, height = self.cache.image_size(episode)
+        ``frame``, offset ``offset`` from the item's), at the cache's size (a depth cache builds
+        the Gaussians from them). Frames the item does not carry are read from the source."""
         if any(item[keys[n]].ndim == 3 for n in self.cfg.cameras) and offset != 0:
             if self.source is None:
                 raise ValueError(f"GenSplatTransform: frame offset {offset} is rendered but not every reconstructed "
                                  "camera's images are stacked in the item (a depth cache needs them), and no source "
                                  "was given to read them from")  # fmt: skip
-            last = self.cache.num_frames(episode) - 1
-            return self.source.views(episode, min(max(int(item["frame_index"]) + offset, 0), last)).images
+            images = list(self.source.views(episode, frame).images)
+        else:
+            images = [item[keys[n]] if item[keys[n]].ndim == 3 else item[keys[n]][k] for n in self.cfg.cameras]
+        width, height = self.cache.image_size(episode)
         views = []
-        for n in self.cfg.cameras:
-            image = item[keys[n]]
-            image = (image if image.ndim == 3 else image[k]).float()
-            if item[keys[n]].dtype == torch.uint8:
-                image = image / 255
+        for image in images:
+            image = image.float() / 255 if image.dtype == torch.uint8 else image.float()
             if image.shape[-2:] != (height, width):
                 image = F.interpolate(image[None], size=(height, width), mode="bilinear", antialias=True,
                                       align_corners=False)[0]  # fmt: skip

@@ -119,3 +119,20 @@ def test_geometry_cache_stores_depth_and_rebuilds_the_same_gaussians(tmp_path):
         # the depth codec's relative error bound (2.4e-4) carries over to the centres' distance from the camera
         scale = float(direct.gaussians.means.abs().max())
         torch.testing.assert_close(cached.gaussians.means, direct.gaussians.means, rtol=5e-4, atol=5e-4 * scale)
+
+
+def test_frames_missing_from_a_stacked_item_come_from_the_source_at_the_cache_size(tmp_path):
+    """The geometry cache is at the model's size (40 -> 42 px): frames the transform reads from
+    the source (dataset size) are resized to it like the item's own images."""
+    from gensplat_transforms.episodes import SceneDataset
+    from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
+
+    source = SceneEpisodes(num_episodes=1, num_frames=2, size=40)
+    cache = GaussianCache(tmp_path, GeometryReconstructor(tiny_model()), source.fingerprint)
+    cache.ensure(0, source)
+    assert cache.image_size(0) == (42, 42)
+    ds, left = SceneDataset(source), "observation.images.left"
+    item = {**ds[1], left: torch.stack([ds[0][left], ds[1][left]])}  # only the left camera is stacked
+    tf = GenSplatTransform(GenSplatConfig(probability=1.0, replace=("left",), level="small"), cache, source)
+    out = tf(item)[left]
+    assert out.shape == (2, 3, 40, 40) and torch.isfinite(out).all()

@@ -98,25 +98,27 @@ class RGBDReconstructor(DepthReconstructor):
     def predict_depth(self, views: Views) -> Views:
         """The given depth, 0 where invalid (see :func:`.base.valid_depth`) or beyond
         ``max_depth``."""
-        if views.cameras is None or views.depths is None:
-            missing = [n for n in ("cameras", "depths") if getattr(views, n) is None]
-            raise ValueError(f"RGBDReconstructor needs calibrated cameras and depth; missing: {missing}")
-        z = views.depths.float()
+        _require_depth(views)
+        return Views(views.images, views.cameras, self._clean(views.depths))
+
+    def _clean(self, depths: torch.Tensor) -> torch.Tensor:
+        """``depths`` (V, 1, H, W) as float32, 0 where invalid or beyond ``max_depth``."""
+        z = depths.float()
         valid = valid_depth(z)
         if self.cfg.max_depth is not None:
             valid &= z <= self.cfg.max_depth
-        return Views(views.images, views.cameras, torch.where(valid, z, torch.zeros_like(z)))
+        return torch.where(valid, z, torch.zeros_like(z))
 
     def assemble(self, views: Views) -> Reconstruction:
-        views = self.predict_depth(views)
-        cfg = self.cfg
+        _require_depth(views)
+        depths, cfg = self._clean(views.depths), self.cfg
         if self.fast:  # all views in one compiled pass, into one set of arrays
             means, quats, scales, dc, pixel_ids = surface_discs(
-                views.depths[:, 0], views.images, views.cameras.K, views.cameras.c2w, cfg.stride, cfg.sigma_px,
+                depths[:, 0], views.images, views.cameras.K, views.cameras.c2w, cfg.stride, cfg.sigma_px,
                 cfg.thickness, cfg.max_stretch, cfg.edge_scale,
             )  # fmt: skip
         else:
-            parts = [self._one_view_reference(views, i) for i in range(len(views))]
+            parts = [self._one_view_reference(views, depths[i, 0], i) for i in range(len(views))]
             means, quats, scales, dc, pixel_ids = (torch.cat(p) for p in zip(*parts))
         n = means.shape[0]
         sh = dc[:, None]  # DC only; higher degrees are zero
@@ -125,12 +127,11 @@ class RGBDReconstructor(DepthReconstructor):
         g = Gaussians(means, quats, scales, torch.full((n,), cfg.opacity), sh)
         return Reconstruction(g, views.cameras, pixel_ids)
 
-    def _one_view_reference(self, views: Views, i: int):
-        """The PyTorch rule: means, quats, scales, SH DC and pixel ids of view ``i`` (depth
-        already cleaned: 0 = invalid)."""
+    def _one_view_reference(self, views: Views, z: torch.Tensor, i: int):
+        """The PyTorch rule: means, quats, scales, SH DC and pixel ids of view ``i`` with its
+        cleaned depth ``z`` (H, W) (0 = invalid)."""
         cfg = self.cfg
         cam, image = views.cameras[i].to(dtype=torch.float32), views.images[i]
-        z = views.depths[i, 0]
         valid = z > 0
         H, W = cam.height, cam.width
         pts = cam.unproject(cam.pixel_centers()[None], z.reshape(1, -1))[0].reshape(H, W, 3)
@@ -147,6 +148,12 @@ class RGBDReconstructor(DepthReconstructor):
         rgb = image.float().permute(1, 2, 0)[sel].reshape(-1, 3)[keep]
         quats, scales = _disc_shape(a, b, cfg.sigma_px, cfg.thickness)
         return means, quats, scales, rgb_to_sh_dc(rgb), pixel_ids
+
+
+def _require_depth(views: Views) -> None:
+    if views.cameras is None or views.depths is None:
+        missing = [n for n in ("cameras", "depths") if getattr(views, n) is None]
+        raise ValueError(f"RGBDReconstructor needs calibrated cameras and depth; missing: {missing}")
 
 
 def _disc_shape(a: torch.Tensor, b: torch.Tensor, k: float, t: float) -> tuple[torch.Tensor, torch.Tensor]:
