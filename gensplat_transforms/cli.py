@@ -7,7 +7,8 @@ import sys
 import time
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The ``gensplat`` parser and its subcommands."""
     parser = argparse.ArgumentParser(prog="gensplat", description="GenSplat camera-pose augmentation tools")
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -15,7 +16,7 @@ def main(argv: list[str] | None = None) -> int:
     demo.add_argument("--out", default="outputs/demo", help="output folder (default: outputs/demo)")
     demo.add_argument("--episodes", type=int, default=2, help="demonstrations to record (default: 2)")
     demo.add_argument("--size", type=int, default=224, help="image size in pixels (default: 224)")
-    demo.add_argument("--seed", type=int, default=0)
+    demo.add_argument("--seed", type=int, default=0, help="seed of the recording and the perturbations (default: 0)")
     demo.add_argument("--backend", default="fast", help="render backend (default: fast)")
 
     record = sub.add_parser("record", help="record scripted demonstrations of the simulated tabletop (LeRobot v3)")
@@ -47,14 +48,18 @@ def main(argv: list[str] | None = None) -> int:
     cache.add_argument("--cameras", nargs="+", default=None, help="external cameras to reconstruct (default: all)")
     cache.add_argument("--replace", nargs="+", default=None, help="cameras whose image is replaced (default: all)")
     cache.add_argument("--level", default="train", help="perturbation level (default: train)")
-    cache.add_argument("--probability", type=float, default=0.5, help="chance a sample is augmented")
-    cache.add_argument("--mode", choices=["episode", "frame"], default="episode")
-    cache.add_argument("--views-per-source", type=int, default=3)
-    cache.add_argument("--seed", type=int, default=0)
+    cache.add_argument("--probability", type=float, default=0.5,
+                       help="chance a training sample is augmented (default: 0.5)")
+    cache.add_argument("--mode", choices=["episode", "frame"], default="episode",
+                       help="episode: one perturbation per trajectory and view; frame: a new one every frame "
+                            "(default: episode)")
+    cache.add_argument("--views-per-source", type=int, default=3,
+                       help="distinct perturbed cameras per trajectory (default: 3)")
+    cache.add_argument("--seed", type=int, default=0, help="seed fixing the set of perturbations (default: 0)")
     cache.add_argument("--no-fill-holes", dest="fill_holes", action="store_false",
                        help="paint pixels no source camera saw black instead of filling them")
     cache.add_argument("--backend", default="fast", help="render backend used in the workers (default: fast)")
-    cache.add_argument("--episodes", type=int, nargs="+", default=None, help="only these episodes")
+    cache.add_argument("--episodes", type=int, nargs="+", default=None, help="only these episodes (default: all)")
     cache.add_argument("--reconstructor", choices=["rgbd", "geometry", "gensplat"], default=None,
                        help="rgbd: the dataset's depth; geometry: depth from a Pi3-compatible model, RGB-D discs; "
                             "gensplat: the model's own Gaussian head (default: rgbd when the cameras have depth, "
@@ -65,45 +70,56 @@ def main(argv: list[str] | None = None) -> int:
 
     train = sub.add_parser("train-model", help="train the GenSplat model with 3D-prior distillation")
     train.add_argument("--out", required=True, help="run directory (resumes when it holds a checkpoint)")
-    train.add_argument("--steps", type=int, required=True)
-    train.add_argument("--batch-size", type=int, default=4)
+    train.add_argument("--steps", type=int, required=True, help="optimiser steps")
+    train.add_argument("--batch-size", type=int, default=4, help="samples per step (default: 4)")
     train.add_argument("--size", type=int, default=112, help="image side, a multiple of 14 (default: 112)")
-    train.add_argument("--model", choices=["small", "full"], default="small")
+    train.add_argument("--model", choices=["small", "full"], default="small",
+                       help="small: 128 wide, 4 + 4 blocks, trains on a CPU; full: Pi3 size, about 1 B parameters "
+                            "(default: small)")
     train.add_argument("--init-weights", default=None,
                        help="Pi3 (or GenSplat) model.safetensors to initialise from; its geometry parts train at "
-                            "--pretrained-lr-scale x lr")
-    train.add_argument("--pretrained-lr-scale", type=float, default=0.1)
+                            "--pretrained-lr-scale x lr (default: random initialisation)")
+    train.add_argument("--pretrained-lr-scale", type=float, default=0.1,
+                       help="learning-rate factor of the parts initialised from --init-weights (default: 0.1)")
     train.add_argument("--data", choices=["procedural", "lerobot"], nargs="+", default=["procedural"],
                        help="one or both: both mixes the samples, in proportion to the datasets' lengths "
-                            "(set the procedural one with --scenes)")
+                            "(set the procedural one with --scenes; default: procedural)")
     train.add_argument("--views", type=int, default=2, help="procedural: cameras per sample (default: 2)")
     train.add_argument("--scenes", type=int, default=None, help="procedural: distinct scenes (default: one per sample)")
     train.add_argument("--root", default=None, help="lerobot: local dataset root")
     train.add_argument("--repo-id", default=None, help="lerobot: the dataset's repo id")
     train.add_argument("--cameras", nargs="+", default=None, help="lerobot: external cameras (default: all)")
     train.add_argument("--teacher", choices=["true", "pi3"], default="true",
-                       help="true: the data's depth and calibration; pi3: a frozen Pi3 model")
-    train.add_argument("--teacher-weights", default=None, help="Pi3 model.safetensors for --teacher pi3")
+                       help="true: the data's depth and calibration; pi3: a frozen Pi3 model (default: true)")
+    train.add_argument("--teacher-weights", default=None, help="Pi3 model.safetensors for --teacher pi3 (default: none)")
     train.add_argument("--no-distill", action="store_true", help="L_rgb only (l_depth = l_3D = l_cam = 0)")
-    train.add_argument("--l1", type=float, default=1.0, help="L1 weight inside L_rgb")
-    train.add_argument("--perceptual", type=float, default=0.2, help="SSIM (or LPIPS) weight inside L_rgb")
-    train.add_argument("--l-depth", type=float, default=0.1)
-    train.add_argument("--l-3d", type=float, default=1.0)
-    train.add_argument("--l-cam", type=float, default=1.0)
-    train.add_argument("--lr", type=float, default=2e-4)
+    train.add_argument("--l1", type=float, default=1.0, help="L1 weight inside L_rgb (default: 1.0)")
+    train.add_argument("--perceptual", type=float, default=0.2, help="SSIM (or LPIPS) weight inside L_rgb (default: 0.2)")
+    train.add_argument("--l-depth", type=float, default=0.1, help="weight of the depth distillation loss (default: 0.1)")
+    train.add_argument("--l-3d", type=float, default=1.0, help="weight of the 3D point-map loss (default: 1.0)")
+    train.add_argument("--l-cam", type=float, default=1.0, help="weight of the camera-pose loss (default: 1.0)")
+    train.add_argument("--lr", type=float, default=2e-4,
+                       help="peak learning rate, cosine decay after the warm-up (default: 0.0002)")
     train.add_argument("--warmup", type=int, default=100, help="linear warm-up steps (default: 100)")
-    train.add_argument("--ema-decay", type=float, default=0.999)
+    train.add_argument("--ema-decay", type=float, default=0.999,
+                       help="decay of the exported exponential moving average of the weights (default: 0.999)")
     train.add_argument("--render-views", type=int, default=None, help="context views rendered per sample (default: all)")
     train.add_argument("--render-crop", type=int, default=None,
                        help="render only a random square window of this side (default: whole views)")
     train.add_argument("--bf16", action="store_true", help="bfloat16 autocast")
-    train.add_argument("--grad-checkpointing", action="store_true")
-    train.add_argument("--seed", type=int, default=0)
-    train.add_argument("--threads", type=int, default=None, help="torch CPU threads")
-    train.add_argument("--log-every", type=int, default=10)
-    train.add_argument("--save-every", type=int, default=100)
+    train.add_argument("--grad-checkpointing", action="store_true",
+                       help="recompute transformer activations in the backward pass (less memory, slower)")
+    train.add_argument("--seed", type=int, default=0,
+                       help="seed of the initialisation, data order and view subsets (default: 0)")
+    train.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's own choice)")
+    train.add_argument("--log-every", type=int, default=10, help="steps between log lines (default: 10)")
+    train.add_argument("--save-every", type=int, default=100, help="steps between checkpoints (default: 100)")
 
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     if args.command == "record":
         from .sim.record import record_from_cli
 

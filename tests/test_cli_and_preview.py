@@ -1,11 +1,12 @@
-"""The command-line demo and the episode preview."""
+"""The command-line demo and help, and the episode preview."""
 
+import argparse
 import json
 
 from PIL import Image
 
 from gensplat_transforms.cache import GaussianCache
-from gensplat_transforms.cli import main
+from gensplat_transforms.cli import build_parser, main
 from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
 from gensplat_transforms.perturbation import EVAL_LEVELS
 from gensplat_transforms.preview import write_preview
@@ -49,3 +50,25 @@ def test_preview_png_and_mp4(tmp_path):
 
     with av.open(str(paths["mp4"])) as f:
         assert sum(1 for _ in f.decode(video=0)) == 4
+
+
+def _default_text(default) -> str:
+    return " ".join(map(str, default)) if isinstance(default, list | tuple) else str(default)
+
+
+def test_every_option_says_what_it_does_and_its_default():
+    parser = build_parser()
+    (commands,) = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    assert {"demo", "record", "cache", "train-model"} <= set(commands.choices)
+    problems = []
+    for name, sub in commands.choices.items():
+        for action in sub._actions:
+            if isinstance(action, argparse._HelpAction):
+                continue
+            option = f"{name} {'/'.join(action.option_strings)}"
+            text = (action.help or "") % {**vars(action), "prog": sub.prog}
+            if not text.strip():
+                problems.append(f"{option}: no help")
+            elif action.nargs != 0 and action.default is not None and _default_text(action.default) not in text:
+                problems.append(f"{option}: default {action.default!r} not in {text!r}")
+    assert not problems, "\n".join(problems)
