@@ -4,6 +4,7 @@ poses, from cached Gaussians, inside dataloader workers."""
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import asdict, dataclass, field
 
 import torch
@@ -12,6 +13,7 @@ from torch.utils.data import Dataset
 
 from .cache import CorruptCacheError, EpisodeSource, GaussianCache
 from .cameras import Cameras
+from .counters import SampleCounters
 from .gaussians import Gaussians
 from .holes import fill_holes
 from .perturbation import AXES, Perturbation, PerturbationRange, PerturbationSampler
@@ -155,9 +157,12 @@ class GenSplatTransform:
                 f"the config names {config.cameras}"
             )
         self.sampler = PerturbationSampler(config.level, mode=config.mode, seed=config.seed)
+        #: set to count every item (augmented or not) and its time across workers
+        self.counters: SampleCounters | None = None
 
     # ------------------------------------------------------------------ per item
     def __call__(self, item: dict) -> dict:
+        start = time.perf_counter()
         for key in ("episode_index", "frame_index"):
             if key not in item:
                 raise KeyError(f"GenSplatTransform: item has no {key!r}; keys: {sorted(item)}")
@@ -190,6 +195,8 @@ class GenSplatTransform:
             out["gensplat.axis"] = r[:, 1].long()
             out["gensplat.theta_deg"] = r[:, 2]
             out["gensplat.mu_m"] = r[:, 3]
+        if self.counters is not None:
+            self.counters.add(applied, time.perf_counter() - start)
         return out
 
     def _render_like(self, item: dict, keys: dict[str, str], episode: int, frame: int, name: str,
