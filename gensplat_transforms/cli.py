@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 import time
 
@@ -115,6 +116,37 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--log-every", type=int, default=10, help="steps between log lines (default: 10)")
     train.add_argument("--save-every", type=int, default=100, help="steps between checkpoints (default: 100)")
 
+    preview = sub.add_parser(
+        "preview", help="grid PNG and MP4 of what the policy gets from a LeRobot dataset (GenSplat forced on)",
+        description="Write preview.png (original versus policy input per camera, a few perturbation draws per "
+                    "frame, labelled with axis, theta and mu) and preview.mp4 (every frame of the episode) of a "
+                    "LeRobot dataset opened as lerobot-train opens it, with the settings gensplat cache wrote and "
+                    "augmentation forced on (probability 1). Nothing is written into the dataset.",
+    )  # fmt: skip
+    preview.add_argument("--root", required=True, help="local LeRobot dataset root (with gensplat cache's settings)")
+    preview.add_argument("--repo-id", required=True, help="the dataset's repo id")
+    preview.add_argument("--episode", type=int, default=0, help="episode to show (default: 0)")
+    preview.add_argument("--frames", type=int, nargs="+", default=None,
+                         help="frames of the episode in the grid (default: 4 evenly spaced)")
+    preview.add_argument("--draws", type=int, default=3, help="perturbation draws per frame in the grid (default: 3)")
+    preview.add_argument("--image-transforms", action="store_true",
+                         help="also apply LeRobot's 2D image transforms at their default config, after GenSplat "
+                              "(as --dataset.image_transforms.enable=true does in lerobot-train)")
+    preview.add_argument("--seed", type=int, default=0, help="torch seed of the draws (default: 0)")
+    preview.add_argument("--out", required=True, help="output folder, outside the dataset (created; files replaced)")
+
+    export = sub.add_parser(
+        "export-ply", help="write the cached Gaussians of one timestep of a LeRobot dataset as a 3DGS PLY",
+        description="Write the Gaussians GenSplat renders one timestep from as a standard 3DGS binary PLY "
+                    "(opens in splat viewers). Read from the dataset's cache; an episode missing from it is built "
+                    "first with the cache's reconstructor (run gensplat cache once before).",
+    )  # fmt: skip
+    export.add_argument("--root", required=True, help="local LeRobot dataset root (with gensplat cache's settings)")
+    export.add_argument("--repo-id", required=True, help="the dataset's repo id")
+    export.add_argument("--episode", type=int, required=True, help="episode index")
+    export.add_argument("--frame", type=int, required=True, help="frame index within the episode")
+    export.add_argument("--out", required=True, help="PLY file to write (replaced when it exists)")
+
     return parser
 
 
@@ -132,6 +164,10 @@ def main(argv: list[str] | None = None) -> int:
         _cache(args)
     elif args.command == "train-model":
         _train_model(args)
+    elif args.command == "preview":
+        _preview(args)
+    elif args.command == "export-ply":
+        _export_ply(args)
     return 0
 
 
@@ -215,6 +251,27 @@ def _train_model(args) -> None:
             teacher = TrueGeometryTeacher()
     exported = train(config, model_config, dataset, teacher, args.init_weights)
     print(f"trained {args.steps} steps; EMA model written to {exported}")
+
+
+def _lerobot_module(name: str, command: str):
+    """``gensplat_lerobot.<name>``, or exit saying the command needs the LeRobot extra."""
+    try:
+        return importlib.import_module(f"gensplat_lerobot.{name}")
+    except ImportError as e:
+        raise SystemExit(f"gensplat {command} needs the LeRobot extra: pip install 'gensplat-transforms[lerobot]' ({e})")
+
+
+def _preview(args) -> None:
+    preview = _lerobot_module("preview", "preview").write_lerobot_preview(
+        args.root, args.repo_id, args.out, episode=args.episode, frames=args.frames, draws=args.draws,
+        image_transforms=args.image_transforms, seed=args.seed,
+    )  # fmt: skip
+    print("wrote", preview.png, preview.mp4 or "(no MP4: PyAV is not installed)")
+
+
+def _export_ply(args) -> None:
+    path = _lerobot_module("export", "export-ply").export_ply(args.root, args.repo_id, args.episode, args.frame, args.out)
+    print("wrote", path)
 
 
 if __name__ == "__main__":

@@ -10,9 +10,32 @@ import torch
 from .images import save_grid, to_uint8
 
 
-def _float(image: torch.Tensor) -> torch.Tensor:
-    image = image[-1] if image.ndim == 4 else image  # temporal stack: the current frame
+def as_frame(image: torch.Tensor) -> torch.Tensor:
+    """A camera image of an item, (3, H, W) or a temporal stack (T, 3, H, W), uint8 or float,
+    as the (3, H, W) float image in [0, 1] of its current (last) frame."""
+    image = image[-1] if image.ndim == 4 else image
     return image.float() / 255 if image.dtype == torch.uint8 else image.float()
+
+
+def save_video(frames: Sequence[torch.Tensor], path: str | Path, fps: int) -> bool:
+    """Write (3, H, W) float frames in [0, 1] (all the same size; an odd side loses its last
+    pixel) as an MP4 with PyAV (H.264, or MPEG-4 without libx264). Returns False, writing
+    nothing, when PyAV is not installed."""
+    try:
+        import av
+    except ImportError:
+        return False
+    h, w = frames[0].shape[-2:]
+    with av.open(str(path), mode="w") as container:
+        stream = container.add_stream("libx264" if "libx264" in av.codecs_available else "mpeg4", rate=fps)
+        stream.width, stream.height, stream.pix_fmt = w - w % 2, h - h % 2, "yuv420p"
+        for f in frames:
+            img = to_uint8(f)[: h - h % 2, : w - w % 2].numpy()
+            for packet in stream.encode(av.VideoFrame.from_ndarray(img, format="rgb24")):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    return True
 
 
 def write_preview(
@@ -35,7 +58,7 @@ def write_preview(
         row = []
         for name in cameras:
             key = image_key.format(name=name)
-            row += [_float(item[key]), _float(aug[key])]
+            row += [as_frame(item[key]), as_frame(aug[key])]
         rows.append(row)
     step = max(1, -(-len(rows) // max_rows))
     picked = list(range(0, len(rows), step))[:max_rows]
@@ -43,20 +66,6 @@ def write_preview(
     labels = [f"frame {int(items[i]['frame_index'])}" for i in picked]
     paths = {"png": out_dir / "preview.png"}
     save_grid([rows[i] for i in picked], paths["png"], labels, cols)
-    try:
-        import av
-    except ImportError:
-        return paths
-    paths["mp4"] = out_dir / "preview.mp4"
-    frames = [torch.cat(r, dim=2) for r in rows]  # (3, H, W * 2 * cameras)
-    h, w = frames[0].shape[-2:]
-    with av.open(str(paths["mp4"]), mode="w") as container:
-        stream = container.add_stream("libx264" if "libx264" in av.codecs_available else "mpeg4", rate=fps)
-        stream.width, stream.height, stream.pix_fmt = w - w % 2, h - h % 2, "yuv420p"
-        for f in frames:
-            img = to_uint8(f)[: h - h % 2, : w - w % 2].numpy()
-            for packet in stream.encode(av.VideoFrame.from_ndarray(img, format="rgb24")):
-                container.mux(packet)
-        for packet in stream.encode():
-            container.mux(packet)
+    if save_video([torch.cat(r, dim=2) for r in rows], out_dir / "preview.mp4", fps):  # (3, H, W * 2 * cameras)
+        paths["mp4"] = out_dir / "preview.mp4"
     return paths

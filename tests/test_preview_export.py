@@ -1,0 +1,128 @@
+"""``gensplat preview`` and ``gensplat export-ply`` on a small recorded LeRobot dataset."""
+
+import os
+import re
+import shutil
+
+import pytest
+import torch
+from PIL import Image
+
+pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
+os.environ["HF_HUB_OFFLINE"] = "1"
+
+import av
+from gensplat_lerobot import LeRobotSource, enable_gensplat, load_settings
+from gensplat_lerobot.dataset import dataset_cache
+from gensplat_lerobot.export import timestep_gaussians
+from gensplat_lerobot.preview import MIN_TILE_HEIGHT, open_dataset, write_lerobot_preview
+from gensplat_lerobot.record import record_scene_dataset
+
+from gensplat_transforms.cli import main
+from gensplat_transforms.episodes import SceneEpisodes
+from gensplat_transforms.gaussians import Gaussians
+from gensplat_transforms.reconstruction import make_reconstructor
+
+REPO = "local/preview_scene"
+SIZE, FRAMES = 32, 6
+CAMERAS = ("left", "right", "front")  # left and right external with depth; front seen by the policy as is
+
+
+@pytest.fixture(scope="module")
+def cached(tmp_path_factory):
+    """Two 6-frame episodes at 32x32, settings and cache by ``gensplat cache`` (probability 1)."""
+    root = tmp_path_factory.mktemp("preview") / "ds"
+    record_scene_dataset(root, SceneEpisodes(num_episodes=2, num_frames=FRAMES, size=SIZE), REPO, progress=False)
+    main(["cache", "--root", str(root), "--repo-id", REPO, "--probability", "1", "--level", "large"])
+    return root
+
+
+def dataset_files(root):
+    """Every file of the dataset outside ``gensplat/`` with its size and modification time."""
+    return {(str(f.relative_to(root)), f.stat().st_size, f.stat().st_mtime_ns)
+            for f in root.rglob("*") if f.is_file() and f.relative_to(root).parts[0] != "gensplat"}  # fmt: skip
+
+
+def test_preview_writes_grid_and_video_twice_without_touching_the_dataset(cached, tmp_path, capsys):
+    before = dataset_files(cached)
+    out = tmp_path / "out"
+    args = ["preview", "--root", str(cached), "--repo-id", REPO, "--episode", "1", "--frames", "0", "5",
+            "--draws", "2", "--image-transforms", "--out", str(out)]  # fmt: skip
+    for _ in range(2):  # a second run into the existing folder replaces the files
+        assert main(args) == 0
+        assert "preview.png" in capsys.readouterr().out
+    assert dataset_files(cached) == before
+    scale = -(-MIN_TILE_HEIGHT // SIZE)
+    png = Image.open(out / "preview.png")
+    assert png.height > 4 * SIZE * scale  # 2 frames x 2 draws
+    assert png.width > 2 * len(CAMERAS) * SIZE * scale  # original and policy input per camera
+    with av.open(str(out / "preview.mp4")) as video:
+        frames = [f.to_ndarray(format="rgb24") for f in video.decode(video=0)]
+    assert len(frames) == FRAMES  # every frame of the episode
+    assert {f.shape for f in frames} == {(SIZE, 2 * len(CAMERAS) * SIZE, 3)}
+
+
+def test_preview_items_are_what_enable_gensplat_gives_for_the_same_draws(cached, tmp_path):
+    preview = write_lerobot_preview(cached, REPO, tmp_path, episode=1, frames=[2, 4], draws=3,
+                                    image_transforms=True, seed=7)  # fmt: skip
+    assert preview.indices == [FRAMES + 2] * 3 + [FRAMES + 4] * 3
+    plain = open_dataset(cached, REPO)  # no GenSplat, no 2D transforms
+    torch.manual_seed(7)
+    dataset = enable_gensplat(open_dataset(cached, REPO, image_transforms=True))  # the settings on disk
+    changed = set()
+    for index, item in zip(preview.indices, preview.items):
+        assert item["gensplat.applied"].all()  # forced on
+        ref = dataset[index]
+        for name in CAMERAS:
+            key = f"observation.images.{name}"
+            assert torch.equal(item[key], ref[key])
+            if not torch.equal(item[key], plain[index][key]):
+                changed.add(name)
+    assert changed == set(CAMERAS)  # rendered and 2D-transformed, the front camera by the 2D transforms
+    # the draws differ: other views of the episode, other 2D transforms
+    left = [item["observation.images.left"] for item in preview.items[:3]]
+    assert not torch.equal(left[0], left[1]) or not torch.equal(left[0], left[2])
+
+
+def test_preview_refuses_an_output_folder_inside_the_dataset(cached):
+    with pytest.raises(ValueError, match="inside the dataset"):
+        write_lerobot_preview(cached, REPO, cached / "preview")
+    assert not (cached / "preview").exists()
+
+
+def test_export_ply_round_trips_to_the_cached_gaussians(cached, tmp_path, capsys):
+    root = tmp_path / "ds"
+    shutil.copytree(cached, root)
+    shutil.rmtree(root / "gensplat" / "cache")  # settings kept: the episode is built first
+    out = tmp_path / "ply" / "timestep.ply"
+    assert main(["export-ply", "--root", str(root), "--repo-id", REPO, "--episode", "1", "--frame", "3",
+                 "--out", str(out)]) == 0  # fmt: skip
+    assert str(out) in capsys.readouterr().out
+    config, spec = load_settings(root)
+    source = LeRobotSource(root, REPO, config.cameras)
+    cache = dataset_cache(root, make_reconstructor(spec), source)
+    assert cache.status(1) == "ok" and cache.status(0) == "missing"
+    want = cache.read(1, 3, source.views(1, 3).images).gaussians
+    got = Gaussians.from_ply(out)
+    assert len(got) == len(want) > 0
+    for field in ("means", "scales", "quats", "opacities", "sh"):
+        torch.testing.assert_close(getattr(got, field), getattr(want, field), rtol=1e-5, atol=1e-5)
+    other = timestep_gaussians(root, REPO, 1, 4)  # another timestep: other Gaussians
+    assert len(other) != len(got) or not torch.equal(other.means, got.means)
+
+
+@pytest.mark.parametrize(
+    ("command", "message"),
+    [
+        (["export-ply", "--episode", "2", "--frame", "0"], r"episode 2 is not in the dataset, which has episodes 0\.\.1"),
+        (["export-ply", "--episode", "1", "--frame", "6"], r"frame\(s\) \[6\] not in episode 1, which has frames 0\.\.5"),
+        (["export-ply", "--episode", "-1", "--frame", "0"], r"episode -1 is not in the dataset"),
+        (["preview", "--episode", "1", "--frames", "0", "9"], r"frame\(s\) \[9\] not in episode 1"),
+        (["preview", "--episode", "5"], r"episode 5 is not in the dataset"),
+    ],
+)
+def test_bad_episode_or_frame_is_a_clear_error(cached, tmp_path, capsys, command, message):
+    out = ["--out", str(tmp_path / ("x.ply" if command[0] == "export-ply" else "p"))]
+    assert main([command[0], "--root", str(cached), "--repo-id", REPO, *command[1:], *out]) == 2
+    assert re.search(f"^gensplat: error: {message}", capsys.readouterr().err)
+    assert not list(tmp_path.iterdir())  # nothing written
