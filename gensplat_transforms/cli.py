@@ -6,6 +6,7 @@ import argparse
 import importlib
 import sys
 import time
+from pathlib import Path
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -68,6 +69,22 @@ def build_parser() -> argparse.ArgumentParser:
     cache.add_argument("--model", default=None,
                        help="weights directory or hub id of the geometry or gensplat model, e.g. a Pi3 checkpoint "
                             "(default: the shipped small model)")
+
+    calibrate = sub.add_parser(
+        "calibrate", help="store camera calibration beside a LeRobot dataset whose features carry none",
+        description="Read intrinsics and camera poses from FILE, check them against the dataset's cameras and "
+                    "write ROOT/gensplat/calibration.json (the dataset itself is not modified). Conventions: "
+                    "gensplat ({camera: {K | fx, fy, cx, cy, c2w, mount}}, OpenCV axes, camera-to-world), "
+                    "opencv-w2c (world-to-camera R or rvec and t as from cv2.calibrateCamera/solvePnP) and "
+                    "nerfstudio (transforms.json: OpenGL camera-to-world per frame, the file_path's name naming "
+                    "the camera). JSON, or YAML for files ending in .yaml/.yml.",
+    )  # fmt: skip
+    calibrate.add_argument("--root", required=True, help="local LeRobot dataset root")
+    calibrate.add_argument("--from", dest="source", required=True, metavar="FILE",
+                           help="calibration file (JSON, or YAML ending in .yaml/.yml)")
+    calibrate.add_argument("--convention", choices=["auto", "gensplat", "opencv-w2c", "nerfstudio"], default="auto",
+                           help="how FILE states the cameras; auto: nerfstudio when it has frames, opencv-w2c when "
+                                "cameras have R or rvec, else gensplat (default: auto)")
 
     train = sub.add_parser("train-model", help="train the GenSplat model with 3D-prior distillation")
     train.add_argument("--out", required=True, help="run directory (resumes when it holds a checkpoint)")
@@ -151,11 +168,44 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run a command; a user mistake (:func:`_user_error`) ends as ``gensplat: error: <message>``
+    on stderr with exit status 2, anything else raises."""
     args = build_parser().parse_args(argv)
+    try:
+        return _dispatch(args)
+    except Exception as e:
+        if not _user_error(e):
+            raise
+        print(f"gensplat: error: {e}", file=sys.stderr)
+        return 2
+
+
+def _user_error(e: Exception) -> bool:
+    """A FileNotFoundError, ValueError or StaleCacheError raised by this project's own code
+    (gensplat_transforms, gensplat_lerobot), whose messages say what to do."""
+    from .cache import StaleCacheError
+
+    if not isinstance(e, (FileNotFoundError, ValueError, StaleCacheError)):
+        return False
+    tb = e.__traceback__
+    while tb.tb_next is not None:
+        tb = tb.tb_next
+    return tb.tb_frame.f_globals.get("__name__", "").split(".")[0] in ("gensplat_transforms", "gensplat_lerobot")
+
+
+def _dispatch(args) -> int:
     if args.command == "record":
         from .sim.record import record_from_cli
 
-        record_from_cli(args)
+        root, repo_id = record_from_cli(args).root, f"gensplat/sim_{args.task}"
+        print(f"repo id {repo_id}, dataset root {root}; next: gensplat cache --root {root} --repo-id {repo_id}")
+    elif args.command == "calibrate":
+        from .calibration import calibrate
+        from .dataset_format import calibration_path
+
+        cameras = calibrate(args.root, args.source, args.convention)
+        print(f"calibrated {', '.join(f'{n} ({c.mount})' for n, c in cameras.items())} from {args.source}; "
+              f"written to {calibration_path(args.root)} (the dataset is not modified)")  # fmt: skip
     elif args.command == "demo":
         from .demo import run_demo
 
@@ -176,6 +226,7 @@ def _cache(args) -> None:
         from gensplat_lerobot import LeRobotSource, prepare
     except ImportError as e:
         raise SystemExit(f"gensplat cache needs the LeRobot extra: pip install 'gensplat-transforms[lerobot]' ({e})")
+    from .dataset_format import GENSPLAT_DIR
     from .distributed import Shard, gather
     from .transform import GenSplatConfig
 
@@ -191,6 +242,9 @@ def _cache(args) -> None:
         spec = {"name": args.reconstructor or "geometry", "model": args.model}
     shard = Shard.from_env()
     start, cpu = time.perf_counter(), time.process_time()
+    if shard.rank == 0:
+        print(f"repo id {args.repo_id}, dataset root {args.root}; settings and cache in "
+              f"{Path(args.root) / GENSPLAT_DIR} (found by the dataset's content, whatever repo id training uses)")
     stats = prepare(args.root, args.repo_id, config, spec, args.episodes, shard=shard)
     ranks = gather(shard, (stats, time.perf_counter() - start, time.process_time() - cpu))
     if ranks is None:

@@ -8,6 +8,11 @@ which LeRobot keeps in ``meta/info.json``:
 * ``"camera.mount"``: ``"external"`` or ``"wrist"`` (a wrist camera moves with the robot
   and is never reconstructed or perturbed).
 
+A camera whose feature carries no calibration may take it from
+``<root>/gensplat/calibration.json`` beside the dataset (written by ``gensplat calibrate``,
+:mod:`.calibration`): ``{"format": "gensplat-calibration", "cameras": {name: info}}`` with
+the same ``info`` entries. The feature's own ``info`` wins where both exist.
+
 Metric depth of the external cameras is a sidecar beside the dataset (depth as a LeRobot
 image feature would be fed to the policy as an extra camera):
 ``<root>/depth/<camera>/episode_<index:06d>.safetensors`` with one float16 tensor
@@ -17,6 +22,7 @@ image feature would be fed to the policy as an extra camera):
 
 from __future__ import annotations
 
+import json
 import os
 import tempfile
 from dataclasses import dataclass
@@ -31,6 +37,9 @@ from .cameras import Cameras
 DEPTH_FORMAT = "gensplat-depth"
 DEPTH_FORMAT_VERSION = "1"
 IMAGE_KEY_PREFIX = "observation.images."
+CALIBRATION_FORMAT = "gensplat-calibration"
+#: beside the dataset, never inside it: ``<root>/<GENSPLAT_DIR>/`` holds settings, cache, calibration
+GENSPLAT_DIR = "gensplat"
 
 
 @dataclass
@@ -53,14 +62,25 @@ def camera_info(K: torch.Tensor, c2w: torch.Tensor | None, mount: str) -> dict:
     return info
 
 
-def load_calibration(features: dict) -> dict[str, CameraCalibration]:
-    """Calibrated cameras from LeRobot ``meta.features`` (name -> calibration)."""
+def calibration_path(root: str | Path) -> Path:
+    """``<root>/gensplat/calibration.json``: calibration kept beside the dataset."""
+    return Path(root) / GENSPLAT_DIR / "calibration.json"
+
+
+def load_calibration(features: dict, root: str | Path | None = None) -> dict[str, CameraCalibration]:
+    """Calibrated cameras (name -> calibration, in feature order) from LeRobot ``meta.features``;
+    a camera whose feature has no calibration takes it from :func:`calibration_path` of ``root``
+    when given."""
+    saved = saved_calibration(root) if root is not None else {}
     out = {}
     for key, ft in features.items():
-        info = ft.get("info") or {}
-        if not key.startswith(IMAGE_KEY_PREFIX) or "camera.intrinsics" not in info:
+        if not key.startswith(IMAGE_KEY_PREFIX):
             continue
         name = key[len(IMAGE_KEY_PREFIX) :]
+        info = ft.get("info") or {}
+        info = info if "camera.intrinsics" in info else saved.get(name, {})
+        if "camera.intrinsics" not in info:
+            continue
         ext = info.get("camera.extrinsics")
         out[name] = CameraCalibration(
             name=name,
@@ -69,6 +89,20 @@ def load_calibration(features: dict) -> dict[str, CameraCalibration]:
             mount=info.get("camera.mount", "external"),
         )
     return out
+
+
+def saved_calibration(root: str | Path) -> dict[str, dict]:
+    """Camera name -> ``info`` entries from :func:`calibration_path` (empty when absent)."""
+    path = calibration_path(root)
+    if not path.is_file():
+        return {}
+    try:
+        data = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path}: not valid JSON ({e}); write it again with `gensplat calibrate`") from None
+    if not isinstance(data, dict) or data.get("format") != CALIBRATION_FORMAT:
+        raise ValueError(f"{path}: not a GenSplat calibration file; write it with `gensplat calibrate`")
+    return data["cameras"]
 
 
 def calibrated_cameras(calib: dict[str, CameraCalibration], names, width: int, height: int) -> Cameras:

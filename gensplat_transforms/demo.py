@@ -11,12 +11,14 @@ from pathlib import Path
 
 import torch
 
+from .dataset_format import GENSPLAT_DIR
 from .images import save_grid
 from .metrics import psnr
 from .perturbation import EVAL_LEVELS, PerturbationSampler
 from .preview import write_preview
 from .transform import GenSplatConfig, GenSplatTransform, render_view
 
+#: the simulated dataset's repo id, as ``gensplat record`` names it and ``policies/*.json`` use it
 REPO_ID = "gensplat/sim_pick_place"
 
 
@@ -43,6 +45,7 @@ def run_demo(out_dir: str | Path, episodes: int = 2, size: int = 224, seed: int 
                                   world=WorldConfig(width=size, height=size)))  # fmt: skip
         log(f"recorded {res.episodes} pick-and-place demonstrations ({res.frames} timesteps, 3 cameras "
             f"{size}x{size}, RGB + depth) in {time.perf_counter() - t0:.0f} s")
+    log(f"repo id {REPO_ID}, dataset root {root}; GenSplat settings and cache in {root / GENSPLAT_DIR}")
     t0 = time.perf_counter()
     stats = prepare(root, REPO_ID, GenSplatConfig(backend=backend))  # the training settings
     built = [s for s in stats.values() if s is not None]
@@ -64,6 +67,8 @@ def run_demo(out_dir: str | Path, episodes: int = 2, size: int = 224, seed: int 
     summary["levels"] = _levels(tf, GroundTruth(root), items[length // 2], out_dir / "levels.png", log)
     (out_dir / "demo.json").write_text(json.dumps(summary, indent=2))
     log(f"wrote {out_dir / 'levels.png'} and {out_dir / 'demo.json'}")
+    log(f"train on it with GenSplat: bash policies/train.sh diffusion gensplat --dataset.root={root} "
+        f"(policies/*.json use repo id {REPO_ID})")
     return summary
 
 

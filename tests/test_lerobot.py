@@ -2,7 +2,9 @@
 simulated recordings in LeRobot's default MP4 video at a non-square size."""
 
 import json
+import logging
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -19,6 +21,7 @@ from gensplat_lerobot.dataset import dataset_cache, make_reconstructor
 from gensplat_lerobot.record import record_scene_dataset
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+from gensplat_transforms.cache import StaleCacheError
 from gensplat_transforms.dataset_format import load_depth, save_depth
 from gensplat_transforms.episodes import SceneEpisodes
 from gensplat_transforms.perturbation import PerturbationRange
@@ -99,6 +102,8 @@ def test_recorded_dataset_carries_calibration_and_depth(recorded):
     assert ds.num_episodes == 2 and ds.num_frames == 40
     source = LeRobotSource(recorded, REPO)
     assert source.camera_names == ("left", "right")  # the external cameras with depth
+    # the cache is found by the content, not by the name the dataset is opened under
+    assert LeRobotSource(recorded, "someone/another_name").fingerprint == source.fingerprint
     # the cache stores the cameras in order: another order is another cache
     assert LeRobotSource(recorded, REPO, ("right", "left")).fingerprint != source.fingerprint
     views = source.views(1, 5)
@@ -177,11 +182,81 @@ def test_rerecorded_frames_make_the_cache_stale(recorded, dataset_root, tmp_path
     assert LeRobotSource(dataset_root, REPO).fingerprint != rerecorded.fingerprint
 
 
+def cache_files(root: Path) -> dict[Path, tuple[int, int]]:
+    """(inode, mtime in ns) of every episode file of the dataset's cache: any rebuild changes them."""
+    return {f: (f.stat().st_ino, f.stat().st_mtime_ns) for f in (root / "gensplat" / "cache").rglob("*.safetensors")}
+
+
+def gensplat_warnings(caplog) -> list[str]:
+    return [r.getMessage() for r in caplog.records if r.name.startswith("gensplat") and r.levelno >= logging.WARNING]
+
+
+def test_another_repo_id_uses_the_cache_as_it_is(dataset_root, caplog):
+    """A dataset opened under another repo id than ``gensplat cache`` was given (a typo, or the
+    demo's id against a policy config's) trains from the same cache: nothing rebuilt, no warning."""
+    prepare(dataset_root, REPO, GenSplatConfig(probability=1.0, report=True), progress=False)
+    before = cache_files(dataset_root)
+    assert len(before) == 2
+    with caplog.at_level(logging.INFO):
+        ds = enable_gensplat(LeRobotDataset("someone/tpyo", root=dataset_root))
+        items = [ds[3], ds[25]]  # one frame of each episode
+    assert ds.gensplat_cached == (2, 2)
+    assert all(item["gensplat.applied"].all() for item in items)
+    assert cache_files(dataset_root) == before
+    assert gensplat_warnings(caplog) == []
+
+
+def test_changed_dataset_stops_with_what_differs(dataset_root):
+    prepare(dataset_root, REPO, GenSplatConfig(), progress=False)
+    before = cache_files(dataset_root)
+    save_depth(dataset_root, "left", 1, load_depth(dataset_root, "left", 1)[:, 0] + 0.01)  # re-measured depth
+    command = f"gensplat cache --root {dataset_root} --repo-id other/name"
+    with pytest.raises(StaleCacheError, match=rf"changed since .*\(the files under depth/left/\): run `{re.escape(command)}`"):
+        enable_gensplat(LeRobotDataset("other/name", root=dataset_root))
+    assert cache_files(dataset_root) == before  # not rebuilt either
+
+
+def test_missing_episodes_are_announced_with_the_command(dataset_root, caplog):
+    prepare(dataset_root, REPO, GenSplatConfig(), episodes=[0], progress=False)
+    with caplog.at_level(logging.WARNING):
+        ds = enable_gensplat(LeRobotDataset(REPO, root=dataset_root))
+    assert ds.gensplat_cached == (1, 2)
+    (warning,) = gensplat_warnings(caplog)
+    assert "lacks 1 of 2 episodes" in warning and f"gensplat cache --root {dataset_root} --repo-id {REPO}" in warning
+
+
+def test_demo_and_policies_use_one_repo_id():
+    from gensplat_transforms.demo import REPO_ID
+
+    assert REPO_ID == SIM_REPO
+    for config in POLICIES.glob("*.json"):
+        assert json.loads(config.read_text())["dataset"]["repo_id"] == REPO_ID, config.name
+
+
+def test_cli_user_mistakes_end_with_the_message(dataset_root, tmp_path, capsys):
+    from gensplat_transforms.cli import main
+
+    assert main(["cache", "--root", str(tmp_path / "nothing"), "--repo-id", REPO]) == 2
+    err = capsys.readouterr().err
+    assert err == f"gensplat: error: {tmp_path / 'nothing'}: not a local LeRobot dataset " \
+                  f"({tmp_path / 'nothing' / 'meta' / 'info.json'} does not exist)\n"
+    info_path = dataset_root / "meta" / "info.json"
+    info = json.loads(info_path.read_text())
+    info["features"]["observation.images.right"]["info"] = {}  # one calibrated external camera left
+    info_path.write_text(json.dumps(info))
+    assert main(["cache", "--root", str(dataset_root), "--repo-id", REPO]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("gensplat: error: ") and "two calibrated external cameras" in err
+    assert f"gensplat calibrate --root {dataset_root}" in err and err.count("\n") == 1
+
+
 def test_cache_command_writes_settings_and_cache(dataset_root, capsys):
     from gensplat_transforms.cli import main
 
     main(["cache", "--root", str(dataset_root), "--repo-id", REPO, "--level", "large", "--probability", "0.7"])
-    assert "cached 2 episode(s)" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "cached 2 episode(s)" in out
+    assert f"repo id {REPO}, dataset root {dataset_root}; settings and cache in {dataset_root / 'gensplat'}" in out
     config, reconstructor = load_settings(dataset_root)
     assert config.level == "large" and config.probability == 0.7 and config.cameras == ("left", "right")
     assert reconstructor["name"] == "rgbd" and config.fill_holes
@@ -251,12 +326,24 @@ def test_lerobot_train_diffusion_policy_with_the_one_line(data, request, tmp_pat
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}", "HF_HUB_OFFLINE": "1"}
     run = subprocess.run(cmd, check=False, capture_output=True, text=True, env=env, timeout=900)
     assert run.returncode == 0, run.stderr[-3000:]
-    assert "GenSplat enabled on the training dataset" in run.stderr + run.stdout
+    log = run.stderr + run.stdout
+    # at the start, one block: what GenSplat does, and that a resumed run needs the line again
+    start = log[log.index("GenSplat enabled on the training dataset:") :].splitlines()[1:4]
+    assert re.fullmatch(r"  cache: \S+gensplat/cache/rgbd-\w+ \(0 of \d episodes cached\), reconstructor rgbd-\w+", start[0])
+    assert start[1] == "  probability 1.0, level train, mode episode, cameras replaced: left, right " \
+                       "(reconstructed from left, right)"
+    assert "--resume=true" in start[2] and "--gensplat.discover_packages_path=gensplat_lerobot.plugin" in start[2]
+    # at every log step (--log_freq=1): counts gathered from the two spawn workers
+    steps = re.findall(r"GenSplat step (\d+): (\d+) of (\d+) samples augmented \(100%\), ([\d.]+) ms per sample", log)
+    assert [s[0] for s in steps] == ["1", "2"]
+    assert all(int(augmented) == int(samples) >= 2 and float(ms) > 0 for _, augmented, samples, ms in steps)
     # spawn workers built the cache while rendering: the augmentation really ran
     assert list((dataset_root / "gensplat" / "cache").rglob("episode_*.safetensors"))
     # the checkpoint knows nothing about GenSplat: it loads without this package
     saved = next(out.rglob("train_config.json")).read_text()
     assert "gensplat_lerobot" not in saved and "discover_packages_path" not in saved
+    for saved_file in out.rglob("*.json"):  # nor do the processors' configs and stats
+        assert "gensplat_lerobot" not in saved_file.read_text() and '"gensplat.' not in saved_file.read_text()
     policy_cfg = json.loads(next(out.rglob("pretrained_model/config.json")).read_text())
     assert policy_cfg["type"] == "diffusion"
 
@@ -270,4 +357,7 @@ def test_plugin_without_settings_stops_training(dataset_root, tmp_path):
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}", "HF_HUB_OFFLINE": "1"}
     run = subprocess.run(cmd, check=False, capture_output=True, text=True, env=env, timeout=600)
     assert run.returncode != 0
-    assert "gensplat cache" in run.stderr
+    last = run.stderr.strip().splitlines()[-1]  # lerobot-train's traceback ends with our message alone
+    assert last == (f"FileNotFoundError: GenSplat is enabled but {dataset_root / 'gensplat' / 'config.json'} does not "
+                    f"exist: run `gensplat cache --root {dataset_root} --repo-id {REPO}` once to write the settings "
+                    "and build the Gaussian cache")  # fmt: skip

@@ -3,23 +3,35 @@
 from __future__ import annotations
 
 import json
+import logging
 from dataclasses import replace
 from pathlib import Path
 
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from safetensors import SafetensorError, safe_open
 
-from gensplat_transforms.cache import GaussianCache
+from gensplat_transforms.cache import GaussianCache, StaleCacheError
+from gensplat_transforms.dataset_format import GENSPLAT_DIR
 from gensplat_transforms.distributed import OnDevice, Shard
 from gensplat_transforms.reconstruction import make_reconstructor
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 
 from .source import LeRobotSource
 
-SETTINGS_DIR = "gensplat"
+log = logging.getLogger(__name__)
 
 
 def settings_path(root: str | Path) -> Path:
-    return Path(root) / SETTINGS_DIR / "config.json"
+    return Path(root) / GENSPLAT_DIR / "config.json"
+
+
+def content_path(root: str | Path) -> Path:
+    """``<root>/gensplat/dataset.json``: the dataset's content when ``gensplat cache`` last ran."""
+    return Path(root) / GENSPLAT_DIR / "dataset.json"
+
+
+def cache_command(root: str | Path, repo_id: str | None) -> str:
+    return f"gensplat cache --root {root} --repo-id {repo_id or '<id>'}"
 
 
 def save_settings(root: str | Path, config: GenSplatConfig, reconstructor: dict) -> Path:
@@ -30,12 +42,13 @@ def save_settings(root: str | Path, config: GenSplatConfig, reconstructor: dict)
     return path
 
 
-def load_settings(root: str | Path) -> tuple[GenSplatConfig, dict]:
+def load_settings(root: str | Path, repo_id: str | None = None) -> tuple[GenSplatConfig, dict]:
+    """The settings :func:`save_settings` stored (``repo_id`` only completes the error message)."""
     path = settings_path(root)
     if not path.exists():
         raise FileNotFoundError(
-            f"GenSplat is enabled but {path} does not exist: run `gensplat cache --root {root} "
-            "--repo-id <id>` once to write the settings and build the Gaussian cache"
+            f"GenSplat is enabled but {path} does not exist: run `{cache_command(root, repo_id)}` once to write "
+            "the settings and build the Gaussian cache"
         )
     data = json.loads(path.read_text())
     return GenSplatConfig.from_dict(data["transform"]), data["reconstructor"]
@@ -50,8 +63,57 @@ def default_reconstructor(source: LeRobotSource) -> dict:
 
 def dataset_cache(root: str | Path, reconstructor, source: LeRobotSource) -> GaussianCache:
     """The cache of a dataset: ``<root>/gensplat/cache/<reconstructor identity>/``."""
-    return GaussianCache(Path(root) / SETTINGS_DIR / "cache" / reconstructor.identity(), reconstructor,
+    return GaussianCache(Path(root) / GENSPLAT_DIR / "cache" / reconstructor.identity(), reconstructor,
                          source.fingerprint)  # fmt: skip
+
+
+def check_cache(transform: GenSplatTransform, episodes, repo_id: str) -> int:
+    """How many of ``episodes`` the transform's cache holds, decided before training starts.
+
+    Episodes missing (or built by another cache format) are built lazily by the workers; a
+    WARNING says how many and which command builds them ahead. Raises
+    :class:`~gensplat_transforms.cache.StaleCacheError` naming what differs when cache files
+    were built from other dataset content (the dataset changed since ``gensplat cache``)."""
+    cache, source = transform.cache, transform.source
+    status = {e: cache.status(e) for e in episodes}
+    built_for = {_built_for(cache.path(e)) for e, s in status.items() if s == "stale"} - {None, source.fingerprint}
+    command = cache_command(source.root, repo_id)
+    if built_for:
+        raise StaleCacheError(
+            f"the dataset at {source.root} changed since its GenSplat cache was built ({what_differs(source)}): "
+            f"run `{command}` to rebuild the cache before training"
+        )
+    todo = sum(s != "ok" for s in status.values())
+    if todo:
+        log.warning("GenSplat cache at %s lacks %d of %d episodes: the training workers build them as they first "
+                    "need them, which slows training until they are built; run `%s` beforehand to build them ahead",
+                    cache.root, todo, len(status), command)  # fmt: skip
+    return len(status) - todo
+
+
+def _built_for(path: Path) -> str | None:
+    """The dataset fingerprint in a cache file's header (None when unreadable)."""
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            return (f.metadata() or {}).get("dataset")
+    except (SafetensorError, OSError):
+        return None
+
+
+def what_differs(source: LeRobotSource) -> str:
+    """What changed in ``source``'s content since ``gensplat cache`` recorded it."""
+    path = content_path(source.root)
+    if not path.is_file():
+        return f"its content fingerprint is now {source.fingerprint}"
+    then, now = json.loads(path.read_text())["content"], json.loads(json.dumps(source.content))
+    parts = [f"{key} {then.get(key)} -> {now[key]}" for key in ("episodes", "frames", "fps") if then.get(key) != now[key]]
+    if then.get("cameras") != now["cameras"]:
+        parts.append("the reconstructed cameras, their features or calibration")
+    files = then.get("files", {})
+    changed = [f"{d}/" for d in {**files, **now["files"]} if files.get(d) != now["files"].get(d)]
+    if changed:
+        parts.append("the files under " + ", ".join(changed))
+    return "; ".join(parts) or f"cache files built for other content; the content now is {source.fingerprint}"
 
 
 class GenSplatLeRobotDataset(LeRobotDataset):
@@ -73,15 +135,18 @@ def enable_gensplat(dataset: LeRobotDataset, config: GenSplatConfig | None = Non
     """Turn ``dataset`` (in place) into a :class:`GenSplatLeRobotDataset`.
 
     Settings default to ``<root>/gensplat/config.json``. Frame offsets of temporal image
-    stacks are taken from the dataset's delta timestamps. Missing cache entries are built
-    lazily from the dataset. Raises if anything needed is missing: never a silent no-op.
+    stacks are taken from the dataset's delta timestamps. The cache is checked here, in the
+    calling process (:func:`check_cache`): episodes it lacks are announced and built lazily
+    from the dataset; a cache built from other content stops with an error. The dataset's
+    ``gensplat_cached`` is then (episodes cached, episodes used). Raises if anything needed is
+    missing: never a silent no-op.
     """
     if isinstance(dataset, GenSplatLeRobotDataset):
         return dataset
     if not isinstance(dataset, LeRobotDataset):
         raise TypeError(f"enable_gensplat: expected a LeRobotDataset, got {type(dataset).__name__}")
     if config is None:
-        config, reconstructor = load_settings(dataset.root)
+        config, reconstructor = load_settings(dataset.root, dataset.repo_id)
     source = LeRobotSource(dataset.root, dataset.repo_id, config.cameras)
     rec = make_reconstructor(reconstructor or default_reconstructor(source))
     key = config.image_key.format(name=config.replace[0])
@@ -90,11 +155,14 @@ def enable_gensplat(dataset: LeRobotDataset, config: GenSplatConfig | None = Non
         offsets = tuple(round(d * dataset.meta.fps) for d in deltas)
         config = replace(config, frame_offsets=offsets)
     transform = GenSplatTransform(config, dataset_cache(dataset.root, rec, source), source)
+    episodes = range(dataset.meta.total_episodes) if dataset.episodes is None else dataset.episodes
+    cached = check_cache(transform, episodes, dataset.repo_id)
     two_d = dataset.image_transforms
     dataset.set_image_transforms(None)  # re-applied after GenSplat, see __getitem__
     dataset.__class__ = GenSplatLeRobotDataset
     dataset.gensplat = transform
     dataset.gensplat_image_transforms = two_d
+    dataset.gensplat_cached = (cached, len(episodes))
     return dataset
 
 
@@ -119,6 +187,7 @@ def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructo
         rec = make_reconstructor(reconstructor, shard.device if reconstructor["name"] == "geometry" else None)
     if shard.rank == 0:
         save_settings(root, config, reconstructor)
+        content_path(root).write_text(json.dumps({"fingerprint": source.fingerprint, "content": source.content}))
     total = len(source.dataset.meta.episodes["length"])
     episodes = range(total) if episodes is None else episodes
     return build_cache(dataset_cache(root, rec, source), source, episodes, progress, shard)

@@ -15,6 +15,8 @@ from torch.utils.data import Dataset
 from gensplat_transforms.dataset_format import (
     IMAGE_KEY_PREFIX,
     calibrated_cameras,
+    calibration_path,
+    camera_info,
     depth_path,
     load_calibration,
     load_depth,
@@ -36,31 +38,41 @@ class LeRobotSource:
 
     def __init__(self, root: str | Path, repo_id: str, cameras: tuple[str, ...] | None = None) -> None:
         self.root, self.repo_id = Path(root), repo_id
-        info = json.loads((self.root / "meta" / "info.json").read_text())
-        self.calibration = load_calibration(info["features"])
+        info = read_info(self.root)
+        self.calibration = load_calibration(info["features"], self.root)
         external = tuple(n for n, c in self.calibration.items() if c.mount == "external")
         with_depth = tuple(n for n in external if depth_path(self.root, n, 0).exists())
         self.camera_names = tuple(cameras) if cameras else (with_depth or external)
         if len(self.camera_names) < 2:
+            images = [k[len(IMAGE_KEY_PREFIX) :] for k in info["features"] if k.startswith(IMAGE_KEY_PREFIX)]
             raise ValueError(
-                f"{self.root}: GenSplat needs two calibrated external cameras; found {external} "
-                f"(calibration goes in the image features' info, see gensplat_transforms.dataset_format)"
+                f"{self.root}: GenSplat needs two calibrated external cameras; calibrated external: "
+                f"{list(external)}, image features: {images}. Add the calibration with `gensplat calibrate "
+                f"--root {self.root} --from FILE` (stored in {calibration_path(self.root)}, the dataset is "
+                "not modified) or in the image features' info (gensplat_transforms.dataset_format)"
             )
         shape = info["features"][IMAGE_KEY_PREFIX + self.camera_names[0]]["shape"]  # (H, W, C)
         self.cameras = calibrated_cameras(self.calibration, self.camera_names, shape[1], shape[0])
         self._dataset = None
 
     @cached_property
+    def content(self) -> dict:
+        """What the cache follows: episode and frame counts, fps, the reconstructed cameras in
+        order with their features and calibration (the cache stores their Gaussians and
+        cameras), and per folder holding their frames a digest of its files (so a re-recorded
+        episode counts). Not the repo id: a cache is found by the data, whatever its name.
+        Computed on first use."""
+        info = read_info(self.root)
+        calib = {n: self.calibration[n] for n in self.camera_names}
+        cameras = [[n, info["features"][IMAGE_KEY_PREFIX + n], camera_info(c.K, c.c2w, c.mount)]
+                   for n, c in calib.items()]  # fmt: skip
+        return {"episodes": info.get("total_episodes"), "frames": info.get("total_frames"), "fps": info.get("fps"),
+                "cameras": cameras, "files": {d: files_digest(self.root, [d]) for d in self._content_dirs()}}  # fmt: skip
+
+    @cached_property
     def fingerprint(self) -> str:
-        """Keys the cache: the repo id, counts, fps, the reconstructed cameras' features in order
-        (the cache's Gaussians and source cameras follow it) and the files the frames come
-        from, so a re-recorded episode makes the cache stale. Computed on first use."""
-        info = json.loads((self.root / "meta" / "info.json").read_text())
-        blob = json.dumps([self.repo_id, info.get("total_episodes"), info.get("total_frames"), info.get("fps"),
-                           [[k, info["features"][IMAGE_KEY_PREFIX + k]] for k in self.camera_names],
-                           files_digest(self.root, self._content_dirs())],
-                          sort_keys=True)  # fmt: skip
-        return hashlib.sha256(blob.encode()).hexdigest()[:16]
+        """Keys the cache: a hash of :attr:`content`."""
+        return hashlib.sha256(json.dumps(self.content, sort_keys=True).encode()).hexdigest()[:16]
 
     def _content_dirs(self) -> list[str]:
         """Folders (relative to the root) whose files hold this source's frames."""
@@ -129,6 +141,14 @@ def video_backend() -> str:
     except (ImportError, OSError, RuntimeError):
         return "pyav"
     return "torchcodec"
+
+
+def read_info(root: Path) -> dict:
+    """``meta/info.json`` of a local LeRobot dataset."""
+    path = root / "meta" / "info.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"{root}: not a local LeRobot dataset ({path} does not exist)")
+    return json.loads(path.read_text())
 
 
 def files_digest(root: Path, dirs: list[str], sample: int = 16384) -> str:

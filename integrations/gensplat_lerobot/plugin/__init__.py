@@ -1,11 +1,16 @@
 """Imported by ``lerobot-train`` for ``--gensplat.discover_packages_path=gensplat_lerobot.plugin``:
-wraps the training dataset that ``lerobot-train`` builds with GenSplat. The evaluation
-split, evaluation scripts and saved checkpoints are untouched."""
+wraps the training dataset that ``lerobot-train`` builds with GenSplat, and reports at the
+log frequency how many samples it augmented and its time per sample. The evaluation split,
+evaluation scripts and saved checkpoints are untouched."""
 
 import logging
 import sys
 
+from gensplat_transforms.counters import SampleCounters
+
 from ..dataset import enable_gensplat
+
+LINE = "--gensplat.discover_packages_path=gensplat_lerobot.plugin"
 
 log = logging.getLogger(__name__)  # propagates to the handlers lerobot-train sets up
 
@@ -21,15 +26,48 @@ def _install() -> None:
         original = module.make_train_eval_datasets
         if getattr(original, "gensplat", False):
             continue
+        run = {}  # this process's training run: the counters and cfg.log_freq
 
-        def make_train_eval_datasets(cfg, _original=original):
+        def make_train_eval_datasets(cfg, _original=original, _run=run):
             train, evaluation = _original(cfg)
             enable_gensplat(train)
-            log.info("GenSplat enabled on the training dataset: %s", train.gensplat.cfg)
+            train.gensplat.counters = SampleCounters(cfg.num_workers)  # shared before the workers start
+            _run.update(counters=train.gensplat.counters, log_freq=cfg.log_freq)
+            log.info(start_message(train, cfg))
             return train, evaluation
+
+        def update_policy(train_metrics, *args, _original=module.update_policy, _run=run, **kwargs):
+            result = _original(train_metrics, *args, **kwargs)
+            step, freq = train_metrics.steps + 1, _run.get("log_freq", 0)  # lerobot-train counts the step next
+            accelerator = kwargs.get("accelerator")
+            if "counters" in _run and freq > 0 and step % freq == 0 and getattr(accelerator, "is_main_process", True):
+                log.info(progress_message(step, *_run["counters"].window()))
+            return result
 
         make_train_eval_datasets.gensplat = True
         module.make_train_eval_datasets = make_train_eval_datasets
+        module.update_policy = update_policy
+
+
+def start_message(train, cfg) -> str:
+    """The INFO block logged when training starts: what GenSplat will do to the samples."""
+    tf, (cached, total) = train.gensplat, train.gensplat_cached
+    c = tf.cfg
+    resumed = "this run resumes a checkpoint with GenSplat on again; " if cfg.resume else ""
+    return "\n".join([
+        "GenSplat enabled on the training dataset:",
+        f"  cache: {tf.cache.root} ({cached} of {total} episodes cached), reconstructor {tf.cache.identity}",
+        f"  probability {c.probability}, level {c.level}, mode {c.mode}, cameras replaced: {', '.join(c.replace)} "
+        + f"(reconstructed from {', '.join(c.cameras)})",
+        f"  {resumed}a run resumed with --resume=true trains without GenSplat unless {LINE} is given again",
+    ])  # fmt: skip
+
+
+def progress_message(step: int, samples: int, augmented: int, seconds: float) -> str:
+    """The INFO line logged every ``cfg.log_freq`` steps (counts from all workers since the last)."""
+    share = augmented / max(samples, 1)
+    return (f"GenSplat step {step}: {augmented} of {samples} samples augmented ({share:.0%}), "
+            f"{seconds / max(samples, 1) * 1e3:.1f} ms per sample in the workers")  # fmt: skip
 
 
 _install()

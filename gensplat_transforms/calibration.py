@@ -1,0 +1,237 @@
+"""Camera calibration for a LeRobot dataset whose image features carry none (``gensplat
+calibrate``): read from a file in one of three conventions, validated, and stored beside the
+dataset in ``<root>/gensplat/calibration.json`` (:func:`.dataset_format.calibration_path`);
+the dataset itself, ``meta/info.json`` included, is never modified.
+
+Conventions of the input file (JSON, or YAML when it ends in ``.yaml``/``.yml``):
+
+* ``gensplat``: ``{camera: {"K": 3x3 or "fx", "fy", "cx", "cy", "c2w": 4x4, "mount"}}``,
+  the dataset format's own: OpenCV camera axes (x right, y down, looking along +z),
+  camera-to-world, pixel centres at +0.5.
+* ``opencv-w2c``: ``{camera: {"K" or "fx".., "R": 3x3 or "rvec": 3 (Rodrigues), "t": 3,
+  "mount"}}``, world-to-camera as ``cv2.calibrateCamera``/``cv2.solvePnP`` return it
+  (x_cam = R x_world + t); OpenCV puts pixel centres at integers, so cx, cy gain 0.5 here.
+* ``nerfstudio``: a ``transforms.json``: ``frames``, each with ``file_path`` (its file name
+  without extension names the camera) and ``transform_matrix`` (camera-to-world with OpenGL
+  axes: y up, looking along -z; y and z are flipped to OpenCV's), intrinsics ``fl_x``,
+  ``fl_y``, ``cx``, ``cy``, ``w``, ``h`` in the frame, in its ``intrinsics``, or at the top.
+
+``mount`` is ``external`` (default) or ``wrist`` (no c2w needed). ``width``/``height``
+(nerfstudio: ``w``/``h``), when given and not the dataset's image size, rescale K to it.
+Distortion coefficients must be zero: GenSplat renders pinhole views of undistorted images.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from pathlib import Path
+
+import torch
+from kornia.geometry.conversions import axis_angle_to_rotation_matrix
+
+from .cameras import Cameras, opengl_to_opencv
+from .dataset_format import (
+    CALIBRATION_FORMAT,
+    IMAGE_KEY_PREFIX,
+    CameraCalibration,
+    calibration_path,
+    camera_info,
+)
+
+CONVENTIONS = ("auto", "gensplat", "opencv-w2c", "nerfstudio")
+_INTRINSICS = ("K", "fx", "fy", "cx", "cy")
+_FIELDS = {"gensplat": {*_INTRINSICS, "c2w", "mount", "width", "height"},
+           "opencv-w2c": {*_INTRINSICS, "R", "rvec", "t", "mount", "width", "height"}}  # fmt: skip
+_DISTORTION = ("dist", "k1", "k2", "k3", "k4", "p1", "p2")
+
+
+def calibrate(root: str | Path, source: str | Path, convention: str = "auto") -> dict[str, CameraCalibration]:
+    """Read ``source`` (see the module docstring), check it against the dataset at ``root``
+    and write ``<root>/gensplat/calibration.json``. Returns the cameras written.
+
+    Raises ``ValueError`` naming the camera and field of anything invalid, and
+    ``FileNotFoundError`` when ``root`` is not a LeRobot dataset or ``source`` is missing.
+    """
+    root, source = Path(root), Path(source)
+    info_path = root / "meta" / "info.json"
+    if not info_path.is_file():
+        raise FileNotFoundError(f"{root}: not a local LeRobot dataset ({info_path} does not exist)")
+    features = json.loads(info_path.read_text())["features"]
+    sizes = {k[len(IMAGE_KEY_PREFIX) :]: (ft["shape"][1], ft["shape"][0])
+             for k, ft in features.items() if k.startswith(IMAGE_KEY_PREFIX)}  # fmt: skip
+    cameras = read_calibration(source, sizes, convention)
+    out = calibration_path(root)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    data = {"format": CALIBRATION_FORMAT, "cameras": {n: camera_info(c.K, c.c2w, c.mount) for n, c in cameras.items()}}
+    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
+    with os.fdopen(fd, "w") as fh:
+        json.dump(data, fh, indent=2)
+    os.replace(tmp, out)
+    return cameras
+
+
+def read_calibration(source: str | Path, sizes: dict[str, tuple[int, int]],
+                     convention: str = "auto") -> dict[str, CameraCalibration]:
+    """Validated cameras of ``source``; ``sizes`` maps the dataset's camera names to their
+    (width, height) (K is rescaled to it where the file gives another size)."""
+    source = Path(source)
+    if not source.is_file():
+        raise FileNotFoundError(f"calibration file {source} does not exist")
+    data = _load(source)
+    if convention not in CONVENTIONS:
+        raise ValueError(f"unknown convention {convention!r}; one of {CONVENTIONS}")
+    if not isinstance(data, dict) or not data:
+        raise ValueError(f"{source}: expected a mapping of camera names (or a nerfstudio transforms.json)")
+    if convention == "auto":
+        convention = _detect(data)
+    entries = _nerfstudio_entries(source, data) if convention == "nerfstudio" else data
+    out = {}
+    for name, entry in entries.items():
+        where = f"{source}: camera {name!r}"
+        if name not in sizes:
+            raise ValueError(f"{where} is not an image feature of the dataset (its cameras: {sorted(sizes)})")
+        if not isinstance(entry, dict):  # a malformed file: a ValueError like any other
+            raise ValueError(f"{where}: expected a mapping of fields, not {type(entry).__name__}")  # noqa: TRY004
+        out[name] = _camera(where, name, entry, convention, sizes[name])
+    return out
+
+
+def _detect(data: dict) -> str:
+    """The convention of a parsed file: nerfstudio with ``frames``, opencv-w2c with R or rvec."""
+    if "frames" in data:
+        return "nerfstudio"
+    w2c = any(isinstance(v, dict) and ("R" in v or "rvec" in v) for v in data.values())
+    return "opencv-w2c" if w2c else "gensplat"
+
+
+def _load(path: Path):
+    text = path.read_text()
+    if path.suffix.lower() in (".yaml", ".yml"):
+        import yaml
+
+        try:
+            return yaml.safe_load(text)
+        except yaml.YAMLError as e:
+            raise ValueError(f"{path}: not valid YAML ({e})") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path}: not valid JSON ({e}); YAML files must end in .yaml or .yml") from None
+
+
+def _nerfstudio_entries(source: Path, data: dict) -> dict[str, dict]:
+    """One ``gensplat``-like entry per frame, named by its file: c2w still in OpenGL axes."""
+    top = {k: v for k, v in data.items() if k != "frames"}
+    entries = {}
+    for i, frame in enumerate(data["frames"]):
+        if "file_path" not in frame or "transform_matrix" not in frame:
+            raise ValueError(f"{source}: frames[{i}] needs file_path and transform_matrix")
+        name = Path(frame["file_path"]).stem
+        if name in entries:
+            raise ValueError(f"{source}: camera {name!r} (from file_path) appears in several frames")
+        merged = {**top, **frame.get("intrinsics", {}), **frame}
+        entries[name] = {"fx": merged.get("fl_x"), "fy": merged.get("fl_y", merged.get("fl_x")),
+                         "cx": merged.get("cx"), "cy": merged.get("cy"), "width": merged.get("w"),
+                         "height": merged.get("h"), "c2w": frame["transform_matrix"],
+                         **{k: merged[k] for k in _DISTORTION if k in merged}}  # fmt: skip
+    return entries
+
+
+def _camera(where: str, name: str, entry: dict, convention: str, size: tuple[int, int]) -> CameraCalibration:
+    """One validated camera of a parsed entry (see the module docstring)."""
+    distortion = {k: entry[k] for k in _DISTORTION if k in entry}
+    if any(_matrix(where, k, v, None).abs().sum() > 0 for k, v in distortion.items()):
+        raise ValueError(f"{where}: non-zero distortion {distortion}: undistort the images (e.g. cv2.undistort) "
+                         "and give the new camera matrix")  # fmt: skip
+    unknown = sorted(set(entry) - _FIELDS.get(convention, set(entry)) - set(_DISTORTION))
+    if unknown:
+        raise ValueError(f"{where}: unknown field(s) {unknown} for convention {convention} "
+                         f"(expected {sorted(_FIELDS[convention])})")  # fmt: skip
+    mount = entry.get("mount", "external")
+    if mount not in ("external", "wrist"):
+        raise ValueError(f"{where}: field 'mount' must be 'external' or 'wrist', got {mount!r}")
+    K = _intrinsics(where, entry, size, shift=0.5 if convention == "opencv-w2c" else 0.0)
+    if convention == "opencv-w2c":
+        c2w, field = _w2c_to_c2w(where, entry), "R, t"
+    else:
+        c2w, field = entry.get("c2w"), "c2w" if convention == "gensplat" else "transform_matrix"
+        c2w = None if c2w is None else _matrix(where, field, c2w, (4, 4))
+        if c2w is not None and convention == "nerfstudio":
+            c2w = opengl_to_opencv(c2w)
+    if c2w is None and mount == "external":
+        raise ValueError(f"{where}: an external camera needs its pose ({field})")
+    try:
+        Cameras(K[None], torch.eye(4, dtype=torch.float64)[None], *size)
+    except ValueError as e:
+        raise ValueError(f"{where}, field K: {e}") from None
+    if c2w is not None:
+        try:
+            Cameras(K[None], c2w[None], *size)
+        except ValueError as e:
+            raise ValueError(f"{where}, field {field}: {e}") from None
+    return CameraCalibration(name, K, c2w, mount)
+
+
+def _intrinsics(where: str, entry: dict, size: tuple[int, int], shift: float) -> torch.Tensor:
+    """(3, 3) K at the dataset's image ``size`` (pixel centres at +0.5)."""
+    if "K" in entry:
+        K = _matrix(where, "K", entry["K"], (3, 3))
+    else:
+        values = [entry.get(k) for k in ("fx", "fy", "cx", "cy")]
+        if any(v is None for v in values):
+            raise ValueError(f"{where}: needs K (3x3) or all of fx, fy, cx, cy")
+        fx, fy, cx, cy = (_number(where, k, v) for k, v in zip(("fx", "fy", "cx", "cy"), values))
+        K = torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    K[:2, 2] += shift
+    width, height = size
+    given = entry.get("width"), entry.get("height")
+    if any(v is not None for v in given):
+        w, h = (_number(where, k, v) for k, v in zip(("width", "height"), given))
+        if (w, h) != (width, height):
+            K[0] *= width / w
+            K[1] *= height / h
+    if not (0 <= K[0, 2] <= width and 0 <= K[1, 2] <= height):
+        raise ValueError(f"{where}, field K: principal point ({float(K[0, 2]):.1f}, {float(K[1, 2]):.1f}) lies "
+                         f"outside the dataset's {width}x{height} image; give width and height when the "
+                         "calibration is for another image size")  # fmt: skip
+    return K
+
+
+def _w2c_to_c2w(where: str, entry: dict) -> torch.Tensor | None:
+    """Camera-to-world from OpenCV's world-to-camera ``R`` (or ``rvec``) and ``t``."""
+    if "t" not in entry and "R" not in entry and "rvec" not in entry:
+        return None
+    if "t" not in entry or ("R" in entry) == ("rvec" in entry):
+        raise ValueError(f"{where}: opencv-w2c needs t and one of R (3x3) or rvec (3, Rodrigues)")
+    if "R" in entry:
+        R = _matrix(where, "R", entry["R"], (3, 3))
+    else:
+        R = axis_angle_to_rotation_matrix(_matrix(where, "rvec", entry["rvec"], (3,))[None])[0]
+    t = _matrix(where, "t", entry["t"], (3,))
+    c2w = torch.eye(4, dtype=torch.float64)
+    c2w[:3, :3], c2w[:3, 3] = R.T, -R.T @ t
+    return c2w
+
+
+def _matrix(where: str, field: str, value, shape: tuple[int, ...] | None) -> torch.Tensor:
+    """Finite float64 numbers of ``shape`` (any shape for None); raises naming ``field``."""
+    try:
+        m = torch.tensor(value, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError):
+        raise ValueError(f"{where}, field {field}: expected numbers of shape {shape}, got {value!r}") from None
+    if shape is not None and m.numel() == math.prod(shape) and m.shape != shape:
+        m = m.reshape(shape)  # e.g. a (3, 1) tvec or a flat 9-vector
+    if shape is not None and m.shape != shape:
+        raise ValueError(f"{where}, field {field}: expected shape {shape}, got {tuple(m.shape)}")
+    if not torch.isfinite(m).all():
+        raise ValueError(f"{where}, field {field}: values must be finite, got {m.tolist()}")
+    return m
+
+
+def _number(where: str, field: str, value) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ValueError(f"{where}, field {field}: expected a finite number, got {value!r}")
+    return float(value)
