@@ -1,11 +1,12 @@
-"""Line plots with PIL for the benchmarks (matplotlib is not installed here)."""
+"""Line plots for the benchmarks, drawn with matplotlib (the ``bench`` extra)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from PIL import Image, ImageDraw, ImageFont
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 
 RGB = tuple[int, int, int]
 
@@ -18,7 +19,7 @@ class Panel:
         title: text above the frame.
         series: name -> points (x, y, label); points are joined in order and each label
             ("" for none) is written beside its point.
-        x_range, y_range: (lo, hi) data range of the frame.
+        x_range, y_range: (lo, hi) data range of the frame; y is clipped to it.
         x_ticks, y_ticks: (value, text) tick marks.
     """
 
@@ -30,55 +31,30 @@ class Panel:
     y_ticks: list[tuple[float, str]] = field(default_factory=list)
 
 
-def _frame_map(p: Panel, x0: float, y0: float, w: float, h: float):
-    """(x, y) data -> pixel coordinates in the frame whose top-left corner is (x0, y0) and size
-    w x h; y is clipped to the panel's range."""
-    (xl, xh), (yl, yh) = p.x_range, p.y_range
-
-    def at(x: float, y: float) -> tuple[float, float]:
-        return x0 + (x - xl) / (xh - xl) * w, y0 + h - (min(max(y, yl), yh) - yl) / (yh - yl) * h
-
-    return at
-
-
 def line_panels(path: Path, panels: list[Panel], colours: dict[str, RGB], note: str = "",
                 panel_size: tuple[int, int] = (420, 300)) -> None:  # fmt: skip
     """Draw ``panels`` side by side with one legend (a line per series name in ``colours``)
-    and an optional ``note`` under it; save the PNG to ``path``."""
-    pw, ph = panel_size
-    margin = 50
-    legend_rows = -(-len(colours) // 4)
-    img = Image.new("RGB", (len(panels) * pw + 40, ph + 2 * margin + 22 * legend_rows + 30), "white")
-    draw = ImageDraw.Draw(img)
-    draw.font = ImageFont.load_default(size=13)
-    small = ImageFont.load_default(size=10)
-    for i, p in enumerate(panels):
-        x0, y0 = 20 + i * pw + margin, margin
-        w, h = pw - margin - 20, ph - margin
-        at = _frame_map(p, x0, y0, w, h)
-        xl, yl = p.x_range[0], p.y_range[0]
-        draw.rectangle([x0, y0, x0 + w, y0 + h], outline="black")
-        draw.text((x0, y0 - 22), p.title, fill="black")
-        for t, text in p.y_ticks:
-            y = at(xl, t)[1]
-            draw.line([x0 - 4, y, x0, y], fill="black")
-            draw.text((x0 - 6, y), text, fill="black", anchor="rm")
-        for t, text in p.x_ticks:
-            x = at(t, yl)[0]
-            draw.line([x, y0 + h, x, y0 + h + 4], fill="black")
-            draw.text((x, y0 + h + 6), text, fill="black", anchor="ma")
+    and an optional ``note`` under it; save the PNG to ``path`` (``panel_size`` in pixels at
+    100 dpi)."""
+    dpi = 100
+    fig = Figure(figsize=(len(panels) * panel_size[0] / dpi, (panel_size[1] + 110) / dpi), dpi=dpi)
+    axes = fig.subplots(1, len(panels), squeeze=False)
+    for ax, p in zip(axes[0], panels, strict=True):
+        lo, hi = p.y_range
         for name, points in p.series.items():
-            pts = [at(x, y) for x, y, _ in points]
-            if len(pts) > 1:
-                draw.line(pts, fill=colours[name], width=2)
-            for (x, y), (_, _, label) in zip(pts, points):
-                draw.ellipse([x - 3, y - 3, x + 3, y + 3], fill=colours[name])
+            xs, ys = [x for x, _, _ in points], [min(max(y, lo), hi) for _, y, _ in points]
+            colour = tuple(c / 255 for c in colours[name])
+            ax.plot(xs, ys, "o-", color=colour, markersize=4, clip_on=False)
+            for x, y, (_, _, label) in zip(xs, ys, points, strict=True):
                 if label:
-                    draw.text((x + 4, y - 12), label, fill=colours[name], font=small)
-    for j, name in enumerate(colours):
-        x, y = 20 + margin + (j % 4) * 170, ph + margin + 22 + 22 * (j // 4)
-        draw.line([x, y + 6, x + 20, y + 6], fill=colours[name], width=3)
-        draw.text((x + 25, y), name, fill="black")
+                    ax.annotate(label, (x, y), xytext=(4, 4), textcoords="offset points", fontsize=7, color=colour)
+        ax.set(title=p.title, xlim=p.x_range, ylim=p.y_range)
+        for ticks, set_ticks in ((p.x_ticks, ax.set_xticks), (p.y_ticks, ax.set_yticks)):
+            if ticks:
+                set_ticks([t for t, _ in ticks], [text for _, text in ticks])
+    handles = [Line2D([], [], color=tuple(c / 255 for c in rgb), lw=3) for rgb in colours.values()]
+    fig.legend(handles, list(colours), loc="lower left", ncol=4, frameon=False, bbox_to_anchor=(0, 0.04))
     if note:
-        draw.text((20 + margin, ph + margin + 22 * legend_rows + 28), note, fill="black")
-    img.save(path)
+        fig.text(0.01, 0.01, note, fontsize=8)
+    fig.tight_layout(rect=(0, 0.08 + 0.05 * (-(-len(colours) // 4)), 1, 1))
+    fig.savefig(path)

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import math
-from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
+from plyfile import PlyData, PlyElement, PlyListProperty, PlyParseError
 from safetensors.torch import load_file, save_file
 
 from .sh import MAX_DEGREE, num_sh_bases, sh_degree_from_bases
@@ -16,13 +16,6 @@ from .sh import MAX_DEGREE, num_sh_bases, sh_degree_from_bases
 FORMAT_NAME = "gensplat-gaussians"
 FORMAT_VERSION = 1
 _FIELDS = ("means", "quats", "scales", "opacities", "sh")
-# PLY scalar types (both the classic and the sized spellings) -> numpy little-endian dtypes.
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "<i2", "int16": "<i2", "ushort": "<u2", "uint16": "<u2",
-    "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4",
-    "float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8",
-}  # fmt: skip
 
 
 @dataclass
@@ -234,8 +227,8 @@ class Gaussians:
     # ------------------------------------------------------------------ PLY (3DGS layout)
     def to_ply(self, path: str | Path) -> None:
         """Write the standard 3DGS binary PLY (x y z nx ny nz f_dc_* f_rest_* opacity
-        scale_* rot_*): opacity as a logit, scales as logs, rotation w-x-y-z, f_rest
-        channel-major. Opens in common splat viewers."""
+        scale_* rot_*) with plyfile: opacity as a logit, scales as logs, rotation w-x-y-z,
+        f_rest channel-major. Opens in common splat viewers."""
         n = len(self)
         eps = 1e-7
         op = self.opacities.detach().double().clamp(eps, 1 - eps)
@@ -257,62 +250,33 @@ class Gaussians:
         arr = np.empty(n, dtype=[(name, "<f4") for name in cols])
         for name, v in cols.items():
             arr[name] = v.detach().cpu().double().numpy()
-        header = "ply\nformat binary_little_endian 1.0\n"
-        header += f"element vertex {n}\n" + "".join(f"property float {name}\n" for name in cols)
-        header += "end_header\n"
-        Path(path).write_bytes(header.encode("ascii") + arr.tobytes())
+        PlyData([PlyElement.describe(arr, "vertex")], byte_order="<").write(str(path))
 
     @staticmethod
     def from_ply(path: str | Path) -> Gaussians:
-        """Read a 3DGS binary little-endian PLY (scalar properties of any PLY type).
+        """Read a 3DGS PLY (binary or ASCII; scalar vertex properties of any PLY type) with plyfile.
 
         A malformed file raises ``ValueError`` naming the file and the problem."""
-        data = Path(path).read_bytes()
-        end = data.find(b"end_header\n")
-        if not data.startswith(b"ply") or end < 0:
-            raise ValueError(f"{path}: not a PLY file")
         try:
-            header = data[:end].decode("ascii").splitlines()
-        except UnicodeDecodeError as e:
-            raise ValueError(f"{path}: PLY header is not ASCII (byte {e.start})") from None
-        if "format binary_little_endian 1.0" not in header:
-            raise ValueError(f"{path}: only binary_little_endian PLY is supported")
-        n, props, elements = 0, [], []
-        for line in header:
-            parts = line.split()
-            if parts and parts[0] == "element":
-                if len(parts) != 3 or not parts[2].isdigit():
-                    raise ValueError(f"{path}: bad PLY line {line!r}: expected 'element <name> <count >= 0>'")
-                elements.append(parts[1])
-                if parts[1] == "vertex":
-                    n = int(parts[2])
-            elif parts and parts[0] == "property" and elements[-1:] == ["vertex"]:
-                if len(parts) != 3 or parts[1] not in _PLY_TYPES:
-                    raise ValueError(
-                        f"{path}: unsupported PLY vertex property {line!r}: expected "
-                        "'property <scalar type> <name>'"
-                    )
-                props.append((parts[2], _PLY_TYPES[parts[1]]))
-        if not elements or elements[0] != "vertex":
-            raise ValueError(f"{path}: PLY must start with a 'vertex' element, got {elements}")
-        counts = Counter(name for name, _ in props)
-        names = set(counts)
-        duplicated = sorted(name for name, count in counts.items() if count > 1)
-        if duplicated:
-            raise ValueError(f"{path}: PLY vertex properties {duplicated} occur more than once")
+            ply = PlyData.read(str(path), mmap=False)
+        except (PlyParseError, ValueError) as e:  # numpy's ValueError: e.g. a repeated property
+            raise ValueError(f"{path}: not a readable PLY file ({e})") from None
+        if not ply.elements or ply.elements[0].name != "vertex":
+            raise ValueError(f"{path}: PLY must start with a 'vertex' element, got {[e.name for e in ply.elements]}")
+        vertex = ply["vertex"]
+        lists = [p.name for p in vertex.properties if isinstance(p, PlyListProperty)]
+        if lists:
+            raise ValueError(f"{path}: unsupported PLY vertex list properties {lists}")
+        names = {p.name for p in vertex.properties}
         need = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"] + [f"scale_{i}" for i in range(3)]
         need += [f"rot_{i}" for i in range(4)]
         missing = [p for p in need if p not in names]
         if missing:
             raise ValueError(f"{path}: PLY lacks 3DGS properties {missing}")
-        dtype = np.dtype(props)
-        body = data[end + len(b"end_header\n") :]
-        if len(body) < n * dtype.itemsize:
-            raise ValueError(f"{path}: truncated PLY ({len(body)} bytes for {n} vertices)")
-        arr = np.frombuffer(body, dtype=dtype, count=n)
+        n = vertex.count
 
         def col(*ps):
-            return torch.from_numpy(np.stack([arr[p].astype(np.float32) for p in ps], -1))
+            return torch.from_numpy(np.stack([vertex[p].astype(np.float32) for p in ps], -1))
 
         n_rest = sum(1 for p in names if p.startswith("f_rest_"))
         k = 1 + n_rest // 3

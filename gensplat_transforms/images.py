@@ -6,6 +6,7 @@ from pathlib import Path
 
 import torch
 from PIL import Image, ImageDraw
+from torchvision.utils import make_grid
 
 
 def to_uint8(image: torch.Tensor) -> torch.Tensor:
@@ -24,21 +25,22 @@ def save_grid(
     col_labels: list[str] | None = None,
     pad: int = 4,
 ) -> None:
-    """Save a grid of (3, H, W) images (all the same size) with optional text labels."""
+    """Save a grid of (3, H, W) images (all the same size; ``torchvision.utils.make_grid``,
+    white padding and gaps for short rows) with optional text labels above and to the left."""
     h, w = rows[0][0].shape[-2:]
     left = 110 if row_labels else 0
     top = 18 if col_labels else 0
     ncol = max(len(r) for r in rows)
-    canvas = Image.new("RGB", (left + ncol * (w + pad) + pad, top + len(rows) * (h + pad) + pad), "white")
+    blank = torch.ones(3, h, w)
+    cells = [img.detach().float().cpu() for row in rows for img in [*row, *[blank] * (ncol - len(row))]]
+    grid = make_grid(cells, nrow=ncol, padding=pad, pad_value=1.0)
+    canvas = Image.new("RGB", (left + grid.shape[-1], top + grid.shape[-2]), "white")
+    canvas.paste(Image.fromarray(to_uint8(grid).numpy()), (left, top))
     draw = ImageDraw.Draw(canvas)
     for j, label in enumerate(col_labels or []):
         draw.text((left + pad + j * (w + pad), 3), label, fill="black")
-    for i, row in enumerate(rows):
-        y = top + pad + i * (h + pad)
-        if row_labels:
-            for k, line in enumerate(row_labels[i].split("\n")):
-                draw.text((4, y + 4 + 12 * k), line, fill="black")
-        for j, img in enumerate(row):
-            canvas.paste(Image.fromarray(to_uint8(img).numpy()), (left + pad + j * (w + pad), y))
+    for i, label in enumerate(row_labels or []):
+        for k, line in enumerate(label.split("\n")):
+            draw.text((4, top + pad + i * (h + pad) + 4 + 12 * k), line, fill="black")
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     canvas.save(path)

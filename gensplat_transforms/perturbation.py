@@ -22,6 +22,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 import torch
+from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
 from .cameras import Cameras
 
@@ -125,15 +126,11 @@ class Perturbation:
 
 def axis_rotation(axis: str, theta_deg: float, dtype=torch.float64, device=None) -> torch.Tensor:
     """(3, 3) rotation by ``theta_deg`` about the world X or Y axis (right-handed)."""
-    t = math.radians(theta_deg)
-    c, s = math.cos(t), math.sin(t)
-    if axis == "x":
-        m = [[1, 0, 0], [0, c, -s], [0, s, c]]
-    elif axis == "y":
-        m = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
-    else:
+    if axis not in AXES:
         raise ValueError(f"axis must be one of {AXES}, got {axis!r}")
-    return torch.tensor(m, dtype=dtype, device=device)
+    axis_angle = torch.zeros(3, dtype=dtype, device=device)
+    axis_angle[AXES.index(axis)] = math.radians(theta_deg)
+    return axis_angle_to_rotation_matrix(axis_angle)
 
 
 def perturb_pose(

@@ -17,11 +17,11 @@ from gensplat_transforms.model.losses import LossWeights
 from gensplat_transforms.model.teacher import Pi3Teacher, TrueGeometryTeacher, camera_points
 from gensplat_transforms.model.train import (
     CHECKPOINT_FILE,
-    EMA,
     EXPORT_DIR,
     LOG_FILE,
     TrainConfig,
     Trainer,
+    ema_model,
     lr_factor,
     pretrained_names,
 )
@@ -111,7 +111,7 @@ def test_resume_from_checkpoint_gives_the_same_state(tmp_path):
 
     assert resumed.step == straight.step == 4
     assert states_close(resumed.model.state_dict(), straight.model.state_dict())
-    assert states_close(resumed.ema.shadow, straight.ema.shadow)
+    assert states_close(resumed.ema.module.state_dict(), straight.ema.module.state_dict())
     assert resumed.scheduler.get_last_lr() == straight.scheduler.get_last_lr()
     sa, sb = straight.optimizer.state_dict()["state"], resumed.optimizer.state_dict()["state"]
     assert all(torch.allclose(sa[i]["exp_avg_sq"], sb[i]["exp_avg_sq"], atol=1e-8) for i in sa)
@@ -120,7 +120,7 @@ def test_resume_from_checkpoint_gives_the_same_state(tmp_path):
     assert (tmp_path / "b" / CHECKPOINT_FILE).is_file() and not list((tmp_path / "b").glob(".checkpoint-*"))
     assert exported == tmp_path / "b" / EXPORT_DIR
     loaded = GenSplatModel.from_pretrained(exported)
-    assert states_close(loaded.state_dict(), resumed.ema.shadow)
+    assert states_close(loaded.state_dict(), resumed.ema.module.state_dict())
 
 
 def test_checkpoint_of_another_model_size_is_refused(tmp_path):
@@ -160,35 +160,34 @@ def test_crafted_checkpoint_is_refused_without_running_code(tmp_path):
 
 def test_ema_differs_from_the_raw_weights_and_follows_them(tmp_path):
     trainer = tiny_trainer(tmp_path, steps=6, ema_decay=0.9)
-    initial = {k: v.clone() for k, v in trainer.ema.shadow.items()}
+    shadow = trainer.ema.module.state_dict()  # tensors updated in place
+    initial = {k: v.clone() for k, v in shadow.items()}
     for _ in range(3):
         trainer.train_step()
     raw = trainer.model.state_dict()
     key = "camera_head.fc_t.weight"
-    assert not torch.allclose(trainer.ema.shadow[key], raw[key])  # lags behind
-    assert not torch.allclose(trainer.ema.shadow[key], initial[key])  # but moved
+    assert not torch.allclose(shadow[key], raw[key])  # lags behind
+    assert not torch.allclose(shadow[key], initial[key])  # but moved
     # its distance to the raw weights shrinks when the raw weights stop moving
-    gap = (trainer.ema.shadow[key] - raw[key]).norm()
+    gap = (shadow[key] - raw[key]).norm()
     for _ in range(20):
-        trainer.ema.update(trainer.model)
-    assert (trainer.ema.shadow[key] - raw[key]).norm() < 0.5 * gap
-    assert trainer.ema.updates == 23
+        trainer.ema.update_parameters(trainer.model)
+    assert (shadow[key] - raw[key]).norm() < 0.5 * gap
+    assert int(trainer.ema.n_averaged) == 24  # the starting weights and 23 updates
 
 
 def test_ema_copy_and_state_round_trip():
     torch.manual_seed(0)
     model = GenSplatModel(TINY)
-    ema = EMA(model, 0.5)
+    ema = ema_model(model, 0.5)
     with torch.no_grad():
         for p in model.parameters():
             p.add_(1.0)
-    ema.update(model)
-    other = EMA(GenSplatModel(TINY), 0.9)
+    ema.update_parameters(model)
+    other = ema_model(GenSplatModel(TINY), 0.9)
     other.load_state_dict(ema.state_dict())
-    assert other.decay == 0.5 and other.updates == 1 and states_close(other.shadow, ema.shadow)
-    target = GenSplatModel(TINY)
-    ema.copy_to(target)
-    assert states_close(target.state_dict(), ema.shadow)
+    assert int(other.n_averaged) == 2 and states_close(other.module.state_dict(), ema.module.state_dict())
+    assert not states_close(ema.module.state_dict(), model.state_dict())
 
 
 # ---------------------------------------------------------------- schedule and groups

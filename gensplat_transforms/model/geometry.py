@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import torch
+from kornia.geometry.quaternion import Quaternion
 
 from ..gaussians import Gaussians
 from ..rotations import rotmat_to_quat
@@ -10,15 +11,8 @@ from ..sh import sh_basis, sh_degree_from_bases
 
 
 def quat_mul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Hamilton product a * b of (..., 4) w-x-y-z quaternions (rotation b, then a)."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack([
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    ], dim=-1)  # fmt: skip
+    """Hamilton product a * b of (..., 4) w-x-y-z quaternions (rotation b, then a); broadcasts."""
+    return (Quaternion(a) * Quaternion(b)).data
 
 
 def _fibonacci_sphere(n: int, device=None) -> torch.Tensor:

@@ -9,6 +9,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import kornia
 import torch
 import torch.nn.functional as F
 
@@ -37,28 +38,6 @@ class LossWeights:
         return sum(present)
 
 
-def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
-    """Mean structural similarity of (N, C, H, W) images in [0, 1] (Gaussian window, valid region)."""
-    if min(a.shape[-2:]) < window:
-        raise ValueError(f"ssim: images of {tuple(a.shape[-2:])} are smaller than the {window} px window")
-    x = torch.arange(window, dtype=a.dtype, device=a.device) - (window - 1) / 2
-    g = torch.exp(-(x**2) / (2 * sigma**2))
-    g = g / g.sum()
-    c = a.shape[1]
-    kernel = (g[:, None] * g[None, :]).expand(c, 1, window, window)
-
-    def blur(t):
-        return F.conv2d(t, kernel, groups=c)
-
-    mu_a, mu_b = blur(a), blur(b)
-    var_a = blur(a * a) - mu_a**2
-    var_b = blur(b * b) - mu_b**2
-    cov = blur(a * b) - mu_a * mu_b
-    c1, c2 = 0.01**2, 0.03**2
-    s = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a**2 + mu_b**2 + c1) * (var_a + var_b + c2))
-    return s.mean()
-
-
 def rgb_loss(
     pred: torch.Tensor,
     target: torch.Tensor,
@@ -74,8 +53,10 @@ def rgb_loss(
     l1 = (pred - target).abs().mean()
     if lpips is not None:
         perceptual = lpips(2 * pred - 1, 2 * target - 1).mean()
-    else:
-        perceptual = 1 - ssim(pred, target)
+    elif min(pred.shape[-2:]) < 11:
+        raise ValueError(f"rgb_loss: images of {tuple(pred.shape[-2:])} are smaller than the 11 px SSIM window")
+    else:  # SSIM as metrics.ssim (11x11 Gaussian window, std 1.5, valid windows), in the input dtype
+        perceptual = 1 - kornia.metrics.ssim(pred, target, 11, eps=0.0, padding="valid").mean()
     return weights.l1 * l1 + weights.perceptual * perceptual
 
 

@@ -35,6 +35,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import torch
+from torch.optim.swa_utils import AveragedModel
 from torch.utils.data import Dataset
 from tqdm.auto import tqdm
 
@@ -132,8 +133,12 @@ class TrainConfig:
 
 
 def lr_factor(step: int, warmup: int, total: int, min_ratio: float) -> float:
-    """Learning-rate multiplier at ``step``: (step + 1) / warmup during warm-up, then cosine
-    from 1 down to ``min_ratio`` at ``total``."""
+    """Learning-rate multiplier at ``step`` (for ``torch.optim.lr_scheduler.LambdaLR``):
+    (step + 1) / warmup during warm-up, then cosine from 1 down to ``min_ratio`` at ``total``.
+
+    The floor is relative to each parameter group's rate (pretrained groups run at 0.1x),
+    which ``CosineAnnealingLR``'s absolute ``eta_min`` and diffusers' floor-less schedule
+    cannot express; both also start the warm-up at 0 instead of 1 / warmup."""
     if step < warmup:
         return (step + 1) / warmup
     progress = min(1.0, (step - warmup) / max(1, total - warmup))
@@ -155,33 +160,19 @@ def param_groups(model: torch.nn.Module, config: TrainConfig, pretrained: set[st
     ]  # fmt: skip
 
 
-class EMA:
-    """Exponential moving average of a model's floating-point state (float32 copies)."""
+def ema_model(model: torch.nn.Module, decay: float) -> AveragedModel:
+    """Exponential moving average of ``model``'s parameters and buffers: every
+    ``update_parameters(model)`` moves the copy ``.module`` by 1 - d towards the model, with
+    d = min(decay, (1 + n) / (10 + n)) at the n-th update (integer buffers are copied)."""
 
-    def __init__(self, model: torch.nn.Module, decay: float) -> None:
-        self.decay, self.updates = decay, 0
-        self.shadow = {k: v.detach().float().clone() if v.is_floating_point() else v.detach().clone()
-                       for k, v in model.state_dict().items()}  # fmt: skip
+    def average(ema: torch.Tensor, new: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
+        if not ema.is_floating_point():
+            return new
+        return ema.lerp(new, 1 - min(decay, (1 + float(n)) / (10 + float(n))))
 
-    @torch.no_grad()
-    def update(self, model: torch.nn.Module) -> None:
-        self.updates += 1
-        d = min(self.decay, (1 + self.updates) / (10 + self.updates))
-        for k, v in model.state_dict().items():
-            if v.is_floating_point():
-                self.shadow[k].lerp_(v.float(), 1 - d)
-            else:
-                self.shadow[k].copy_(v)
-
-    def copy_to(self, model: torch.nn.Module) -> None:
-        model.load_state_dict(self.shadow)
-
-    def state_dict(self) -> dict:
-        return {"decay": self.decay, "updates": self.updates, "shadow": self.shadow}
-
-    def load_state_dict(self, state: dict) -> None:
-        self.decay, self.updates = state["decay"], state["updates"]
-        self.shadow = {k: v.clone() for k, v in state["shadow"].items()}
+    ema = AveragedModel(model, avg_fn=average, use_buffers=True)
+    ema.update_parameters(model)  # copies the starting weights; n counts the updates from here
+    return ema
 
 
 class Trainer:
@@ -209,7 +200,7 @@ class Trainer:
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(
             self.optimizer, lambda s: lr_factor(s, config.warmup_steps, config.steps, config.min_lr_ratio)
         )
-        self.ema = EMA(model, config.ema_decay)
+        self.ema = ema_model(model, config.ema_decay)
         self.step = 0
         self.out = Path(config.out)
 
@@ -296,7 +287,7 @@ class Trainer:
         stats["skipped"] = float(not torch.isfinite(norm))
         if torch.isfinite(norm):  # a non-finite batch leaves weights, EMA and moments untouched
             self.optimizer.step()
-            self.ema.update(self.model)
+            self.ema.update_parameters(self.model)
         self.scheduler.step()
         self.step += 1
         return stats
@@ -348,7 +339,7 @@ class Trainer:
     def export(self) -> Path:
         """The EMA weights as a ``from_pretrained`` directory ``<out>/model``."""
         model = GenSplatModel(self.model.config)
-        self.ema.copy_to(model)
+        model.load_state_dict(self.ema.module.state_dict())
         return model.save_pretrained(self.out / EXPORT_DIR)
 
     # ------------------------------------------------------------------ loop
