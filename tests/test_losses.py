@@ -142,7 +142,8 @@ def test_a_few_training_steps_lower_the_loss_on_a_tiny_batch():
     for _ in range(5):
         out = model(rgb[None])
         g = to_gaussians(out)
-        rendered = render(g, Cameras(K, out["camera_poses"][0], size, size), background=(1.0, 1.0, 1.0))
+        rendered = render(g, Cameras(K, out["camera_poses"][0], size, size), background=(1.0, 1.0, 1.0),
+                          backend="reference")  # fmt: skip
         loss = weights.combine(
             rgb=rgb_loss(rendered.rgb, rgb, weights),
             depth=depth_loss(

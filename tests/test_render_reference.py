@@ -2,14 +2,17 @@
 gradients, and hard cases."""
 
 import math
+from functools import partial
 
 import pytest
 import torch
 from dense_renderer import dense_render
 from hard_cases import HARD_CASES, MAGNITUDES, SCALABLE_FIELDS, scaled
 
-from gensplat_transforms import Cameras, Gaussians, render
+from gensplat_transforms import Cameras, Gaussians, rendering
 from gensplat_transforms.sh import C0, eval_sh
+
+render = partial(rendering.render, backend="reference")  # the backend these tests cover
 
 W, H = 40, 32
 
@@ -289,3 +292,35 @@ def test_bad_arguments_raise():
     c2w[0, 3] = math.inf
     with pytest.raises(ValueError, match="c2w"):
         camera(c2w=c2w)
+
+
+# ---------------------------------------------------------------------------- backend "auto"
+def test_auto_backend_is_fast_without_grad_and_reference_with_grad():
+    g = random_scene()
+    cam = camera(torch.float32)
+    assert rendering.auto_backend(g, cam) == "fast"  # CPU Gaussians, even with gsplat installed
+    torch.testing.assert_close(rendering.render(g, cam).rgb, rendering.render(g, cam, backend="fast").rgb,
+                               rtol=0, atol=0)  # fmt: skip
+    for field in ("means", "sh"):
+        learnt = Gaussians(**{**g.tensors(), field: getattr(g, field).clone().requires_grad_()})
+        assert rendering.auto_backend(learnt, cam) == "reference"
+        out = rendering.render(learnt, cam)
+        assert out.rgb.requires_grad
+        torch.testing.assert_close(out.rgb, render(learnt, cam).rgb, rtol=0, atol=0)
+        with torch.no_grad():  # no graph is recorded: the fast renderer does
+            assert rendering.auto_backend(learnt, cam) == "fast"
+    background = torch.tensor([0.2, 0.3, 0.4], requires_grad=True)
+    assert rendering.auto_backend(g, cam, background) == "reference"
+    moving = Cameras(cam.K, cam.c2w.clone().requires_grad_(), W, H)
+    assert rendering.auto_backend(g, moving) == "reference"
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_auto_backend_on_cuda_is_gsplat_when_installed():
+    import importlib.util
+
+    g, cam = random_scene().to("cuda"), camera(torch.float32)
+    expected = "gsplat" if importlib.util.find_spec("gsplat") else "fast"
+    assert rendering.auto_backend(g, cam) == expected
+    torch.testing.assert_close(rendering.render(g, cam).rgb, rendering.render(g, cam, backend=expected).rgb,
+                               rtol=0, atol=0)  # fmt: skip

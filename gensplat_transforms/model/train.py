@@ -262,7 +262,7 @@ class Trainer:
             left = int(torch.randint(W - cw + 1, (), generator=gen))
             rows, cols = slice(top, top + ch), slice(left, left + cw)
             r = render(gaussians, cams[chosen].crop(left, top, cw, ch), background=cfg.background,
-                       return_depth=w.depth > 0)  # fmt: skip
+                       backend="reference", return_depth=w.depth > 0)  # fmt: skip
             pred.append(r.rgb)
             target.append(images[b, chosen][..., rows, cols])
             if w.depth > 0:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -14,7 +15,7 @@ from .gsplat_backend import render_gsplat
 from .projection import Projected, precondition, project
 from .reference import rasterize_reference
 
-__all__ = ["BACKENDS", "Projected", "RenderOutput", "project", "render"]
+__all__ = ["BACKENDS", "Projected", "RenderOutput", "auto_backend", "project", "render"]
 
 
 @dataclass
@@ -51,6 +52,27 @@ def _render_reference(gaussians: Gaussians, camera: Cameras, *, background: torc
 BACKENDS: dict[str, Callable] = {"reference": _render_reference, "fast": render_fast, "gsplat": render_gsplat}
 
 
+def auto_backend(gaussians: Gaussians, cameras: Cameras, background: object = None) -> str:
+    """The backend ``render(backend="auto")`` uses: "reference" (differentiable) when gradients
+    are being recorded and any input tensor requires grad; else "gsplat" for Gaussians on a
+    CUDA device with gsplat installed; else "fast" (the compiled CPU renderer).
+
+    Example:
+        >>> g = Gaussians(torch.zeros(1, 3), torch.tensor([[1.0, 0, 0, 0]]), torch.full((1, 3), 0.05),
+        ...               torch.ones(1), torch.ones(1, 1, 3))
+        >>> camera = Cameras.from_intrinsics(20.0, 20.0, 8.0, 8.0, torch.eye(4), 16, 16)
+        >>> learnt = Gaussians(g.means.clone().requires_grad_(), g.quats, g.scales, g.opacities, g.sh)
+        >>> auto_backend(g, camera), auto_backend(learnt, camera)
+        ('fast', 'reference')
+    """
+    tensors = [*gaussians.tensors().values(), cameras.K, cameras.c2w, background]
+    if torch.is_grad_enabled() and any(isinstance(t, torch.Tensor) and t.requires_grad for t in tensors):
+        return "reference"
+    if gaussians.device.type == "cuda" and importlib.util.find_spec("gsplat") is not None:
+        return "gsplat"
+    return "fast"
+
+
 def render(
     gaussians: Gaussians,
     cameras: Cameras,
@@ -58,7 +80,7 @@ def render(
     background: tuple[float, float, float] | torch.Tensor = (0.0, 0.0, 0.0),
     near: float = 0.01,
     sh_degree: int | None = None,
-    backend: str = "reference",
+    backend: str = "auto",
     return_depth: bool = True,
     return_alpha: bool = True,
     **options,
@@ -76,10 +98,13 @@ def render(
         background: RGB added where the splats leave transmittance.
         near: splats whose centre is not beyond this camera-space z are culled.
         sh_degree: evaluate colour only up to this SH degree (default: all carried).
-        backend: one of ``BACKENDS``; "reference" is differentiable pure PyTorch; "gsplat"
-            needs CUDA and the gsplat package.
+        backend: "auto" (see :func:`auto_backend`: the differentiable reference when an input
+            requires grad, gsplat for CUDA Gaussians when installed, else fast) or one of
+            ``BACKENDS``: "reference" is differentiable pure PyTorch; "fast" the compiled CPU
+            renderer; "gsplat" needs CUDA and the gsplat package.
         return_depth, return_alpha: skip these outputs when False.
-        options: backend-specific settings (reference: ``max_pairs`` per chunk).
+        options: settings of the backend used (reference: ``max_pairs`` per chunk; fast:
+            ``threads``).
     Returns:
         RenderOutput with (B, C, H, W) images, float32 (float64 for float64 inputs).
 
@@ -88,12 +113,14 @@ def render(
         >>> g = Gaussians(torch.zeros(1, 3), torch.tensor([[1.0, 0, 0, 0]]), torch.full((1, 3), 0.05),
         ...               torch.ones(1), torch.ones(1, 1, 3))
         >>> camera = Cameras.from_intrinsics(20.0, 20.0, 8.0, 8.0, look_at((0, -1, 0), (0, 0, 0)), 16, 16)
-        >>> out = render(g, camera, backend="fast")
+        >>> out = render(g, camera)  # backend "auto": "fast" here
         >>> out.rgb.shape, round(float(out.depth[0, 0, 8, 8]), 3)
         (torch.Size([1, 3, 16, 16]), 1.0)
     """
+    if backend == "auto":
+        backend = auto_backend(gaussians, cameras, background)
     if backend not in BACKENDS:
-        raise ValueError(f"unknown render backend {backend!r}; available: {sorted(BACKENDS)}")
+        raise ValueError(f"unknown render backend {backend!r}; available: 'auto', {sorted(BACKENDS)}")
     gaussians = precondition(gaussians.check(force=True))
     if not torch.isfinite(torch.as_tensor(near)) or near <= 0:
         raise ValueError(f"render: near must be a positive finite number, got {near}")
