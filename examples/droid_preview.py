@@ -19,7 +19,10 @@ black) and the second camera's image. There is no ground truth at the new poses,
 no PSNR: the script prints each render's coverage (the fraction of pixels with alpha > 0.5)
 and the times.
 
-    python examples/droid_preview.py --out outputs/droid_preview
+    .venv/bin/python examples/droid_preview.py [--out DIR]
+
+Runs from any folder; the default output folder is the repository's outputs/droid_preview
+(files replaced on a rerun).
 """
 
 from __future__ import annotations
@@ -77,7 +80,7 @@ def main(argv: list[str] | None = None) -> dict:
     (levels, 3, H, W) rendered views."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the droid_sample folder")
-    parser.add_argument("--out", type=Path, default=Path("outputs/droid_preview"))
+    parser.add_argument("--out", type=Path, default=REPO / "outputs" / "droid_preview", help="output folder")
     parser.add_argument("--width", type=int, default=224, help="size the model and renders run at")
     parser.add_argument("--height", type=int, default=126)
     parser.add_argument(

@@ -1,10 +1,14 @@
 """Original versus GenSplat views along an episode: writes preview.png and preview.mp4.
 
-    python examples/preview_episode.py --out outputs/preview
+    .venv/bin/python examples/preview_episode.py [--out DIR] [--level LEVEL] [--frames N] [--size PX]
+
+Runs from any folder; the default output folder is the repository's outputs/preview (files
+replaced on a rerun).
 """
 
 import argparse
 import tempfile
+from pathlib import Path
 
 from gensplat_transforms.cache import GaussianCache
 from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
@@ -12,20 +16,27 @@ from gensplat_transforms.preview import write_preview
 from gensplat_transforms.reconstruction import RGBDReconstructor
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 
+OUT = Path(__file__).resolve().parents[1] / "outputs" / "preview"
 
-def main() -> None:
-    parser = argparse.ArgumentParser()
-    parser.add_argument("--out", default="outputs/preview")
-    parser.add_argument("--level", default="large")
-    args = parser.parse_args()
-    source = SceneEpisodes(num_episodes=1, num_frames=12, size=128)
-    reconstructor = RGBDReconstructor()
-    cache = GaussianCache(tempfile.mkdtemp(), reconstructor, source.fingerprint)
-    build_cache(cache, source, [0])
-    transform = GenSplatTransform(GenSplatConfig(probability=1.0, level=args.level, views_per_source=1), cache)
-    dataset = SceneDataset(source)
-    paths = write_preview([dataset[i] for i in range(len(dataset))], transform, ["left", "right"], args.out)
+
+def main(argv: list[str] | None = None) -> dict[str, Path]:
+    """Write the preview; return the paths written (``png``, and ``mp4`` with PyAV)."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", type=Path, default=OUT, help=f"output folder (default: {OUT})")
+    parser.add_argument("--level", default="large", help="perturbation level (default: large)")
+    parser.add_argument("--frames", type=int, default=12, help="frames of the episode (default: 12)")
+    parser.add_argument("--size", type=int, default=128, help="image side in pixels (default: 128)")
+    args = parser.parse_args(argv)
+    source = SceneEpisodes(num_episodes=1, num_frames=args.frames, size=args.size)
+    with tempfile.TemporaryDirectory() as folder:
+        cache = GaussianCache(folder, RGBDReconstructor(), source.fingerprint)
+        build_cache(cache, source, [0])
+        config = GenSplatConfig(probability=1.0, level=args.level, views_per_source=1)
+        dataset = SceneDataset(source)
+        items = [dataset[i] for i in range(len(dataset))]
+        paths = write_preview(items, GenSplatTransform(config, cache), ["left", "right"], args.out)
     print("wrote", *paths.values())
+    return paths
 
 
 if __name__ == "__main__":

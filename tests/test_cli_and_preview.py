@@ -1,7 +1,11 @@
 """The command-line demo and help, and the episode preview."""
 
 import argparse
+import importlib.util
 import json
+import os
+import subprocess
+from pathlib import Path
 
 from PIL import Image
 
@@ -59,7 +63,7 @@ def _default_text(default) -> str:
 def test_every_option_says_what_it_does_and_its_default():
     parser = build_parser()
     (commands,) = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
-    assert {"demo", "record", "cache", "train-model"} <= set(commands.choices)
+    assert {"demo", "record", "cache", "train-model", "preview", "export-ply"} <= set(commands.choices)
     problems = []
     for name, sub in commands.choices.items():
         for action in sub._actions:
@@ -72,3 +76,67 @@ def test_every_option_says_what_it_does_and_its_default():
             elif action.nargs != 0 and action.default is not None and _default_text(action.default) not in text:
                 problems.append(f"{option}: default {action.default!r} not in {text!r}")
     assert not problems, "\n".join(problems)
+
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def load_example(name: str):
+    spec = importlib.util.spec_from_file_location(name, REPO / "examples" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_preview_example_runs_twice_from_any_folder(tmp_path, monkeypatch):
+    example = load_example("preview_episode")
+    assert example.OUT == REPO / "outputs" / "preview"  # the default does not depend on the folder
+    monkeypatch.chdir(tmp_path)
+    for _ in range(2):  # the second run replaces the files in the existing folder
+        paths = example.main(["--out", "out", "--level", "small", "--frames", "3", "--size", "32"])
+        assert {p.resolve() for p in paths.values()} == {tmp_path / "out" / "preview.png", tmp_path / "out" / "preview.mp4"}
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]
+
+
+def test_dataloader_example_runs_twice_from_any_folder(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    example = load_example("custom_dataloader")
+    for _ in range(2):
+        batches = example.main(["--workers", "0", "--size", "24"])
+        assert sum(len(b["frame_index"]) for b in batches) == 16  # 2 episodes x 8 frames
+    assert not list(tmp_path.iterdir())  # nothing left behind
+
+
+STUB = """#!/usr/bin/env bash
+printf '%s\\0' "$(basename "$0")" "$@" --- >> "$STUB_LOG"
+if [ "$(basename "$0")" = python ]; then mkdir -p "$3"; fi
+for a in "$@"; do case "$a" in --output_dir=*)
+  [ -e "${a#*=}" ] && { echo "output directory exists" >&2; exit 1; }; mkdir -p "${a#*=}" ;; esac; done
+"""
+
+
+def test_lerobot_example_uses_the_project_environment_from_any_folder_twice(tmp_path):
+    """The shell example with stand-ins for the environment's python, gensplat and lerobot-train
+    (each logs its arguments; lerobot-train refuses an existing output folder, as LeRobot's does)."""
+    repo = tmp_path / "repo"
+    (repo / "examples").mkdir(parents=True)
+    (repo / "examples" / "lerobot_one_line.sh").write_text((REPO / "examples" / "lerobot_one_line.sh").read_text())
+    (repo / ".venv" / "bin").mkdir(parents=True)
+    for name in ("python", "gensplat", "lerobot-train"):
+        (repo / ".venv" / "bin" / name).write_text(STUB)
+        (repo / ".venv" / "bin" / name).chmod(0o755)
+    log, cwd = tmp_path / "log", tmp_path / "elsewhere"
+    cwd.mkdir()
+    env = {**os.environ, "STUB_LOG": str(log), "PATH": "/usr/bin:/bin"}  # no python, gensplat on PATH
+    for _ in range(2):
+        run = subprocess.run(["bash", str(repo / "examples" / "lerobot_one_line.sh")], cwd=cwd, env=env,
+                             capture_output=True, text=True, check=False)  # fmt: skip
+        assert run.returncode == 0, run.stderr
+    calls = [c.split("\0") for c in log.read_text().split("\0---\0")[:-1]]  # NUL-separated
+    assert [c[0] for c in calls] == ["python", "gensplat", "lerobot-train", "gensplat", "lerobot-train"]
+    root = repo / "outputs" / "scene_dataset"
+    assert calls[1][:5] == ["gensplat", "cache", "--root", str(root), "--repo-id"]
+    train = [dict(a.split("=", 1) for a in c[1:] if "=" in a) for c in calls if c[0] == "lerobot-train"]
+    assert {t["--config_path"] for t in train} == {str(repo / "policies" / "diffusion.json")}
+    assert train[0]["--output_dir"] != train[1]["--output_dir"]
+    assert not list(cwd.iterdir())  # nothing written into the working folder
