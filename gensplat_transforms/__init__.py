@@ -6,9 +6,9 @@ the perturbation protocol (:class:`PerturbationSampler`, :class:`PerturbationRan
 Gaussians out: :class:`RGBDReconstructor`, :class:`GeometryReconstructor`,
 :class:`GenSplatReconstructor`, :func:`make_reconstructor`), :func:`render`, the cache
 (:class:`GaussianCache`, :func:`build_cache`) and the online transform
-(:class:`GenSplatTransform`, :class:`GenSplatConfig`, :class:`AugmentedDataset`). The
-simulator (``gensplat_transforms.sim``) and LeRobot (``gensplat_lerobot``) are imported only
-where used.
+(:class:`GenSplatTransform`, :class:`GenSplatConfig`, :class:`AugmentedDataset`, and
+:func:`render_batch` for ``render_in="batch"``). The simulator (``gensplat_transforms.sim``)
+and LeRobot (``gensplat_lerobot``) are imported only where used.
 
 Example: two calibrated RGB-D views of one timestep, seen from a camera moved at "large":
     >>> from gensplat_transforms import PerturbationSampler, RGBDReconstructor, Views, render
@@ -21,6 +21,7 @@ Example: two calibrated RGB-D views of one timestep, seen from a camera moved at
     torch.Size([1, 3, 32, 32])
 """
 
+from .batched import render_batch
 from .cache import GaussianCache
 from .cameras import Cameras, look_at
 from .episodes import build_cache
@@ -59,4 +60,5 @@ __all__ = [
     "make_reconstructor",
     "pivot_point",
     "render",
+    "render_batch",
 ]

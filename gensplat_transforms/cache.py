@@ -329,6 +329,14 @@ class GaussianCache:
             raise ValueError(f"GaussianCache.read: a depth cache ({self.identity}) needs the views' images")
         return self.reconstructor.assemble(f.depth_views(frame, images))
 
+    def read_depth(self, episode: int, frame: int) -> tuple[torch.Tensor, Cameras]:
+        """The stored depth (V, 1, H, W) float32 and cameras of one timestep of a ``depth``
+        cache (what :meth:`read` builds the Gaussians from). Raises as :meth:`read`."""
+        if self.kind != "depth":
+            raise ValueError(f"GaussianCache.read_depth: {self.identity} stores Gaussians, not depth")
+        f = self._file(episode)
+        return f.depth(frame), f.cameras(frame)
+
     def _file(self, episode: int) -> _EpisodeFile:
         episode = int(episode)
         if episode in self._open:
@@ -488,6 +496,14 @@ class _EpisodeFile:
 
     def depth_views(self, frame: int, images: torch.Tensor) -> Views:
         """Views of one frame: the given images, the cached cameras and depth."""
+        depth = self.depth(frame)
+        want = (self.num_views, 3, self.height, self.width)
+        if tuple(images.shape) != want:
+            raise ValueError(f"GaussianCache.read: images of shape {tuple(images.shape)}, the cache holds {want}")
+        return Views(images, self.cameras(frame), depth)
+
+    def depth(self, frame: int) -> torch.Tensor:
+        """(V, 1, H, W) float32 depth of one frame."""
         self._check_frame(frame)
         if self._reference is None:  # decoded once per process and episode, then reused
             blob = self.tensor("depth.reference").numpy().tobytes()
@@ -500,10 +516,7 @@ class _EpisodeFile:
             depth = depth_codec.decode_frame(self._reference, blob)
         except (zlib.error, ValueError) as e:
             raise CorruptCacheError(f"{self.path}: undecodable depth of frame {frame} ({e})") from e
-        want = (self.num_views, 3, self.height, self.width)
-        if tuple(images.shape) != want:
-            raise ValueError(f"GaussianCache.read: images of shape {tuple(images.shape)}, the cache holds {want}")
-        return Views(images, self.cameras(frame), depth)
+        return depth
 
     def gaussians(self, frame: int) -> Reconstruction:
         self._check_frame(frame)

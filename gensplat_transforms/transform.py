@@ -1,5 +1,6 @@
 """The online GenSplat transform: replace camera images by views rendered from perturbed
-poses, from cached Gaussians, inside dataloader workers."""
+poses, from cached Gaussians, inside dataloader workers (or, with ``render_in="batch"``,
+prepare them in the workers for :func:`.batched.render_batch`)."""
 
 from __future__ import annotations
 
@@ -21,6 +22,10 @@ from .reconstruction import Reconstruction
 from .rendering import BACKENDS, RenderOutput, render
 
 logger = logging.getLogger(__name__)
+
+RENDER_IN = ("auto", "worker", "batch")
+#: item keys the transform adds with ``render_in="batch"`` and ``render_batch`` removes
+BATCH_KEYS = ("gensplat.render", "gensplat.depth", "gensplat.K", "gensplat.c2w", "gensplat.targets")
 
 
 @dataclass
@@ -48,6 +53,11 @@ class GenSplatConfig:
             source camera saw) and soften silhouette edges with the surrounding colours
             (``holes.fill_holes``), instead of ``background``.
         report: add ``gensplat.*`` keys describing the perturbation to the item.
+        render_in: "worker" renders in the transform; "batch" only reads the cache and draws
+            the perturbation there, adding the inputs of :func:`.batched.render_batch` to the
+            item, which renders a whole batch at once after collation (on the training GPU).
+            "auto": batch where the LeRobot plugin trains on CUDA, else worker (a transform
+            used on its own renders in the worker).
 
     Example:
         >>> config = GenSplatConfig(cameras=("left", "right"), replace=("left",), level="small")
@@ -69,6 +79,7 @@ class GenSplatConfig:
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     fill_holes: bool = True
     report: bool = False
+    render_in: str = "auto"
 
     def __post_init__(self) -> None:
         self.cameras = tuple(self.cameras)
@@ -84,6 +95,8 @@ class GenSplatConfig:
             raise ValueError(f"GenSplatConfig.views_per_source must be >= 1, got {self.views_per_source}")
         if self.backend not in BACKENDS:
             raise ValueError(f"GenSplatConfig.backend: unknown {self.backend!r}; available {sorted(BACKENDS)}")
+        if self.render_in not in RENDER_IN:
+            raise ValueError(f"GenSplatConfig.render_in must be one of {RENDER_IN}, got {self.render_in!r}")
 
     def to_dict(self) -> dict:
         """The settings as plain values for JSON (a ``PerturbationRange`` level as a dict)."""
@@ -113,12 +126,40 @@ def render_view(gaussians: Gaussians, camera: Cameras, config: GenSplatConfig) -
     """The augmented view of ``camera`` (B cameras) as the transform makes it, rendered with
     ``config.backend``: rgb (B, 3, H, W), hole-filled with ``config.fill_holes``, and the
     render's alpha (B, 1, H, W) (its coverage; no depth)."""
-    fill = config.fill_holes
-    out = render(gaussians, camera, background=(0.0, 0.0, 0.0) if fill else config.background,
-                 backend=config.backend, return_depth=False, **config.render_options)  # fmt: skip
-    if fill:
+    out = render(gaussians, camera, background=render_background(config), backend=config.backend,
+                 return_depth=False, **config.render_options)  # fmt: skip
+    return filled(out, config)
+
+
+def render_background(config: GenSplatConfig) -> tuple[float, float, float]:
+    """What to render over: black when holes are filled afterwards, else ``config.background``."""
+    return (0.0, 0.0, 0.0) if config.fill_holes else config.background
+
+
+def filled(out: RenderOutput, config: GenSplatConfig) -> RenderOutput:
+    """``out`` rendered over :func:`render_background`, its holes filled as ``config`` says."""
+    if config.fill_holes:
         out.rgb = fill_holes(out.rgb, out.alpha, empty=config.background)
     return out
+
+
+def as_cache_images(images: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """(N, 3, H, W) uint8 or float images as float in [0, 1] at ``height x width`` (what a depth
+    cache rebuilds the Gaussians from)."""
+    images = images.float() / 255 if images.dtype == torch.uint8 else images.float()
+    if images.shape[-2:] != (height, width):
+        images = F.interpolate(images, size=(height, width), mode="bilinear", antialias=True, align_corners=False)
+    return images.clamp(0, 1)
+
+
+def like_images(rgb: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """(N, 3, h, w) renders as images like ``like`` (..., 3, H, W): resized to H x W, uint8 in
+    [0, 255] or float in [0, 1] of its dtype (float images are taken to be in [0, 1], as
+    LeRobot's are)."""
+    if rgb.shape[-2:] != like.shape[-2:]:
+        rgb = F.interpolate(rgb, size=like.shape[-2:], mode="bilinear", antialias=True, align_corners=False)
+    rgb = rgb.clamp(0, 1)
+    return (rgb * 255 + 0.5).to(torch.uint8) if like.dtype == torch.uint8 else rgb.to(like.dtype)
 
 
 class GenSplatTransform:
@@ -156,6 +197,9 @@ class GenSplatTransform:
                 f"GenSplatTransform: the source reconstructs {tuple(source.camera_names)}, "
                 f"the config names {config.cameras}"
             )
+        if config.render_in == "batch" and cache.kind != "depth":
+            raise ValueError(f"GenSplatTransform: render_in='batch' needs a depth cache (RGB-D or geometry "
+                             f"reconstructor); {cache.identity} stores Gaussians: use render_in='worker'")  # fmt: skip
         self.sampler = PerturbationSampler(config.level, mode=config.mode, seed=config.seed)
         #: set to count every item (augmented or not) and its time across workers
         self.counters: SampleCounters | None = None
@@ -177,8 +221,9 @@ class GenSplatTransform:
         out = dict(item)
         applied = bool(torch.rand(()) < self.cfg.probability)
         view = int(torch.randint(self.cfg.views_per_source, ()))
-        report = []
-        if applied:
+        report, moves = [], []
+        batch = self.cfg.render_in == "batch"
+        if applied or batch:  # the batch keys have the cache's image size even when not augmented
             self._ensure(episode)
             last = self.cache.num_frames(episode) - 1
             if not 0 <= frame <= last:
@@ -186,8 +231,9 @@ class GenSplatTransform:
         read: dict[int, Reconstruction] = {}  # frame -> Gaussians, read once per item
         for ci, name in enumerate(self.cfg.replace):
             p = self.sampler.sample(episode, frame, view=view * len(self.cfg.replace) + ci)
-            if applied:
+            if applied and not batch:
                 out[keys[name]] = self._render_like(item, keys, episode, frame, name, p, read)
+            moves.append(p)
             report.append([float(applied), float(AXES.index(p.axis)), p.theta_deg, p.mu_m])
         if self.cfg.report:
             r = torch.tensor(report) if applied else torch.zeros(len(report), 4)
@@ -195,36 +241,64 @@ class GenSplatTransform:
             out["gensplat.axis"] = r[:, 1].long()
             out["gensplat.theta_deg"] = r[:, 2]
             out["gensplat.mu_m"] = r[:, 3]
+        if batch:
+            out.update(self._batch_inputs(item, keys, episode, frame, applied, moves))
         if self.counters is not None:
             self.counters.add(applied, time.perf_counter() - start)
         return out
 
     def _render_like(self, item: dict, keys: dict[str, str], episode: int, frame: int, name: str,
                      p: Perturbation, read: dict[int, Reconstruction]) -> torch.Tensor:
-        """Rendered replacement of ``item[keys[name]]`` with its shape and dtype: uint8 in
-        [0, 255], or float in [0, 1] (float images are taken to be in [0, 1], as LeRobot's are)."""
+        """Rendered replacement of ``item[keys[name]]`` with its shape and dtype (:func:`like_images`)."""
         image = item[keys[name]]
-        stack = image if image.ndim == 4 else image[None]
-        offsets = (0,) if image.ndim == 3 else self.cfg.frame_offsets or tuple(range(1 - stack.shape[0], 1))
-        if len(offsets) != stack.shape[0]:
-            raise ValueError(f"GenSplatTransform: {len(offsets)} frame_offsets for a stack of {stack.shape[0]}")
-        last = self.cache.num_frames(episode) - 1
         rgbs = []
-        for k, o in enumerate(offsets):
-            f = min(max(frame + o, 0), last)  # a stack reaching past the episode repeats its ends
+        for k, (o, f) in enumerate(self._stack_frames(image, episode, frame)):
             if f not in read:
-                read[f] = self._read(episode, f, lambda k=k, o=o, f=f: self._source_images(item, keys, k, o, episode, f))
+                images = self._source_images(item, keys, k, o, episode, f) if self.cache.kind == "depth" else None
+                read[f] = self._read(episode, lambda f=f, images=images: self.cache.read(episode, f, images))
             target = p.move(read[f].cameras, self.cfg.cameras.index(name))
             rgbs.append(render_view(read[f].gaussians, target, self.cfg).rgb[0])
-        rgb = torch.stack(rgbs)
-        if rgb.shape[-2:] != stack.shape[-2:]:
-            rgb = F.interpolate(rgb, size=stack.shape[-2:], mode="bilinear", antialias=True, align_corners=False)
-        rgb = rgb.clamp(0, 1)
-        if stack.dtype == torch.uint8:
-            rgb = (rgb * 255 + 0.5).to(torch.uint8)
-        else:
-            rgb = rgb.to(stack.dtype)
+        rgb = like_images(torch.stack(rgbs), image)
         return rgb if image.ndim == 4 else rgb[0]
+
+    def _stack_frames(self, image: torch.Tensor, episode: int, frame: int) -> list[tuple[int, int]]:
+        """(offset, frame) of each image of ``image``'s temporal stack, one for a single image;
+        frames are clamped to the episode (a stack reaching past it repeats its ends, as
+        LeRobot pads)."""
+        stack = 1 if image.ndim == 3 else image.shape[0]
+        offsets = (0,) if image.ndim == 3 else self.cfg.frame_offsets or tuple(range(1 - stack, 1))
+        if len(offsets) != stack:
+            raise ValueError(f"GenSplatTransform: {len(offsets)} frame_offsets for a stack of {stack}")
+        last = self.cache.num_frames(episode) - 1
+        return [(o, min(max(frame + o, 0), last)) for o in offsets]
+
+    def _batch_inputs(self, item: dict, keys: dict[str, str], episode: int, frame: int, applied: bool,
+                      moves: list[Perturbation]) -> dict[str, torch.Tensor]:
+        """The ``BATCH_KEYS`` of an item for :func:`.batched.render_batch`, of the same shapes
+        whether augmented or not (zeros when not), so that default collation stacks them:
+        ``gensplat.render`` () bool, augmented; ``gensplat.depth`` (T, V, h, w) float32, the
+        cached depth of the V reconstructed cameras at the T frames of the stack, at the cache's
+        size; ``gensplat.K`` (T, V, 3, 3) and ``gensplat.c2w`` (T, V, 4, 4) float64, their
+        cached cameras; ``gensplat.targets`` (R, T, 4, 4) float64, the perturbed poses of the R
+        replaced cameras. Their images are taken from the batch, so every reconstructed camera
+        must be stacked alike."""
+        stacks = {tuple(item[keys[n]].shape[:-3]) for n in self.cfg.cameras}
+        if len(stacks) > 1:
+            raise ValueError(f"GenSplatTransform: render_in='batch' needs the images of {self.cfg.cameras} stacked "
+                             f"alike, got stacks {sorted(stacks)}: use render_in='worker'")  # fmt: skip
+        frames = self._stack_frames(item[keys[self.cfg.replace[0]]], episode, frame)
+        width, height = self.cache.image_size(episode)
+        T, V, R = len(frames), len(self.cfg.cameras), len(self.cfg.replace)
+        depth = torch.zeros(T, V, height, width)
+        K = torch.zeros(T, V, 3, 3, dtype=torch.float64)
+        c2w = torch.zeros(T, V, 4, 4, dtype=torch.float64)
+        targets = torch.zeros(R, T, 4, 4, dtype=torch.float64)
+        for k, (_, f) in enumerate(frames if applied else []):
+            d, cameras = self._read(episode, lambda f=f: self.cache.read_depth(episode, f))
+            depth[k], K[k], c2w[k] = d[:, 0], cameras.K, cameras.c2w
+            for r, (name, p) in enumerate(zip(self.cfg.replace, moves)):
+                targets[r, k] = p.move(cameras, self.cfg.cameras.index(name)).c2w[0]
+        return dict(zip(BATCH_KEYS, (torch.tensor(applied), depth, K, c2w, targets)))
 
     def _source_images(self, item: dict, keys: dict[str, str], k: int, offset: int, episode: int,
                        frame: int) -> torch.Tensor:
@@ -240,14 +314,7 @@ class GenSplatTransform:
         else:
             images = [item[keys[n]] if item[keys[n]].ndim == 3 else item[keys[n]][k] for n in self.cfg.cameras]
         width, height = self.cache.image_size(episode)
-        views = []
-        for image in images:
-            image = image.float() / 255 if image.dtype == torch.uint8 else image.float()
-            if image.shape[-2:] != (height, width):
-                image = F.interpolate(image[None], size=(height, width), mode="bilinear", antialias=True,
-                                      align_corners=False)[0]  # fmt: skip
-            views.append(image.clamp(0, 1))
-        return torch.stack(views)
+        return torch.cat([as_cache_images(image[None], height, width) for image in images])
 
     def _ensure(self, episode: int, verify: bool = False) -> None:
         """Build the episode unless the cache holds it (with ``verify``: every checksum passes)."""
@@ -263,19 +330,17 @@ class GenSplatTransform:
                                "cache command beforehand to build ahead)", self.cache.root, episode, status)  # fmt: skip
             self.cache.ensure(episode, self.source, verify=verify)
 
-    def _read(self, episode: int, frame: int, images) -> Reconstruction:
-        """One cached frame (``images()`` gives the views' images, for a depth cache); a file
-        whose data fails its checksum is rebuilt once (when a source is given) instead of
-        stopping the training run."""
-        views = images() if self.cache.kind == "depth" else None
+    def _read(self, episode: int, read):
+        """``read()`` from the cache; a file whose data fails its checksum is rebuilt once (when
+        a source is given) instead of stopping the training run."""
         try:
-            return self.cache.read(episode, frame, views)
+            return read()
         except CorruptCacheError as e:
             if self.source is None:
                 raise
             logger.warning("%s: rebuilding episode %d", e, episode)
             self._ensure(episode, verify=True)
-            return self.cache.read(episode, frame, views)
+            return read()
 
 
 def _check_image(key: str, image: torch.Tensor) -> None:

@@ -306,6 +306,14 @@ def test_pi0_config_parses_and_its_dataset_path_runs(dataset_root):
     assert item["gensplat.applied"].all() and item[LEFT].shape == (3, 48, 48)
 
 
+def train_diffusion(*overrides: str) -> subprocess.CompletedProcess:
+    """``policies/train.sh diffusion gensplat`` (lerobot-train with the one line) with these
+    overrides, offline, with this interpreter's environment first on PATH."""
+    cmd = ["bash", str(POLICIES / "train.sh"), "diffusion", "gensplat", *overrides]
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}", "HF_HUB_OFFLINE": "1"}
+    return subprocess.run(cmd, check=False, capture_output=True, text=True, env=env, timeout=900)
+
+
 @pytest.mark.parametrize("data", ["png_square", "mp4_non_square"])
 def test_lerobot_train_diffusion_policy_with_the_one_line(data, request, tmp_path):
     """Two lerobot-train steps with the one GenSplat line: on the procedural 48x48 PNG dataset,
@@ -318,13 +326,8 @@ def test_lerobot_train_diffusion_policy_with_the_one_line(data, request, tmp_pat
         shutil.copytree(request.getfixturevalue("sim_video"), dataset_root)
         shutil.rmtree(dataset_root / "gensplat" / "cache")  # settings kept; the workers rebuild it
     out = tmp_path / "out"
-    cmd = [
-        "bash", str(POLICIES / "train.sh"), "diffusion", "gensplat",
-        f"--dataset.repo_id={repo}", f"--dataset.root={dataset_root}", f"--output_dir={out}",
-        "--steps=2", "--batch_size=2", "--num_workers=2", "--save_freq=2", "--log_freq=1",
-    ]  # fmt: skip
-    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}", "HF_HUB_OFFLINE": "1"}
-    run = subprocess.run(cmd, check=False, capture_output=True, text=True, env=env, timeout=900)
+    run = train_diffusion(f"--dataset.repo_id={repo}", f"--dataset.root={dataset_root}", f"--output_dir={out}",
+                          "--steps=2", "--batch_size=2", "--num_workers=2", "--save_freq=2", "--log_freq=1")  # fmt: skip
     assert run.returncode == 0, run.stderr[-3000:]
     log = run.stderr + run.stdout
     # at the start, one block: what GenSplat does, and that a resumed run needs the line again
@@ -349,13 +352,8 @@ def test_lerobot_train_diffusion_policy_with_the_one_line(data, request, tmp_pat
 
 
 def test_plugin_without_settings_stops_training(dataset_root, tmp_path):
-    cmd = [
-        "bash", str(POLICIES / "train.sh"), "diffusion", "gensplat",
-        f"--dataset.repo_id={REPO}", f"--dataset.root={dataset_root}", f"--output_dir={tmp_path / 'o'}",
-        "--steps=1", "--batch_size=2", "--num_workers=0",
-    ]  # fmt: skip
-    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}", "HF_HUB_OFFLINE": "1"}
-    run = subprocess.run(cmd, check=False, capture_output=True, text=True, env=env, timeout=600)
+    run = train_diffusion(f"--dataset.repo_id={REPO}", f"--dataset.root={dataset_root}",
+                          f"--output_dir={tmp_path / 'o'}", "--steps=1", "--batch_size=2", "--num_workers=0")  # fmt: skip
     assert run.returncode != 0
     last = run.stderr.strip().splitlines()[-1]  # lerobot-train's traceback ends with our message alone
     assert last == (f"FileNotFoundError: GenSplat is enabled but {dataset_root / 'gensplat' / 'config.json'} does not "

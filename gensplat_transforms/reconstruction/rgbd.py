@@ -99,10 +99,10 @@ class RGBDReconstructor(DepthReconstructor):
         """The given depth, 0 where invalid (see :func:`.base.valid_depth`) or beyond
         ``max_depth``."""
         _require_depth(views)
-        return Views(views.images, views.cameras, self._clean(views.depths))
+        return Views(views.images, views.cameras, self.clean_depth(views.depths))
 
-    def _clean(self, depths: torch.Tensor) -> torch.Tensor:
-        """``depths`` (V, 1, H, W) as float32, 0 where invalid or beyond ``max_depth``."""
+    def clean_depth(self, depths: torch.Tensor) -> torch.Tensor:
+        """``depths`` (any shape) as float32, 0 where invalid or beyond ``max_depth``."""
         z = depths.float()
         valid = valid_depth(z)
         if self.cfg.max_depth is not None:
@@ -111,15 +111,17 @@ class RGBDReconstructor(DepthReconstructor):
 
     def assemble(self, views: Views) -> Reconstruction:
         _require_depth(views)
-        depths, cfg = self._clean(views.depths), self.cfg
+        depths, cfg = self.clean_depth(views.depths), self.cfg
         if self.fast:  # all views in one compiled pass, into one set of arrays
             means, quats, scales, dc, pixel_ids = surface_discs(
                 depths[:, 0], views.images, views.cameras.K, views.cameras.c2w, cfg.stride, cfg.sigma_px,
                 cfg.thickness, cfg.max_stretch, cfg.edge_scale,
             )  # fmt: skip
         else:
-            parts = [self._one_view_reference(views, depths[i, 0], i) for i in range(len(views))]
-            means, quats, scales, dc, pixel_ids = (torch.cat(p) for p in zip(*parts))
+            means, quats, scales, dc, keep = dense_discs(depths[:, 0], views.images, views.cameras.K.float(),
+                                                         views.cameras.c2w.float(), cfg)  # fmt: skip
+            means, quats, scales, dc = (t[keep] for t in (means, quats, scales, dc))
+            pixel_ids = grid_pixel_ids(*depths.shape[-2:], cfg.stride, len(views))[keep]
         n = means.shape[0]
         sh = dc[:, None]  # DC only; higher degrees are zero
         if cfg.sh_degree > 0:
@@ -127,27 +129,50 @@ class RGBDReconstructor(DepthReconstructor):
         g = Gaussians(means, quats, scales, torch.full((n,), cfg.opacity), sh)
         return Reconstruction(g, views.cameras, pixel_ids)
 
-    def _one_view_reference(self, views: Views, z: torch.Tensor, i: int):
-        """The PyTorch rule: means, quats, scales, SH DC and pixel ids of view ``i`` with its
-        cleaned depth ``z`` (H, W) (0 = invalid)."""
-        cfg = self.cfg
-        cam, image = views.cameras[i].to(dtype=torch.float32), views.images[i]
-        valid = z > 0
-        H, W = cam.height, cam.width
-        pts = cam.unproject(cam.pixel_centers()[None], z.reshape(1, -1))[0].reshape(H, W, 3)
-        R = cam.c2w[0, :3, :3]
-        a = _surface_step(pts, valid, z / cam.K[0, 0, 0], R[:, 0], cfg.max_stretch, cfg.edge_scale, dim=1)
-        b = _surface_step(pts, valid, z / cam.K[0, 1, 1], R[:, 1], cfg.max_stretch, cfg.edge_scale, dim=0)
 
-        s = cfg.stride
-        sel = (slice(s // 2, None, s), slice(s // 2, None, s))
-        keep = valid[sel].reshape(-1)
-        pixel_ids = (torch.arange(H * W).reshape(H, W)[sel].reshape(-1) + i * H * W)[keep]
-        a, b = a[sel].reshape(-1, 3)[keep] * s, b[sel].reshape(-1, 3)[keep] * s
-        means = pts[sel].reshape(-1, 3)[keep]
-        rgb = image.float().permute(1, 2, 0)[sel].reshape(-1, 3)[keep]
-        quats, scales = _disc_shape(a, b, cfg.sigma_px, cfg.thickness)
-        return means, quats, scales, rgb_to_sh_dc(rgb), pixel_ids
+def grid_pixel_ids(height: int, width: int, stride: int, views: int) -> torch.Tensor:
+    """(V, n) pixel ids ``v * H * W + row * W + col`` of the n pixels on the stride grid of each
+    of V views, row-major (the order of :func:`dense_discs`)."""
+    sel = slice(stride // 2, None, stride)
+    grid = torch.arange(height * width).reshape(height, width)[sel, sel].reshape(-1)
+    return grid + torch.arange(views)[:, None] * (height * width)
+
+
+def dense_discs(z: torch.Tensor, images: torch.Tensor, K: torch.Tensor, c2w: torch.Tensor, cfg: RGBDConfig):
+    """The PyTorch rule for every pixel on the stride grid of any number of views at once.
+
+    Args:
+        z: (..., H, W) cleaned depth (0 = no disc); images: (..., 3, H, W) in [0, 1];
+        K: (..., 3, 3); c2w: (..., 4, 4); all of one float dtype, which the rule computes in.
+    Returns:
+        means (..., n, 3), quats (..., n, 4), scales (..., n, 3), SH DC (..., n, 3) and keep
+        (..., n) bool (the pixel has depth), for the n pixels on the stride grid, row-major.
+        Pixels without depth get finite placeholder values (identity rotation, zero scales).
+    """
+    lead, (H, W) = z.shape[:-2], z.shape[-2:]
+    z, images = z.reshape(-1, H, W), images.reshape(-1, 3, H, W)
+    K, c2w = K.reshape(-1, 1, 1, 3, 3), c2w.reshape(-1, 1, 1, 4, 4)
+    valid = z > 0
+    v, u = torch.meshgrid(torch.arange(H, dtype=z.dtype, device=z.device) + 0.5,
+                          torch.arange(W, dtype=z.dtype, device=z.device) + 0.5, indexing="ij")  # fmt: skip
+    cam = torch.stack([(u - K[..., 0, 2]) / K[..., 0, 0] * z, (v - K[..., 1, 2]) / K[..., 1, 1] * z, z], -1)
+    R = c2w[..., :3, :3]
+    pts = (cam[..., None, :] @ R.transpose(-1, -2))[..., 0, :] + c2w[..., :3, 3]  # (M, H, W, 3)
+    a = _surface_step(pts, valid, z / K[..., 0, 0], R[..., :, 0], cfg.max_stretch, cfg.edge_scale, dim=2)
+    b = _surface_step(pts, valid, z / K[..., 1, 1], R[..., :, 1], cfg.max_stretch, cfg.edge_scale, dim=1)
+
+    s = cfg.stride
+    sel = (slice(None), slice(s // 2, None, s), slice(s // 2, None, s))
+    keep = valid[sel].flatten(1)
+    a, b = a[sel].flatten(1, 2) * s, b[sel].flatten(1, 2) * s
+    means = pts[sel].flatten(1, 2)
+    rgb = images.permute(0, 2, 3, 1)[sel].flatten(1, 2)
+    quats, scales = _disc_shape(a.reshape(-1, 3), b.reshape(-1, 3), cfg.sigma_px, cfg.thickness)
+    quats = torch.where(keep.reshape(-1, 1), quats, quats.new_tensor([1.0, 0, 0, 0]))
+    scales = torch.where(keep.reshape(-1, 1), scales, 0.0)
+    n = keep.shape[1]
+    return (means.reshape(*lead, n, 3), quats.reshape(*lead, n, 4), scales.reshape(*lead, n, 3),
+            rgb_to_sh_dc(rgb).reshape(*lead, n, 3), keep.reshape(*lead, n))  # fmt: skip
 
 
 def _require_depth(views: Views) -> None:

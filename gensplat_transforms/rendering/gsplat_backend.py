@@ -39,7 +39,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..cameras import Cameras
+from ..cameras import Cameras, rigid_inverse
 from ..gaussians import Gaussians
 from ..rotations import normalize_quat
 from ..sh import sh_degree_from_bases
@@ -87,18 +87,11 @@ def render_gsplat(
         n = camera.height * camera.width
         zeros = torch.zeros(n, dtype=out_dtype, device=gaussians.device)
         return background.to(out_dtype).expand(n, 3).clone(), zeros if return_depth else None, zeros
-    carried = sh_degree_from_bases(gaussians.sh.shape[1])
-    degree = carried if sh_degree is None else min(int(sh_degree), carried)
     dev = torch.device("cuda")
     g = gaussians.to(dev, torch.float32)
-    colors, alphas, _ = rasterization(
-        g.means, normalize_quat(g.quats), g.scales.clamp(max=MAX_SCALE), g.opacities, g.sh,
-        viewmats=camera.w2c().to(dev, torch.float32), Ks=camera.K.to(dev, torch.float32),
-        width=camera.width, height=camera.height, near_plane=_just_above(near), eps2d=0.3, sh_degree=degree,
-        # packed=False: gsplat 1.5.3 rejects per-camera backgrounds in packed mode (shape assert)
-        backgrounds=background.to(dev, torch.float32)[None], packed=False,
-        render_mode="RGB+ED" if return_depth else "RGB",
-    )  # fmt: skip
+    colors, alphas = _rasterize(rasterization, g.means, g.quats, g.scales, g.opacities, g.sh, camera.w2c().to(dev),
+                                camera.K.to(dev), camera.width, camera.height, background.to(dev), near, sh_degree,
+                                "RGB+ED" if return_depth else "RGB")  # fmt: skip
     colors, alpha = colors[0].reshape(-1, colors.shape[-1]), alphas[0].reshape(-1)
     depth_sum = colors[:, 3] * alpha if return_depth else None
 
@@ -106,3 +99,40 @@ def render_gsplat(
         return t.to(gaussians.device, out_dtype)
 
     return out(colors[:, :3]), None if depth_sum is None else out(depth_sum), out(alpha)
+
+
+def render_gsplat_batch(
+    means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor, sh: torch.Tensor,
+    c2w: torch.Tensor, K: torch.Tensor, width: int, height: int, background: torch.Tensor, near: float = 0.01,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """M scenes, each into its own C cameras, in one gsplat call on the tensors' CUDA device.
+
+    Args:
+        means (M, N, 3), quats (M, N, 4), scales (M, N, 3), opacities (M, N), sh (M, N, K, 3):
+            the Gaussians of each scene (float32; opacity 0 pads a scene: gsplat culls those);
+        c2w (M, C, 4, 4), K (M, C, 3, 3): the cameras of each scene, sharing one image size;
+        background: (3,) RGB; near: as for :func:`~gensplat_transforms.rendering.render`.
+    Returns:
+        rgb (M, C, 3, H, W) and alpha (M, C, 1, H, W), float32.
+    """
+    colors, alphas = _rasterize(_rasterization(), means, quats, scales, opacities, sh, rigid_inverse(c2w), K, width,
+                                height, background, near, None, "RGB")  # fmt: skip
+    return colors.permute(0, 1, 4, 2, 3), alphas.permute(0, 1, 4, 2, 3)
+
+
+def _rasterize(rasterization, means, quats, scales, opacities, sh, w2c, K, width, height, background, near,
+               sh_degree, render_mode) -> tuple[torch.Tensor, torch.Tensor]:
+    """gsplat's rasterization with this backend's conventions (module docstring); leading
+    dimensions of the Gaussians (..., N) and cameras (..., C) batch scenes. Returns colors
+    (..., C, H, W, D) and alphas (..., C, H, W, 1)."""
+    carried = sh_degree_from_bases(sh.shape[-2])
+    degree = carried if sh_degree is None else min(int(sh_degree), carried)
+    f32 = torch.float32
+    colors, alphas, _ = rasterization(
+        means.to(f32), normalize_quat(quats.to(f32)), scales.to(f32).clamp(max=MAX_SCALE), opacities.to(f32),
+        sh.to(f32), viewmats=w2c.to(f32), Ks=K.to(f32), width=width, height=height, near_plane=_just_above(near),
+        eps2d=0.3, sh_degree=degree,
+        # packed=False: gsplat 1.5.3 rejects per-camera backgrounds in packed mode (shape assert)
+        backgrounds=background.to(f32).expand(*w2c.shape[:-2], 3), packed=False, render_mode=render_mode,
+    )  # fmt: skip
+    return colors, alphas

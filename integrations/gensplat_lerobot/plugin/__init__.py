@@ -8,6 +8,7 @@ import sys
 
 from gensplat_transforms.counters import SampleCounters
 
+from .. import batched
 from ..dataset import enable_gensplat
 
 LINE = "--gensplat.discover_packages_path=gensplat_lerobot.plugin"
@@ -31,6 +32,7 @@ def _install() -> None:
         def make_train_eval_datasets(cfg, _original=original, _run=run):
             train, evaluation = _original(cfg)
             enable_gensplat(train)
+            batched.use_render_in(train, cfg)  # "batch": the views are rendered by the loop's cycle
             train.gensplat.counters = SampleCounters(cfg.num_workers)  # shared before the workers start
             _run.update(counters=train.gensplat.counters, log_freq=cfg.log_freq)
             log.info(start_message(train, cfg))
@@ -47,6 +49,7 @@ def _install() -> None:
         make_train_eval_datasets.gensplat = True
         module.make_train_eval_datasets = make_train_eval_datasets
         module.update_policy = update_policy
+        batched.install(module)
 
 
 def start_message(train, cfg) -> str:

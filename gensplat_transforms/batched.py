@@ -1,0 +1,125 @@
+"""Rendering the augmented views of a whole batch at once, after collation.
+
+With ``GenSplatConfig.render_in="batch"`` the transform does everything but render in the
+dataloader workers: it draws whether a sample is augmented and its perturbation exactly as
+``"worker"`` does (the same RNG calls, in the same order), reads the cached depth and cameras
+and adds them to the item (``transform.BATCH_KEYS``). :func:`render_batch` then rebuilds the
+Gaussians of every augmented sample from that depth and the batch's own images with the
+PyTorch disc rule (:func:`.reconstruction.rgbd.dense_discs`, in float64), renders all
+target cameras, fills the holes and writes the images back, in the images' dtype, range and
+size. On CUDA all scenes go through one gsplat call; elsewhere (tests) each scene is
+rendered with ``config.backend``, through the same :func:`.transform.render_view` as the
+worker, so the images match the worker path's up to the disc rule's round-off.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import torch
+
+from .cameras import Cameras
+from .gaussians import Gaussians
+from .reconstruction import Reconstructor
+from .reconstruction.rgbd import RGBDReconstructor, dense_discs
+from .rendering import RenderOutput
+from .rendering.gsplat_backend import render_gsplat_batch
+from .sh import num_sh_bases
+from .transform import (
+    BATCH_KEYS,
+    GenSplatConfig,
+    GenSplatTransform,
+    as_cache_images,
+    filled,
+    like_images,
+    render_background,
+    render_view,
+)
+
+
+def disc_builder(reconstructor: Reconstructor) -> RGBDReconstructor:
+    """The RGB-D disc rule that ``reconstructor`` assembles its cached depth with (the
+    ``rgbd`` reconstructor itself, or the ``geometry`` reconstructor's discs); raises for
+    reconstructors whose Gaussians the batch path cannot rebuild (TypeError)."""
+    discs = reconstructor if isinstance(reconstructor, RGBDReconstructor) else getattr(reconstructor, "discs", None)
+    if not isinstance(discs, RGBDReconstructor):
+        raise TypeError(f"render_in='batch' rebuilds RGB-D discs from cached depth; the {reconstructor.name!r} "
+                        "reconstructor's cache cannot be rendered that way: use render_in='worker'")  # fmt: skip
+    return discs
+
+
+@torch.no_grad()
+def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None = None) -> dict:
+    """The collated ``batch`` of items from ``transform`` (``render_in="batch"``) with the
+    augmented samples' replaced camera images rendered, and without ``BATCH_KEYS``.
+
+    Renders where the batch's tensors are (move the batch to the GPU first) with ``backend``:
+    by default "gsplat" (all scenes in one call) on CUDA, else ``transform.cfg.backend`` (one
+    scene at a time). The input is not modified.
+
+    Example: a DataLoader whose workers only prepare the items, then one render per batch
+        >>> import tempfile
+        >>> from torch.utils.data import DataLoader
+        >>> from gensplat_transforms import AugmentedDataset, GaussianCache, GenSplatConfig, RGBDReconstructor
+        >>> from gensplat_transforms.episodes import SceneDataset, SceneEpisodes
+        >>> source = SceneEpisodes(num_episodes=1, num_frames=4, size=16)
+        >>> folder = tempfile.TemporaryDirectory()
+        >>> cache = GaussianCache(folder.name, RGBDReconstructor(), source.fingerprint)
+        >>> transform = GenSplatTransform(GenSplatConfig(probability=1.0, render_in="batch"), cache, source)
+        >>> batch = next(iter(DataLoader(AugmentedDataset(SceneDataset(source), transform), batch_size=4)))
+        >>> batch["gensplat.depth"].shape  # (B, T, V, h, w): what the workers read from the cache
+        torch.Size([4, 1, 2, 16, 16])
+        >>> out = render_batch(batch, transform)  # on the GPU: render_batch(to_cuda(batch), transform)
+        >>> out["observation.images.left"].shape, "gensplat.depth" in out
+        (torch.Size([4, 3, 16, 16]), False)
+        >>> folder.cleanup()
+    """
+    cfg = transform.cfg
+    discs = disc_builder(transform.cache.reconstructor)
+    out = {k: v for k, v in batch.items() if k not in BATCH_KEYS}
+    rows = batch["gensplat.render"].nonzero()[:, 0]
+    if len(rows) == 0:
+        return out
+    depth = batch["gensplat.depth"][rows]  # (S, T, V, h, w)
+    S, T, _, h, w = depth.shape
+    images = torch.stack([_stacked(batch[cfg.image_key.format(name=n)][rows], T, h, w) for n in cfg.cameras], 2)
+    f64 = torch.float64
+    means, quats, scales, dc, keep = (t.flatten(2, 3).flatten(0, 1) for t in dense_discs(  # (S*T, V*n, ...)
+        discs.clean_depth(depth).to(f64), images.to(f64), batch["gensplat.K"][rows].to(f64),
+        batch["gensplat.c2w"][rows].to(f64), discs.cfg))  # fmt: skip
+    sh = dc[:, :, None]
+    if discs.cfg.sh_degree > 0:
+        sh = torch.cat([sh, sh.new_zeros(*sh.shape[:2], num_sh_bases(discs.cfg.sh_degree) - 1, 3)], 2)
+    views = [cfg.cameras.index(name) for name in cfg.replace]
+    K = batch["gensplat.K"][rows][:, :, views].flatten(0, 1)  # (S*T, R, 3, 3)
+    c2w = batch["gensplat.targets"][rows].transpose(1, 2).flatten(0, 1)  # (S*T, R, 4, 4)
+    opacity = discs.cfg.opacity
+    backend = backend or ("gsplat" if depth.device.type == "cuda" else cfg.backend)
+    if backend == "gsplat":
+        background = torch.tensor(render_background(cfg)).to(depth)
+        rgb, alpha = render_gsplat_batch(means, quats, scales, keep * opacity, sh, c2w, K, w, h, background)
+        rgb = filled(RenderOutput(rgb.flatten(0, 1), alpha=alpha.flatten(0, 1)), cfg).rgb.unflatten(0, rgb.shape[:2])
+    else:
+        scenes, one = zip(means, quats, scales, sh, keep, K, c2w), replace(cfg, backend=backend)
+        rgb = torch.stack([_render_scene(*g, k, Cameras(kk, t, w, h), opacity, one) for *g, k, kk, t in scenes])
+    rgb = rgb.unflatten(0, (S, T))  # (S, T, R, 3, h, w)
+    for r, name in enumerate(cfg.replace):
+        key = cfg.image_key.format(name=name)
+        image = out[key] = batch[key].clone()
+        image[rows] = like_images(rgb[:, :, r].flatten(0, 1), image).reshape(image[rows].shape)
+    return out
+
+
+def _stacked(images: torch.Tensor, T: int, height: int, width: int) -> torch.Tensor:
+    """(S, [T,] 3, H, W) images of one camera as (S, T, 3, height, width) float in [0, 1]."""
+    stack = images.flatten(0, 1) if images.ndim == 5 else images
+    return as_cache_images(stack, height, width).unflatten(0, (images.shape[0], T))
+
+
+def _render_scene(means, quats, scales, sh, keep, cameras: Cameras, opacity: float,
+                  cfg: GenSplatConfig) -> torch.Tensor:
+    """(C, 3, H, W): one scene's discs (N, ...) where ``keep``, as float32 Gaussians in the
+    worker's order, rendered by :func:`.transform.render_view` with ``cfg.backend``."""
+    means, quats, scales, sh = (t[keep].float() for t in (means, quats, scales, sh))
+    g = Gaussians(means, quats, scales, torch.full((len(means),), opacity), sh)
+    return render_view(g, cameras, cfg).rgb

@@ -1,0 +1,224 @@
+"""Batch rendering (render_in="batch"): the same images as the worker path for the same draws,
+on the CPU; the gsplat call's plumbing with a stand-in rasterizer; the LeRobot wiring."""
+
+import json
+from dataclasses import replace
+
+import pytest
+import torch
+from safetensors import safe_open
+from torch.utils.data import DataLoader, default_collate
+
+from gensplat_transforms import render
+from gensplat_transforms.batched import disc_builder, render_batch
+from gensplat_transforms.cache import GaussianCache
+from gensplat_transforms.cameras import Cameras, rigid_inverse
+from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
+from gensplat_transforms.gaussians import Gaussians
+from gensplat_transforms.reconstruction import Reconstructor, RGBDReconstructor
+from gensplat_transforms.rendering import gsplat_backend
+from gensplat_transforms.transform import BATCH_KEYS, GenSplatConfig, GenSplatTransform
+
+LEFT, RIGHT = "observation.images.left", "observation.images.right"
+IMAGES = (LEFT, RIGHT, "observation.images.front")
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    source = SceneEpisodes(num_episodes=2, num_frames=4, size=32)
+    cache = GaussianCache(tmp_path_factory.mktemp("cache"), RGBDReconstructor(), source.fingerprint)
+    build_cache(cache, source, range(2), progress=False)
+    return cache, SceneDataset(source)
+
+
+def both_ways(cache, items: list[dict], seed: int, backend: str | None = None, **config) -> tuple[dict, dict]:
+    """The collated batch the worker path makes, and the batch path's rendering of its own
+    collated batch, with torch seeded alike before each."""
+    cfg = GenSplatConfig(**{"level": "large", "report": True, **config})
+    worker = GenSplatTransform(replace(cfg, render_in="worker"), cache)
+    batch = GenSplatTransform(replace(cfg, render_in="batch"), cache)
+    torch.manual_seed(seed)
+    expected = default_collate([worker(item) for item in items])
+    torch.manual_seed(seed)
+    collated = default_collate([batch(item) for item in items])
+    assert set(BATCH_KEYS) <= set(collated)
+    return expected, render_batch(collated, batch, backend)
+
+
+def assert_same_batch(expected: dict, got: dict, atol: float) -> None:
+    assert set(got) == set(expected)  # the batch keys are gone, the report keys kept
+    for key, value in expected.items():
+        if not isinstance(value, torch.Tensor):  # e.g. LeRobot's task strings
+            assert got[key] == value, key
+            continue
+        assert got[key].dtype == value.dtype and got[key].shape == value.shape, key
+        torch.testing.assert_close(got[key].double(), value.double(), atol=atol, rtol=0, msg=key)
+
+
+def as_uint8(item: dict) -> dict:
+    return {k: (v * 255).round().to(torch.uint8) if k in IMAGES else v for k, v in item.items()}
+
+
+def test_float_images_at_probability_half_match_the_worker(setup):
+    cache, ds = setup
+    items = [ds[i] for i in range(8)]
+    expected, got = both_ways(cache, items, seed=1, probability=0.5)
+    applied = expected["gensplat.applied"][:, 0]
+    assert applied.any() and not applied.all()  # some samples augmented, some kept
+    assert_same_batch(expected, got, atol=1e-5)
+    originals = torch.stack([item[LEFT] for item in items])
+    assert torch.equal(got[LEFT][~applied], originals[~applied])
+    assert (got[LEFT][applied] - originals[applied]).abs().amax((1, 2, 3)).min() > 0.1
+
+
+def test_uint8_images_and_one_replaced_camera_match_the_worker(setup):
+    cache, ds = setup
+    items = [as_uint8(ds[i]) for i in range(4)]
+    expected, got = both_ways(cache, items, seed=0, probability=1.0, replace=("right",), fill_holes=False,
+                              background=(0.2, 0.4, 0.6))  # fmt: skip
+    assert got[RIGHT].dtype == torch.uint8
+    assert_same_batch(expected, got, atol=1)
+    assert torch.equal(got[LEFT], torch.stack([item[LEFT] for item in items]))
+
+
+def test_temporal_stacks_and_resized_images_match_the_worker(setup):
+    cache, ds = setup
+    resize = torch.nn.functional.interpolate
+
+    def stacked(i: int) -> dict:  # frames i-1 and i of every camera, at 40x48 instead of the cache's 32x32
+        item = ds[i]
+        return {**item, **{k: resize(torch.stack([ds[i - 1][k], item[k]]), size=(40, 48)) for k in IMAGES}}
+
+    items = [stacked(i) for i in (1, 3, 5, 7)]  # frames 1 and 3 of both episodes
+    expected, got = both_ways(cache, items, seed=2, probability=1.0, views_per_source=2)
+    assert got[LEFT].shape == (4, 2, 3, 40, 48)
+    assert_same_batch(expected, got, atol=1e-5)
+
+
+def test_gaussians_caches_and_unlike_stacks_are_refused(setup, tmp_path):
+    cache, ds = setup
+    item = ds[1]
+    tf = GenSplatTransform(GenSplatConfig(probability=1.0, render_in="batch"), cache)
+    with pytest.raises(ValueError, match="stacked alike"):
+        tf({**item, LEFT: torch.stack([ds[0][LEFT], item[LEFT]])})
+    gaussians = GaussianCache(tmp_path, GaussiansOnly(), cache.dataset)
+    with pytest.raises(ValueError, match="needs a depth cache"):
+        GenSplatTransform(GenSplatConfig(probability=1.0, render_in="batch"), gaussians)
+    with pytest.raises(TypeError, match="use render_in='worker'"):
+        disc_builder(GaussiansOnly())
+    with pytest.raises(ValueError, match="render_in"):
+        GenSplatConfig(render_in="gpu")
+
+
+class GaussiansOnly(Reconstructor):
+    """A reconstructor whose cache stores Gaussians (it is no DepthReconstructor)."""
+
+    name = "gaussians-only"
+
+    def config(self) -> dict:
+        return {}
+
+    def reconstruct(self, views):
+        raise AssertionError("never built here")
+
+
+def fake_rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane, eps2d,
+                       sh_degree, backgrounds, packed, render_mode):  # fmt: skip
+    """gsplat's batched ``rasterization`` (scenes (M, N), cameras (M, C)) stood in for by the
+    fast backend, one scene at a time: checks the arguments' layout and the outputs'."""
+    assert means.shape[:-1] == opacities.shape and viewmats.shape[:2] == Ks.shape[:2] == backgrounds.shape[:2]
+    assert render_mode == "RGB" and not packed and eps2d == 0.3
+    rgbs, alphas = [], []
+    for m in range(means.shape[0]):
+        keep = opacities[m] > 0
+        g = Gaussians(means[m][keep], quats[m][keep], scales[m][keep], opacities[m][keep], colors[m][keep])
+        cameras = Cameras(Ks[m].double(), rigid_inverse(viewmats[m].double()), width, height)
+        out = render(g, cameras, background=backgrounds[m, 0], near=near_plane, sh_degree=sh_degree, backend="fast")
+        rgbs.append(out.rgb.permute(0, 2, 3, 1))
+        alphas.append(out.alpha.permute(0, 2, 3, 1))
+    return torch.stack(rgbs), torch.stack(alphas), {}
+
+
+def test_the_single_gsplat_call_lays_out_scenes_and_cameras_as_the_worker(setup, monkeypatch):
+    cache, ds = setup
+    monkeypatch.setattr(gsplat_backend, "_rasterization", lambda: fake_rasterization)
+    items = [as_uint8(ds[i]) for i in (0, 2, 5, 6)]
+    expected, got = both_ways(cache, items, seed=0, backend="gsplat", probability=1.0, views_per_source=3)
+    for key in (LEFT, RIGHT):  # float32 poses and gsplat's conventions: a level here and there
+        diff = (got[key].float() - expected[key].float()).abs()
+        assert diff.max() <= 3 and diff.mean() < 0.05, key
+
+
+# ---------------------------------------------------------------------------- LeRobot
+
+lerobot = pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
+from gensplat_lerobot import enable_gensplat, save_settings
+from gensplat_lerobot.batched import use_render_in
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from test_lerobot import REPO, dataset_root, recorded, train_diffusion  # noqa: F401  (test_lerobot's fixtures)
+
+
+@pytest.fixture
+def root(dataset_root):  # noqa: F811
+    """A fresh copy of test_lerobot's recorded dataset (2 episodes of 20 frames, 48x48, RGB-D)."""
+    return dataset_root
+
+
+class RunConfig:
+    """What :func:`use_render_in` reads of a lerobot-train config."""
+
+    def __init__(self, device: str) -> None:
+        self.trainable_config = type("Policy", (), {"device": device})()
+
+
+def flip(image: torch.Tensor) -> torch.Tensor:
+    """A 2D image transform that must see the rendered view, not the source (module level: picklable)."""
+    return image.flip(-1)
+
+
+def test_lerobot_batch_mode_matches_the_worker_with_2d_transforms_after_rendering(root):
+    save_settings(root, GenSplatConfig(probability=0.5, level="large", report=True), {"name": "rgbd"})
+    datasets = {}
+    for mode in ("worker", "batch"):
+        ds = LeRobotDataset(REPO, root=root, image_transforms=flip)
+        enable_gensplat(ds)
+        ds.gensplat.cfg = replace(ds.gensplat.cfg, render_in=mode)
+        assert use_render_in(ds, RunConfig("cpu")) == mode
+        datasets[mode] = ds
+    assert datasets["batch"].gensplat_image_transforms is None  # moved to the batch side
+    batches = {}
+    for mode, ds in datasets.items():
+        torch.manual_seed(3)
+        batches[mode] = next(iter(DataLoader(ds, batch_size=6, shuffle=True)))
+    got = datasets["batch"].gensplat_batch(batches["batch"])
+    expected = batches["worker"]
+    applied = expected["gensplat.applied"][:, 0]
+    assert applied.any() and not applied.all()
+    assert_same_batch(expected, got, atol=1e-5)
+
+
+def test_render_in_auto_renders_in_the_workers_without_cuda(root):
+    save_settings(root, GenSplatConfig(), {"name": "rgbd"})
+    ds = enable_gensplat(LeRobotDataset(REPO, root=root))
+    expected = "batch" if torch.cuda.is_available() else "worker"
+    assert use_render_in(ds, RunConfig("cuda")) == expected == ds.gensplat.cfg.render_in
+    cpu = enable_gensplat(LeRobotDataset(REPO, root=root))
+    assert use_render_in(cpu, RunConfig("cpu")) == "worker" and not hasattr(cpu, "gensplat_batch")
+
+
+def test_lerobot_train_diffusion_policy_renders_batches_after_collation(root, tmp_path):
+    """Three lerobot-train steps with the one line, batch mode forced on the CPU, one spawn worker."""
+    save_settings(root, GenSplatConfig(probability=1.0, render_in="batch"), {"name": "rgbd"})
+    out = tmp_path / "out"
+    run = train_diffusion(f"--dataset.repo_id={REPO}", f"--dataset.root={root}", f"--output_dir={out}",
+                          "--steps=3", "--batch_size=2", "--num_workers=1", "--save_freq=3", "--log_freq=1")  # fmt: skip
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert "GenSplat rendered its first batch on cpu: 2 of 2 samples augmented" in run.stderr + run.stdout
+    assert list((root / "gensplat" / "cache").rglob("episode_*.safetensors"))  # built by the worker
+    model = next(out.rglob("pretrained_model"))
+    with safe_open(str(model / "model.safetensors"), framework="pt") as f:
+        assert f.keys() and not [k for k in f.keys() if "gensplat" in k]  # noqa: SIM118
+    for path in [*model.glob("*.json"), next(out.rglob("train_config.json"))]:  # the repo id says gensplat_scene
+        text = path.read_text()
+        assert not [s for s in ("gensplat.", "gensplat_lerobot", "render_in", "discover_packages") if s in text]
+    assert json.loads((model / "config.json").read_text())["type"] == "diffusion"
