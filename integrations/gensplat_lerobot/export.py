@@ -35,7 +35,7 @@ def timestep_gaussians(root: str | Path, repo_id: str, episode: int, frame: int)
     """The Gaussians GenSplat renders ``frame`` of ``episode`` from: read from the dataset's
     cache (``gensplat cache``'s settings and reconstructor), which builds the episode from the
     dataset first when it is missing or stale."""
-    config, reconstructor = load_settings(root)
+    config, reconstructor = load_settings(root, repo_id)
     source = LeRobotSource(root, repo_id, config.cameras)
     timestep_indices(source.dataset.meta, episode, [frame])
     cache = dataset_cache(root, make_reconstructor(reconstructor), source)

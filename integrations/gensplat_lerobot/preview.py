@@ -80,7 +80,7 @@ def write_lerobot_preview(
     if out_dir.is_relative_to(root):
         raise ValueError(f"gensplat preview: the output folder {out_dir} is inside the dataset {root}; "
                          "the dataset is never written to")  # fmt: skip
-    config, reconstructor = load_settings(root)
+    config, reconstructor = load_settings(root, repo_id)
     dataset = enable_gensplat(open_dataset(root, repo_id, image_transforms),
                               replace(config, probability=1.0, report=True), reconstructor)  # fmt: skip
     every = timestep_indices(dataset.meta, episode)
