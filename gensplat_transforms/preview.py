@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import itertools
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 
 import torch
@@ -17,19 +18,21 @@ def as_frame(image: torch.Tensor) -> torch.Tensor:
     return image.float() / 255 if image.dtype == torch.uint8 else image.float()
 
 
-def save_video(frames: Sequence[torch.Tensor], path: str | Path, fps: int) -> bool:
+def save_video(frames: Iterable[torch.Tensor], path: str | Path, fps: int) -> bool:
     """Write (3, H, W) float frames in [0, 1] (all the same size; an odd side loses its last
-    pixel) as an MP4 with PyAV (H.264, or MPEG-4 without libx264). Returns False, writing
-    nothing, when PyAV is not installed."""
+    pixel; a generator is encoded as it yields) as an MP4 with PyAV (H.264, or MPEG-4 without
+    libx264). Returns False, writing nothing, when PyAV is not installed."""
     try:
         import av
     except ImportError:
         return False
-    h, w = frames[0].shape[-2:]
+    frames = iter(frames)
+    first = next(frames)
+    h, w = first.shape[-2:]
     with av.open(str(path), mode="w") as container:
         stream = container.add_stream("libx264" if "libx264" in av.codecs_available else "mpeg4", rate=fps)
         stream.width, stream.height, stream.pix_fmt = w - w % 2, h - h % 2, "yuv420p"
-        for f in frames:
+        for f in itertools.chain([first], frames):
             img = to_uint8(f)[: h - h % 2, : w - w % 2].numpy()
             for packet in stream.encode(av.VideoFrame.from_ndarray(img, format="rgb24")):
                 container.mux(packet)

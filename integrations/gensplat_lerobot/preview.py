@@ -90,10 +90,14 @@ def write_lerobot_preview(
     names = [k.removeprefix("observation.images.") for k in keys]
     replaced = [config.image_key.format(name=n) for n in config.replace]
     size = as_frame(LeRobotDataset.__getitem__(dataset, rows[0][0])[replaced[0]]).shape[-2:]
+    out_dir.mkdir(parents=True, exist_ok=True)
+    png, mp4 = out_dir / "preview.png", out_dir / "preview.mp4"
+    mp4.unlink(missing_ok=True)  # not left from an earlier run when PyAV is missing
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         items = [dataset[i] for i, _, _ in rows]
-        video = [_tiles(dataset, i, dataset[i], keys, size) for i in every]
+        video = (torch.cat(_tiles(dataset, i, dataset[i], keys, size), dim=2) for i in every)  # encoded as drawn
+        written = save_video(video, mp4, int(dataset.meta.fps))
     scale = -(-MIN_TILE_HEIGHT // size[0])
     grid = [[F.interpolate(t[None], scale_factor=scale)[0] for t in _tiles(dataset, i, item, keys, size)]
             for (i, _, _), item in zip(rows, items)]  # fmt: skip
@@ -101,10 +105,7 @@ def write_lerobot_preview(
     gensplat = "GenSplat+2D" if image_transforms else "GenSplat"
     columns = [f"{n}: {kind}" for k, n in zip(keys, names)
                for kind in ("original", gensplat if k in replaced else "2D" if image_transforms else "as is")]  # fmt: skip
-    out_dir.mkdir(parents=True, exist_ok=True)
-    png, mp4 = out_dir / "preview.png", out_dir / "preview.mp4"
     save_grid(grid, png, labels, columns)
-    written = save_video([torch.cat(row, dim=2) for row in video], mp4, int(dataset.meta.fps))
     return Preview(png, mp4 if written else None, [i for i, _, _ in rows], items)
 
 
