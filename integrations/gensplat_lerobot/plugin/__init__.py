@@ -67,10 +67,12 @@ def start_message(train, cfg) -> str:
 
 
 def progress_message(step: int, samples: int, augmented: int, seconds: float) -> str:
-    """The INFO line logged every ``cfg.log_freq`` steps (counts from all workers since the last)."""
-    share = augmented / max(samples, 1)
-    return (f"GenSplat step {step}: {augmented} of {samples} samples augmented ({share:.0%}), "
-            f"{seconds / max(samples, 1) * 1e3:.1f} ms per sample in the workers")  # fmt: skip
+    """The INFO line logged every ``cfg.log_freq`` steps: what the workers made since the last
+    one (samples made ahead of the loop, up to its prefetch, count when they are made)."""
+    if samples == 0:
+        return f"GenSplat step {step}: no samples made since the last report (the workers are ahead)"
+    return (f"GenSplat step {step}: {augmented} of {samples} samples augmented ({augmented / samples:.0%}), "
+            f"{seconds / samples * 1e3:.1f} ms per sample in the workers")  # fmt: skip
 
 
 _install()
