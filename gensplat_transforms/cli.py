@@ -61,6 +61,9 @@ def build_parser() -> argparse.ArgumentParser:
     cache.add_argument("--no-fill-holes", dest="fill_holes", action="store_false",
                        help="paint pixels no source camera saw black instead of filling them")
     cache.add_argument("--backend", default="fast", help="render backend used in the workers (default: fast)")
+    cache.add_argument("--render-in", choices=["auto", "worker", "batch"], default="auto",
+                       help="worker: render in the dataloader workers; batch: render each batch on the training "
+                            "device after collation; auto: batch when training on CUDA (default: auto)")
     cache.add_argument("--episodes", type=int, nargs="+", default=None, help="only these episodes (default: all)")
     cache.add_argument("--reconstructor", choices=["rgbd", "geometry", "gensplat"], default=None,
                        help="rgbd: the dataset's depth; geometry: depth from a Pi3-compatible model, RGB-D discs; "
@@ -234,6 +237,7 @@ def _cache(args) -> None:
     config = GenSplatConfig(
         cameras=cameras, replace=args.replace, level=args.level, probability=args.probability, mode=args.mode,
         views_per_source=args.views_per_source, seed=args.seed, backend=args.backend, fill_holes=args.fill_holes,
+        render_in=args.render_in,
     )  # fmt: skip
     spec = None if args.reconstructor is None else {"name": args.reconstructor}
     if args.model:

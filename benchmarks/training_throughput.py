@@ -1,0 +1,132 @@
+"""Training throughput of Diffusion Policy in lerobot-train: plain, GenSplat rendering in the
+dataloader workers, and GenSplat rendering each batch on the training GPU.
+
+    python benchmarks/training_throughput.py [--quick] [--batch-size B] [--workers W] [--steps N]
+        [--size S] [--probability P] [--config policies/diffusion.json] [--out results/training_throughput.json]
+
+A simulated pick-and-place dataset (two external cameras with depth and a wrist camera, S x S
+PNG images) is recorded and its GenSplat cache built. Then the stock ``lerobot-train`` trains
+the same policy config (``--config``; default the small CPU Diffusion Policy) with the same
+batch size, workers and seed three times: without GenSplat ("plain"), with GenSplat at
+``--probability`` rendering in the workers ("worker", the fast CPU backend), and rendering
+each batch after collation on the GPU ("batch", gsplat; needs CUDA: without it the row is
+recorded as missing). Samples per second over the last ``N`` steps (after ``N`` warm-up steps)
+are lerobot-train's own ``batch / (updt_s + data_s)``, its averages over that log window.
+Defaults: batch 64, 6 workers, 224x224, 50 steps on CUDA; batch 8, 2 workers, 96x96, 5 steps
+on a CPU. Writes benchmarks/results/training_throughput.json (or --out).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
+import torch
+from gensplat_lerobot import load_settings, prepare, save_settings
+from machine import cpu_model
+
+from gensplat_transforms.sim.record import RecordConfig, record
+from gensplat_transforms.sim.world import WorldConfig
+from gensplat_transforms.transform import GenSplatConfig
+
+REPO = "gensplat/bench_pick_place"
+HERE = Path(__file__).resolve().parent
+TRAIN_SH = HERE.parent / "policies" / "train.sh"
+#: lerobot-train's log line: "step:20 smpl:160 ... updt_s:0.123 data_s:0.010 smp/s:..."
+LOG_LINE = re.compile(r"step:(\S+) .*updt_s:([\d.]+) data_s:([\d.]+)")
+#: the GenSplat plugin's line at the same steps
+AUGMENTED = re.compile(r"GenSplat step \d+: (\d+) of (\d+) samples augmented")
+
+
+def train(root: Path, config: Path, mode: str, args, device: str) -> dict:
+    """One lerobot-train run: samples/s and the step split over its last log window."""
+    overrides = [
+        f"--dataset.repo_id={REPO}", f"--dataset.root={root}",
+        f"--output_dir={Path(tempfile.mkdtemp()) / 'out'}", f"--policy.device={device}",
+        f"--batch_size={args.batch_size}", f"--num_workers={args.workers}", f"--steps={2 * args.steps}",
+        f"--log_freq={args.steps}", "--save_checkpoint=false", "--seed=0",
+    ]  # fmt: skip
+    cmd = ["bash", str(TRAIN_SH), str(config), "baseline" if mode == "plain" else "gensplat", *overrides]
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}"}
+    t0 = time.perf_counter()
+    run = subprocess.run(cmd, capture_output=True, text=True, env=env, check=False)
+    log = run.stdout + run.stderr
+    if run.returncode != 0:
+        raise RuntimeError(f"lerobot-train ({mode}) failed:\n{log[-3000:]}")
+    step, update_s, data_s = LOG_LINE.findall(log)[-1]
+    update_s, data_s = float(update_s), float(data_s)
+    row = {"samples_per_s": round(args.batch_size / (update_s + data_s), 2), "update_s": update_s,
+           "data_s": data_s, "window_steps": args.steps, "last_step": step,
+           "run_s": round(time.perf_counter() - t0, 1)}  # fmt: skip
+    if mode != "plain":
+        augmented, samples = map(int, AUGMENTED.findall(log)[-1])
+        row["augmented_share"] = round(augmented / max(samples, 1), 3)
+    return row
+
+
+def main() -> None:
+    cuda = torch.cuda.is_available()
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="tiny dataset and few steps (a smoke run)")
+    parser.add_argument("--batch-size", type=int, default=64 if cuda else 8)
+    parser.add_argument("--workers", type=int, default=6 if cuda else 2)
+    parser.add_argument("--steps", type=int, default=50 if cuda else 5, help="warm-up steps, then measured steps")
+    parser.add_argument("--size", type=int, default=224 if cuda else 96, help="image height and width")
+    parser.add_argument("--episodes", type=int, default=2)
+    parser.add_argument("--probability", type=float, default=0.5)
+    parser.add_argument("--config", type=Path, default=HERE.parent / "policies" / "diffusion.json")
+    parser.add_argument("--out", type=Path, default=HERE / "results" / "training_throughput.json")
+    args = parser.parse_args()
+    if args.quick:
+        args.batch_size, args.workers, args.steps, args.size, args.episodes = 4, 1, 2, 64, 1
+    device = "cuda" if cuda else "cpu"
+
+    root = Path(tempfile.mkdtemp()) / "ds"
+    record(RecordConfig(root, "pick_place", args.episodes, seed=0, use_videos=False, repo_id=REPO,
+                        world=WorldConfig(width=args.size, height=args.size)), progress=False)  # fmt: skip
+    prepare(root, REPO, GenSplatConfig(probability=args.probability), progress=False)
+    config, reconstructor = load_settings(root)
+    load_before = os.getloadavg()
+    rows = {"plain": train(root, args.config, "plain", args, device)}
+    save_settings(root, replace(config, render_in="worker"), reconstructor)
+    rows["worker"] = train(root, args.config, "worker", args, device)
+    if cuda:
+        save_settings(root, replace(config, render_in="batch"), reconstructor)
+        rows["batch"] = train(root, args.config, "batch", args, device)
+    else:
+        rows["batch"] = {"missing": "no CUDA device: GenSplat batched on the GPU renders with gsplat on CUDA"}
+    plain = rows["plain"]["samples_per_s"]
+    for row in rows.values():
+        if "samples_per_s" in row:
+            row["of_plain"] = round(row["samples_per_s"] / plain, 3)
+    result = {
+        "quick": args.quick, "policy_config": str(args.config.resolve().relative_to(HERE.parent)),
+        "device": torch.cuda.get_device_name() if cuda else "cpu", "batch_size": args.batch_size,
+        "workers": args.workers, "resolution": [args.size, args.size], "episodes": args.episodes,
+        "probability": args.probability, "cameras_replaced": list(config.replace), "rows": rows,
+        "machine": {"cpus": os.cpu_count(), **cpu_model()},
+        "load_average": {"before": load_before, "after": os.getloadavg()},
+    }  # fmt: skip
+    print(f"{'':8}{'samples/s':>12}{'of plain':>10}{'update s':>10}{'data s':>10}")
+    for name, row in rows.items():
+        if "missing" in row:
+            print(f"{name:8}  missing: {row['missing']}")
+        else:
+            print(f"{name:8}{row['samples_per_s']:>12}{row['of_plain']:>10}{row['update_s']:>10}{row['data_s']:>10}")
+    args.out.parent.mkdir(exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    print("wrote", args.out)
+
+
+if __name__ == "__main__":
+    main()
