@@ -34,7 +34,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 import torch
 from gensplat_lerobot import LeRobotSource, enable_gensplat, prepare
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
-from machine import cpu_model
+from machine import cpu_model, write_result
 from torch.utils.data import DataLoader, RandomSampler
 
 from gensplat_transforms.cache import GaussianCache
@@ -196,9 +196,7 @@ def main() -> None:
         print(f"{k:30}{result[k]:>12}")
     for k, v in {**split, **result["cache_fidelity"], **result["dataset_bytes_per_timestep"]}.items():
         print(f"  {k:28}{v:>12}")
-    args.out.parent.mkdir(exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
-    print("wrote", args.out)
+    write_result(result, args.out)
 
 
 if __name__ == "__main__":

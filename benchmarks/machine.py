@@ -1,7 +1,8 @@
-"""The machine a benchmark ran on, for its JSON result."""
+"""The machine a benchmark ran on, for its JSON result, and writing that result."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 
@@ -20,3 +21,10 @@ def cpu_model() -> dict:
     flags = set(fields.get("flags", "").split())
     simd = next((f for f in ("avx512f", "avx2", "avx", "sse4_2") if f in flags), "none")
     return {"cpu_model": fields.get("model name", ""), "simd": simd}
+
+
+def write_result(result: dict, out: Path) -> None:
+    """Write a benchmark's result as indented JSON to ``out`` (its folder created) and say so."""
+    out.parent.mkdir(exist_ok=True)
+    out.write_text(json.dumps(result, indent=2) + "\n")
+    print("wrote", out)

@@ -19,7 +19,6 @@ on a CPU. Writes benchmarks/results/training_throughput.json (or --out).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import re
 import subprocess
@@ -33,7 +32,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 import torch
 from gensplat_lerobot import load_settings, prepare, save_settings
-from machine import cpu_model
+from machine import cpu_model, write_result
 
 from gensplat_transforms.sim.record import RecordConfig, record
 from gensplat_transforms.sim.world import WorldConfig
@@ -123,9 +122,7 @@ def main() -> None:
             print(f"{name:8}  missing: {row['missing']}")
         else:
             print(f"{name:8}{row['samples_per_s']:>12}{row['of_plain']:>10}{row['update_s']:>10}{row['data_s']:>10}")
-    args.out.parent.mkdir(exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
-    print("wrote", args.out)
+    write_result(result, args.out)
 
 
 if __name__ == "__main__":
