@@ -31,9 +31,11 @@ def setup(tmp_path_factory):
     return cache, SceneDataset(source)
 
 
-def both_ways(cache, items: list[dict], seed: int, backend: str | None = None, **config) -> tuple[dict, dict]:
+def both_ways(cache, items: list[dict], seed: int, backend: str | None = None, device: str = "cpu",
+              **config) -> tuple[dict, dict]:  # fmt: skip
     """The collated batch the worker path makes, and the batch path's rendering of its own
-    collated batch, with torch seeded alike before each."""
+    collated batch (moved to ``device``, rendered there, back on the CPU), with torch seeded
+    alike before each."""
     cfg = GenSplatConfig(**{"level": "large", "report": True, **config})
     worker = GenSplatTransform(replace(cfg, render_in="worker"), cache)
     batch = GenSplatTransform(replace(cfg, render_in="batch"), cache)
@@ -42,7 +44,8 @@ def both_ways(cache, items: list[dict], seed: int, backend: str | None = None, *
     torch.manual_seed(seed)
     collated = default_collate([batch(item) for item in items])
     assert set(BATCH_KEYS) <= set(collated)
-    return expected, render_batch(collated, batch, backend)
+    rendered = render_batch({k: v.to(device) for k, v in collated.items()}, batch, backend)
+    return expected, {k: v.cpu() for k, v in rendered.items()}
 
 
 def assert_same_batch(expected: dict, got: dict, atol: float) -> None:
@@ -147,6 +150,18 @@ def test_the_single_gsplat_call_lays_out_scenes_and_cameras_as_the_worker(setup,
     for key in (LEFT, RIGHT):  # float32 poses and gsplat's conventions: a level here and there
         diff = (got[key].float() - expected[key].float()).abs()
         assert diff.max() <= 3 and diff.mean() < 0.05, key
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="batch rendering with gsplat needs a CUDA device")
+def test_on_cuda_one_gsplat_call_renders_the_worker_views(setup):
+    pytest.importorskip("gsplat", reason="the gsplat package is not installed (optional extra)")
+    cache, ds = setup
+    items = [as_uint8(ds[i]) for i in range(8)]
+    expected, got = both_ways(cache, items, seed=1, device="cuda", probability=0.5)
+    for key in (LEFT, RIGHT):  # gsplat against the fast backend: 52.6 dB on the standard scene
+        diff = (got[key].float() - expected[key].float()).abs()
+        assert diff.mean() < 0.5 and (diff > 2).float().mean() < 0.01, key
+    torch.testing.assert_close(got["gensplat.theta_deg"], expected["gensplat.theta_deg"])
 
 
 # ---------------------------------------------------------------------------- LeRobot
