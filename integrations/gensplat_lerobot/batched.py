@@ -63,6 +63,8 @@ def use_render_in(dataset: GenSplatLeRobotDataset, cfg) -> str:
         cameras = [key for key in dataset.meta.camera_keys if key not in dataset.meta.depth_keys]
         dataset.gensplat_batch = BatchRenderer(transform, dataset.gensplat_image_transforms, cameras)
         dataset.gensplat_image_transforms = None
+    log.info("GenSplat renders %s", "each batch on the training device, after collation" if mode == "batch"
+             else "in the dataloader workers")  # fmt: skip
     return mode
 
 
