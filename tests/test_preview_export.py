@@ -3,6 +3,7 @@
 import os
 import re
 import shutil
+from dataclasses import replace
 
 import pytest
 import torch
@@ -12,7 +13,7 @@ pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip i
 os.environ["HF_HUB_OFFLINE"] = "1"
 
 import av
-from gensplat_lerobot import LeRobotSource, enable_gensplat, load_settings
+from gensplat_lerobot import LeRobotSource, enable_gensplat, load_settings, save_settings
 from gensplat_lerobot.dataset import dataset_cache
 from gensplat_lerobot.export import timestep_gaussians
 from gensplat_lerobot.preview import MIN_TILE_HEIGHT, open_dataset, write_lerobot_preview
@@ -82,6 +83,18 @@ def test_preview_items_are_what_enable_gensplat_gives_for_the_same_draws(cached,
     # the draws differ: other views of the episode, other 2D transforms
     left = [item["observation.images.left"] for item in preview.items[:3]]
     assert not torch.equal(left[0], left[1]) or not torch.equal(left[0], left[2])
+
+
+def test_preview_renders_in_the_item_whatever_the_settings_say(cached, tmp_path):
+    root = tmp_path / "ds"
+    shutil.copytree(cached, root)
+    config, reconstructor = load_settings(root)
+    save_settings(root, replace(config, render_in="batch"), reconstructor)  # rendered after collation in training
+    batch = write_lerobot_preview(root, REPO, tmp_path / "batch", frames=[1], draws=1)
+    worker = write_lerobot_preview(cached, REPO, tmp_path / "worker", frames=[1], draws=1)
+    key = "observation.images.left"
+    assert torch.equal(batch.items[0][key], worker.items[0][key])
+    assert not torch.equal(batch.items[0][key], open_dataset(root, REPO)[batch.indices[0]][key])
 
 
 def test_preview_refuses_an_output_folder_inside_the_dataset(cached):

@@ -2,7 +2,8 @@
 
 The dataset is opened as ``lerobot-train`` opens it (uint8 images; LeRobot's 2D image
 transforms with their default config when asked), GenSplat enabled on it with the settings
-``gensplat cache`` wrote, augmentation forced on (probability 1).
+``gensplat cache`` wrote, augmentation forced on (probability 1) and rendered in the item
+(``render_in="worker"``; the batch mode renders the same images on the training GPU).
 """
 
 from __future__ import annotations
@@ -82,7 +83,8 @@ def write_lerobot_preview(
                          "the dataset is never written to")  # fmt: skip
     config, reconstructor = load_settings(root, repo_id)
     dataset = enable_gensplat(open_dataset(root, repo_id, image_transforms),
-                              replace(config, probability=1.0, report=True), reconstructor)  # fmt: skip
+                              replace(config, probability=1.0, report=True, render_in="worker"),
+                              reconstructor)  # fmt: skip
     every = timestep_indices(dataset.meta, episode)
     frames = list(frames) if frames is not None else sorted({round(k * (len(every) - 1) / 3) for k in range(4)})
     rows = [(i, f, d) for i, f in zip(timestep_indices(dataset.meta, episode, frames), frames) for d in range(draws)]
