@@ -65,6 +65,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="worker: render in the dataloader workers; batch: render each batch on the training "
                             "device after collation; auto: batch when training on CUDA (default: auto)")
     cache.add_argument("--episodes", type=int, nargs="+", default=None, help="only these episodes (default: all)")
+    cache.add_argument("--trust-headers", dest="verify", action="store_false",
+                       help="resume without reading cached data: skip every episode whose header is valid (data "
+                            "checksums are still checked on every read; default: check every checksum)")
     cache.add_argument("--reconstructor", choices=["rgbd", "geometry", "gensplat"], default=None,
                        help="rgbd: the dataset's depth; geometry: depth from a Pi3-compatible model, RGB-D discs; "
                             "gensplat: the model's own Gaussian head (default: rgbd when the cameras have depth, "
@@ -249,7 +252,7 @@ def _cache(args) -> None:
     if shard.rank == 0:
         print(f"repo id {args.repo_id}, dataset root {args.root}; settings and cache in "
               f"{Path(args.root) / GENSPLAT_DIR} (found by the dataset's content, whatever repo id training uses)")
-    stats = prepare(args.root, args.repo_id, config, spec, args.episodes, shard=shard)
+    stats = prepare(args.root, args.repo_id, config, spec, args.episodes, shard=shard, verify=args.verify)
     ranks = gather(shard, (stats, time.perf_counter() - start, time.process_time() - cpu))
     if ranks is None:
         return

@@ -24,12 +24,16 @@ from .scenes import TabletopScene, default_cameras
 
 def build_cache(
     cache: GaussianCache, source: EpisodeSource, episodes: Iterable[int], progress: bool = True,
-    shard: Shard | None = None,
+    shard: Shard | None = None, verify: bool = True,
 ) -> dict[int, CacheStats | None]:
     """Reconstruct and cache every frame of ``episodes`` with the cache's reconstructor.
 
     Resumable and idempotent: an episode whose file passes every checksum is skipped (its
-    value in the result is None); stale, corrupt or half-written ones are rebuilt. Several
+    value in the result is None); stale, corrupt or half-written ones are rebuilt. With
+    ``verify=False`` a file whose header is valid is skipped without reading its data (a
+    resume that reads kilobytes per episode instead of the whole cache): its data checksums
+    are still checked on every read, which rebuilds a failing file (transform with a source)
+    or raises ``CorruptCacheError``. Several
     processes may run it on the same episodes at once (see :meth:`GaussianCache.ensure`).
     With ``shard``, only that shard's share of ``episodes`` is built, longest first (see
     :meth:`~.distributed.Shard.select`); the result holds only those.
@@ -48,7 +52,7 @@ def build_cache(
     """
     episodes = list(episodes) if shard is None else shard.select(episodes, source.num_frames)
     desc = "caching" if shard is None or shard.world == 1 else f"caching (rank {shard.rank}/{shard.world})"
-    return {ep: cache.ensure(ep, source, verify=True)
+    return {ep: cache.ensure(ep, source, verify=verify)
             for ep in tqdm(episodes, desc=desc, unit="episode", disable=not progress)}  # fmt: skip
 
 

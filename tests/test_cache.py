@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from gensplat_transforms import cache as cache_module
 from gensplat_transforms import depth_codec as dc
 from gensplat_transforms import render
 from gensplat_transforms.cache import CorruptCacheError, GaussianCache, StaleCacheError, dequantize, quantize
@@ -364,6 +365,29 @@ def test_build_rebuilds_every_bad_file_and_keeps_good_ones(built, source):
     assert stats[0] is not None and stats[1] is not None and counting.calls == 6
     assert build_cache(fresh(cache), counting, range(2), progress=False) == {0: None, 1: None}
     assert counting.calls == 6
+
+
+def test_a_resume_that_trusts_headers_reads_no_data_and_reads_still_verify(built, source, monkeypatch):
+    """build_cache(verify=False) (`gensplat cache --trust-headers`): a file with a valid header is
+    skipped without reading its data; a bad header is still rebuilt; damaged data is caught
+    when the frame is read."""
+    cache, _ = built
+    data = bytearray(cache.path(0).read_bytes())
+    data[-30] ^= 0xFF  # inside the last frame's data
+    cache.path(0).write_bytes(bytes(data))
+    edit_header(cache.path(1), HEADER_EDITS["num_frames lowered"])
+    read = []
+    tensor = cache_module._EpisodeFile.tensor
+    monkeypatch.setattr(cache_module._EpisodeFile, "tensor", lambda f, name: read.append(name) or tensor(f, name))
+    counting = CountingSource(source)
+    stats = build_cache(fresh(cache), counting, range(2), progress=False, verify=False)
+    assert stats[0] is None and stats[1] is not None and counting.calls == 3  # only episode 1 rebuilt
+    assert not [name for name in read if name.startswith("depth")]  # no depth data was read
+    c = fresh(cache)
+    with pytest.raises(CorruptCacheError, match="checksum"):
+        for t in range(3):
+            c.read_depth(0, t)
+    assert build_cache(fresh(cache), counting, range(2), progress=False)[0] is not None  # a full check rebuilds it
 
 
 def test_missing_episode_and_frame_raise(built):

@@ -167,13 +167,14 @@ def enable_gensplat(dataset: LeRobotDataset, config: GenSplatConfig | None = Non
 
 
 def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructor: dict | None = None,
-            episodes=None, progress: bool = True, shard: Shard | None = None) -> dict:
+            episodes=None, progress: bool = True, shard: Shard | None = None, verify: bool = True) -> dict:
     """Write the settings beside the dataset and build its Gaussian cache (resumable).
 
     ``shard`` is this process's place among several (see :mod:`gensplat_transforms.distributed`;
     default: the only process): it builds only its share of the episodes, and only rank 0
     writes the settings. The models (geometry, gensplat) run on ``shard.device`` (``cuda:<local
-    rank>`` when CUDA is available). Returns per-episode
+    rank>`` when CUDA is available). ``verify=False`` skips episodes whose header is valid
+    without reading their data (see :func:`~gensplat_transforms.episodes.build_cache`). Returns per-episode
     :class:`~gensplat_transforms.cache.CacheStats` of this process's episodes (None when the
     episode was already cached)."""
     from gensplat_transforms.episodes import build_cache
@@ -190,4 +191,4 @@ def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructo
         content_path(root).write_text(json.dumps({"fingerprint": source.fingerprint, "content": source.content}))
     total = len(source.dataset.meta.episodes["length"])
     episodes = range(total) if episodes is None else episodes
-    return build_cache(dataset_cache(root, rec, source), source, episodes, progress, shard)
+    return build_cache(dataset_cache(root, rec, source), source, episodes, progress, shard, verify)
