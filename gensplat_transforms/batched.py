@@ -100,8 +100,9 @@ def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None 
         rgb, alpha = render_gsplat_batch(means, quats, scales, keep * opacity, sh, c2w, K, w, h, background)
         rgb = filled(RenderOutput(rgb.flatten(0, 1), alpha=alpha.flatten(0, 1)), cfg).rgb.unflatten(0, rgb.shape[:2])
     else:
-        scenes, one = zip(means, quats, scales, sh, keep, K, c2w), replace(cfg, backend=backend)
-        rgb = torch.stack([_render_scene(*g, k, Cameras(kk, t, w, h), opacity, one) for *g, k, kk, t in scenes])
+        one, scenes = replace(cfg, backend=backend), zip(means, quats, scales, sh, keep, K, c2w)
+        rgb = torch.stack([_render_scene(*discs_of_scene, Cameras(k, t, w, h), opacity, one)
+                           for *discs_of_scene, k, t in scenes])  # fmt: skip
     rgb = rgb.unflatten(0, (S, T))  # (S, T, R, 3, h, w)
     for r, name in enumerate(cfg.replace):
         key = cfg.image_key.format(name=name)
