@@ -9,14 +9,15 @@ differentiable. One frame runs in three compiled stages:
    up to the requested degree; their front-to-back order by a stable radix sort on the
    bits of the depths rounded to float32, runs of equal roundings finished in float64;
 2. binning: in that order, each splat is listed in the 16x16 tiles its box touches;
-3. rasterization, tile by tile with the Gaussian-outer loop: each splat visits only the
-   rows of its box inside the tile that still have live pixels (one bit mask per row), and
-   evaluates a whole 16-pixel tile row at once, or an 8-pixel window of it when its box is
-   at most 8 pixels wide there (about 60 % of rows in the standard scene), branch-free, so
-   the compiler can use SIMD (the exponential is a polynomial for that reason). A pixel
-   stops at the splat that would take its transmittance below 1e-4; a tile stops when all
-   its pixels have; tiles without splats only get the background. Depth is accumulated
-   only when asked for.
+3. rasterization, tile by tile with the Gaussian-outer loop: each splat visits the rows of
+   its box inside the tile, and evaluates a whole 16-pixel tile row at once, or an 8-pixel
+   window of it when its box is at most 8 pixels wide there (about 60 % of rows in the
+   standard scene), branch-free and in float32 lanes only, so the compiler can use SIMD of
+   the machine's full width (the exponential is a polynomial for that reason). A pixel
+   stops (its live flag drops to 0) at the splat that would take its transmittance below
+   1e-4; every 16 splats the tile's live pixels are counted, rows without any are skipped
+   and a tile without any stops; tiles without splats only get the background. Depth is
+   accumulated only when asked for.
 
 fastmath is off (IEEE arithmetic, like the reference) except fused multiply-adds inside
 the exponential's polynomial.
@@ -503,41 +504,54 @@ def _exp8(y, c):
     return p * p
 
 
-@_jit(inline=True)
-def _blend_row(state, ly, x_start, lanes, live, splat, want_depth, consts, poly):
-    """Composite one splat into the pixels x_start .. x_start + lanes - 1 of tile row ly:
-    branch-free, one SIMD vector of ``lanes`` (a constant at each call site).
+# planes of a tile's state (see ``_raster_tile``): transmittance, colour, depth, live flag
+_T, _RED, _GREEN, _BLUE, _DEPTH, _LIVE = range(6)
+_RECOUNT = 16  # a tile's live pixels are counted after every _RECOUNT splats
 
-    state: (5, TILE, TILE) transmittance, r, g, b, depth of the tile, the only array the
+
+@_jit(inline=True)
+def _blend_row(state, ly, x_start, lanes, splat, want_depth, consts, poly):
+    """Composite one splat into the pixels x_start .. x_start + lanes - 1 of tile row ly:
+    branch-free, one SIMD vector of ``lanes`` (a constant at each call site). Every lane
+    value is float32 and every condition a float select: integer lanes are 64-bit in numba
+    (a bit mask per row made the AVX2 code 4 lanes wide) and boolean vectors are packed and
+    unpacked around each logical operation.
+
+    state: (6, TILE, TILE) float32 planes ``_T`` .. ``_LIVE`` of the tile, the only array the
     loop touches (with constant offsets, so the compiler needs no run-time alias checks,
-    without which it would not vectorise an 8-lane loop); live: bit mask of the row's
-    columns still compositing within the splat's box; splat: (x0 - u, conic A, 2B, opacity,
-    r, g, b, depth, dy, C dy^2) for this row, x0 being the tile's first pixel centre and dy
-    the row centre minus v; consts: the first 9 ``_CONSTANTS``. Returns the bit mask of the
-    pixels this splat stopped.
+    without which it would not vectorise an 8-lane loop); a pixel composites while its
+    ``_LIVE`` entry is 1 and is set to 0 at the splat that would take its transmittance below
+    T_MIN. splat: (x0, u, conic A, 2B, opacity, r, g, b, depth, dy, C dy^2, first and last
+    column of its box in the tile) for this row, x0 being the tile's first pixel centre and
+    dy the row centre minus v; consts: the first 9 ``_CONSTANTS``.
     """
     amax, amin, tmin, mhalf, nine, zero, one, eighth, lowest = consts
-    x0, u, ca, cb2, o, cr, cg, cbl, cz, dy, cq = splat
-    stopped = 0
+    x0, u, ca, cb2, o, cr, cg, cbl, cz, dy, cq, first, last = splat
     for j in range(lanes):
         lx = x_start + j
-        dx = (np.float32(lx) + x0) - u  # the pixel centre is exact in float32
+        col = np.float32(x_start) + np.float32(j)
+        dx = (col + x0) - u  # the pixel centre is exact in float32
         q = (ca * (dx * dx) + (cb2 * dx) * dy) + cq
         a = min(o * _exp8(max(mhalf * q, lowest) * eighth, poly), amax)
-        t = state[0, ly, lx]
-        t_next = t * (one - a)
-        hit = (((live >> lx) & 1) == 1) & (q <= nine) & (a >= amin)
-        take = hit & (t_next >= tmin)
-        stop = hit & (t_next < tmin)
-        w = a * t if take else zero
-        state[1, ly, lx] += w * cr
-        state[2, ly, lx] += w * cg
-        state[3, ly, lx] += w * cbl
+        t = state[_T, ly, lx]
+        live = state[_LIVE, ly, lx]
+        # alpha of a pixel the splat composites, else 0: float selects only (no boolean
+        # vectors, which AVX2 code packs and unpacks)
+        a = a * live
+        a = a if q <= nine else zero
+        a = a if col >= first else zero
+        a = a if col <= last else zero
+        a = a if a >= amin else zero
+        t_next = t * (one - a)  # t where a = 0
+        keep = t_next >= tmin  # else the pixel stops here, before this splat
+        w = a * t if keep else zero
+        state[_RED, ly, lx] += w * cr
+        state[_GREEN, ly, lx] += w * cg
+        state[_BLUE, ly, lx] += w * cbl
         if want_depth:
-            state[4, ly, lx] += w * cz
-        state[0, ly, lx] = t_next if take else t
-        stopped |= np.int64(stop) << lx
-    return stopped
+            state[_DEPTH, ly, lx] += w * cz
+        state[_T, ly, lx] = t_next if keep else t
+        state[_LIVE, ly, lx] = live if keep else zero
 
 
 @_jit()
@@ -551,58 +565,60 @@ def _raster_tile(tile, rec, boxes, start, ids, width, height, ntx, bg, want_dept
     """
     consts = (k[0], k[1], k[2], k[3], k[4], k[5], k[6], k[7], k[8])  # values, not memory
     poly = (k[9], k[10], k[11], k[12], k[13], k[14], k[15])
-    one = k[6]
+    zero, one = k[5], k[6]
     tx, ty = tile % ntx, tile // ntx
     x_org, y_org = tx * TILE, ty * TILE
     nx, ny = min(TILE, width - x_org), min(TILE, height - y_org)
-    # tile state: transmittance, r, g, b, depth; allocated here with constant shapes so the
-    # compiler sees that the planes do not overlap (no run-time alias checks in the row loop)
-    state = np.zeros((5, TILE, TILE), rec.dtype)
-    state[0] = one
+    # tile state (planes _T .. _LIVE); allocated here with constant shapes so the compiler
+    # sees that the planes do not overlap (no run-time alias checks in the row loop)
+    state = np.zeros((6, TILE, TILE), rec.dtype)
+    state[_T] = one
+    state[_LIVE, :ny, :nx] = one
     x0, y0 = np.float32(x_org + 0.5), np.float32(y_org + 0.5)  # first pixel centre
-    rowmask = np.zeros(TILE, np.int64)  # live pixels of each tile row, one bit per column
-    for ly in range(ny):
-        rowmask[ly] = (1 << nx) - 1
-    n_live = nx * ny
+    row_live = np.zeros(TILE, np.int64)  # live pixels of each tile row at the last count
+    row_live[:ny] = nx
 
     for e in range(start[tile], start[tile + 1]):
         r = ids[e]
         lx0, lx1 = max(boxes[r, 0] - x_org, 0), min(boxes[r, 2] - x_org, TILE - 1)
         ly0, ly1 = max(boxes[r, 1] - y_org, 0), min(boxes[r, 3] - y_org, TILE - 1)
-        colmask = ((1 << (lx1 + 1)) - 1) & ~((1 << lx0) - 1)
         u, v, ca, cb2, cc, o = rec[r, _U], rec[r, _V], rec[r, _A], rec[r, _B2], rec[r, _C], rec[r, _O]
         cr, cg, cbl, cz = rec[r, _R], rec[r, _G], rec[r, _BL], rec[r, _Z]
+        first, last = np.float32(lx0), np.float32(lx1)
         # a box at most 8 columns wide within the tile: an 8-lane window (half the work)
         narrow = lx1 - lx0 < 8
         x_start = min(lx0, 8) if narrow else 0
         for ly in range(ly0, ly1 + 1):
-            live = rowmask[ly] & colmask
-            if live == 0:
+            if row_live[ly] == 0:
                 continue
             dy = (np.float32(ly) + y0) - v
             cq = cc * (dy * dy)
-            splat = (x0, u, ca, cb2, o, cr, cg, cbl, cz, dy, cq)
+            splat = (x0, u, ca, cb2, o, cr, cg, cbl, cz, dy, cq, first, last)
             if narrow:
-                stopped = _blend_row(state, ly, x_start, 8, live, splat, want_depth, consts, poly)
+                _blend_row(state, ly, x_start, 8, splat, want_depth, consts, poly)
             else:
-                stopped = _blend_row(state, ly, 0, TILE, live, splat, want_depth, consts, poly)
-            if stopped:
-                rowmask[ly] &= ~stopped
+                _blend_row(state, ly, 0, TILE, splat, want_depth, consts, poly)
+        if (e - start[tile]) % _RECOUNT == _RECOUNT - 1:  # skip dead rows, stop a dead tile
+            n_live = 0
+            for ly in range(ny):
+                live = 0
                 for lx in range(TILE):
-                    n_live -= (stopped >> lx) & 1
-        if n_live == 0:
-            break
+                    live += state[_LIVE, ly, lx] > zero
+                row_live[ly] = live
+                n_live += live
+            if n_live == 0:
+                break
 
     for ly in range(ny):
         for lx in range(nx):
             p = (y_org + ly) * width + x_org + lx
-            t = state[0, ly, lx]
-            rgb[p, 0] = state[1, ly, lx] + t * bg[0]
-            rgb[p, 1] = state[2, ly, lx] + t * bg[1]
-            rgb[p, 2] = state[3, ly, lx] + t * bg[2]
+            t = state[_T, ly, lx]
+            rgb[p, 0] = state[_RED, ly, lx] + t * bg[0]
+            rgb[p, 1] = state[_GREEN, ly, lx] + t * bg[1]
+            rgb[p, 2] = state[_BLUE, ly, lx] + t * bg[2]
             alpha[p] = one - t
             if want_depth:
-                depth[p] = state[4, ly, lx]
+                depth[p] = state[_DEPTH, ly, lx]
 
 
 @_jit()
