@@ -32,7 +32,7 @@ from pathlib import Path
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 import torch
-from gensplat_lerobot import LeRobotSource, enable_gensplat, prepare
+from gensplat_lerobot import LeRobotSource, enable_gensplat, prepare, video_backend
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from machine import cpu_model, write_result
 from torch.utils.data import DataLoader, RandomSampler
@@ -170,8 +170,8 @@ def main() -> None:
     gaussians = GaussianCache(Path(tempfile.mkdtemp()), GaussiansOf(RGBDReconstructor()), source.fingerprint)
     gaussian_bytes = sum(gaussians.ensure(ep, source).bytes for ep in stats)
 
-    plain = LeRobotDataset(REPO, root=root)
-    gensplat = enable_gensplat(LeRobotDataset(REPO, root=root))
+    plain = LeRobotDataset(REPO, root=root, video_backend=video_backend())
+    gensplat = enable_gensplat(LeRobotDataset(REPO, root=root, video_backend=video_backend()))
     split = split_ms(gensplat, samples)
     result = {
         "quick": args.quick, "backend": args.backend, "workers": args.workers, "resolution": [height, width],
