@@ -45,8 +45,9 @@ class GenSplatConfig:
             RNG, which DataLoader seeds per worker and per epoch.
         frame_offsets: frames of a temporal stack (T, C, H, W) relative to the item's frame
             (default: the T frames ending at it); clamped to the episode, as LeRobot pads.
-        backend, render_options: renderer and its options; "fast" renders with one thread
-            unless ``{"threads": n}`` is given.
+        backend, render_options: renderer (a ``rendering.BACKENDS`` name, or "auto" as in
+            ``render``) and its options; "fast" renders with one thread unless
+            ``{"threads": n}`` is given.
         background: RGB where nothing was reconstructed (with ``fill_holes``: only where the
             view shows nothing at all).
         fill_holes: paint the pixels the Gaussians leave uncovered (parts of the new view no
@@ -93,8 +94,9 @@ class GenSplatConfig:
             raise ValueError(f"GenSplatConfig.probability must be in [0, 1], got {self.probability}")
         if self.views_per_source < 1:
             raise ValueError(f"GenSplatConfig.views_per_source must be >= 1, got {self.views_per_source}")
-        if self.backend not in BACKENDS:
-            raise ValueError(f"GenSplatConfig.backend: unknown {self.backend!r}; available {sorted(BACKENDS)}")
+        if self.backend not in (*BACKENDS, "auto"):
+            raise ValueError(f"GenSplatConfig.backend: unknown {self.backend!r}; available {sorted(BACKENDS)} "
+                             "or 'auto'")
         if self.render_in not in RENDER_IN:
             raise ValueError(f"GenSplatConfig.render_in must be one of {RENDER_IN}, got {self.render_in!r}")
 

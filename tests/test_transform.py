@@ -136,6 +136,15 @@ def test_bad_inputs_raise_clear_errors(setup, tmp_path):
         GenSplatConfig(backend="nope")
 
 
+def test_auto_backend_renders_as_the_fast_one_on_the_cpu(setup):
+    _, _, cache, ds = setup
+    out = {}
+    for backend in ("auto", "fast"):
+        torch.manual_seed(3)
+        out[backend] = make(cache, backend=backend)(ds[4])[LEFT]
+    torch.testing.assert_close(out["auto"], out["fast"], atol=0, rtol=0)
+
+
 def test_config_round_trips_through_a_dict_and_json():
     level = PerturbationRange((2.0, 4.0), (0.01, 0.02), random_sign=False)
     configs = [GenSplatConfig(), GenSplatConfig(cameras=("a", "b", "c"), replace=("b",), level=level, seed=3,
