@@ -10,12 +10,14 @@ once with MP4 video, for the dataset's own bytes per timestep. On one of them (P
 with --video) the cache is built, and the same DataLoader (same workers, batch size and
 sample order) is iterated with and without GenSplat (probability 1, level "train"). The
 per-sample split times one worker's steps directly (one thread): LeRobot's frame decoding (the
-dataset's own cost, apart from GenSplat's), the cache read (depth decoding), rebuilding the
-Gaussians from the depth and the item's images, render of the replaced cameras, uint8
-conversion, and the whole transform. The cache is compared with storing the quantised
-Gaussians themselves (the ``gaussians`` encoding, what a non-depth reconstructor stores) in
-bytes, and in fidelity: PSNR against the simulator's true image at perturbed poses, rendered
-from the cached versus the raw Gaussians. Writes benchmarks/results/dataloader.json (or --out);
+dataset's own cost, apart from GenSplat's), the depth read (from the dataset's depth files,
+which the default cache links), rebuilding the Gaussians from the depth and the item's
+images, render of the replaced cameras, uint8 conversion, and the whole transform. The
+default cache is compared with a compressed copy of the depth (``gensplat cache
+--copy-depth``) and with storing the quantised Gaussians themselves (the ``gaussians``
+encoding, what a non-depth reconstructor stores) in bytes, and in fidelity: PSNR against
+the simulator's true image at perturbed poses, rendered from the cached versus the raw
+Gaussians. Writes benchmarks/results/dataloader.json (or --out);
 ``resolution`` is [height, width].
 """
 
@@ -106,16 +108,15 @@ class GaussiansOf(Reconstructor):
         return self.inner(views)
 
 
-def cache_fidelity(root: Path, ds, frames: int) -> dict:
-    """Mean PSNR against the simulator at Large perturbations: raw vs cached Gaussians."""
-    tf = ds.gensplat
+def cache_fidelity(root: Path, ds, cache: GaussianCache, frames: int) -> dict:
+    """Mean PSNR against the simulator at Large perturbations: raw vs ``cache``'s Gaussians."""
     source, rgbd, truth = LeRobotSource(root, REPO), RGBDReconstructor(), GroundTruth(root)
     raw_db, cached_db = [], []
     for k, idx in enumerate(torch.linspace(0, len(ds) - 1, frames).long().tolist()):
         item = LeRobotDataset.__getitem__(ds, idx)
         ep, fr = int(item["episode_index"]), int(item["frame_index"])
         views = source.views(ep, fr)
-        raw, cached = rgbd(views), tf.cache.read(ep, fr, views.images)
+        raw, cached = rgbd(views), cache.read(ep, fr, views.images)
         target = PerturbationSampler("large", seed=k).sample(ep).move(raw.cameras, 0)
         true_rgb, _ = truth.render(ep, fr, target)
         a = render(raw.gaussians, target, backend="fast")
@@ -169,6 +170,8 @@ def main() -> None:
     source = LeRobotSource(root, REPO)
     gaussians = GaussianCache(Path(tempfile.mkdtemp()), GaussiansOf(RGBDReconstructor()), source.fingerprint)
     gaussian_bytes = sum(gaussians.ensure(ep, source).bytes for ep in stats)
+    copy = GaussianCache(Path(tempfile.mkdtemp()), RGBDReconstructor(), source.fingerprint, link_depth=False)
+    copy_bytes = sum(copy.ensure(ep, source).bytes for ep in stats)
 
     plain = LeRobotDataset(REPO, root=root, video_backend=video_backend())
     gensplat = enable_gensplat(LeRobotDataset(REPO, root=root, video_backend=video_backend()))
@@ -183,18 +186,22 @@ def main() -> None:
         "transform_ms": split["transform_total"], "split_ms": split,
         "video": args.video,
         "cache_bytes_per_timestep": round(sum(s.bytes for s in stats.values()) / frames),
+        "copied_depth_bytes_per_timestep": round(copy_bytes / frames),
         "gaussians_encoding_bytes_per_timestep": round(gaussian_bytes / frames),
         "dataset_bytes_per_timestep": {"png": round(dataset_bytes_per_timestep(roots[False])),
                                        "mp4": round(dataset_bytes_per_timestep(roots[True]))},
         "cache_build_ms_per_timestep": round(build_s / frames * 1e3, 1),
-        "cache_fidelity": cache_fidelity(root, gensplat, samples // 2),
+        "cache_fidelity": cache_fidelity(root, gensplat, gensplat.gensplat.cache, samples // 2),
+        "copied_depth_fidelity": cache_fidelity(root, gensplat, copy, samples // 2),
         "machine": {"cpus": os.cpu_count(), **cpu_model()},
         "load_average": os.getloadavg(),
     }  # fmt: skip
     for k in ("samples_per_s_plain", "samples_per_s_gensplat", "transform_ms", "cache_bytes_per_timestep",
-              "gaussians_encoding_bytes_per_timestep", "cache_build_ms_per_timestep"):  # fmt: skip
+              "copied_depth_bytes_per_timestep", "gaussians_encoding_bytes_per_timestep",
+              "cache_build_ms_per_timestep"):  # fmt: skip
         print(f"{k:30}{result[k]:>12}")
-    for k, v in {**split, **result["cache_fidelity"], **result["dataset_bytes_per_timestep"]}.items():
+    copied = {f"copied_depth_{k}": v for k, v in result["copied_depth_fidelity"].items()}
+    for k, v in {**split, **result["cache_fidelity"], **copied, **result["dataset_bytes_per_timestep"]}.items():
         print(f"  {k:28}{v:>12}")
     write_result(result, args.out)
 

@@ -9,6 +9,13 @@ What it stores depends on the reconstructor:
   worker rebuilds the Gaussians from the item's own images with
   ``reconstructor.assemble`` (a few milliseconds per timestep). About 10-20 kB per
   timestep for two 224x224 views.
+  Where the reconstructor only cleans depth the dataset already carries (RGB-D sensor
+  depth, ``DepthReconstructor.given_depth``) and the source names that depth's files
+  (``depth_files``), nothing of it is stored: the episode file *links* the dataset's depth
+  files (paths relative to the cache folder, their sizes and CRC-32s) and holds the cameras
+  once, about 1 kB per episode; workers read each frame's depth from the dataset, memory-
+  mapped. ``link_depth=False`` stores the compressed copy instead (e.g. where the dataset
+  sits on slow network storage: 4-17 kB per timestep to read instead of the raw depth).
 * ``gaussians`` (any other reconstructor, e.g. the feed-forward model's Gaussian head):
   the Gaussians themselves, quantised (means as uint16 inside the episode's bounding box,
   quaternions int8, opacities uint8, scales and SH float16: 23 bytes per Gaussian at SH
@@ -18,7 +25,9 @@ Trust: the header (safetensors metadata) names the format version, the kind, the
 reconstructor identity and the dataset fingerprint; a mismatch is :class:`StaleCacheError`.
 Every tensor has a CRC-32 over its name, dtype, shape and bytes, and the header has a CRC-32
 over all its other fields, so no edit of a label or a field goes unnoticed: a file that is
-truncated, edited or fails a checksum is :class:`CorruptCacheError`. Writes go to a
+truncated, edited or fails a checksum is :class:`CorruptCacheError`. A linked depth file that
+is missing, has another size or shape than when it was linked makes the episode stale (the
+dataset changed); full verification also compares its CRC-32. Writes go to a
 temporary file (``.episode_<index>.safetensors.tmp``) that is atomically renamed, under a
 per-episode lock, so concurrent builders never build one episode twice; a builder killed
 mid-write leaves a temporary file that the next builder of that episode removes.
@@ -45,6 +54,7 @@ from safetensors.torch import save
 
 from . import depth_codec
 from .cameras import Cameras
+from .dataset_format import open_depth
 from .gaussians import Gaussians
 from .reconstruction import DepthReconstructor, Reconstruction, Reconstructor, Views
 
@@ -68,12 +78,25 @@ class CorruptCacheError(CacheError):
     """The file is truncated, unreadable, malformed or fails a checksum."""
 
 
+@dataclass(frozen=True)
+class DepthFiles:
+    """The depth a dataset carries for one episode: one file per reconstructed camera, in the
+    depth format of :mod:`.dataset_format` (tensor ``"depth"`` (T, H, W), metres, 0 = invalid),
+    and the V cameras it was taken with."""
+
+    paths: tuple[Path, ...]
+    cameras: Cameras
+
+
 class EpisodeSource(Protocol):
     """Views of the reconstructed cameras, per timestep (see :mod:`.episodes`).
 
     Attributes:
         camera_names: names of the cameras ``views`` returns, in order.
         fingerprint: changes whenever the content changes (keys the cache).
+
+    A source whose depth lives in files may also define ``depth_files(episode) ->
+    DepthFiles | None``; a depth cache then links them instead of copying the depth.
     """
 
     camera_names: tuple[str, ...]
@@ -134,11 +157,28 @@ def _header_crc(meta: dict[str, str]) -> str:
     return f"{zlib.crc32(json.dumps(body, sort_keys=True).encode()):08x}"
 
 
+def _file_crc(path: Path, chunk: int = 1 << 22) -> str:
+    """CRC-32 of a file's bytes."""
+    crc = 0
+    with open(path, "rb") as fh:
+        while block := fh.read(chunk):
+            crc = zlib.crc32(block, crc)
+    return f"{crc:08x}"
+
+
 def _blob(data: bytes) -> torch.Tensor:
     return torch.frombuffer(bytearray(data), dtype=torch.uint8)
 
 
 # ---------------------------------------------------------------------------- the cache
+
+
+def size_text(num_bytes: float) -> str:
+    """``num_bytes`` for people: "17 B", "4.2 kB", "88.0 MB"."""
+    for unit, scale in (("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if num_bytes >= scale:
+            return f"{num_bytes / scale:.1f} {unit}"
+    return f"{num_bytes:.0f} B"
 
 
 @dataclass
@@ -163,6 +203,9 @@ class GaussianCache:
             ``depth`` cache (see the module docstring).
         dataset: fingerprint of the dataset (anything that changes when its content does).
         max_open: episode files kept open (memory-mapped) per process.
+        link_depth: link the dataset's own depth files instead of storing a copy, where the
+            reconstructor only cleans given depth and the source names the files (see the
+            module docstring); False stores the copy, and makes linked episodes stale.
 
     Example: cache the procedural RGB-D episodes (a ``depth`` cache)
         >>> import tempfile
@@ -177,7 +220,8 @@ class GaussianCache:
         >>> folder.cleanup()
     """
 
-    def __init__(self, root: str | Path, reconstructor: Reconstructor, dataset: str, max_open: int = 8) -> None:
+    def __init__(self, root: str | Path, reconstructor: Reconstructor, dataset: str, max_open: int = 8,
+                 link_depth: bool = True) -> None:
         if not isinstance(reconstructor, Reconstructor):
             raise TypeError(f"GaussianCache: expected a Reconstructor, got {type(reconstructor).__name__}")
         self.root = Path(root)
@@ -186,6 +230,7 @@ class GaussianCache:
         self.kind = "depth" if isinstance(reconstructor, DepthReconstructor) else "gaussians"
         self.dataset = dataset
         self.max_open = max_open
+        self.link_depth = link_depth and getattr(reconstructor, "given_depth", False)
         self._open: OrderedDict[int, _EpisodeFile] = OrderedDict()
 
     def __getstate__(self) -> dict:  # open file handles do not cross process boundaries
@@ -220,6 +265,8 @@ class GaussianCache:
             raise ValueError(f"GaussianCache: episode {episode} has no frames")
         rec = self.reconstructor
         predict = rec.predict_depth if self.kind == "depth" else rec
+        depth_files = getattr(source, "depth_files", None) if self.link_depth else None
+        links = depth_files(episode) if depth_files is not None else None
         tmp = self._tmp(episode)
         while True:  # normally once: lock() removed or waited for any earlier temporary file
             try:
@@ -229,8 +276,11 @@ class GaussianCache:
                 _remove_or_wait(tmp)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX)  # tells later builders this file is being written
-            frames = [predict(source.views(episode, t)) for t in range(n)]
-            tensors, meta = (_encode_depth if self.kind == "depth" else _encode_gaussians)(frames)
+            if links is not None:
+                tensors, meta = _encode_links(links, n, self.root)
+            else:
+                frames = [predict(source.views(episode, t)) for t in range(n)]
+                tensors, meta = (_encode_depth if self.kind == "depth" else _encode_gaussians)(frames)
             meta.update(format=FORMAT, format_version=FORMAT_VERSION, kind=self.kind, reconstructor=self.identity,
                         dataset=self.dataset, episode_index=str(int(episode)), num_frames=str(n))  # fmt: skip
             meta["crc"] = json.dumps({k: _tensor_crc(k, v) for k, v in tensors.items()}, sort_keys=True)
@@ -293,14 +343,15 @@ class GaussianCache:
         return "ok"
 
     def verify(self, episode: int) -> bool:
-        """Whether every tensor of a readable episode file passes its checksum."""
+        """Whether every tensor of a readable episode file passes its checksum, and every
+        depth file it links has the CRC-32 it had when linked."""
         try:
             f = self._file(episode)
             for name in f.crc:
                 f.tensor(name)
-        except (CacheError, FileNotFoundError):
+            return all(_file_crc(path) == crc for path, _, crc in f.links)
+        except (CacheError, OSError):
             return False
-        return True
 
     def num_frames(self, episode: int) -> int:
         return self._file(episode).num_frames
@@ -390,6 +441,24 @@ def _encode_depth(frames: Sequence[Views]) -> tuple[dict[str, torch.Tensor], dic
     return {**tensors, **_cameras(frames)}, meta
 
 
+def _encode_links(files: DepthFiles, num_frames: int, root: Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+    """Tensors (the cameras, once) and header fields of a depth episode that links the
+    dataset's depth files (paths relative to the cache folder ``root``)."""
+    cam = files.cameras
+    if len(files.paths) != len(cam):
+        raise ValueError(f"GaussianCache: {len(files.paths)} depth files for {len(cam)} cameras")
+    links = []
+    for path in map(Path, files.paths):
+        shape = tuple(open_depth(path).get_shape())
+        if shape != (num_frames, cam.height, cam.width):
+            raise ValueError(f"GaussianCache: {path} holds depth of shape {shape}, expected "
+                             f"({num_frames}, {cam.height}, {cam.width}): {num_frames} frames at the cameras' size")  # fmt: skip
+        links.append({"path": os.path.relpath(path, root), "bytes": path.stat().st_size, "crc": _file_crc(path)})
+    meta = {"image_size": json.dumps([cam.width, cam.height]), "num_views": str(len(cam)),
+            "depth_links": json.dumps(links)}  # fmt: skip
+    return {"K": cam.K.double()[None].contiguous(), "c2w": cam.c2w.double()[None].contiguous()}, meta
+
+
 def _encode_gaussians(frames: Sequence[Reconstruction]) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
     """Tensors and header fields of a Gaussians episode."""
     means = torch.cat([f.gaussians.means.float() for f in frames])
@@ -445,10 +514,14 @@ class _EpisodeFile:
         for key, want in (("kind", cache.kind), ("reconstructor", cache.identity), ("dataset", cache.dataset)):
             if meta.get(key) != want:
                 raise StaleCacheError(f"{path}: built with {key}={meta.get(key)!r}, expected {want!r}")
+        if "depth_links" in meta and not cache.link_depth:
+            raise StaleCacheError(f"{path}: links the dataset's depth files; this cache stores copies (link_depth=False)")
         try:
             self._parse(meta, episode)
         except (KeyError, ValueError, TypeError) as e:
             raise CorruptCacheError(f"{path}: malformed header ({type(e).__name__}: {e})") from e
+        self._linked = [self._open_link(p, size) for p, size, _ in self.links]
+        self._clean = cache.reconstructor.clean_depth if self.links else None
         self._static: Gaussians | None = None
         self._reference: np.ndarray | None = None
 
@@ -471,11 +544,35 @@ class _EpisodeFile:
             self.lo, self.hi = torch.tensor(lo, dtype=torch.float32), torch.tensor(hi, dtype=torch.float32)
             if self.lo.shape != (3,) or self.hi.shape != (3,) or not torch.isfinite(torch.cat([self.lo, self.hi])).all():
                 raise ValueError(f"bounding box {meta['bbox']} is not two finite 3-vectors")
+        #: (path, bytes, crc) of each linked depth file, in view order; empty when the depth is stored
+        self.links = [(self.path.parent / d["path"], int(d["bytes"]), str(d["crc"]))
+                      for d in json.loads(meta.get("depth_links", "[]"))]  # fmt: skip
+        if self.links and len(self.links) != self.num_views:
+            raise ValueError(f"{len(self.links)} linked depth files for {self.num_views} views")
         K, c2w = self.tensor("K"), self.tensor("c2w")
-        want = (self.num_frames, self.num_views)
+        want = (1 if self.links else self.num_frames, self.num_views)  # linked: the cameras once
         if K.shape != (*want, 3, 3) or c2w.shape != (*want, 4, 4) or K.dtype != torch.float64:
             raise ValueError(f"cameras of shape {tuple(K.shape)} / {tuple(c2w.shape)}, expected {want} views")
-        self.K, self.c2w = K, c2w
+        self.K, self.c2w = K.expand(self.num_frames, -1, -1, -1), c2w.expand(self.num_frames, -1, -1, -1)
+
+    def _open_link(self, path: Path, size: int):
+        """A linked depth file, memory-mapped, after checking it is the file that was linked
+        (as far as its size and shape tell; its CRC is checked by ``verify``)."""
+        try:
+            now = path.stat().st_size
+        except FileNotFoundError:
+            raise StaleCacheError(f"{self.path}: the dataset's depth file {path} it links is gone") from None
+        if now != size:
+            raise StaleCacheError(f"{self.path}: the dataset's depth file {path} changed since it was linked "
+                                  f"({size} -> {now} bytes)")  # fmt: skip
+        try:
+            depth = open_depth(path)
+        except ValueError as e:
+            raise StaleCacheError(f"{self.path}: {e}") from e
+        if tuple(depth.get_shape()) != (self.num_frames, self.height, self.width):
+            raise StaleCacheError(f"{self.path}: the dataset's depth file {path} holds depth of shape "
+                                  f"{tuple(depth.get_shape())}, linked as {(self.num_frames, self.height, self.width)}")  # fmt: skip
+        return depth
 
     def tensor(self, name: str) -> torch.Tensor:
         """One stored tensor, checksum verified."""
@@ -505,6 +602,8 @@ class _EpisodeFile:
     def depth(self, frame: int) -> torch.Tensor:
         """(V, 1, H, W) float32 depth of one frame."""
         self._check_frame(frame)
+        if self._linked:  # the dataset's own depth, cleaned as the reconstructor cleans it
+            return self._clean(torch.stack([d[frame : frame + 1] for d in self._linked]))
         if self._reference is None:  # decoded once per process and episode, then reused
             blob = self.tensor("depth.reference").numpy().tobytes()
             try:

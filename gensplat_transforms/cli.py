@@ -68,6 +68,9 @@ def build_parser() -> argparse.ArgumentParser:
     cache.add_argument("--trust-headers", dest="verify", action="store_false",
                        help="resume without reading cached data: skip every episode whose header is valid (data "
                             "checksums are still checked on every read; default: check every checksum)")
+    cache.add_argument("--copy-depth", dest="link_depth", action="store_false",
+                       help="rgbd: store a compressed copy of the dataset's depth (4-17 kB per timestep) instead of "
+                            "linking its depth files, e.g. when the dataset is on slow network storage (default: link)")
     cache.add_argument("--reconstructor", choices=["rgbd", "geometry", "gensplat"], default=None,
                        help="rgbd: the dataset's depth; geometry: depth from a Pi3-compatible model, RGB-D discs; "
                             "gensplat: the model's own Gaussian head (default: rgbd when the cameras have depth, "
@@ -232,6 +235,7 @@ def _cache(args) -> None:
         from gensplat_lerobot import LeRobotSource, prepare
     except ImportError as e:
         raise SystemExit(f"gensplat cache needs the LeRobot extra: pip install 'gensplat-transforms[lerobot]' ({e})")
+    from .cache import size_text
     from .dataset_format import GENSPLAT_DIR
     from .distributed import Shard, gather
     from .transform import GenSplatConfig
@@ -252,7 +256,8 @@ def _cache(args) -> None:
     if shard.rank == 0:
         print(f"repo id {args.repo_id}, dataset root {args.root}; settings and cache in "
               f"{Path(args.root) / GENSPLAT_DIR} (found by the dataset's content, whatever repo id training uses)")
-    stats = prepare(args.root, args.repo_id, config, spec, args.episodes, shard=shard, verify=args.verify)
+    stats = prepare(args.root, args.repo_id, config, spec, args.episodes, shard=shard, verify=args.verify,
+                    link_depth=args.link_depth)
     ranks = gather(shard, (stats, time.perf_counter() - start, time.process_time() - cpu))
     if ranks is None:
         return
@@ -266,7 +271,7 @@ def _cache(args) -> None:
     per = "" if len(ranks) == 1 else f" [built per process: {counts}]"
     print(f"{who}cached {len(built)} episode(s) ({len(stats) - len(built)} already valid) on {len(ranks)} "
           f"process(es) in {seconds:.2f} s, {cpu_s:.2f} CPU s ({len(built) / seconds:.3f} episodes/s): "
-          f"{frames} timesteps, {size / 1e6:.1f} MB, {size / max(frames, 1) / 1e3:.0f} kB per timestep{per}")
+          f"{frames} timesteps, {size_text(size)}, {size_text(size / max(frames, 1))} per timestep{per}")
 
 
 def _train_model(args) -> None:

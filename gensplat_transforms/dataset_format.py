@@ -146,14 +146,22 @@ def load_depth(root: str | Path, camera: str, episode: int, frame: int | None = 
     path = depth_path(root, camera, episode)
     if not path.exists():
         raise FileNotFoundError(f"no depth for camera {camera!r}, episode {episode}: {path} is missing")
+    depth = open_depth(path)
+    return depth[:].float()[:, None] if frame is None else depth[frame : frame + 1].float()
+
+
+def open_depth(path: str | Path):
+    """The ``"depth"`` tensor of a depth file, memory-mapped: slicing it reads only those
+    frames (``[t : t + 1]`` -> (1, H, W) float16); ``.get_shape()`` is (T, H, W).
+    Raises ValueError naming the file when it is not a readable depth file."""
     try:
-        with safe_open(str(path), framework="pt") as f:
-            meta = f.metadata() or {}
-            if meta.get("format") != DEPTH_FORMAT:
-                raise ValueError(f"{path}: not a GenSplat depth file")
-            if frame is None:
-                return f.get_tensor("depth").float()[:, None]
-            return f.get_slice("depth")[frame : frame + 1].float()
+        f = safe_open(str(path), framework="pt")
+        if (f.metadata() or {}).get("format") != DEPTH_FORMAT:
+            raise ValueError(f"{path}: not a GenSplat depth file")
+        depth = f.get_slice("depth")
+        if len(depth.get_shape()) != 3:
+            raise ValueError(f"{path}: depth of shape {depth.get_shape()}, expected (T, H, W)")
+        return depth
     except ValueError:
         raise
     except Exception as e:

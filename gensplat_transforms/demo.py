@@ -11,6 +11,7 @@ from pathlib import Path
 
 import torch
 
+from .cache import size_text
 from .dataset_format import GENSPLAT_DIR
 from .images import save_grid
 from .metrics import psnr
@@ -53,7 +54,7 @@ def run_demo(out_dir: str | Path, episodes: int = 2, size: int = 224, seed: int 
         per_step = sum(s.bytes for s in built) / sum(s.num_frames for s in built)
         summary["cache_bytes_per_timestep"] = round(per_step)
         log(f"cached Gaussians of {len(built)} episode(s) in {time.perf_counter() - t0:.0f} s, "
-            f"{per_step / 1e3:.0f} kB per timestep")
+            f"{size_text(per_step)} per timestep")
 
     dataset = enable_gensplat(LeRobotDataset(REPO_ID, root=root, video_backend=video_backend()))
     tf = dataset.gensplat

@@ -482,3 +482,123 @@ def test_deleting_the_lock_file_of_a_running_build_does_not_let_a_second_builder
     first.join()
     assert slow.calls == 3
     assert cache.status(0) == "ok"
+
+
+# ---------------------------------------------------------------------------- linked depth
+
+
+class SidecarSource:
+    """A source whose depth lives in depth files (as a recorded dataset's sidecars)."""
+
+    def __init__(self, source, root):
+        from gensplat_transforms.dataset_format import save_depth
+
+        self.source, self.root = source, root
+        self.camera_names, self.fingerprint = ("left", "right"), source.fingerprint
+        for e in range(source.num_episodes):
+            depths = torch.stack([source.views(e, t).depths[:, 0] for t in range(source.num_frames(e))], 1)
+            for name, d in zip(self.camera_names, depths):
+                save_depth(root, name, e, d)
+
+    def num_frames(self, episode):
+        return self.source.num_frames(episode)
+
+    def views(self, episode, frame):
+        from gensplat_transforms.dataset_format import load_depth
+        from gensplat_transforms.reconstruction import Views
+
+        v = self.source.views(episode, frame)
+        depths = torch.stack([load_depth(self.root, n, episode, frame) for n in self.camera_names])
+        return Views(v.images, v.cameras, depths)
+
+    def depth_files(self, episode):
+        from gensplat_transforms.cache import DepthFiles
+        from gensplat_transforms.dataset_format import depth_path
+
+        paths = tuple(depth_path(self.root, n, episode) for n in self.camera_names)
+        return DepthFiles(paths, self.source.views(episode, 0).cameras)
+
+
+@pytest.fixture
+def linked(tmp_path, source):
+    sidecars = SidecarSource(source, tmp_path / "dataset")
+    cache = GaussianCache(tmp_path / "dataset" / "gensplat" / "cache", RGBDReconstructor(), source.fingerprint)
+    return cache, sidecars, build_cache(cache, sidecars, range(2), progress=False)
+
+
+def test_the_datasets_own_depth_is_linked_not_copied(linked, tmp_path):
+    cache, sidecars, stats = linked
+    header, _ = read_header(cache.path(0))
+    links = json.loads(header["__metadata__"]["depth_links"])
+    assert [link["path"] for link in links] == [os.path.join("..", "..", "depth", n, "episode_000000.safetensors")
+                                                for n in ("left", "right")]  # fmt: skip
+    assert stats[0].bytes < 2000 and not any(k.startswith("depth.") for k in header)  # cameras and header only
+    copy = GaussianCache(tmp_path / "copy", RGBDReconstructor(), sidecars.fingerprint, link_depth=False)
+    copy.ensure(0, sidecars)
+    assert copy.path(0).stat().st_size > 4 * stats[0].bytes
+    for t in range(3):
+        views = sidecars.views(0, t)
+        want = RGBDReconstructor()(views)  # the uncompressed reconstruction: linking loses nothing
+        got = cache.read(0, t, views.images)
+        for name in ("means", "quats", "scales", "sh"):
+            assert torch.equal(getattr(got.gaussians, name), getattr(want.gaussians, name))
+        assert torch.equal(got.cameras.c2w, want.cameras.c2w.double()) and torch.equal(got.cameras.K, want.cameras.K.double())
+        depth, _ = cache.read_depth(0, t)
+        assert torch.equal(depth, RGBDReconstructor().clean_depth(views.depths))
+
+
+def test_a_linked_cache_moves_with_its_dataset(linked, tmp_path):
+    cache, sidecars, _ = linked
+    want = RGBDReconstructor().clean_depth(sidecars.views(0, 1).depths)
+    (tmp_path / "dataset").rename(tmp_path / "moved")
+    moved = GaussianCache(tmp_path / "moved" / "gensplat" / "cache", cache.reconstructor, cache.dataset)
+    assert moved.status(0) == "ok" and moved.verify(0)
+    assert torch.equal(moved.read_depth(0, 1)[0], want)
+
+
+def test_a_changed_or_missing_depth_file_makes_the_episode_stale(linked):
+    from gensplat_transforms.dataset_format import depth_path, save_depth
+
+    cache, sidecars, _ = linked
+    left = depth_path(sidecars.root, "left", 0)
+    save_depth(sidecars.root, "left", 0, torch.ones(2, 48, 48))  # fewer frames: another size
+    assert fresh(cache).status(0) == "stale"
+    left.unlink()
+    assert fresh(cache).status(0) == "stale"
+    # the same size and shape, other values: only full verification sees it, and relinks
+    save_depth(sidecars.root, "right", 1, torch.full((3, 48, 48), 0.7))
+    c = fresh(cache)
+    assert c.status(1) == "ok" and not c.verify(1)
+    assert c.ensure(1, sidecars, verify=True) is not None and c.verify(1)
+    assert torch.equal(c.read_depth(1, 2)[0][1], torch.full((1, 48, 48), 0.7, dtype=torch.float16).float())
+
+
+def test_a_copy_cache_rebuilds_linked_episodes_and_a_link_cache_reads_copies(linked):
+    cache, sidecars, _ = linked
+    copy = GaussianCache(cache.root, cache.reconstructor, cache.dataset, link_depth=False)
+    assert copy.status(0) == "stale"
+    copy.ensure(0, sidecars)
+    header, _ = read_header(cache.path(0))
+    assert "depth_links" not in header["__metadata__"] and "depth.f0" in header
+    assert fresh(cache).status(0) == "ok" and fresh(cache).verify(0)
+
+
+LINK_EDITS = {
+    "links not JSON": set_meta("depth_links", "[{"),
+    "one link for two views": lambda h: h["__metadata__"].update(
+        depth_links=json.dumps(json.loads(h["__metadata__"]["depth_links"])[:1])),
+    "link without a size": lambda h: h["__metadata__"].update(
+        depth_links=json.dumps([{k: v for k, v in d.items() if k != "bytes"}
+                                for d in json.loads(h["__metadata__"]["depth_links"])])),
+}
+
+
+@pytest.mark.parametrize("edit", list(LINK_EDITS))
+@pytest.mark.parametrize("forged", [False, True])
+def test_malformed_links_are_corrupt_not_a_crash(linked, edit, forged):
+    cache, _, _ = linked
+    edit_header(cache.path(0), lambda h: (LINK_EDITS[edit](h), forged and _header_is_still_consistent(h)))
+    c = fresh(cache)
+    assert c.status(0) == "corrupt" and not c.verify(0)
+    with pytest.raises(CorruptCacheError):
+        c.read_depth(0, 0)

@@ -126,7 +126,13 @@ class DepthReconstructor(Reconstructor):
     * :meth:`predict_depth` (expensive: a model's forward pass, or reading sensor depth):
       views -> the same views with ``cameras`` and ``depths`` set (0 where no Gaussian);
     * :meth:`assemble` (cheap, runs in dataloader workers): such views -> Gaussians.
+
+    ``given_depth``: :meth:`predict_depth` returns the views' own depth cleaned by the
+    reconstructor's ``clean_depth(depths)``, so a cache may read that depth from the dataset
+    and clean it instead of storing it.
     """
+
+    given_depth = False
 
     @abstractmethod
     def predict_depth(self, views: Views) -> Views: ...

@@ -87,6 +87,7 @@ class RGBDReconstructor(DepthReconstructor):
     """
 
     name = "rgbd"
+    given_depth = True
 
     def __init__(self, config: RGBDConfig | None = None, fast: bool = True, **overrides) -> None:
         self.cfg = RGBDConfig(**{**asdict(config or RGBDConfig()), **overrides})

@@ -61,10 +61,10 @@ def default_reconstructor(source: LeRobotSource) -> dict:
     return {"name": "rgbd"} if source.has_depth() else {"name": "geometry"}
 
 
-def dataset_cache(root: str | Path, reconstructor, source: LeRobotSource) -> GaussianCache:
+def dataset_cache(root: str | Path, reconstructor, source: LeRobotSource, link_depth: bool = True) -> GaussianCache:
     """The cache of a dataset: ``<root>/gensplat/cache/<reconstructor identity>/``."""
     return GaussianCache(Path(root) / GENSPLAT_DIR / "cache" / reconstructor.identity(), reconstructor,
-                         source.fingerprint)  # fmt: skip
+                         source.fingerprint, link_depth=link_depth)  # fmt: skip
 
 
 def check_cache(transform: GenSplatTransform, episodes, repo_id: str) -> int:
@@ -167,14 +167,17 @@ def enable_gensplat(dataset: LeRobotDataset, config: GenSplatConfig | None = Non
 
 
 def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructor: dict | None = None,
-            episodes=None, progress: bool = True, shard: Shard | None = None, verify: bool = True) -> dict:
+            episodes=None, progress: bool = True, shard: Shard | None = None, verify: bool = True,
+            link_depth: bool = True) -> dict:
     """Write the settings beside the dataset and build its Gaussian cache (resumable).
 
     ``shard`` is this process's place among several (see :mod:`gensplat_transforms.distributed`;
     default: the only process): it builds only its share of the episodes, and only rank 0
     writes the settings. The models (geometry, gensplat) run on ``shard.device`` (``cuda:<local
     rank>`` when CUDA is available). ``verify=False`` skips episodes whose header is valid
-    without reading their data (see :func:`~gensplat_transforms.episodes.build_cache`). Returns per-episode
+    without reading their data (see :func:`~gensplat_transforms.episodes.build_cache`).
+    ``link_depth=False`` stores a compressed copy of the depth sidecars instead of linking them
+    (see :class:`~gensplat_transforms.cache.GaussianCache`). Returns per-episode
     :class:`~gensplat_transforms.cache.CacheStats` of this process's episodes (None when the
     episode was already cached)."""
     from gensplat_transforms.episodes import build_cache
@@ -191,4 +194,4 @@ def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructo
         content_path(root).write_text(json.dumps({"fingerprint": source.fingerprint, "content": source.content}))
     total = len(source.dataset.meta.episodes["length"])
     episodes = range(total) if episodes is None else episodes
-    return build_cache(dataset_cache(root, rec, source), source, episodes, progress, shard, verify)
+    return build_cache(dataset_cache(root, rec, source, link_depth), source, episodes, progress, shard, verify)

@@ -12,6 +12,7 @@ from pathlib import Path
 import torch
 from torch.utils.data import Dataset
 
+from gensplat_transforms.cache import DepthFiles
 from gensplat_transforms.dataset_format import (
     IMAGE_KEY_PREFIX,
     calibrated_cameras,
@@ -96,6 +97,12 @@ class LeRobotSource:
 
     def num_frames(self, episode: int) -> int:
         return int(self.dataset.meta.episodes["length"][episode])
+
+    def depth_files(self, episode: int) -> DepthFiles | None:
+        """The episode's depth sidecars of the reconstructed cameras (None unless all exist):
+        a depth cache links them instead of storing a copy."""
+        paths = tuple(depth_path(self.root, n, episode) for n in self.camera_names)
+        return DepthFiles(paths, self.cameras) if all(p.exists() for p in paths) else None
 
     def views(self, episode: int, frame: int) -> Views:
         start = int(self.dataset.meta.episodes["dataset_from_index"][episode])
