@@ -313,3 +313,25 @@ def test_compiled_code_is_cached_for_new_processes():
     assert done.returncode == 0, done.stderr
     misses, hits = map(int, done.stdout.split())
     assert misses == 0 and hits == 3
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_tile_lists_hold_every_touched_tile_in_depth_order(threads):
+    """Binning against a plain loop: boxes of one tile, several tiles, on the image's last
+    (partial) tiles, in a shuffled depth order."""
+    rng = np.random.default_rng(threads)
+    ntx, nty = -(-W // fast.TILE), -(-H // fast.TILE)
+    x0, y0 = rng.integers(0, W, 500), rng.integers(0, H, 500)
+    span = rng.choice([0, 3, 20, 40], (2, 500))
+    boxes = np.stack([x0, y0, np.minimum(x0 + span[0], W - 1), np.minimum(y0 + span[1], H - 1)], 1).astype(np.int32)
+    order = rng.permutation(500).astype(np.int32)
+    want = [[] for _ in range(ntx * nty)]
+    for i in order:
+        for ty in range(boxes[i, 1] // fast.TILE, boxes[i, 3] // fast.TILE + 1):
+            for tx in range(boxes[i, 0] // fast.TILE, boxes[i, 2] // fast.TILE + 1):
+                want[ty * ntx + tx].append(i)
+    if threads == 1:
+        start, ids = fast._bin_serial(order, boxes, ntx, nty)
+    else:
+        start, ids = fast._bin_parallel(order, boxes, ntx, nty, threads)
+    assert [ids[start[t] : start[t + 1]].tolist() for t in range(ntx * nty)] == want

@@ -8,7 +8,10 @@ differentiable. One frame runs in three compiled stages:
    opacity, off-image); one float32 record per visible splat, with its colour from SH only
    up to the requested degree; their front-to-back order by a stable radix sort on the
    bits of the depths rounded to float32, runs of equal roundings finished in float64;
-2. binning: in that order, each splat is listed in the 16x16 tiles its box touches;
+2. binning: each splat is listed in the 16x16 tiles its box touches, in depth order (a
+   counting sort: the tiles' list lengths are counted in memory order, which reads the boxes
+   sequentially, then the lists filled in depth order); one-tile splats, most of them, take a
+   branch without loops;
 3. rasterization, tile by tile with the Gaussian-outer loop: each splat visits the rows of
    its box inside the tile, and evaluates a whole 16-pixel tile row at once, or an 8-pixel
    window of it when its box is at most 8 pixels wide there (about 60 % of rows in the
@@ -74,7 +77,8 @@ from .projection import (
     fov_limits,
 )
 
-TILE = 16  # tile side in pixels: one tile row is one 16-lane vector
+_TILE_BITS = 4
+TILE = 1 << _TILE_BITS  # tile side in pixels (16): one tile row is one 16-lane vector
 # fields of a splat's float32 record: centre u, v; conic A, 2B, C; opacity; colour; depth
 _U, _V, _A, _B2, _C, _O, _R, _G, _BL, _Z = range(10)
 _REC = 10
@@ -403,26 +407,47 @@ def _project_parallel(
 
 
 # --------------------------------------------------------------------------- binning
-@_jit()
-def _bin_chunk(order, sorted_boxes, lo, hi, ntx, counts, ids):
-    """For the splats order[lo..hi-1] (boxes sorted_boxes[lo..hi-1]): count them per tile
-    (``ids`` empty) or append them to the tile lists at the cursors ``counts``."""
-    fill = ids.shape[0] > 0
-    for k in range(lo, hi):
-        tx0, tx1 = sorted_boxes[k, 0] // TILE, sorted_boxes[k, 2] // TILE
-        for ty in range(sorted_boxes[k, 1] // TILE, sorted_boxes[k, 3] // TILE + 1):
-            for tx in range(tx0, tx1 + 1):
-                t = ty * ntx + tx
-                if fill:
-                    ids[counts[t]] = order[k]
-                counts[t] += 1
+@_jit(inline=True)
+def _tile_range(boxes, i):
+    """Tiles (tx0, ty0, tx1, ty1), inclusive, that splat i's box touches: a box lies in the
+    image (coordinates >= 0), so a shift is the floor division."""
+    return (boxes[i, 0] >> _TILE_BITS, boxes[i, 1] >> _TILE_BITS, boxes[i, 2] >> _TILE_BITS,
+            boxes[i, 3] >> _TILE_BITS)  # fmt: skip
 
 
 @_jit()
-def _sort_boxes(order, boxes, lo, hi, out):
+def _bin_count(boxes, order, lo, hi, ntx, counts):
+    """Add to ``counts`` (tiles,) the tiles of splats order[lo..hi-1], or of splats lo..hi-1
+    when ``order`` is None (the counts do not depend on the order, and memory order is the
+    fastest to read)."""
     for k in range(lo, hi):
-        for c in range(4):
-            out[k, c] = boxes[order[k], c]
+        i = k if order is None else order[k]
+        tx0, ty0, tx1, ty1 = _tile_range(boxes, i)
+        if tx0 == tx1 and ty0 == ty1:  # most splats: one tile
+            counts[ty0 * ntx + tx0] += 1
+        else:
+            for ty in range(ty0, ty1 + 1):
+                for tx in range(tx0, tx1 + 1):
+                    counts[ty * ntx + tx] += 1
+
+
+@_jit()
+def _bin_fill(boxes, order, lo, hi, ntx, cursors, ids):
+    """Append the splats order[lo..hi-1] to the lists of their tiles at ``cursors`` (tiles,),
+    advancing them."""
+    for k in range(lo, hi):
+        i = order[k]
+        tx0, ty0, tx1, ty1 = _tile_range(boxes, i)
+        if tx0 == tx1 and ty0 == ty1:
+            t = ty0 * ntx + tx0
+            ids[cursors[t]] = i
+            cursors[t] += 1
+        else:
+            for ty in range(ty0, ty1 + 1):
+                for tx in range(tx0, tx1 + 1):
+                    t = ty * ntx + tx
+                    ids[cursors[t]] = i
+                    cursors[t] += 1
 
 
 @_jit()
@@ -445,13 +470,11 @@ def _bin_offsets(counts):
 def _bin_serial(order, boxes, ntx, nty):
     """Tile lists in depth order: splats ids[start[t]:start[t+1]] touch tile t."""
     n = order.shape[0]
-    sorted_boxes = np.empty_like(boxes)
-    _sort_boxes(order, boxes, 0, n, sorted_boxes)
     counts = np.zeros((1, ntx * nty), np.int32)
-    _bin_chunk(order, sorted_boxes, 0, n, ntx, counts[0], np.empty(0, np.int32))
+    _bin_count(boxes, None, 0, n, ntx, counts[0])
     start = _bin_offsets(counts)
     ids = np.empty(start[-1], np.int32)
-    _bin_chunk(order, sorted_boxes, 0, n, ntx, counts[0], ids)
+    _bin_fill(boxes, order, 0, n, ntx, counts[0], ids)
     return start, ids
 
 
@@ -460,16 +483,13 @@ def _bin_parallel(order, boxes, ntx, nty, nchunks):
     """Chunks of consecutive splats in depth order are binned independently; chunk c's
     entries of a tile go before chunk c+1's, so every tile list stays in depth order."""
     n = order.shape[0]
-    sorted_boxes = np.empty_like(boxes)
     counts = np.zeros((nchunks, ntx * nty), np.int32)
     for c in prange(nchunks):
-        lo, hi = c * n // nchunks, (c + 1) * n // nchunks
-        _sort_boxes(order, boxes, lo, hi, sorted_boxes)
-        _bin_chunk(order, sorted_boxes, lo, hi, ntx, counts[c], np.empty(0, np.int32))
+        _bin_count(boxes, order, c * n // nchunks, (c + 1) * n // nchunks, ntx, counts[c])
     start = _bin_offsets(counts)
     ids = np.empty(start[-1], np.int32)
     for c in prange(nchunks):
-        _bin_chunk(order, sorted_boxes, c * n // nchunks, (c + 1) * n // nchunks, ntx, counts[c], ids)
+        _bin_fill(boxes, order, c * n // nchunks, (c + 1) * n // nchunks, ntx, counts[c], ids)
     return start, ids
 
 
