@@ -36,18 +36,38 @@ def fill_holes(
             f"fill_holes: alpha must be {(color.shape[0], 1, *color.shape[2:])}, got {tuple(alpha.shape)}"
         )
     dtype = torch.float64 if color.dtype == torch.float64 else torch.float32
-    c = torch.nan_to_num(color.to(dtype), nan=0.0, posinf=0.0, neginf=0.0)
-    a = torch.nan_to_num(alpha.to(dtype), nan=0.0).clamp(0, 1)
     empty_rgb = torch.as_tensor(empty, dtype=dtype, device=color.device).reshape(1, 3, 1, 1)
     if not torch.isfinite(empty_rgb).all():
         raise ValueError(f"fill_holes: empty must be a finite RGB, got {empty}")
-    pyramid = [(c, a)]
-    while max(c.shape[-2:]) > 1:
-        # ceil_mode averages the partial windows at odd edges over their valid pixels
-        c, a = F.avg_pool2d(c, 2, ceil_mode=True), F.avg_pool2d(a, 2, ceil_mode=True)
-        pyramid.append((c, a))
+    # colour and alpha side by side in one (B, 4, H, W) tensor: one pooling per level
+    level = torch.empty((color.shape[0], 4, *color.shape[2:]), dtype=dtype, device=color.device)
+    torch.nan_to_num(color.to(dtype), nan=0.0, posinf=0.0, neginf=0.0, out=level[:, :3])
+    torch.nan_to_num(alpha.to(dtype), nan=0.0, out=level[:, 3:]).clamp_(0, 1)
+    pyramid = [level]
+    while max(level.shape[-2:]) > 1:
+        level = _halve(level)
+        pyramid.append(level)
+    c, a = level[:, :3], level[:, 3:]
     fill = torch.where(a > _EPS, c / a.clamp_min(_EPS), empty_rgb)
-    for c, a in reversed(pyramid[:-1]):
-        up = F.interpolate(fill, size=c.shape[-2:], mode="bilinear", align_corners=False)
-        fill = c + (1 - a) * up
+    for level in reversed(pyramid[:-1]):
+        fill = torch.addcmul(level[:, :3], 1 - level[:, 3:], _upsample(fill, level.shape[-2:]))
     return fill
+
+
+def _halve(x: torch.Tensor) -> torch.Tensor:
+    """``F.avg_pool2d(x, 2, ceil_mode=True)``: windows at odd edges average their valid
+    pixels. Large levels of even sizes add the four strided quarters in the pooling's order
+    instead: the same values, 2-3x faster on the CPU from 2**15 values on (below that, the
+    four operations cost more than the pooling)."""
+    if x.shape[-2] % 2 or x.shape[-1] % 2 or x.numel() < 2**15:
+        return F.avg_pool2d(x, 2, ceil_mode=True)
+    return (((x[..., ::2, ::2] + x[..., ::2, 1::2]) + x[..., 1::2, ::2]) + x[..., 1::2, 1::2]) * 0.25
+
+
+def _upsample(x: torch.Tensor, size: torch.Size) -> torch.Tensor:
+    """Bilinear resize (align_corners=False) of (B, C, h, w) to ``size``, computed as B*C
+    one-channel images: on the CPU torch takes its faster channels-last kernel for them
+    (equal to within float rounding)."""
+    b, c = x.shape[:2]
+    one = F.interpolate(x.reshape(b * c, 1, *x.shape[2:]), size=size, mode="bilinear", align_corners=False)
+    return one.reshape(b, c, *size)

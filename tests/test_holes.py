@@ -2,8 +2,9 @@
 
 import pytest
 import torch
+import torch.nn.functional as F
 
-from gensplat_transforms.holes import fill_holes
+from gensplat_transforms.holes import _halve, fill_holes
 
 
 def constant(rgb, h=24, w=20, b=1):
@@ -84,3 +85,38 @@ def test_bad_inputs_raise_naming_the_problem():
         fill_holes(torch.zeros(1, 3, 8, 8), torch.zeros(1, 1, 8, 9))
     with pytest.raises(ValueError, match="empty must be"):
         fill_holes(torch.zeros(1, 3, 8, 8), torch.zeros(1, 1, 8, 8), empty=(float("nan"), 0, 0))
+
+
+def plain_fill_holes(color, alpha, empty=(0.0, 0.0, 0.0)):
+    """The pull-push written plainly: one pooling and one upsampling per tensor and level."""
+    dtype = torch.float64 if color.dtype == torch.float64 else torch.float32
+    c = torch.nan_to_num(color.to(dtype), nan=0.0, posinf=0.0, neginf=0.0)
+    a = torch.nan_to_num(alpha.to(dtype), nan=0.0).clamp(0, 1)
+    pyramid = [(c, a)]
+    while max(c.shape[-2:]) > 1:
+        c, a = F.avg_pool2d(c, 2, ceil_mode=True), F.avg_pool2d(a, 2, ceil_mode=True)
+        pyramid.append((c, a))
+    fill = torch.where(a > 1e-6, c / a.clamp_min(1e-6), torch.tensor(empty, dtype=dtype).reshape(1, 3, 1, 1))
+    for c, a in reversed(pyramid[:-1]):
+        fill = c + (1 - a) * F.interpolate(fill, size=c.shape[-2:], mode="bilinear", align_corners=False)
+    return fill
+
+
+@pytest.mark.parametrize("shape", [(1, 224, 224), (3, 96, 130), (2, 45, 38), (1, 1, 300), (2, 257, 129)])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_equals_the_plain_pull_push(shape, dtype):
+    """Pooling colour and alpha together, strided sums for large levels and the upsampling
+    as one-channel images change nothing beyond float rounding."""
+    gen = torch.Generator().manual_seed(shape[1])
+    b, h, w = shape
+    alpha = (torch.rand(b, 1, h, w, generator=gen) * 1.6 - 0.3).clamp(0, 1).to(dtype)
+    color = torch.rand(b, 3, h, w, generator=gen).to(dtype) * alpha
+    got, want = fill_holes(color, alpha, empty=(0.5, 0.2, 0.1)), plain_fill_holes(color, alpha, (0.5, 0.2, 0.1))
+    assert got.dtype == want.dtype
+    torch.testing.assert_close(got, want, atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("size", [(224, 224), (64, 130), (2, 2), (7, 8), (45, 38)])
+def test_halving_is_the_ceil_mode_average_pooling(size):
+    x = torch.rand(2, 4, *size)
+    assert torch.equal(_halve(x), F.avg_pool2d(x, 2, ceil_mode=True))
