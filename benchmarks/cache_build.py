@@ -6,7 +6,10 @@ Records a simulated pick-and-place dataset once (MP4 video like LeRobot's defaul
 sidecars of the two external cameras; reused when ``--root`` already holds it), then builds
 its cache from scratch (RGB-D reconstructor) with each process count: a plain ``gensplat
 cache`` for 1, ``torchrun --standalone --nproc-per-node N`` for N > 1, one thread per
-process (what torchrun sets). ``--repeats`` rounds alternate the counts and the fastest
+process (what torchrun sets), in two modes: ``link`` (the default: the cache links the depth
+sidecars, so a build checks and checksums them) and ``copy`` (``--copy-depth``: every item is
+loaded, its depth cleaned, compressed and stored, as a model reconstructor's build stores its
+predicted depth). ``--repeats`` rounds alternate the counts and the fastest
 build of each is reported (the machine may be shared). Reported: the build's episodes and
 timesteps per second (the time ``gensplat cache`` prints: from the start of ``prepare`` to
 the last process's end), timesteps per CPU second of the build (all processes' CPU time:
@@ -51,11 +54,13 @@ from gensplat_transforms.sim.world import WorldConfig
 REPO = "gensplat/bench_cache_build"
 
 
-def build(root: Path, processes: int) -> dict:
-    """Build the cache of ``root`` from scratch with ``processes`` processes; times and sizes."""
+def build(root: Path, processes: int, mode: str) -> dict:
+    """Build the cache of ``root`` from scratch with ``processes`` processes, linking or copying
+    the depth (``mode``); times and sizes."""
     shutil.rmtree(root / "gensplat", ignore_errors=True)
     torchrun = ["-m", "torch.distributed.run", "--standalone", "--nproc-per-node", str(processes)]
-    cli = ["-m", "gensplat_transforms.cli", "cache", "--root", str(root), "--repo-id", REPO]
+    cli = ["-m", "gensplat_transforms.cli", "cache", "--root", str(root), "--repo-id", REPO,
+           *(["--copy-depth"] if mode == "copy" else [])]  # fmt: skip
     cmd = [sys.executable, *(torchrun if processes > 1 else []), *cli]
     t0 = time.perf_counter()
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
@@ -66,7 +71,7 @@ def build(root: Path, processes: int) -> dict:
     info = json.loads((root / "meta" / "info.json").read_text())
     episodes, timesteps = info["total_episodes"], info["total_frames"]
     size = sum(f.stat().st_size for f in (root / "gensplat" / "cache").rglob("episode_*.safetensors"))
-    return {"processes": processes, "build_s": seconds, "episodes_per_s": round(episodes / seconds, 3),
+    return {"mode": mode, "processes": processes, "build_s": seconds, "episodes_per_s": round(episodes / seconds, 3),
             "timesteps_per_s": round(timesteps / seconds, 2), "build_cpu_s": cpu,
             "timesteps_per_cpu_s": round(timesteps / cpu, 2), "end_to_end_s": round(wall, 1),
             "end_to_end_episodes_per_s": round(episodes / wall, 3), "cache_bytes": size,
@@ -112,6 +117,8 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=224, help="image size to record, if not reused (default: 224)")
     parser.add_argument("--processes", type=int, nargs="+", default=[1, 2],
                         help="process counts (default: 1 2)")
+    parser.add_argument("--modes", nargs="+", choices=["link", "copy"], default=["link", "copy"],
+                        help="depth linked (the default cache) and/or copied (--copy-depth) (default: both)")
     parser.add_argument("--repeats", type=int, default=3,
                         help="builds per process count; the fastest is reported (default: 3)")
     parser.add_argument("--droid-frames", type=int, default=8,
@@ -125,12 +132,13 @@ def main() -> None:
                             world=WorldConfig(width=args.size, height=args.size)), progress=False)  # fmt: skip
     info = json.loads((root / "meta" / "info.json").read_text())
     runs = []
-    for _ in range(args.repeats):  # alternated, so a busy spell of a shared machine hits both
-        for n in args.processes:
+    settings = [(m, n) for m in args.modes for n in args.processes]
+    for _ in range(args.repeats):  # alternated, so a busy spell of a shared machine hits every setting
+        for mode, n in settings:
             load = os.getloadavg()[0]
-            runs.append({**build(root, n), "load_average_before": round(load, 2)})
-    best = [min((r for r in runs if r["processes"] == n), key=lambda r: r["build_s"])
-            for n in args.processes]  # fmt: skip
+            runs.append({**build(root, n, mode), "load_average_before": round(load, 2)})
+    best = [min((r for r in runs if (r["mode"], r["processes"]) == s), key=lambda r: r["build_s"])
+            for s in settings]  # fmt: skip
     result = {
         "dataset": {"episodes": info["total_episodes"], "timesteps": info["total_frames"],
                     "resolution": info["features"]["observation.images.left"]["shape"][:2], "reconstructed_cameras": 2, "video": True},
@@ -138,10 +146,10 @@ def main() -> None:
         "machine": {"cpus": os.cpu_count(), **cpu_model()}, "gpu": None,
     }  # fmt: skip
     print(f"best of {args.repeats} runs (fastest build)")
-    print(f"{'processes':>10}{'episodes/s':>12}{'timesteps/s':>13}{'build s':>9}{'CPU s':>8}"
+    print(f"{'mode':>5}{'processes':>10}{'episodes/s':>12}{'timesteps/s':>13}{'build s':>9}{'CPU s':>8}"
           f"{'timesteps/CPU s':>17}{'end-to-end s':>14}{'B/timestep':>12}")
     for r in best:
-        print(f"{r['processes']:>10}{r['episodes_per_s']:>12}{r['timesteps_per_s']:>13}{r['build_s']:>9}"
+        print(f"{r['mode']:>5}{r['processes']:>10}{r['episodes_per_s']:>12}{r['timesteps_per_s']:>13}{r['build_s']:>9}"
               f"{r['build_cpu_s']:>8}{r['timesteps_per_cpu_s']:>17}{r['end_to_end_s']:>14}"
               f"{r['bytes_per_timestep']:>12}")
     print("at 320x180:", json.dumps(result["droid_size"]))
