@@ -12,8 +12,9 @@ Conventions used everywhere in the library:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 
 # OpenGL / nerfstudio / MuJoCo cameras look along -z with y up: flip y and z.
@@ -24,39 +25,37 @@ RIGID_TOLERANCE = 1e-3
 _K_TOLERANCE = 1e-6  # on K's fixed entries: skew, K[1, 0], K[2, :2] (0) and K[2, 2] (1)
 
 
-def _check_intrinsics(K: torch.Tensor) -> None:
-    """Raise ``ValueError`` unless every (3, 3) of K is [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]
-    with fx, fy > 0."""
-    K = K.detach().double()
-    focal = torch.stack([K[:, 0, 0], K[:, 1, 1]], -1)
+def _check_intrinsics(K: np.ndarray) -> None:
+    """Raise ``ValueError`` unless every (3, 3) of K (float64) is [[fx, 0, cx], [0, fy, cy],
+    [0, 0, 1]] with fx, fy > 0."""
+    focal = K[:, [0, 1], [0, 1]]
     bad = ~(focal > 0).all(-1)
     if bad.any():
-        i = int(bad.nonzero()[0])
+        i = int(bad.nonzero()[0][0])
         raise ValueError(f"Cameras.K: focal lengths must be > 0, got fx, fy = {focal[i].tolist()} (camera {i})")
-    fixed = K[:, [0, 1, 2, 2, 2], [1, 0, 0, 1, 2]] - K.new_tensor([0.0, 0.0, 0.0, 0.0, 1.0])
-    bad = (fixed.abs() > _K_TOLERANCE).any(-1)
+    fixed = K[:, [0, 1, 2, 2, 2], [1, 0, 0, 1, 2]] - np.array([0.0, 0.0, 0.0, 0.0, 1.0])
+    bad = (np.abs(fixed) > _K_TOLERANCE).any(-1)
     if bad.any():
-        i = int(bad.nonzero()[0])
+        i = int(bad.nonzero()[0][0])
         raise ValueError(
             f"Cameras.K: must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew, K[2, 2] = 1), "
             f"got {K[i].tolist()} (camera {i})"
         )
 
 
-def _check_rigid(c2w: torch.Tensor) -> None:
-    """Raise ``ValueError`` unless every (4, 4) of c2w is a rigid transform within
+def _check_rigid(T: np.ndarray) -> None:
+    """Raise ``ValueError`` unless every (4, 4) of c2w (float64) is a rigid transform within
     ``RIGID_TOLERANCE``: bottom row [0, 0, 0, 1], rotation orthonormal with determinant +1."""
-    T = c2w.detach().double()
-    bad = ((T[:, 3] - T.new_tensor([0.0, 0.0, 0.0, 1.0])).abs() > RIGID_TOLERANCE).any(-1)
+    bad = (np.abs(T[:, 3] - np.array([0.0, 0.0, 0.0, 1.0])) > RIGID_TOLERANCE).any(-1)
     if bad.any():
-        i = int(bad.nonzero()[0])
+        i = int(bad.nonzero()[0][0])
         raise ValueError(f"Cameras.c2w: bottom row must be [0, 0, 0, 1], got {T[i, 3].tolist()} (camera {i})")
     R = T[:, :3, :3]
-    eye = torch.eye(3, dtype=R.dtype, device=R.device)
-    error = torch.maximum((R.transpose(1, 2) @ R - eye).abs().amax((1, 2)), (torch.linalg.det(R) - 1).abs())
+    error = np.maximum(np.abs(R.transpose(0, 2, 1) @ R - np.eye(3)).max((1, 2), initial=0.0),
+                       np.abs(np.linalg.det(R) - 1))  # fmt: skip
     bad = error > RIGID_TOLERANCE
     if bad.any():
-        i = int(bad.nonzero()[0])
+        i = int(bad.nonzero()[0][0])
         raise ValueError(
             f"Cameras.c2w: rotation is not orthonormal with det +1 (max error {float(error[i]):.3g} > "
             f"{RIGID_TOLERANCE:g}, camera {i}): a camera-to-world matrix has no scale, shear or mirroring"
@@ -76,7 +75,10 @@ class Cameras:
     camera: wrong shapes, NaN or Inf, focal lengths <= 0, skew or K[2, 2] != 1 (beyond
     1e-6), a c2w rotation that is not orthonormal with determinant +1 (beyond
     ``RIGID_TOLERANCE``: no scale, shear or mirroring), a c2w bottom row other than
-    [0, 0, 0, 1] (same tolerance).
+    [0, 0, 0, 1] (same tolerance). Cameras the library derives from checked ones (indexing,
+    ``Perturbation.move``) are not checked again, unless a tensor of the cameras they come
+    from was replaced or changed in place through torch since its check (its version counter
+    moved; writes through ``.data`` or a NumPy view go unseen there).
 
     Example:
         >>> c2w = look_at(eye=(1.0, 0.0, 0.5), target=(0.0, 0.0, 0.0))
@@ -90,6 +92,8 @@ class Cameras:
     c2w: torch.Tensor
     width: int
     height: int
+    #: what the last passed check saw (see ``_derive``)
+    _checked: tuple | None = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.K.ndim == 2:
@@ -106,11 +110,35 @@ class Cameras:
         if int(self.width) <= 0 or int(self.height) <= 0:
             raise ValueError(f"Cameras: image size must be positive, got {self.width}x{self.height}")
         self.width, self.height = int(self.width), int(self.height)
-        for name in ("K", "c2w"):
-            if not torch.isfinite(getattr(self, name)).all():
+        # a few 3x3 and 4x4 matrices: checked in NumPy, many times faster than in torch
+        K, c2w = (t.detach().to("cpu", torch.float64).numpy() for t in (self.K, self.c2w))
+        for name, values in (("K", K), ("c2w", c2w)):
+            if not np.isfinite(values).all():
                 raise ValueError(f"Cameras.{name}: contains NaN or Inf")
-        _check_intrinsics(self.K)
-        _check_rigid(self.c2w)
+        _check_intrinsics(K)
+        _check_rigid(c2w)
+        self._checked = self._state()
+
+    def _state(self) -> tuple:
+        """Identity of the current values: size, and each tensor's storage, torch's in-place
+        version counter and layout."""
+        return (self.width, self.height, *((t.data_ptr(), t._version, t.shape, t.stride(), t.dtype, t.device)
+                                           for t in (self.K, self.c2w)))  # fmt: skip
+
+    def _derive(self, K: torch.Tensor, c2w: torch.Tensor) -> Cameras:
+        """Cameras of this image size from (B, 3, 3) K and (B, 4, 4) c2w that the library
+        derived from this object's tensors such that they pass the checks when these did (a
+        selection; a rigid motion of the poses, whose result is still checked to be finite).
+        Constructed without the checks while this object's tensors are what its check saw,
+        else with them."""
+        if self._checked is None or self._checked != self._state():
+            return Cameras(K, c2w, self.width, self.height)
+        if not torch.isfinite(c2w).all():
+            raise ValueError("Cameras.c2w: contains NaN or Inf")
+        derived = object.__new__(Cameras)  # no __init__: no __post_init__ checks
+        derived.K, derived.c2w, derived.width, derived.height = K, c2w, self.width, self.height
+        derived._checked = derived._state()
+        return derived
 
     # ------------------------------------------------------------------ constructors
     @classmethod
@@ -174,7 +202,7 @@ class Cameras:
             if not -len(self) <= idx < len(self):
                 raise IndexError(f"Cameras index {idx} out of range for {len(self)} cameras")
             idx = slice(idx % len(self), idx % len(self) + 1)
-        return Cameras(self.K[idx], self.c2w[idx], self.width, self.height)
+        return self._derive(self.K[idx], self.c2w[idx])
 
     @property
     def device(self) -> torch.device:

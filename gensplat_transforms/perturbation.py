@@ -118,7 +118,8 @@ class Perturbation:
         if not 0 <= index < len(cameras):
             raise IndexError(f"Perturbation.move: camera index {index} outside 0..{len(cameras) - 1}")
         pivot = pivot_point(cameras.c2w[0], cameras.c2w[1])
-        return cameras[index].with_c2w(self.apply(cameras.c2w[index : index + 1], pivot))
+        c2w = self.apply(cameras.c2w[index : index + 1], pivot)  # a rigid motion of a checked pose
+        return cameras._derive(cameras.K[index : index + 1], c2w)
 
     def as_dict(self) -> dict:
         return asdict(self)

@@ -8,6 +8,7 @@ import pytest
 import torch
 from PIL import Image
 
+from gensplat_transforms import cameras as cameras_module
 from gensplat_transforms.cameras import (
     Cameras,
     focal_from_fov,
@@ -398,6 +399,26 @@ def test_every_constructor_validates_and_names_the_camera(cams):
         Cameras.from_intrinsics(0.0, 40.0, W / 2, H / 2, _POSE, W, H)
     with pytest.raises(ValueError, match="Cameras.c2w"):
         Cameras.from_opengl(_GOOD_K, _MIRROR, W, H)
+
+
+def test_cameras_derived_from_checked_ones_are_not_checked_again(cams, monkeypatch):
+    """Indexing checked cameras costs no second check; editing their tensors in place
+    through torch or replacing one brings the checks back."""
+    calls = []
+    monkeypatch.setattr(cameras_module, "_check_rigid", lambda c2w: calls.append(len(c2w)))
+    one = cams[1]
+    assert len(one[0]) == 1 and calls == []
+    torch.testing.assert_close(one.c2w, cams.c2w[1:2])
+    cams.K[2, 0, 0] = 51.0  # torch moves the version counter: checked again
+    cams[0]
+    assert calls == [1]
+    monkeypatch.undo()
+    cams.c2w[2, :3, :3] *= 2
+    with pytest.raises(ValueError, match="c2w: rotation is not orthonormal"):
+        cams[2]
+    cams.K = _edit(cams.K, (0, 0, 0), float("nan"))
+    with pytest.raises(ValueError, match="Cameras.K: contains NaN"):
+        cams[0]
 
 
 def test_float32_round_off_of_composed_poses_passes():

@@ -324,3 +324,19 @@ def test_move_perturbs_one_camera_of_a_rig_about_its_pivot():
     for bad in (-1, len(cams)):
         with pytest.raises(IndexError, match="camera index"):
             p.move(cams, bad)
+
+
+def test_move_checks_the_moved_pose_only_for_overflow(monkeypatch):
+    """The move is a rigid motion of a checked pose, so the rotation checks are not repeated;
+    a pose that overflows (cameras near float64's largest value) still raises."""
+    from gensplat_transforms import cameras as cameras_module
+    from gensplat_transforms.scenes import default_cameras
+
+    cams = default_cameras(32, 32)
+    monkeypatch.setattr(cameras_module, "_check_rigid", lambda c2w: pytest.fail("checked again"))
+    Perturbation("y", -20.0, 0.05).move(cams, 0)
+    monkeypatch.undo()
+    far = cams.c2w.clone()
+    far[0, :3, 3], far[1, :3, 3] = 1.5e308, -1.5e308
+    with pytest.raises(ValueError, match="Cameras.c2w: contains NaN or Inf"):
+        Perturbation("y", -20.0, 0.05).move(cams.with_c2w(far), 0)
