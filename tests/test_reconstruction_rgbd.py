@@ -171,7 +171,79 @@ def test_compiled_discs_match_the_pytorch_rule(scene_views, overrides):
     torch.testing.assert_close(a.opacities, b.opacities)
     ca, cb = covariance_3d(a.quats, a.scales), covariance_3d(b.quats, b.scales)
     err = (ca - cb).abs().amax((1, 2)) / cb.abs().amax((1, 2))
-    # float64 (compiled) and float32 (PyTorch) may decide a depth-edge threshold differently
-    # for a handful of pixels; everywhere else the covariances agree to round-off.
+    # the compiled arithmetic (float32, accurate to ~1e-6) and the PyTorch rule's (float32,
+    # ~1e-5) may decide a depth-edge threshold differently for a handful of pixels;
+    # everywhere else the covariances agree to round-off.
     assert (err < 1e-3).float().mean() > 0.999
     assert torch.isfinite(ca).all()
+
+
+def _disc_inputs(V=2, H=17, W=23, rotate=True):
+    """Random images, depths of a rough slanted plane ~1 m away, off-centre cameras with
+    fx != fy (rotated and moved)."""
+    g = torch.Generator().manual_seed(0)
+    u, v = torch.arange(W) / W, torch.arange(H)[:, None] / H
+    z = 1 + 0.2 * u + 0.1 * v + 0.003 * torch.rand(V, H, W, generator=g)
+    images = torch.rand(V, 3, H, W, generator=g)
+    K = torch.tensor([[30.0, 0, 0.45 * W], [0, 36.0, 0.55 * H], [0, 0, 1]]).repeat(V, 1, 1)
+    c2w = torch.eye(4).repeat(V, 1, 1)
+    if rotate:
+        c2w[1, :3, :3] = torch.tensor([[0.0, -0.8, 0.6], [0.6, -0.48, -0.64], [0.8, 0.36, 0.48]])
+        c2w[:, :3, 3] = torch.tensor([0.3, -0.2, 1.0])
+    return z, images, K, c2w
+
+
+@pytest.mark.parametrize("stride", [1, 2, 3])
+def test_compiled_discs_match_the_float64_rule_on_hard_depth_maps(stride):
+    """Depth maps full of edges (holes, NaN and negative lines, sparse pixels, patches 1e4
+    times farther and nearer, one at 1e30 m whose squared steps overflow float32, the image
+    border, odd sizes): every compiled disc agrees with the PyTorch rule evaluated in
+    float64, although the compiled one computes in float32."""
+    from gensplat_transforms.reconstruction.discs_fast import surface_discs
+    from gensplat_transforms.reconstruction.rgbd import RGBDConfig, dense_discs, grid_pixel_ids
+    from gensplat_transforms.rotations import covariance_3d
+
+    z, images, K, c2w = _disc_inputs()
+    z[0, 3:7, 4:9] = 0
+    z[0, 10, :] = float("nan")
+    z[0, :, 15] = -1.0
+    z[1, ::3, ::2] = 0
+    z[1, 5:9, 10:14] *= 1e4
+    z[1, 12:, :6] *= 1e-4
+    z[0, 12:15, 18:21] = 1e30
+    cfg = RGBDConfig(stride=stride)
+    means, quats, scales, dc, ids = surface_discs(
+        z, images, K, c2w, stride, cfg.sigma_px, cfg.thickness, cfg.max_stretch, cfg.edge_scale
+    )
+    clean = torch.where(z > 0, z, 0).double()
+    M, Q, S, D, keep = dense_discs(clean, images.double(), K.double(), c2w.double(), cfg)
+    keep = keep.reshape(-1)
+    assert torch.equal(ids, grid_pixel_ids(*z.shape[-2:], stride, len(z)).reshape(-1)[keep])
+    M, Q, S, D = (t.reshape(-1, t.shape[-1])[keep] for t in (M, Q, S, D))
+    torch.testing.assert_close(means.double(), M, rtol=1e-6, atol=1e-6)
+    torch.testing.assert_close(dc.double(), D, rtol=0, atol=1e-6)
+    torch.testing.assert_close(quats.norm(dim=1), torch.ones(len(quats)), rtol=0, atol=1e-6)
+    ca, cb = covariance_3d(quats.double(), scales.double()), covariance_3d(Q, S)
+    assert ((ca - cb).abs().amax((1, 2)) / cb.abs().amax((1, 2))).max() < 1e-5
+
+
+def test_compiled_discs_scale_with_the_depth_and_stay_finite():
+    """Depths times 2^e (e from -100 to 100; camera at the origin): the same rotations, and
+    centres and scales times 2^e, bit for bit. Depths near the ends of float32's range next
+    to ordinary ones (denormal included) give finite discs."""
+    from gensplat_transforms.reconstruction.discs_fast import surface_discs
+
+    z, images, K, c2w = _disc_inputs(rotate=False)
+    z[0, 4:6, 5:9] = 0
+    args = (images, K, c2w, 1, 0.4, 0.1, 4.0, 0.25)
+    means, quats, scales, _, ids = surface_discs(z, *args)
+    for e in (-100, -40, 40, 100):
+        m, q, s, _, i = surface_discs(z * 2.0**e, *args)
+        assert torch.equal(i, ids) and torch.equal(q, quats)
+        assert torch.equal(m, means * 2.0**e) and torch.equal(s, scales * 2.0**e)
+    for value in (1e-45, 1e-38, 1e-20, 1e20, 1e38):
+        extreme = z.clone()
+        extreme[:, 3:6, 7:12] = value
+        extreme[1, 10, 3] = value  # a single pixel
+        out = surface_discs(extreme, *args)
+        assert len(out[0]) == (extreme > 0).sum() and all(torch.isfinite(t).all() for t in out[:4])

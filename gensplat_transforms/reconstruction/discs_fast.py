@@ -1,11 +1,25 @@
 """Compiled (numba) twin of the RGB-D surface-disc rule in :mod:`.rgbd`.
 
-The same per-pixel arithmetic as ``rgbd._surface_step`` and ``rgbd._disc_shape`` (see
-the module docstring of :mod:`.rgbd` for the rule), fused into one pass over the pixels of
-a view instead of some 150 full-image tensor operations: this is what lets a dataloader
-worker rebuild a timestep's Gaussians from cached depth for every sample (two 224x224
-views: a few milliseconds instead of about 100 on one thread). Computed in float64 and
-returned in float32; tests hold it against the PyTorch rule.
+The same per-pixel rule as ``rgbd._surface_step`` and ``rgbd._disc_shape`` (see the module
+docstring of :mod:`.rgbd`), fused into one pass over each image row instead of some 150
+full-image tensor operations, so that a dataloader worker can rebuild a timestep's
+Gaussians from cached depth for every sample (two 224x224 views: about 2 ms on one thread).
+
+Each row is computed in blocks of pixels by a branch-free loop (every condition a select)
+in float32 lanes only, which the compiler turns into SIMD code of the machine's full width;
+the block is then copied out to the rows of the pixels with depth.
+
+Numbers: computed in float32, arranged to stay accurate and finite at any depth. A pixel's
+steps to its neighbours are taken in the camera frame in units of depth, from depth
+differences: with r(u) = (u + 0.5 - cx) / fx the ray slope of column u and r_v that of the
+row, (P(u+1) - P(u)) / z = (r(u+1) e + 1/fx, r_v e, e) where e = (z(u+1) - z) / z, so no
+two nearly equal points are subtracted, and the disc shape works on numbers of order 1/f
+whatever the depth (its scales are multiplied by z at the end); the in-plane angle comes
+from half-angle formulas without cancellation. Covariances agree with a float64 evaluation
+of the rule to about 1e-6 (relative), closer than the float32 PyTorch rule, against which
+the tests hold them. The 1e-20 clamps of ``rgbd._disc_shape`` apply here to those
+depth-relative numbers, so the discs scale with the depths (exactly, for a power-of-two
+factor) instead of degenerating at sub-micrometre depths as the PyTorch rule's do.
 """
 
 from __future__ import annotations
@@ -18,119 +32,201 @@ import torch
 from ..rendering.fast import _jit
 from ..sh import C0
 
-_TINY = 1e-20
+_F = np.float32
+_TINY = 1e-20  # as in rgbd._disc_shape
+_BLOCK = 256  # pixels of a row computed at once
+_ROWS = 13  # outputs per pixel: mean 3, quaternion 4, scales 3, SH DC 3
 
 
 @_jit(inline=True)
-def _step(z, valid, h, w, y, x, dy, dx, ifx, ify, cx, cy, finv, p0, p1, p2, ax, max_stretch, edge_scale, s):
-    """Surface step of pixel (y, x), camera point (p0, p1, p2), towards (dy, dx), in the camera
-    frame (norms do not depend on the frame), times the stride ``s``. ``finv``: 1 / focal along
-    the step, so a pixel's fronto-parallel footprint is z * finv; ``ax``: 0 (u) or 1 (v)."""
-    best, edge = math.inf, False
-    o0 = o1 = o2 = 0.0
-    for sign in (1, -1):  # forward first: ties keep the forward step, as the reference
-        yn, xn = y + sign * dy, x + sign * dx
-        if yn < 0 or xn < 0 or yn >= h or xn >= w:
-            continue
-        if not valid[yn, xn]:
-            edge = True
-            continue
-        d = z[yn, xn]
-        q0, q1, q2 = (xn + 0.5 - cx) * ifx * d, (yn + 0.5 - cy) * ify * d, d
-        d0, d1, d2 = (q0 - p0, q1 - p1, q2 - p2) if sign == 1 else (p0 - q0, p1 - q1, p2 - q2)
-        n = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-        if n > max_stretch * (p2 if sign == 1 else d) * finv:  # the pair's first pixel's footprint
-            edge = True
-        if n < best:
-            best, o0, o1, o2 = n, d0, d1, d2
-    fp = p2 * finv
-    if not best <= max_stretch * fp:
-        o0, o1, o2 = (fp, 0.0, 0.0) if ax == 0 else (0.0, fp, 0.0)
-    k = s * (edge_scale if edge else 1.0)
-    return o0 * k, o1 * k, o2 * k
+def _step(f0, f1, f2, zf, c0, c1, c2, zb, ob, t, fall0, fall1, k, edge_k):
+    """Surface step along one image axis as ``rgbd._surface_step``, in units of the pixel's
+    depth. Each pair's difference comes in units of its first pixel's depth: f, forward to
+    the neighbour of depth ``zf``, in the pixel's; c, backward from the neighbour of depth
+    ``zb``, in that neighbour's (``ob`` times the pixel's). Depths 0: none, -1: outside the
+    image. ``t``: the squared stretch limit (max_stretch footprints, in units of the depth);
+    (``fall0``, ``fall1``, 0): the fallback (the footprint along the axis). Times ``k``, or
+    ``edge_k`` next to a depth edge. Where a difference is not finite (depths beyond
+    float32's range) the step falls back."""
+    zero, inf = _F(0), _F(np.inf)
+    nf = f0 * f0 + f1 * f1 + f2 * f2
+    nc = c0 * c0 + c1 * c1 + c2 * c2
+    nf = nf if zf > zero else inf
+    nc = nc if zb > zero else inf
+    edge = ((zf >= zero) & (nf > t)) | ((zb >= zero) & (nc > t))
+    nb = nc * ob * ob if zb > zero else inf  # in units of the pixel's depth
+    fwd = nf <= nb  # ties keep the forward step, as the reference
+    ok = (nf if fwd else nb) <= t
+    c = edge_k if edge else k
+    s0 = (f0 if fwd else c0 * ob) if ok else fall0
+    s1 = (f1 if fwd else c1 * ob) if ok else fall1
+    s2 = (f2 if fwd else c2 * ob) if ok else zero
+    return s0 * c, s1 * c, s2 * c
 
 
 @_jit(inline=True)
 def _quat(r00, r01, r02, r10, r11, r12, r20, r21, r22):
-    """Unit quaternion w-x-y-z (w >= 0) of a rotation matrix (Shepperd, largest diagonal)."""
-    tr = r00 + r11 + r22
-    if tr >= r00 and tr >= r11 and tr >= r22:
-        s = math.sqrt(max(1 + tr, 1e-12)) * 2
-        i = 1 / s
-        w, x, y, z = s / 4, (r21 - r12) * i, (r02 - r20) * i, (r10 - r01) * i
-    elif r00 >= r11 and r00 >= r22:
-        s = math.sqrt(max(1 + r00 - r11 - r22, 1e-12)) * 2
-        i = 1 / s
-        w, x, y, z = (r21 - r12) * i, s / 4, (r01 + r10) * i, (r02 + r20) * i
-    elif r11 >= r22:
-        s = math.sqrt(max(1 - r00 + r11 - r22, 1e-12)) * 2
-        i = 1 / s
-        w, x, y, z = (r02 - r20) * i, (r01 + r10) * i, s / 4, (r12 + r21) * i
-    else:
-        s = math.sqrt(max(1 - r00 - r11 + r22, 1e-12)) * 2
-        i = 1 / s
-        w, x, y, z = (r10 - r01) * i, (r02 + r20) * i, (r12 + r21) * i, s / 4
+    """Unit quaternion w-x-y-z (w >= 0) of a rotation matrix, branch-free Shepperd: the row
+    of the symmetric 4x4 matrix 4 q q^T with the largest diagonal entry, normalised."""
+    zero, one = _F(0), _F(1)
+    t0, t1 = one + r00 + r11 + r22, one + r00 - r11 - r22
+    t2, t3 = one - r00 + r11 - r22, one - r00 - r11 + r22
+    a, b, c = r21 - r12, r02 - r20, r10 - r01
+    d, e, f = r01 + r10, r02 + r20, r12 + r21
+    use0 = (t0 >= t1) & (t0 >= t2) & (t0 >= t3)
+    use1 = (t1 >= t2) & (t1 >= t3)
+    use2 = t2 >= t3
+    w = t0 if use0 else (a if use1 else (b if use2 else c))
+    x = a if use0 else (t1 if use1 else (d if use2 else e))
+    y = b if use0 else (d if use1 else (t2 if use2 else f))
+    z = c if use0 else (e if use1 else (f if use2 else t3))
     n = math.sqrt(w * w + x * x + y * y + z * z)
-    if not n > 1e-8:
-        return 1.0, 0.0, 0.0, 0.0
-    f = (-1.0 if w < 0 else 1.0) / n
-    return w * f, x * f, y * f, z * f
+    good = n > _F(1e-8)
+    g = (-one if w < zero else one) / (n if good else one)
+    return w * g if good else one, x * g if good else zero, y * g if good else zero, z * g if good else zero
+
+
+@_jit(inline=True)
+def _row(ins, nb, buf, ryc, ryd, consts, cam):
+    """Outputs of nb pixels of a row into the columns of ``buf`` (rows as ``_ROWS``). ``ins``:
+    arrays zl, zc, zr, zu, zd, rl, rr, red, green, blue: pixel i has depth ``zc[i]``,
+    neighbours ``zl[i]``, ``zr[i]`` (left, right), ``zu[i]``, ``zd[i]`` (up, down), ray slope
+    ``rl[i]`` (``rr[i]``: its right neighbour's) and colour; ``ryc``, ``ryd``: ray slopes of
+    the row and the next; ``consts`` and ``cam`` as in ``_discs``."""
+    zl, zc, zr, zu, zd, rl, rr, red, green, blue = ins
+    ifx, ify, ms, k, edge_k, sigma, thick = consts
+    R00, R01, R02, t0, R10, R11, R12, t1, R20, R21, R22, t2 = cam
+    zero, half, one, tiny, dc_scale = _F(0), _F(0.5), _F(1), _F(_TINY), _F(1 / C0)
+    tu, tv = ms * ifx * ms * ifx, ms * ify * ms * ify  # squared limits in units of the depth
+    for i in range(nb):
+        d, lft, rgt, up, dn, rxc, rxr = zc[i], zl[i], zr[i], zu[i], zd[i], rl[i], rr[i]
+        # relative depth steps of the pairs: forward in units of this depth, backward of the neighbour's
+        iz = one / d
+        er, ed, el, eu = (rgt - d) * iz, (dn - d) * iz, (d - lft) / lft, (d - up) / up
+        a0, a1, a2 = _step(rxr * er + ifx, ryc * er, er, rgt, rxc * el + ifx, ryc * el, el, lft, lft * iz, tu,
+                           ifx, zero, k, edge_k)  # fmt: skip
+        b0, b1, b2 = _step(rxc * ed, ryd * ed + ify, ed, dn, rxc * eu, ryc * eu + ify, eu, up, up * iz, tv,
+                           zero, ify, k, edge_k)  # fmt: skip
+        # disc shape as rgbd._disc_shape: normal n, in-plane basis e1 = a / |a|, e2 = n x e1
+        n0, n1, n2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+        nn = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+        inv = one / max(tiny, nn)
+        n0, n1, n2 = n0 * inv, n1 * inv, n2 * inv
+        la = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+        la = max(tiny, la)
+        lb = math.sqrt(b0 * b0 + b1 * b1 + b2 * b2)
+        inv = one / la
+        e10, e11, e12 = a0 * inv, a1 * inv, a2 * inv
+        e20, e21, e22 = n1 * e12 - n2 * e11, n2 * e10 - n0 * e12, n0 * e11 - n1 * e10
+        bb1 = b0 * e10 + b1 * e11 + b2 * e12
+        bb2 = b0 * e20 + b1 * e21 + b2 * e22
+        g11, g12, g22 = la * la + bb1 * bb1, bb1 * bb2, bb2 * bb2
+        dif, mid = half * (g11 - g22), half * (g11 + g22)
+        rad = math.sqrt(dif * dif + g12 * g12)
+        # cos and sin of phi = atan2(2 g12, g11 - g22) / 2: the larger one by the half-angle
+        # formula without cancellation, the other from sin(2 phi) = 2 sin cos
+        r = rad if rad > zero else one
+        big = math.sqrt((r + abs(dif)) / (r + r))
+        small = g12 / ((r + r) * big)
+        c = (big if dif >= zero else abs(small)) if rad > zero else one
+        s = (small if dif >= zero else (big if g12 >= zero else -big)) if rad > zero else zero
+        # disc axes in the camera frame (columns u, v, n), then in the world: R_world = R @ R_cam
+        u0, u1, u2 = c * e10 + s * e20, c * e11 + s * e21, c * e12 + s * e22
+        v0, v1, v2 = c * e20 - s * e10, c * e21 - s * e11, c * e22 - s * e12
+        buf[3, i], buf[4, i], buf[5, i], buf[6, i] = _quat(
+            R00 * u0 + R01 * u1 + R02 * u2, R00 * v0 + R01 * v1 + R02 * v2, R00 * n0 + R01 * n1 + R02 * n2,
+            R10 * u0 + R11 * u1 + R12 * u2, R10 * v0 + R11 * v1 + R12 * v2, R10 * n0 + R11 * n1 + R12 * n2,
+            R20 * u0 + R21 * u1 + R22 * u2, R20 * v0 + R21 * v1 + R22 * v2, R20 * n0 + R21 * n1 + R22 * n2,
+        )  # fmt: skip
+        p0, p1 = rxc * d, ryc * d
+        buf[0, i] = R00 * p0 + R01 * p1 + R02 * d + t0
+        buf[1, i] = R10 * p0 + R11 * p1 + R12 * d + t1
+        buf[2, i] = R20 * p0 + R21 * p1 + R22 * d + t2
+        lo, sd = mid - rad, sigma * d
+        buf[7, i] = sd * math.sqrt(mid + rad)
+        buf[8, i] = sd * math.sqrt(max(zero, lo))
+        buf[9, i] = thick * sd * min(la, lb)
+        buf[10, i] = (red[i] - half) * dc_scale
+        buf[11, i] = (green[i] - half) * dc_scale
+        buf[12, i] = (blue[i] - half) * dc_scale
 
 
 @_jit()
-def _discs(z, valid, rgb, intr, rot, trans, stride, sigma, thickness, max_stretch, edge_scale, offset, start,
-           means, quats, scales, dc, ids):
-    """Fill rows ``start``.. of the outputs (one per valid pixel on the stride grid); returns the
-    next free row. All geometry in the camera frame, rotated into the world at the end."""
-    h, w = z.shape
-    fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
-    ifx, ify = 1.0 / fx, 1.0 / fy
-    R00, R01, R02, R10, R11, R12, R20, R21, R22 = (rot[0, 0], rot[0, 1], rot[0, 2], rot[1, 0], rot[1, 1],
-                                                   rot[1, 2], rot[2, 0], rot[2, 1], rot[2, 2])  # fmt: skip
-    k = start
-    for y in range(stride // 2, h, stride):
-        for x in range(stride // 2, w, stride):
-            if not valid[y, x]:
-                continue
-            d = z[y, x]
-            p0, p1, p2 = (x + 0.5 - cx) * ifx * d, (y + 0.5 - cy) * ify * d, d
-            a0, a1, a2 = _step(z, valid, h, w, y, x, 0, 1, ifx, ify, cx, cy, ifx, p0, p1, p2, 0, max_stretch,
-                               edge_scale, stride)  # fmt: skip
-            b0, b1, b2 = _step(z, valid, h, w, y, x, 1, 0, ifx, ify, cx, cy, ify, p0, p1, p2, 1, max_stretch,
-                               edge_scale, stride)  # fmt: skip
-            n0, n1, n2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
-            inv = 1 / max(math.sqrt(n0 * n0 + n1 * n1 + n2 * n2), _TINY)
-            n0, n1, n2 = n0 * inv, n1 * inv, n2 * inv
-            la = max(math.sqrt(a0 * a0 + a1 * a1 + a2 * a2), _TINY)
-            lb = math.sqrt(b0 * b0 + b1 * b1 + b2 * b2)
-            e10, e11, e12 = a0 / la, a1 / la, a2 / la
-            e20, e21, e22 = n1 * e12 - n2 * e11, n2 * e10 - n0 * e12, n0 * e11 - n1 * e10
-            bb1 = b0 * e10 + b1 * e11 + b2 * e12
-            bb2 = b0 * e20 + b1 * e21 + b2 * e22
-            g11, g12, g22 = la * la + bb1 * bb1, bb1 * bb2, bb2 * bb2
-            mid, rad = 0.5 * (g11 + g22), math.sqrt((0.5 * (g11 - g22)) ** 2 + g12 * g12)
-            c, s = 1.0, 0.0  # cos and sin of phi = atan2(2 g12, g11 - g22) / 2, by half angles
-            if rad > 0:
-                c2 = 0.5 * (g11 - g22) / rad
-                c, s = math.sqrt(max(0.5 * (1 + c2), 0.0)), math.copysign(math.sqrt(max(0.5 * (1 - c2), 0.0)), g12)
-            # disc axes in the camera frame (columns), then in the world: R_world = rot @ R_cam
-            u0, u1, u2 = c * e10 + s * e20, c * e11 + s * e21, c * e12 + s * e22
-            v0, v1, v2 = c * e20 - s * e10, c * e21 - s * e11, c * e22 - s * e12
-            qw, qx, qy, qz = _quat(
-                R00 * u0 + R01 * u1 + R02 * u2, R00 * v0 + R01 * v1 + R02 * v2, R00 * n0 + R01 * n1 + R02 * n2,
-                R10 * u0 + R11 * u1 + R12 * u2, R10 * v0 + R11 * v1 + R12 * v2, R10 * n0 + R11 * n1 + R12 * n2,
-                R20 * u0 + R21 * u1 + R22 * u2, R20 * v0 + R21 * v1 + R22 * v2, R20 * n0 + R21 * n1 + R22 * n2,
-            )  # fmt: skip
-            for i in range(3):
-                means[k, i] = rot[i, 0] * p0 + rot[i, 1] * p1 + rot[i, 2] * p2 + trans[i]
-                dc[k, i] = (rgb[y, x, i] - 0.5) / C0
-            quats[k, 0], quats[k, 1], quats[k, 2], quats[k, 3] = qw, qx, qy, qz
-            scales[k, 0] = sigma * math.sqrt(mid + rad)
-            scales[k, 1] = sigma * math.sqrt(max(mid - rad, 0.0))
-            scales[k, 2] = thickness * sigma * min(la, lb)
-            ids[k] = offset + y * w + x
-            k += 1
-    return k
+def _discs(zp, img, rx, ry, c2w, stride, consts, offset, start, means, quats, scales, dc, ids):
+    """Fill rows ``start``.. of the (flattened) outputs, one per pixel with depth on the stride
+    grid, from one view; returns the next free row.
+
+    zp: (H + 2, W + 2) depth padded by one pixel of -1, 0 where none (see ``_pad``);
+    img: (3, H, W); rx, ry: (W + 1,), (H + 1,) ray slopes (u + 0.5 - cx) / fx, (v + 0.5 - cy) / fy;
+    c2w: (4, 4); consts: float32 1/fx, 1/fy, max_stretch, stride, stride * edge_scale,
+    sigma_px, thickness; offset: pixel id of the view's first pixel.
+    """
+    h, w = zp.shape[0] - 2, zp.shape[1] - 2
+    cam = (c2w[0, 0], c2w[0, 1], c2w[0, 2], c2w[0, 3], c2w[1, 0], c2w[1, 1], c2w[1, 2], c2w[1, 3],
+           c2w[2, 0], c2w[2, 1], c2w[2, 2], c2w[2, 3])  # fmt: skip
+    buf = np.empty((_ROWS, _BLOCK), np.float32)  # a constant shape: the compiler sees no overlaps
+    cols = np.empty(_BLOCK, np.int64)
+    src = np.empty((10, _BLOCK), np.float32)
+    s0 = stride // 2  # first row and column of the grid
+    nx = len(range(s0, w, stride))
+    n = start
+    for y in range(s0, h, stride):
+        for b in range(0, nx, _BLOCK):
+            nb = min(_BLOCK, nx - b)
+            c = s0 + b * stride  # padded column left of the block's first pixel
+            above, row, below = zp[y], zp[y + 1], zp[y + 2]
+            red, green, blue = img[0, y], img[1, y], img[2, y]
+            if stride == 1:  # contiguous views: SIMD loads
+                ins = (row[c:], row[c + 1 :], row[c + 2 :], above[c + 1 :], below[c + 1 :], rx[c:], rx[c + 1 :],
+                       red[c:], green[c:], blue[c:])  # fmt: skip
+            else:  # gathered into contiguous rows
+                for i in range(nb):
+                    x = c + i * stride
+                    src[0, i], src[1, i], src[2, i], src[3, i] = row[x], row[x + 1], row[x + 2], above[x + 1]
+                    src[4, i], src[5, i], src[6, i] = below[x + 1], rx[x], rx[x + 1]
+                    src[7, i], src[8, i], src[9, i] = red[x], green[x], blue[x]
+                ins = (src[0], src[1], src[2], src[3], src[4], src[5], src[6], src[7], src[8], src[9])
+            _row(ins, nb, buf, ry[y], ry[y + 1], consts, cam)
+            cnt = 0  # move the columns of the pixels with depth to the front
+            for i in range(nb):
+                if row[c + 1 + i * stride] > _F(0):
+                    if cnt < i:
+                        for j in range(_ROWS):
+                            buf[j, cnt] = buf[j, i]
+                    cols[cnt] = c + i * stride
+                    cnt += 1
+            mo, qo, so, do, io = means[3 * n :], quats[4 * n :], scales[3 * n :], dc[3 * n :], ids[n:]
+            for i in range(cnt):  # one loop per output: SIMD copies
+                mo[3 * i], mo[3 * i + 1], mo[3 * i + 2] = buf[0, i], buf[1, i], buf[2, i]
+            for i in range(cnt):
+                qo[4 * i], qo[4 * i + 1], qo[4 * i + 2], qo[4 * i + 3] = (buf[3, i], buf[4, i], buf[5, i],
+                                                                          buf[6, i])  # fmt: skip
+            for i in range(cnt):
+                so[3 * i], so[3 * i + 1], so[3 * i + 2] = buf[7, i], buf[8, i], buf[9, i]
+            for i in range(cnt):
+                do[3 * i], do[3 * i + 1], do[3 * i + 2] = buf[10, i], buf[11, i], buf[12, i]
+            for i in range(cnt):
+                io[i] = offset + y * w + cols[i]
+            n += cnt
+    return n
+
+
+@_jit()
+def _pad(z, stride):
+    """Depths (V, H, W) padded by one pixel of -1 (outside the image), 0 where not > 0 (no
+    depth); and the number of pixels with depth on the stride grid."""
+    V, h, w = z.shape
+    zp = np.full((V, h + 2, w + 2), _F(-1))
+    n = 0
+    for v in range(V):
+        for y in range(h):
+            for x in range(w):
+                d = z[v, y, x]
+                zp[v, y + 1, x + 1] = max(_F(0), d)
+        for y in range(stride // 2, h, stride):
+            for x in range(stride // 2, w, stride):
+                n += zp[v, y + 1, x + 1] > _F(0)
+    return zp, n
 
 
 def surface_discs(
@@ -147,18 +243,19 @@ def surface_discs(
         (N,) int64 (``view * H * W + row * W + col``), for the N pixels with depth on the
         stride grid, view by view in row-major order.
     """
-    z = np.ascontiguousarray(depths.detach().cpu().numpy(), dtype=np.float32)
-    ok = z > 0
-    col = np.ascontiguousarray(images.detach().cpu().permute(0, 2, 3, 1).numpy(), dtype=np.float32)
-    Kd, T = K.detach().cpu().double().numpy(), c2w.detach().cpu().double().numpy()
-    V, H, W = z.shape
-    s = stride // 2
-    n = int(ok[:, s::stride, s::stride].sum())
+    V, H, W = depths.shape
+    zp, n = _pad(depths.detach().cpu().float().contiguous().numpy(), stride)
+    img = images.detach().cpu().float().contiguous().numpy()
+    Kd, T = K.detach().cpu().double().numpy(), c2w.detach().cpu().float().contiguous().numpy()
     out = [np.empty((n, c), np.float32) for c in (3, 4, 3, 3)]
     ids = np.empty(n, np.int64)
+    flat = [o.reshape(-1) for o in out]
+    rest = tuple(_F(x) for x in (max_stretch, stride, stride * edge_scale, sigma_px, thickness))
     k = 0
     for v in range(V):
-        intr = np.array([Kd[v, 0, 0], Kd[v, 1, 1], Kd[v, 0, 2], Kd[v, 1, 2]])
-        k = _discs(z[v], ok[v], col[v], intr, np.ascontiguousarray(T[v, :3, :3]), np.ascontiguousarray(T[v, :3, 3]),
-                   stride, sigma_px, thickness, max_stretch, edge_scale, v * H * W, k, *out, ids)  # fmt: skip
+        fx, fy, cx, cy = Kd[v, 0, 0], Kd[v, 1, 1], Kd[v, 0, 2], Kd[v, 1, 2]
+        rx = ((np.arange(W + 1) + 0.5 - cx) / fx).astype(np.float32)
+        ry = ((np.arange(H + 1) + 0.5 - cy) / fy).astype(np.float32)
+        consts = (_F(1 / fx), _F(1 / fy), *rest)
+        k = _discs(zp[v], img[v], rx, ry, T[v], stride, consts, v * H * W, k, *flat, ids)
     return (*(torch.from_numpy(o) for o in out), torch.from_numpy(ids))
