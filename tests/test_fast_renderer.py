@@ -335,3 +335,23 @@ def test_tile_lists_hold_every_touched_tile_in_depth_order(threads):
     else:
         start, ids = fast._bin_parallel(order, boxes, ntx, nty, threads)
     assert [ids[start[t] : start[t + 1]].tolist() for t in range(ntx * nty)] == want
+
+
+def test_parallel_projection_joins_its_chunks_like_the_serial_one():
+    """Chunks of Gaussians project independently and their splats are moved together: with
+    chunks that see nothing, all, or part of the scene, the same records, boxes and order."""
+    g = random_scene(n=900, seed=13, sh_degree=2)
+    means = g.means.clone()
+    means[:300, 2] = -1.0  # the first chunk of three is behind the camera
+    cam = camera()
+    W_, H_ = cam.width, cam.height
+    fx, fy, cx, cy = 40.0, 44.0, W / 2 + 0.3, H / 2 - 0.2
+    lims = fast.fov_limits(W_, H_, fx, fy, cx, cy)
+    cam_array = np.array([*torch.eye(4, dtype=torch.float64)[:3].reshape(-1).tolist(), fx, fy, cx, cy, *lims, 0, 0, 0])
+    args = (means.numpy(), g.quats.numpy(), g.scales.numpy(), g.opacities.numpy(), g.sh.numpy(), 2, cam_array,
+            0.01, np.float32(fast.ALPHA_MIN), W_, H_)  # fmt: skip
+    serial = fast._project_serial(*args)
+    assert 0 < len(serial[0]) < 600
+    for nchunks in (1, 3, 7):
+        for got, want in zip(fast._project_parallel(*args, nchunks), serial):
+            np.testing.assert_array_equal(got, want)

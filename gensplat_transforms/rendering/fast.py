@@ -3,11 +3,13 @@
 Same rules and outputs as :mod:`.projection` + :mod:`.reference` (see projection.py), not
 differentiable. One frame runs in three compiled stages:
 
-1. projection, in float64 like ``project()``: EWA conic, depth and opacity-aware pixel box
-   of every Gaussian (branch-free, SIMD over blocks of 128), culling (near plane,
-   opacity, off-image); one float32 record per visible splat, with its colour from SH only
-   up to the requested degree; their front-to-back order by a stable radix sort on the
-   bits of the depths rounded to float32, runs of equal roundings finished in float64;
+1. projection, in float64 like ``project()``, in blocks of 128 Gaussians that stay in
+   cache from input to output: EWA conic, depth and opacity-aware pixel box of every
+   Gaussian (branch-free, SIMD over the block), culling (near plane, opacity, off-image);
+   then, for the block's visible splats only, the colour from SH up to the requested degree
+   and one float32 record each, written in index order; their front-to-back order by a
+   stable radix sort on the bits of the depths rounded to float32, runs of equal roundings
+   finished in float64;
 2. binning: each splat is listed in the 16x16 tiles its box touches, in depth order (a
    counting sort: the tiles' list lengths are counted in memory order, which reads the boxes
    sequentially, then the lists filled in depth order); one-tile splats, most of them, take a
@@ -82,7 +84,10 @@ TILE = 1 << _TILE_BITS  # tile side in pixels (16): one tile row is one 16-lane 
 # fields of a splat's float32 record: centre u, v; conic A, 2B, C; opacity; colour; depth
 _U, _V, _A, _B2, _C, _O, _R, _G, _BL, _Z = range(10)
 _REC = 10
-_BLOCK = 128  # Gaussians per block of the projection's geometry (see _geometry_blocks)
+_BLOCK = 128  # Gaussians per block of the projection (see _project_range)
+# rows of a projection block: inputs (means 0-2, quaternions 3-6, scales 7-9), opacity,
+# geometry (8, see _geometry), box (4), visibility, colour (3)
+_B_OPACITY, _B_GEOM, _B_BOX, _B_VISIBLE, _B_COLOR, _B_ROWS = 10, 11, 19, 23, 24, 27
 # above this opacity the box extent is the full 3 sigma: 2 ln(255 o) > 9 for o > 0.353
 _OPAC_FULL_EXTENT = 0.36
 
@@ -118,14 +123,14 @@ def _geometry(lo, hi, soa, opacities, cam, near, opac_min, width, height, geom, 
     """EWA projection of Gaussians lo..hi-1 with projection.py's rules, in float64 (up to
     rounding: some divisions are products with a reciprocal). The loop is branch-free, so it
     compiles to SIMD code where the compiler can tell that the arrays do not overlap (see
-    ``_geometry_blocks``); the box uses the full 3-sigma extent (see ``_shrink_box``).
+    ``_project_range``); the box uses the full 3-sigma extent (see ``_shrink_box``).
     Inlined, with the loop inside: as a per-Gaussian call in a loop it stays scalar.
 
     soa: (10, N) rows: means (3), quaternions w-x-y-z (4), scales (3).
     cam: (23,) float64: world-to-camera rows (12), fx, fy, cx, cy, the field-of-view clamp
         limits of x/z (+, -) and y/z (+, -), camera centre (3).
     geom: (8, N) float64 out: u, v, conic A, 2B, C, depth, sqrt(cov_xx), sqrt(cov_yy).
-    boxes: (4, N) int32 out.  visible: (N,) bool out.
+    boxes: (4, N) out (whole numbers).  visible: (N,) out (1 or 0).
     """
     w00, w01, w02, w03, w10, w11, w12, w13 = cam[0], cam[1], cam[2], cam[3], cam[4], cam[5], cam[6], cam[7]
     w20, w21, w22, w23 = cam[8], cam[9], cam[10], cam[11]
@@ -184,48 +189,21 @@ def _geometry(lo, hi, soa, opacities, cam, near, opac_min, width, height, geom, 
         visible[i] = (z > near) & (z < MAX_DEPTH) & (opacities[i] >= opac_min) & (x0 <= x1) & (y0 <= y1)
 
 
-@_jit()
-def _geometry_blocks(lo, hi, means, quats, scales, opacities, cam, near, opac_min, width, height, geom,
-                     boxes, visible):  # fmt: skip
-    """``_geometry`` of Gaussians lo..hi-1 (inputs as in ``Gaussians``, the rest as in
-    ``_geometry``), in blocks of constant shape held in one float64 array (inputs, opacity,
-    geometry, box, visibility): the compiler sees that nothing in the block loop overlaps,
-    and vectorises it."""
-    blk = np.zeros((24, _BLOCK))
-    for b0 in range(lo, hi, _BLOCK):
-        nb = min(_BLOCK, hi - b0)
-        for j in range(nb):
-            i = b0 + j
-            blk[0, j], blk[1, j], blk[2, j] = means[i, 0], means[i, 1], means[i, 2]
-            blk[3, j], blk[4, j], blk[5, j], blk[6, j] = quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3]
-            blk[7, j], blk[8, j], blk[9, j] = scales[i, 0], scales[i, 1], scales[i, 2]
-            blk[10, j] = opacities[i]
-        # lanes past nb hold stale inputs and are not copied out
-        _geometry(
-            0, _BLOCK, blk[:10], blk[10], cam, near, opac_min, width, height, blk[11:19], blk[19:23], blk[23]
-        )
-        for j in range(nb):
-            for r in range(8):
-                geom[r, b0 + j] = blk[11 + r, j]
-            for c in range(4):
-                boxes[c, b0 + j] = np.int32(blk[19 + c, j])
-            visible[b0 + j] = blk[23, j] != 0.0
+@_jit(inline=True)
+def _shrink_box(j, blk, width, height):
+    """For visible lane j of a block (see ``_project_range``) with opacity <= 0.36, shrink its
+    box to the opacity-aware extent sqrt(2 ln(255 o)) < 3 sigma, as project() does (it may
+    leave the image)."""
+    o = blk[_B_OPACITY, j]
+    if o <= _OPAC_FULL_EXTENT:
+        ext = math.sqrt(min(max(2 * math.log(o / ALPHA_MIN), 0.0), SIGMA_EXTENT**2))
+        rx, ry = ext * blk[_B_GEOM + 6, j], ext * blk[_B_GEOM + 7, j]
+        x0, y0, x1, y1 = _pixel_box(blk[_B_GEOM, j], blk[_B_GEOM + 1, j], rx, ry, width, height)
+        blk[_B_BOX, j], blk[_B_BOX + 1, j], blk[_B_BOX + 2, j], blk[_B_BOX + 3, j] = x0, y0, x1, y1
+        blk[_B_VISIBLE, j] = (x0 <= x1) & (y0 <= y1)
 
 
 @_jit(inline=True)
-def _shrink_box(i, geom, boxes, visible, opacities, width, height):
-    """For visible Gaussian i with opacity <= 0.36, shrink its box to the opacity-aware extent
-    sqrt(2 ln(255 o)) < 3 sigma, as project() does (it may leave the image)."""
-    o = np.float64(opacities[i])
-    if o <= _OPAC_FULL_EXTENT:
-        ext = math.sqrt(min(max(2 * math.log(o / ALPHA_MIN), 0.0), SIGMA_EXTENT**2))
-        rx, ry = ext * geom[6, i], ext * geom[7, i]
-        x0, y0, x1, y1 = _pixel_box(geom[0, i], geom[1, i], rx, ry, width, height)
-        boxes[0, i], boxes[1, i], boxes[2, i], boxes[3, i] = x0, y0, x1, y1
-        visible[i] = (x0 <= x1) & (y0 <= y1)
-
-
-@_jit()
 def _sh_dot(sh, g, k0, basis):
     """sum_j basis[j] * sh[g, k0 + j] for one SH band (basis: a tuple), per channel."""
     r, gr, bl = 0.0, 0.0, 0.0
@@ -236,7 +214,7 @@ def _sh_dot(sh, g, k0, basis):
     return r, gr, bl
 
 
-@_jit()
+@_jit(inline=True)
 def _sh_rgb(sh, g, dx, dy, dz, degree):
     """sum_k sh[g, k] Y_k(d) + 0.5 clamped to [0, MAX_COLOR], in float64, for d = (dx, dy, dz)
     normalised, with the basis of ``sh.sh_basis`` up to ``degree``; returns (r, g, b)."""
@@ -284,27 +262,22 @@ def _sh_rgb(sh, g, dx, dy, dz, degree):
             min(max(bl + 0.5, 0.0), MAX_COLOR))  # fmt: skip
 
 
-@_jit()
-def _pack(lo, hi, idx, means, opacities, sh, degree, cam, geom, boxes, rec, vboxes, keys):
-    """Records j = lo..hi-1 from the visible Gaussians idx[j], with their colours from SH.
+@_jit(inline=True)
+def _pack(j, blk, rec, boxes, keys, m):
+    """Record m from lane j of a block (see ``_project_range``).
 
     rec: (M, 10) float32 out, rounded from float64 as project(out_dtype=float32) rounds
-    (rounding commutes with 2B = 2 * B). vboxes: (M, 4) int32 out. keys: (M,) float64 out:
+    (rounding commutes with 2B = 2 * B). boxes: (M, 4) int32 out. keys: (M,) float64 out:
     depths.
     """
-    for j in range(lo, hi):
-        i = idx[j]
-        dx = np.float64(means[i, 0]) - cam[20]
-        dy = np.float64(means[i, 1]) - cam[21]
-        dz = np.float64(means[i, 2]) - cam[22]
-        red, green, blue = _sh_rgb(sh, i, dx, dy, dz, degree)
-        rec[j, _U], rec[j, _V], rec[j, _Z] = geom[0, i], geom[1, i], geom[5, i]
-        rec[j, _A], rec[j, _B2], rec[j, _C] = geom[2, i], geom[3, i], geom[4, i]
-        rec[j, _O] = opacities[i]
-        rec[j, _R], rec[j, _G], rec[j, _BL] = red, green, blue
-        for c in range(4):
-            vboxes[j, c] = boxes[c, i]
-        keys[j] = geom[5, i]
+    g, c = _B_GEOM, _B_COLOR
+    rec[m, _U], rec[m, _V], rec[m, _Z] = blk[g, j], blk[g + 1, j], blk[g + 5, j]
+    rec[m, _A], rec[m, _B2], rec[m, _C] = blk[g + 2, j], blk[g + 3, j], blk[g + 4, j]
+    rec[m, _O] = blk[_B_OPACITY, j]
+    rec[m, _R], rec[m, _G], rec[m, _BL] = blk[c, j], blk[c + 1, j], blk[c + 2, j]
+    for k in range(4):
+        boxes[m, k] = np.int32(blk[_B_BOX + k, j])
+    keys[m] = blk[g + 5, j]
 
 
 @_jit()
@@ -353,23 +326,54 @@ def _argsort_depth(keys):
 
 
 @_jit()
-def _visible(geom, boxes, visible, opacities, width, height):
-    """Indices of the visible Gaussians, ascending, after ``_shrink_box`` of those with low
-    opacity. Branch-free compactions: with the shrink inside one plain loop, the compiler
-    computes its logarithm for every Gaussian (measured 20x slower)."""
-    n = visible.shape[0]
-    idx = np.empty(n, np.int32)
-    low = 0
-    for i in range(n):
-        idx[low] = i
-        low += visible[i] & (opacities[i] <= _OPAC_FULL_EXTENT)
-    for j in range(low):
-        _shrink_box(idx[j], geom, boxes, visible, opacities, width, height)
-    m = 0
-    for i in range(n):
-        idx[m] = i
-        m += visible[i]
-    return idx[:m]
+def _project_range(lo, hi, means, quats, scales, opacities, sh, degree, cam, near, opac_min, width, height,
+                   rec, boxes, keys):  # fmt: skip
+    """The visible splats among Gaussians lo..hi-1 (inputs as in ``Gaussians``, ``cam`` as in
+    ``_geometry``), in index order: their records, boxes and depths (see ``_pack``) written
+    to rows lo, lo + 1, ...; returns how many.
+
+    In blocks of ``_BLOCK`` Gaussians held in one float64 array of constant shape (inputs,
+    opacity, geometry, box, visibility, colour: rows ``_B_*``), so that the compiler sees that
+    nothing in ``_geometry``'s loop overlaps, and vectorises it. The per-splat rest of a
+    block runs over lists of its lanes made by branch-free compaction: with the box shrink
+    inside one plain loop, the compiler computes its logarithm for every Gaussian (measured
+    20x slower).
+    """
+    blk = np.zeros((_B_ROWS, _BLOCK))
+    lanes = np.empty(_BLOCK, np.int64)
+    m = lo
+    for b0 in range(lo, hi, _BLOCK):
+        nb = min(_BLOCK, hi - b0)
+        for j in range(nb):
+            i = b0 + j
+            blk[0, j], blk[1, j], blk[2, j] = means[i, 0], means[i, 1], means[i, 2]
+            blk[3, j], blk[4, j], blk[5, j], blk[6, j] = quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3]
+            blk[7, j], blk[8, j], blk[9, j] = scales[i, 0], scales[i, 1], scales[i, 2]
+            blk[_B_OPACITY, j] = opacities[i]
+        # lanes past nb hold stale inputs and are never read
+        _geometry(0, _BLOCK, blk[:_B_OPACITY], blk[_B_OPACITY], cam, near, opac_min, width, height,
+                  blk[_B_GEOM:_B_BOX], blk[_B_BOX:_B_VISIBLE], blk[_B_VISIBLE])  # fmt: skip
+        low = 0
+        for j in range(nb):
+            lanes[low] = j
+            low += (blk[_B_VISIBLE, j] != 0.0) & (blk[_B_OPACITY, j] <= _OPAC_FULL_EXTENT)
+        for k in range(low):
+            _shrink_box(lanes[k], blk, width, height)
+        nv = 0
+        for j in range(nb):
+            lanes[nv] = j
+            nv += blk[_B_VISIBLE, j] != 0.0
+        # colours in a loop of their own: inside the record loop, the branches on the SH
+        # degree made it 2-3x slower
+        for k in range(nv):
+            j = lanes[k]
+            dx, dy, dz = blk[0, j] - cam[20], blk[1, j] - cam[21], blk[2, j] - cam[22]
+            c = _B_COLOR
+            blk[c, j], blk[c + 1, j], blk[c + 2, j] = _sh_rgb(sh, b0 + j, dx, dy, dz, degree)
+        for k in range(nv):
+            _pack(lanes[k], blk, rec, boxes, keys, m + k)
+        m += nv
+    return m - lo
 
 
 @_jit()
@@ -378,32 +382,33 @@ def _project_serial(means, quats, scales, opacities, sh, degree, cam, near, opac
     order front to back (M,). Inputs as in ``Gaussians`` (float32), ``cam`` as in
     ``_geometry``."""
     n = means.shape[0]
-    geom, boxes, visible = np.empty((8, n)), np.empty((4, n), np.int32), np.empty(n, np.bool_)
-    _geometry_blocks(0, n, means, quats, scales, opacities, cam, near, opac_min, width, height, geom, boxes,
-                     visible)  # fmt: skip
-    idx = _visible(geom, boxes, visible, opacities, width, height)
-    m = idx.shape[0]
-    rec, vboxes, keys = np.empty((m, _REC), np.float32), np.empty((m, 4), np.int32), np.empty(m)
-    _pack(0, m, idx, means, opacities, sh, degree, cam, geom, boxes, rec, vboxes, keys)
-    return rec, vboxes, _argsort_depth(keys)
+    rec, boxes, keys = np.empty((n, _REC), np.float32), np.empty((n, 4), np.int32), np.empty(n)
+    m = _project_range(0, n, means, quats, scales, opacities, sh, degree, cam, near, opac_min, width, height,
+                       rec, boxes, keys)  # fmt: skip
+    return rec[:m], boxes[:m], _argsort_depth(keys[:m])
 
 
 @_jit(parallel=True)
 def _project_parallel(
     means, quats, scales, opacities, sh, degree, cam, near, opac_min, width, height, nchunks
 ):  # fmt: skip
+    """``_project_serial`` in chunks of Gaussians; each chunk's splats are then moved down
+    to follow the previous chunk's."""
     n = means.shape[0]
-    geom, boxes, visible = np.empty((8, n)), np.empty((4, n), np.int32), np.empty(n, np.bool_)
+    rec, boxes, keys = np.empty((n, _REC), np.float32), np.empty((n, 4), np.int32), np.empty(n)
+    counts = np.empty(nchunks, np.int64)
     for c in prange(nchunks):
-        _geometry_blocks(c * n // nchunks, (c + 1) * n // nchunks, means, quats, scales, opacities, cam, near,
-                         opac_min, width, height, geom, boxes, visible)  # fmt: skip
-    idx = _visible(geom, boxes, visible, opacities, width, height)
-    m = idx.shape[0]
-    rec, vboxes, keys = np.empty((m, _REC), np.float32), np.empty((m, 4), np.int32), np.empty(m)
-    for c in prange(nchunks):
-        _pack(c * m // nchunks, (c + 1) * m // nchunks, idx, means, opacities, sh, degree, cam, geom, boxes,
-              rec, vboxes, keys)  # fmt: skip
-    return rec, vboxes, _argsort_depth(keys)
+        counts[c] = _project_range(c * n // nchunks, (c + 1) * n // nchunks, means, quats, scales, opacities, sh,
+                                   degree, cam, near, opac_min, width, height, rec, boxes, keys)  # fmt: skip
+    m = 0
+    for c in range(nchunks):
+        src = c * n // nchunks
+        for k in range(counts[c]):  # m <= src: a forward copy never overwrites what it reads
+            rec[m] = rec[src + k]
+            boxes[m] = boxes[src + k]
+            keys[m] = keys[src + k]
+            m += 1
+    return rec[:m], boxes[:m], _argsort_depth(keys[:m])
 
 
 # --------------------------------------------------------------------------- binning
