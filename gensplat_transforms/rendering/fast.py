@@ -285,38 +285,46 @@ def _argsort_depth(keys):
     """Stable ascending order of positive float64 keys (M,), as ``np.argsort(kind="stable")``.
 
     LSD radix sort on 11-bit digits of the keys rounded to float32, whose IEEE bits order
-    like the values: 3 passes instead of 6 on the float64 bits. Rounding is monotone, so
-    only keys with equal roundings can be out of order; each such run (rare) is finished by
-    a stable sort of its float64 keys.
+    like the values: 3 passes instead of 6 on the float64 bits. The three digit histograms
+    are counted in one read of the bits, and each pass moves the bits along with the indices,
+    so that no pass reads them in a random order. Rounding is monotone, so only keys with
+    equal roundings can be out of order; each such run (rare) is finished by a stable sort of
+    its float64 keys.
     """
     n = keys.shape[0]
     bits = keys.astype(np.float32).view(np.uint32)
+    hist = np.zeros((3, 2048), np.int64)
+    for k in range(n):
+        b = bits[k]
+        hist[0, b & np.uint32(2047)] += 1
+        hist[1, (b >> np.uint32(11)) & np.uint32(2047)] += 1
+        hist[2, b >> np.uint32(22)] += 1
     order, tmp = np.empty(n, np.int32), np.empty(n, np.int32)
     for k in range(n):
         order[k] = k
-    hist = np.zeros(2048, np.int64)
-    for shift in range(0, 32, 11):
-        hist[:] = 0
-        for k in range(n):
-            hist[(bits[k] >> np.uint32(shift)) & np.uint32(2047)] += 1
+    tmp_bits = np.empty(n, np.uint32)
+    for p in range(3):
         total, single = 0, False
         for d in range(2048):
-            cnt = hist[d]
+            cnt = hist[p, d]
             single |= cnt == n  # the same digit for every key: nothing to do
-            hist[d] = total
+            hist[p, d] = total
             total += cnt
         if single:
             continue
+        shift = np.uint32(11 * p)
         for k in range(n):
-            o = order[k]
-            d = (bits[o] >> np.uint32(shift)) & np.uint32(2047)
-            tmp[hist[d]] = o
-            hist[d] += 1
+            b = bits[k]
+            d = (b >> shift) & np.uint32(2047)
+            at = hist[p, d]
+            tmp[at], tmp_bits[at] = order[k], b
+            hist[p, d] = at + 1
         order, tmp = tmp, order
+        bits, tmp_bits = tmp_bits, bits
     i = 0
-    while i < n:
+    while i < n:  # bits are sorted now
         j = i + 1
-        while j < n and bits[order[j]] == bits[order[i]]:
+        while j < n and bits[j] == bits[i]:
             j += 1
         if j - i > 1:  # a run in ascending index order: a stable sort keeps ties in it
             run = order[i:j].copy()
