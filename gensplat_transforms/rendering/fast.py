@@ -593,7 +593,7 @@ def _raster_tile(tile, rec, boxes, start, ids, width, height, ntx, bg, want_dept
 
     rec: (M, 10) float32 splat records; boxes: (M, 4) their pixel boxes; start, ids: tile
     lists from binning (ids index rec); bg: (3,) background; k: ``_CONSTANTS``.
-    rgb (H*W, 3), depth (H*W,) (when want_depth) and alpha (H*W,): outputs, written for
+    rgb (3, H*W), depth (H*W,) (when want_depth) and alpha (H*W,): outputs, written for
     this tile's pixels only.
     """
     consts = (k[0], k[1], k[2], k[3], k[4], k[5], k[6], k[7], k[8])  # values, not memory
@@ -646,9 +646,9 @@ def _raster_tile(tile, rec, boxes, start, ids, width, height, ntx, bg, want_dept
         for lx in range(nx):
             p = (y_org + ly) * width + x_org + lx
             t = state[_T, ly, lx]
-            rgb[p, 0] = state[_RED, ly, lx] + t * bg[0]
-            rgb[p, 1] = state[_GREEN, ly, lx] + t * bg[1]
-            rgb[p, 2] = state[_BLUE, ly, lx] + t * bg[2]
+            rgb[0, p] = state[_RED, ly, lx] + t * bg[0]
+            rgb[1, p] = state[_GREEN, ly, lx] + t * bg[1]
+            rgb[2, p] = state[_BLUE, ly, lx] + t * bg[2]
             alpha[p] = one - t
             if want_depth:
                 depth[p] = state[_DEPTH, ly, lx]
@@ -707,7 +707,8 @@ def render_fast(
         timings: if given, receives the milliseconds of "projection", "binning" and "raster".
         Others: as for every backend (see ``rendering.BACKENDS``).
     Returns:
-        rgb (H*W, 3), depth_sum (H*W,) = sum_i w_i z_i or None without ``return_depth``,
+        rgb (H*W, 3) (the transpose of a contiguous (3, H*W), so that ``render``'s (3, H, W)
+        planes are a view of it), depth_sum (H*W,) = sum_i w_i z_i or None without ``return_depth``,
         alpha (H*W,); in ``out_dtype`` on the Gaussians' device.
     """
     threads = int(threads)
@@ -732,7 +733,7 @@ def render_fast(
     fx, fy, cx, cy = camera.K[0].to(torch.float64)[[0, 1, 0, 1], [0, 1, 2, 2]].tolist()
     lims = fov_limits(W, H, fx, fy, cx, cy)  # the clamp of project()
     cam = np.array([*w2c[:3].reshape(-1).tolist(), fx, fy, cx, cy, *lims, *camera.centers[0].tolist()])
-    rgb = torch.empty(H * W, 3)
+    rgb = torch.empty(3, H * W)
     alpha = torch.empty(H * W)
     depth = torch.empty(H * W if return_depth else 0)
     project_args = (f32(g.means), f32(g.quats), f32(g.scales), f32(g.opacities), f32(g.sh), degree, cam,
@@ -757,4 +758,4 @@ def render_fast(
         timings.update({name: 1e3 * seconds for name, seconds in ms.items()})
     dev = g.device
     depth_sum = depth.to(dev, out_dtype) if return_depth else None
-    return rgb.to(dev, out_dtype), depth_sum, alpha.to(dev, out_dtype)
+    return rgb.T.to(dev, out_dtype), depth_sum, alpha.to(dev, out_dtype)
