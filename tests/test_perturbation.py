@@ -5,11 +5,13 @@ from __future__ import annotations
 import math
 import pickle
 
+import numpy as np
 import pytest
 import torch
 
 from gensplat_transforms.cameras import Cameras, look_at
 from gensplat_transforms.perturbation import (
+    AXES,
     EVAL_LEVELS,
     LEVELS,
     Perturbation,
@@ -340,3 +342,21 @@ def test_move_checks_the_moved_pose_only_for_overflow(monkeypatch):
     far[0, :3, 3], far[1, :3, 3] = 1.5e308, -1.5e308
     with pytest.raises(ValueError, match="Cameras.c2w: contains NaN or Inf"):
         Perturbation("y", -20.0, 0.05).move(cams.with_c2w(far), 0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32, torch.float16])
+@pytest.mark.parametrize("axis", ["x", "y"])
+def test_axis_rotation_has_kornias_bits(axis, dtype):
+    """The NumPy evaluation of kornia's formula gives its bits (signed zeros included), on
+    both of its branches: Rodrigues' formula and the Taylor series below 1e-3 rad."""
+    from kornia.geometry.conversions import axis_angle_to_rotation_matrix
+
+    rng = np.random.default_rng(AXES.index(axis))
+    angles = [*rng.uniform(-200, 200, 300), *rng.uniform(-0.12, 0.12, 200), 0.0, -0.0, 0.0572958, -0.0572958,
+              1e-9, 30.0, -60.0, 90.0, 180.0]  # fmt: skip
+    for theta in angles:
+        axis_angle = torch.zeros(3, dtype=dtype)
+        axis_angle[AXES.index(axis)] = math.radians(theta)
+        want, got = axis_angle_to_rotation_matrix(axis_angle), axis_rotation(axis, theta, dtype)
+        assert got.dtype == dtype
+        assert torch.equal(got, want) and torch.equal(got.signbit(), want.signbit()), theta
