@@ -1,58 +1,91 @@
-"""Policy robustness under camera perturbation: the paper's first experiment, in simulation.
+"""Policy robustness under camera perturbation: the paper's first experiment, in simulation,
+with the 2D augmentations users already have as the alternatives to GenSplat.
 
-    python benchmarks/policy_robustness.py [--quick] [--work DIR] [--steps N] ...
+    python benchmarks/policy_robustness.py [--quick] [--arms A,B,...] [--work DIR] [--steps N] ...
 
 Stages (each is skipped when its output already exists in ``--work``, so a stopped run
 resumes where it was; a ``--work`` made with other settings is refused):
 
 1. record ``--demos`` scripted demonstrations of ``--task`` at ``--size`` px (run seed
    ``--seed``; lossless PNG frames, calibration and depth sidecars);
-2. write the GenSplat settings beside the dataset and build its Gaussian cache: RGB-D
-   reconstruction of the left + right cameras; the policy's external cameras (left by
-   default) are replaced with probability ``--probability`` (default 0.25) by a view from
-   the training range (|theta| <= 30 deg, 0.5-6 cm), one camera per trajectory,
-   ``--views-per-source`` (default 3) distinct cameras per source trajectory;
-3. train Diffusion Policy twice with LeRobot's stock trainer through ``policies/train.sh``
-   (``baseline`` and ``gensplat``, the latter with the one added line): same data, seed,
-   steps, batch and policy settings; the policy sees ``--cameras`` and the robot state;
-4. evaluate both checkpoints in ``PerturbedCameraEnv`` with the left external camera
+2. when a GenSplat arm is trained: write the GenSplat settings beside the dataset and build
+   its Gaussian cache (RGB-D reconstruction of the left + right cameras);
+3. train Diffusion Policy once per arm (``--arms``, default all five) with LeRobot's stock
+   trainer through ``policies/train.sh``: same data, seed, steps, batch and policy settings;
+   the policy sees ``--cameras`` and the robot state. The arms differ only in the training
+   augmentation (``augmentation`` and ``train_command`` give what each passes):
+
+   * ``baseline``: none;
+   * ``lerobot2d``: LeRobot's own image augmentation, ``--dataset.image_transforms.enable=true``
+     with 3 of these 7 transforms per sample (LeRobot's default count, equal weights): its
+     default colour jitter (brightness and contrast 0.8-1.2, saturation 0.5-1.5, hue
+     +-0.05) and sharpness jitter (0.5-1.5), its ``RandomAffine`` widened to the camera
+     moves GenSplat trains on (rotation +-20 deg, scale 0.98-1.08, LeRobot's translation
+     +-5 %, bilinear) and a square ``RandomResizedCrop`` of 85-100 % of the area back to
+     full size. Tuned once, from geometry, not from success rates: a similarity fitted to
+     the workspace's image points (the table, 0-20 cm above it) under 500 moves of
+     GenSplat's training range (level ``train``) rotates the image by 7.6 deg (median) and
+     18.8 deg (95th percentile) and scales it by 0.98-1.08 (5th-95th), and moves it by
+     less than 1 % (the cameras turn about the point they look at, the image centre);
+   * ``perspective``: a random homography of the external camera, torchvision's
+     ``RandomPerspective(distortion_scale=0.25, p=--probability)`` (bilinear, black
+     corners) as LeRobot's only image transform: with the probability GenSplat replaces a
+     camera (one draw per sample and camera, the same warp for a temporal stack); the
+     distortion moves the workspace's image points by 4.2 % of the width on average, as
+     GenSplat's training moves do (4.0 %). LeRobot warps every camera it loads, each with its
+     own draw, so this arm refuses a policy that sees the wrist camera;
+   * ``gensplat``: GenSplat's one added line; the policy's external cameras (left by
+     default) are replaced with probability ``--probability`` (default 0.25) by a view
+     from the training range (|theta| <= 30 deg, 0.5-6 cm), one camera per trajectory,
+     ``--views-per-source`` (default 3) distinct cameras per source trajectory;
+   * ``gensplat+lerobot2d``: both; LeRobot's transforms apply after GenSplat's views;
+
+4. evaluate every arm's checkpoint in ``PerturbedCameraEnv`` with the left external camera
    perturbed once per episode at none / small / medium / large. Episode layouts come from
-   the evaluation stream (never a training layout) and both policies meet the same layouts,
+   the evaluation stream (never a training layout) and every policy meets the same layouts,
    perturbations and sampling noise (torch is seeded per episode).
 
-Defaults, sized for this 2-core CPU, about 2.2 hours (measured: 1.29 s per training step
-without GenSplat and 1.45 s with it, 54 and 60 min per policy, evaluation 11 min in two
-processes at 0.07-0.08 s per control step, recording 5 min; ``timing`` in the result holds the
-measured values): the ``reach_solo`` task (bring the open gripper 2 cm above the one 5 cm
-cube on the table, placed at random; the policy must find it in the image), 300
-demonstrations at 96x96, the policy sees the left camera and the state; Diffusion Policy as
-in ``policies/diffusion.json`` (ResNet-18 encoder from scratch, U-Net ``down_dims``
-64-128-256, horizon 16, 8 executed actions) with 1 observation step, DDIM and 10 inference
-steps; 2500 steps at batch 32 (warm-up a tenth of the steps, at most 500); 50 evaluation
-episodes per level of at most 50 control steps (the demonstrations take 15-18). Harder
-tasks did not train at this budget: ``reach`` (a 4 cm cube among two distractors of random
-colours) stayed at about 10 % success at every level, and ``pick_place`` (``--cameras
-left,right,wrist``) lifted no cube after 1500 steps at batch 8 (see the README);
-``--device cuda --steps 20000`` is the setting to aim for on a GPU. Measured on one
-H100 machine (16 cores): with ``--parallel-train --workers 6`` each policy ran at 3-4 steps/s,
-bound by the dataloader (LeRobot decoding PNG frames), so 20000 steps take about 1.5 h there.
-``--baseline-from RESULT.json`` reuses the baseline of an earlier result instead of training
-and evaluating it again (an hour here): the evaluation is seeded and reproducible, so its
-episode records stand for the checkpoint. The settings that shape the baseline and its
-evaluation must match (checked), and the result names the file in ``settings``.
+Defaults, sized for this 2-core CPU: the ``reach_solo`` task (bring the open gripper 2 cm
+above the one 5 cm cube on the table, placed at random; the policy must find it in the
+image), 300 demonstrations at 96x96, the policy sees the left camera and the state;
+Diffusion Policy as in ``policies/diffusion.json`` (ResNet-18 encoder from scratch, U-Net
+``down_dims`` 64-128-256, horizon 16, 8 executed actions) with 1 observation step, DDIM and
+10 inference steps; 2500 steps at batch 32 (warm-up a tenth of the steps, at most 500); 100
+evaluation episodes per level of at most 50 control steps (the demonstrations take 15-18).
+Measured here: 1.29 s per training step without GenSplat and 1.45 s with it (54 and 60 min
+per policy), evaluation at 0.07-0.08 s per control step in two processes, recording 5 min;
+``timing`` in the result holds the measured values. Harder tasks did not train at this
+budget: ``reach`` (a 4 cm cube among two distractors of random colours) stayed at about
+10 % success at every level, and ``pick_place`` (``--cameras left,right,wrist``) lifted no
+cube after 1500 steps at batch 8 (see the README); ``--device cuda --steps 20000`` is the
+setting to aim for on a GPU. Measured on one H100 machine (16 cores): with
+``--parallel-train --workers 6`` each policy ran at 3-4 steps/s, bound by the dataloader
+(LeRobot decoding PNG frames), so 20000 steps take about 1.5 h there.
+
+``--reuse-from RESULT.json`` (repeatable) reuses the arms of earlier results instead of
+training and evaluating them again (an hour each here): the evaluation is seeded and
+reproducible, so an arm's episode records stand for its checkpoint. An arm is reused when
+the settings that shape it and its evaluation match (the common ones, its augmentation and
+the episodes per level; checked, and the arms whose settings differ are named and trained);
+``settings["reused"]`` names the file of each reused arm. Within one ``--work``, a trained
+checkpoint is not trained again (its augmentation is checked), so adding an arm later trains
+only that arm.
 ``--quick`` (a few minutes): 2 demos, 4 steps at batch 4, a smaller U-Net, 2 episodes per
 level of at most 20 steps: it checks the pipeline end to end, its success rates mean nothing.
 
 Writes ``benchmarks/results/policy_robustness.json`` (``policy_robustness_quick.json`` with
-``--quick``): ``{"baseline": {level: success %}, "gensplat": {...}, "episodes_per_level": n,
-"progress": {mode: {level: {lift_percent, median_reach_cm}}}, "difference": {level: {points,
-ci95, a_only, b_only, mcnemar_p}}, "quick": bool, "settings", "timing", "episodes"}``.
-``difference`` compares the two policies episode by episode (they met the same episodes):
-GenSplat minus baseline in points, a paired-bootstrap 95 % interval, and an exact McNemar
-test on the episodes only one of them solved. ``progress`` tells
-apart policies that do not succeed yet: the share of episodes that lifted the cube (pick
-and place) and the median closest approach of the pinch point to the cube's centre (to the
-reach goal in a reach).
+``--quick``): ``{"arms": {arm: {level: success %}}, "levels", "episodes_per_level": n,
+"progress": {arm: {level: {lift_percent, median_reach_cm}}}, "difference": {"vs_baseline":
+{arm: {level: {points, ci95, a_only, b_only, mcnemar_p}}}, "vs_best_2d": {...}},
+"best_2d", "quick", "settings", "timing", "episodes": {arm: [per-episode records]}}``.
+``difference`` compares two arms episode by episode (they met the same episodes): every arm
+against the baseline, and the GenSplat arms against ``best_2d``, the 2D arm (``lerobot2d``,
+``perspective``) with the highest mean success over the perturbed levels (chosen on the
+same episodes, so the comparison favours it); in points (arm minus reference), a
+paired-bootstrap 95 % interval, and an exact McNemar test on the episodes only one of them
+solved. ``progress`` tells apart policies that do not succeed yet: the share of episodes
+that lifted the cube (pick and place) and the median closest approach of the pinch point to
+the cube's centre (to the reach goal in a reach).
 """
 
 from __future__ import annotations
@@ -85,7 +118,11 @@ from gensplat_transforms.sim.world import CAMERA_NAMES, EXTERNAL_CAMERAS, STATE_
 from gensplat_transforms.transform import GenSplatConfig
 
 LEVELS = ("none", "small", "medium", "large")
-MODES = ("baseline", "gensplat")
+ARMS = ("baseline", "lerobot2d", "perspective", "gensplat", "gensplat+lerobot2d")
+TWO_D_ARMS = ("lerobot2d", "perspective")
+GENSPLAT_ARMS = ("gensplat", "gensplat+lerobot2d")
+#: RandomPerspective's distortion_scale of the perspective arm (see the module docstring).
+PERSPECTIVE_DISTORTION = 0.25
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
 
@@ -97,7 +134,7 @@ def repo_id(task: str) -> str:
 #: (full, quick) defaults of the settings that size the experiment.
 DEFAULTS = {
     "demos": (300, 2), "size": (96, 96), "steps": (2500, 4), "batch_size": (32, 4), "workers": (2, 0),
-    "down_dims": ("64,128,256", "32,64,128"), "episodes": (50, 2), "max_steps": (None, 20),
+    "down_dims": ("64,128,256", "32,64,128"), "episodes": (100, 2), "max_steps": (None, 20),
 }  # fmt: skip
 
 
@@ -106,19 +143,99 @@ RUN_SETTINGS = ("task", "cameras", "demos", "size", "steps", "batch_size", "work
                 "n_obs_steps", "views_per_source", "probability", "fill_holes", "seed", "device")  # fmt: skip
 
 
-def check_work(work: Path, args) -> None:
-    """Record the run settings in ``work``, or refuse to resume a ``work`` made with others."""
+def lerobot2d_transforms(size: int) -> dict:
+    """LeRobot ``ImageTransformsConfig`` fields of the lerobot2d arms, as plain values (see the
+    module docstring); ``size``: the image side, which the crop returns to."""
+    def jitter(kind: str, kwargs: dict) -> dict:
+        return {"type": kind, "kwargs": kwargs}
+
+    return {"max_num_transforms": 3, "tfs": {
+        "brightness": jitter("ColorJitter", {"brightness": [0.8, 1.2]}),
+        "contrast": jitter("ColorJitter", {"contrast": [0.8, 1.2]}),
+        "saturation": jitter("ColorJitter", {"saturation": [0.5, 1.5]}),
+        "hue": jitter("ColorJitter", {"hue": [-0.05, 0.05]}),
+        "sharpness": jitter("SharpnessJitter", {"sharpness": [0.5, 1.5]}),
+        "affine": jitter("RandomAffine", {"degrees": [-20.0, 20.0], "translate": [0.05, 0.05],
+                                          "scale": [0.98, 1.08], "interpolation": 2}),  # 2: bilinear
+        "crop": jitter("RandomResizedCrop", {"size": [size, size], "scale": [0.85, 1.0], "ratio": [1.0, 1.0]}),
+    }}  # fmt: skip
+
+
+def perspective_transforms(probability: float) -> dict:
+    """LeRobot ``ImageTransformsConfig`` fields of the perspective arm: one random homography
+    applied with ``probability``."""
+    kwargs = {"distortion_scale": PERSPECTIVE_DISTORTION, "p": probability}
+    return {"max_num_transforms": 1, "tfs": {"perspective": {"type": "RandomPerspective", "kwargs": kwargs}}}
+
+
+def gensplat_config(args) -> GenSplatConfig:
+    """The GenSplat settings of the GenSplat arms (written beside the dataset)."""
+    replace = tuple(c for c in args.cameras if c in EXTERNAL_CAMERAS)
+    return GenSplatConfig(replace=replace, views_per_source=args.views_per_source, probability=args.probability,
+                          fill_holes=args.fill_holes, backend="fast", seed=args.seed)  # fmt: skip
+
+
+def augmentation(arm: str, args) -> dict:
+    """What ``arm`` adds to the baseline's training, as plain values: ``gensplat`` (the GenSplat
+    settings) and ``image_transforms`` (LeRobot's), each only where the arm has it."""
+    out = {}
+    if arm in GENSPLAT_ARMS:
+        g = gensplat_config(args)
+        out["gensplat"] = {"cameras": list(g.cameras), "replace": list(g.replace), "probability": g.probability,
+                           "level": g.level, "mode": g.mode, "views_per_source": g.views_per_source,
+                           "fill_holes": g.fill_holes}  # fmt: skip
+    if arm.endswith("lerobot2d"):
+        out["image_transforms"] = lerobot2d_transforms(args.size)
+    elif arm == "perspective":
+        out["image_transforms"] = perspective_transforms(args.probability)
+    return out
+
+
+def arm_arguments(arm: str, args) -> list[str]:
+    """``policies/train.sh``'s mode for ``arm`` and the ``lerobot-train`` arguments it adds."""
+    aug = augmentation(arm, args)
+    out = ["gensplat" if "gensplat" in aug else "baseline"]
+    if "image_transforms" in aug:
+        t = aug["image_transforms"]
+        out += ["--dataset.image_transforms.enable=true",
+                f"--dataset.image_transforms.max_num_transforms={t['max_num_transforms']}",
+                "--dataset.image_transforms.tfs=" + json.dumps(t["tfs"], separators=(",", ":"))]  # fmt: skip
+    return out
+
+
+def train_command(arm: str, root: Path, out: Path, config: Path, args) -> list[str]:
+    """The command that trains ``arm`` on the dataset at ``root`` into ``out``, with the policy
+    config ``config``: ``bash policies/train.sh CONFIG MODE <arguments>``."""
+    mode, *extra = arm_arguments(arm, args)
+    return [
+        "bash", str(ROOT / "policies" / "train.sh"), str(config), mode,
+        f"--dataset.repo_id={repo_id(args.task)}", f"--dataset.root={root}", f"--output_dir={out}",
+        f"--steps={args.steps}", f"--batch_size={args.batch_size}", f"--num_workers={args.workers}",
+        f"--seed={args.seed}", f"--save_freq={args.steps}", f"--log_freq={max(1, args.steps // 50)}",
+        f"--policy.down_dims=[{args.down_dims}]", f"--policy.n_obs_steps={args.n_obs_steps}",
+        "--policy.noise_scheduler_type=DDIM", f"--policy.num_inference_steps={args.inference_steps}",
+        f"--policy.scheduler_warmup_steps={min(500, args.steps // 10)}",
+        f"--policy.device={args.device}", *extra,
+    ]  # fmt: skip
+
+
+def check_work(work: Path, arms: tuple[str, ...], args) -> None:
+    """Record the run settings and the arms' augmentation in ``work``, or refuse to resume a
+    ``work`` made with other settings or another augmentation of one of ``arms``."""
     settings = {k: list(v) if isinstance(v, tuple) else v for k in RUN_SETTINGS for v in [getattr(args, k)]}
+    augment = {arm: augmentation(arm, args) for arm in arms}
     path = work / "settings.json"
     if path.is_file():
         old = json.loads(path.read_text())
         changed = {k: (old.get(k), v) for k, v in settings.items() if old.get(k) != v}
+        before = old.get("augmentation", {})  # absent in works from before the arms
+        changed |= {arm: "augmentation" for arm in arms if arm in before and before[arm] != augment[arm]}
         if changed:
             raise SystemExit(f"{work} holds a run with other settings {changed} (was, now): "
                              "pass a new --work or delete it")  # fmt: skip
-        return
+        augment = {**before, **augment}
     work.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(settings, indent=2) + "\n")
+    path.write_text(json.dumps({**settings, "augmentation": augment}, indent=2) + "\n")
 
 
 def policy_config(work: Path, args) -> Path:
@@ -134,36 +251,26 @@ def policy_config(work: Path, args) -> Path:
     return path
 
 
-def train(mode: str, root: Path, out: Path, args) -> dict:
-    """Train one policy with ``policies/train.sh diffusion <mode>`` unless ``out`` holds a
-    finished run; returns {"seconds", "s_per_step" (start-up included), "last_loss"}, kept in
-    ``train_<mode>.json`` beside ``out`` so that a resumed run still reports them."""
-    record = out.parent / f"train_{mode}.json"
+def train(arm: str, root: Path, out: Path, args) -> dict:
+    """Train one arm with :func:`train_command` unless ``out`` holds a finished run; returns
+    {"seconds", "s_per_step" (start-up included), "last_loss"}, kept in ``train_<arm>.json``
+    beside ``out`` so that a resumed run still reports them."""
+    record = out.parent / f"train_{arm}.json"
     if (out / "checkpoints" / "last" / "pretrained_model" / "config.json").is_file():
         return json.loads(record.read_text()) if record.is_file() else {}
     shutil.rmtree(out, ignore_errors=True)  # an unfinished run: lerobot-train refuses existing folders
-    dims = "[" + args.down_dims + "]"
-    cmd = [
-        "bash", str(ROOT / "policies" / "train.sh"), str(policy_config(out.parent, args)), mode,
-        f"--dataset.repo_id={repo_id(args.task)}", f"--dataset.root={root}", f"--output_dir={out}",
-        f"--steps={args.steps}", f"--batch_size={args.batch_size}", f"--num_workers={args.workers}",
-        f"--seed={args.seed}", f"--save_freq={args.steps}", f"--log_freq={max(1, args.steps // 50)}",
-        f"--policy.down_dims={dims}", f"--policy.n_obs_steps={args.n_obs_steps}",
-        "--policy.noise_scheduler_type=DDIM", f"--policy.num_inference_steps={args.inference_steps}",
-        f"--policy.scheduler_warmup_steps={min(500, args.steps // 10)}",
-        f"--policy.device={args.device}",
-    ]  # fmt: skip
-    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}"}
     out.parent.mkdir(parents=True, exist_ok=True)
-    log = out.parent / f"train_{mode}.log"
+    cmd = train_command(arm, root, out, policy_config(out.parent, args), args)
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}"}
+    log = out.parent / f"train_{arm}.log"
     t0 = time.perf_counter()
     with open(log, "w") as f:
         run = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, env=env, check=False)
     seconds = time.perf_counter() - t0
     if run.returncode != 0:
-        raise RuntimeError(f"training {mode} failed (exit {run.returncode}); see {log}")
+        raise RuntimeError(f"training {arm} failed (exit {run.returncode}); see {log}")
     losses = re.findall(r"\bloss:([0-9.]+)", log.read_text())
-    print(f"trained {mode} in {seconds:.0f} s, last logged loss {losses[-1] if losses else '?'}", flush=True)
+    print(f"trained {arm} in {seconds:.0f} s, last logged loss {losses[-1] if losses else '?'}", flush=True)
     timing = {"seconds": round(seconds, 1), "s_per_step": round(seconds / args.steps, 2),
               "last_loss": float(losses[-1]) if losses else None}  # fmt: skip
     record.write_text(json.dumps(timing))
@@ -192,63 +299,101 @@ def evaluate_level(checkpoint: Path, level: str, args) -> dict:
             "seconds": time.perf_counter() - t0, "steps": sum(result.steps)}  # fmt: skip
 
 
-def evaluate_all(work: Path, modes: tuple[str, ...], args) -> dict:
-    """{mode: {level: evaluate_level(...)}}, ``args.eval_jobs`` (mode, level) pairs at a time
+def evaluate_all(work: Path, arms: tuple[str, ...], args) -> dict:
+    """{arm: {level: evaluate_level(...)}}, ``args.eval_jobs`` (arm, level) pairs at a time
     in separate processes."""
-    jobs = [(mode, level) for mode in modes for level in LEVELS]
+    jobs = [(arm, level) for arm in arms for level in LEVELS]
     with ProcessPoolExecutor(args.eval_jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
         futures = {job: pool.submit(evaluate_level, work / job[0], job[1], args) for job in jobs}
-        out: dict = {mode: {} for mode in modes}
-        for (mode, level), future in futures.items():
-            r = out[mode][level] = future.result()
-            print(f"  {mode:>8} {level:>6}: {r['success']:5.1f} % success, {r['progress']['lift_percent']:5.1f} % "
+        out: dict = {arm: {} for arm in arms}
+        for (arm, level), future in futures.items():
+            r = out[arm][level] = future.result()
+            print(f"  {arm:>18} {level:>6}: {r['success']:5.1f} % success, {r['progress']['lift_percent']:5.1f} % "
                   f"lifted, median closest approach {r['progress']['median_reach_cm']:.1f} cm over "
                   f"{args.episodes} episodes", flush=True)  # fmt: skip
     return out
 
 
-#: Settings that shape the baseline policy and its evaluation (``--baseline-from`` checks them).
-BASELINE_SETTINGS = ("task", "policy_cameras", "demos", "size", "steps", "batch_size", "workers", "down_dims",
-                     "n_obs_steps", "inference_steps", "max_steps", "seed", "device")  # fmt: skip
+#: Settings that shape every arm's policy and its evaluation (``--reuse-from`` checks them,
+#: with the arm's augmentation and the episodes per level).
+ARM_SETTINGS = ("task", "policy_cameras", "demos", "size", "steps", "batch_size", "workers", "down_dims",
+                "n_obs_steps", "inference_steps", "max_steps", "seed", "device")  # fmt: skip
 
 
-def reused_baseline(path: Path, settings: dict, episodes: int) -> tuple[dict, dict]:
-    """The baseline of an earlier result: ({level: evaluate_level-like record}, its training and
-    evaluation timing). Raises SystemExit when its settings differ from ``settings``."""
-    old = json.loads(path.read_text())
-    if old.get("quick"):
-        raise SystemExit(f"--baseline-from {path}: a --quick result is not a baseline")
-    changed = {k: (old["settings"].get(k), settings[k]) for k in BASELINE_SETTINGS
-               if old["settings"].get(k) != settings[k]}  # fmt: skip
-    if old["episodes_per_level"] != episodes:
-        changed["episodes"] = (old["episodes_per_level"], episodes)
-    if changed:
-        raise SystemExit(f"--baseline-from {path}: its baseline was made with other settings {changed} (was, now)")
-    per_level = {}
-    for level in LEVELS:
-        records = sorted((e for e in old["episodes"]["baseline"] if e["level"] == level), key=lambda e: e["episode"])
-        if [e["episode"] for e in records] != list(range(episodes)):
-            raise SystemExit(f"--baseline-from {path}: episodes 0-{episodes - 1} of level {level} are not all there")
-        per_level[level] = {"success": old["baseline"][level], "progress": old["progress"]["baseline"][level],
-                            "episodes": records}  # fmt: skip
-    timing = {k: old["timing"][k] for k in ("train_baseline", "eval_baseline")}
-    return per_level, timing
+def reused_arms(paths: list[Path], arms: tuple[str, ...], settings: dict, episodes: int) -> tuple[dict, dict, dict]:
+    """The arms of ``arms`` that earlier results hold with the same settings: ({arm: {level:
+    evaluate_level-like record}}, {"train_<arm>" / "eval_<arm>": their timing}, {arm: file
+    name}); the first file that holds an arm decides. Prints which arms are reused, and why an
+    arm a file holds is not. Raises SystemExit for a --quick result, one from before the arms,
+    or missing episodes."""
+    reused, timing, sources = {}, {}, {}
+    for path in paths:
+        old = json.loads(path.read_text())
+        if old.get("quick") or "arms" not in old:
+            why = "a --quick result" if old.get("quick") else "a result from before the arms"
+            raise SystemExit(f"--reuse-from {path}: {why} is not reusable")
+        for arm in (a for a in arms if a in old["arms"] and a not in reused):
+            changed = {k: (old["settings"].get(k), settings[k]) for k in ARM_SETTINGS
+                       if old["settings"].get(k) != settings[k]}  # fmt: skip
+            if old["settings"]["augmentation"].get(arm) != settings["augmentation"][arm]:
+                changed["augmentation"] = (old["settings"]["augmentation"].get(arm), settings["augmentation"][arm])
+            if old["episodes_per_level"] != episodes:
+                changed["episodes"] = (old["episodes_per_level"], episodes)
+            if changed:
+                print(f"not reusing {arm} from {path}: made with other settings {changed} (was, now)", flush=True)
+                continue
+            reused[arm] = {}
+            for level in LEVELS:
+                records = sorted((e for e in old["episodes"][arm] if e["level"] == level), key=lambda e: e["episode"])
+                if [e["episode"] for e in records] != list(range(episodes)):
+                    raise SystemExit(f"--reuse-from {path}: episodes 0-{episodes - 1} of {arm} at {level} "
+                                     "are not all there")  # fmt: skip
+                reused[arm][level] = {"success": old["arms"][arm][level], "progress": old["progress"][arm][level],
+                                      "episodes": records}  # fmt: skip
+            timing |= {k: old["timing"][k] for k in (f"train_{arm}", f"eval_{arm}") if k in old["timing"]}
+            sources[arm] = path.name
+            print(f"reusing {arm} from {path}", flush=True)
+    return reused, timing, sources
 
 
-def paired_by_level(evaluated: dict) -> dict:
-    """{level: paired_difference(baseline, gensplat)}: both met the same episodes."""
-    def successes(mode: str, level: str) -> list[bool]:
-        return [e["success"] for e in evaluated[mode][level]["episodes"]]
+def best_2d(rates: dict) -> str | None:
+    """The 2D arm among ``rates`` ({arm: {level: success %}}) with the highest mean success over
+    the perturbed levels (the first in ``TWO_D_ARMS`` on a tie); None without a 2D arm."""
+    arms = [a for a in TWO_D_ARMS if a in rates]
+    return max(arms, key=lambda a: np.mean([v for lv, v in rates[a].items() if lv != "none"])) if arms else None
 
-    return {lv: paired_difference(successes("baseline", lv), successes("gensplat", lv)) for lv in LEVELS}
+
+def comparisons(evaluated: dict, reference_2d: str | None) -> dict:
+    """{"vs_baseline": {arm: {level: paired_difference}} for every other arm, "vs_best_2d": {arm:
+    {...}} for the GenSplat arms}: arm minus reference, on the same episodes; a comparison
+    whose reference is not among ``evaluated`` ({arm: {level: record}}) is left out."""
+    def successes(arm: str, level: str) -> list[bool]:
+        return [e["success"] for e in evaluated[arm][level]["episodes"]]
+
+    def against(reference: str, arms) -> dict:
+        return {arm: {lv: paired_difference(successes(reference, lv), successes(arm, lv)) for lv in evaluated[arm]}
+                for arm in arms if arm in evaluated and arm != reference}  # fmt: skip
+
+    out = {}
+    if "baseline" in evaluated:
+        out["vs_baseline"] = against("baseline", ARMS)
+    if reference_2d is not None:
+        out["vs_best_2d"] = against(reference_2d, GENSPLAT_ARMS)
+    return out
+
+
+#: Line colours of the arms in the plot.
+COLOURS = {"baseline": (214, 39, 40), "lerobot2d": (31, 119, 180), "perspective": (148, 103, 189),
+           "gensplat": (44, 160, 44), "gensplat+lerobot2d": (255, 127, 14)}  # fmt: skip
 
 
 def plot(result: dict, path: Path) -> None:
-    """Two panels against the level: success % and the median closest approach (cm)."""
-    colours = {"baseline": (214, 39, 40), "gensplat": (44, 160, 44)}
+    """Two panels against the level, a line per arm: success % and the median closest
+    approach (cm)."""
+    arms = list(result["arms"])
     x_ticks = list(enumerate(LEVELS))
-    success = {m: [(j, result[m][lv], f"{result[m][lv]:.0f}") for j, lv in x_ticks] for m in MODES}
-    reach = {m: [(j, result["progress"][m][lv]["median_reach_cm"], "") for j, lv in x_ticks] for m in MODES}
+    success = {a: [(j, result["arms"][a][lv], "") for j, lv in x_ticks] for a in arms}
+    reach = {a: [(j, result["progress"][a][lv]["median_reach_cm"], "") for j, lv in x_ticks] for a in arms}
     top = max(5.0, max(y for pts in reach.values() for _, y, _ in pts))
     top = float(np.ceil(top / 5) * 5)
     x_range = (-0.5, len(LEVELS) - 0.5)
@@ -260,15 +405,30 @@ def plot(result: dict, path: Path) -> None:
     s = result["settings"]
     note = (f"{s['task']}, Diffusion Policy, {s['steps']} steps at batch {s['batch_size']}, "
             f"{result['episodes_per_level']} episodes per level, left camera perturbed")  # fmt: skip
-    line_panels(path, panels, colours, note)
+    line_panels(path, panels, {a: COLOURS[a] for a in arms}, note)
 
 
-def main() -> None:
+def print_summary(result: dict) -> None:
+    """The success table and the paired differences, as printed at the end of a run."""
+    print(f"{'success %':>18}" + "".join(f"{lv:>9}" for lv in LEVELS))
+    for arm, rates in result["arms"].items():
+        print(f"{arm:>18}" + "".join(f"{rates[lv]:9.1f}" for lv in LEVELS))
+    for key, reference in (("vs_baseline", "baseline"), ("vs_best_2d", result["best_2d"])):
+        for arm, diff in result["difference"].get(key, {}).items():
+            print(f"{arm + ' - ' + reference:>30}: " + ", ".join(
+                f"{lv} {diff[lv]['points']:+.1f} [{diff[lv]['ci95'][0]:+.0f}, {diff[lv]['ci95'][1]:+.0f}]"
+                for lv in LEVELS) + " (points, paired 95 % CI)")  # fmt: skip
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line with its defaults filled in (full or ``--quick``); ``arms`` and
+    ``cameras`` as tuples."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="tiny end-to-end check (a few minutes)")
     parser.add_argument(
         "--work", type=Path, help="dataset, checkpoints, logs (default outputs/policy_robustness[_quick])"
     )
+    parser.add_argument("--arms", default=",".join(ARMS), help=f"comma-separated arms (default all: {','.join(ARMS)})")
     parser.add_argument("--task", default="reach_solo", choices=sorted(TASKS), help="default reach_solo")
     parser.add_argument("--cameras", default="left",
                         help="comma-separated cameras the policy sees (default left; all: left,right,wrist)")  # fmt: skip
@@ -282,11 +442,12 @@ def main() -> None:
     parser.add_argument("--inference-steps", type=int, default=10, help="DDIM steps per action chunk")
     parser.add_argument("--views-per-source", type=int, default=3, help="GenSplat cameras per trajectory")
     parser.add_argument("--probability", type=float, default=0.25,
-                        help="chance that GenSplat replaces a sample's camera (default 0.25)")  # fmt: skip
+                        help="chance that GenSplat replaces, or the perspective arm warps, a sample's camera "
+                        "(default 0.25)")  # fmt: skip
     parser.add_argument("--fill-holes", action=argparse.BooleanOptionalAction, default=True,
                         help="GenSplat fills uncovered pixels from their surroundings (default; "
                         "--no-fill-holes paints them black)")  # fmt: skip
-    parser.add_argument("--episodes", type=int, help="evaluation episodes per level (default 50; quick 2)")
+    parser.add_argument("--episodes", type=int, help="evaluation episodes per level (default 100; quick 2)")
     parser.add_argument("--max-steps", type=int, help="evaluation step budget (default the task's; quick 20)")
     parser.add_argument("--seed", type=int, default=0, help="seeds recording, training and evaluation")
     parser.add_argument("--device", default="cpu")
@@ -294,82 +455,91 @@ def main() -> None:
     parser.add_argument(
         "--parallel-train",
         action="store_true",
-        help="train both policies at once (a GPU with room to spare; not on a 2-core CPU)",
+        help="train the arms at once (a GPU with room to spare; not on a 2-core CPU)",
     )
-    parser.add_argument("--baseline-from", type=Path, metavar="RESULT.json",
-                        help="reuse the baseline of an earlier result (same settings) instead of training it")  # fmt: skip
+    parser.add_argument("--reuse-from", type=Path, action="append", default=[], metavar="RESULT.json",
+                        help="reuse the arms an earlier result holds with the same settings (repeatable)")  # fmt: skip
     parser.add_argument("--out", type=Path, help="result JSON (default benchmarks/results/policy_robustness.json; "
                         "with --quick policy_robustness_quick.json, so a check never replaces the result)")  # fmt: skip
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     for key, (full, quick) in DEFAULTS.items():
         if getattr(args, key) is None:
             setattr(args, key, quick if args.quick else full)
     args.cameras = tuple(args.cameras.split(","))
     if not args.cameras or any(c not in CAMERA_NAMES for c in args.cameras):
         parser.error(f"--cameras: choose from {CAMERA_NAMES}, got {args.cameras}")
+    unknown = [a for a in args.arms.split(",") if a not in ARMS]
+    if unknown:
+        parser.error(f"--arms: unknown {unknown}; choose from {ARMS}")
+    args.arms = tuple(a for a in ARMS if a in args.arms.split(","))
+    if "perspective" in args.arms and "wrist" in args.cameras:
+        parser.error("the perspective arm warps every camera LeRobot loads, the wrist camera too: "
+                     "give it a policy that sees external cameras only")  # fmt: skip
     args.max_steps = args.max_steps or TASKS[args.task].max_steps
     args.out = args.out or RESULTS / ("policy_robustness_quick.json" if args.quick else "policy_robustness.json")
-    work = args.work or ROOT / "outputs" / ("policy_robustness_quick" if args.quick else "policy_robustness")
-    root = work / "dataset"
-    replace = tuple(c for c in args.cameras if c in EXTERNAL_CAMERAS)
-    gensplat = GenSplatConfig(replace=replace, views_per_source=args.views_per_source,
-                              probability=args.probability, fill_holes=args.fill_holes, backend="fast",
-                              seed=args.seed)  # fmt: skip
+    args.work = args.work or ROOT / "outputs" / ("policy_robustness_quick" if args.quick else "policy_robustness")
+    return args
+
+
+def result_settings(args) -> dict:
+    """The result's ``settings``: what shapes the arms and their evaluation."""
     settings = {k: getattr(args, k) for k in ("demos", "size", "steps", "batch_size", "workers", "down_dims",
-                                             "n_obs_steps", "inference_steps", "views_per_source", "max_steps",
-                                             "seed", "device", "parallel_train")}  # fmt: skip
-    settings.update(task=args.task, policy_cameras=list(args.cameras),
-                    policy="diffusion (policies/diffusion.json + the overrides above)",
-                    perturbed_camera="left", gensplat={"cameras": list(gensplat.cameras), "replace": list(replace),
-                    "probability": gensplat.probability, "level": gensplat.level, "mode": gensplat.mode,
-                    "fill_holes": gensplat.fill_holes})  # fmt: skip
-    modes, reused, timing = MODES, {}, {}
-    if args.baseline_from:
-        modes = ("gensplat",)
-        reused["baseline"], timing = reused_baseline(args.baseline_from, settings, args.episodes)
-        settings["baseline_from"] = args.baseline_from.name
-    check_work(work, args)
+                                             "n_obs_steps", "inference_steps", "max_steps", "seed", "device",
+                                             "parallel_train")}  # fmt: skip
+    settings.update(task=args.task, policy_cameras=list(args.cameras), arms=list(args.arms),
+                    policy="diffusion (policies/diffusion.json + the overrides above)", perturbed_camera="left",
+                    augmentation={arm: augmentation(arm, args) for arm in args.arms})  # fmt: skip
+    return settings
+
+
+def main() -> None:
+    args = parse_args()
+    arms, work = args.arms, args.work
+    root = work / "dataset"
+    settings = result_settings(args)
+    reused, timing, sources = reused_arms(args.reuse_from, arms, settings, args.episodes)
+    if sources:
+        settings["reused"] = sources
+    to_run = tuple(a for a in arms if a not in reused)
+    if to_run:
+        check_work(work, to_run, args)
     t_start = time.perf_counter()
 
-    if not (root / "meta" / "info.json").is_file():
+    if to_run and not (root / "meta" / "info.json").is_file():
         shutil.rmtree(root, ignore_errors=True)
         res = record(RecordConfig(root, args.task, args.demos, args.seed, use_videos=False, repo_id=repo_id(args.task),
                                   world=WorldConfig(height=args.size, width=args.size)), progress=False)  # fmt: skip
         print(
             f"recorded {res.episodes} demonstrations, {res.frames} frames, in {res.seconds:.0f} s", flush=True
         )
-    prepare(root, repo_id(args.task), gensplat, progress=False)
+    if any(a in GENSPLAT_ARMS for a in to_run):
+        prepare(root, repo_id(args.task), gensplat_config(args), progress=False)
 
-    rates, progress, episodes = {}, {}, {}
-    with ThreadPoolExecutor(len(modes) if args.parallel_train else 1) as pool:  # each trains in a subprocess
-        for mode, t in zip(modes, pool.map(lambda m: train(m, root, work / m, args), modes)):
-            timing[f"train_{mode}"] = t
-    print(f"evaluating ({args.eval_jobs} processes)", flush=True)
+    with ThreadPoolExecutor(len(to_run) if args.parallel_train and to_run else 1) as pool:  # each in a subprocess
+        for arm, t in zip(to_run, pool.map(lambda a: train(a, root, work / a, args), to_run)):
+            timing[f"train_{arm}"] = t
+    print(f"evaluating {', '.join(to_run) or 'nothing'} ({args.eval_jobs} processes)", flush=True)
     t0 = time.perf_counter()
-    evaluated = evaluate_all(work, modes, args)
+    evaluated = evaluate_all(work, to_run, args)
     timing["eval_seconds"] = round(time.perf_counter() - t0, 1)
-    for mode, per_level in evaluated.items():
+    for arm, per_level in evaluated.items():
         seconds, steps = (sum(r[k] for r in per_level.values()) for k in ("seconds", "steps"))
-        timing[f"eval_{mode}"] = {"process_seconds": round(seconds, 1), "s_per_control_step": round(seconds / steps, 3)}
+        timing[f"eval_{arm}"] = {"process_seconds": round(seconds, 1), "s_per_control_step": round(seconds / steps, 3)}
     timing["total_seconds"] = round(time.perf_counter() - t_start, 1)
-    evaluated = {**reused, **evaluated}
-    for mode in MODES:
-        rates[mode] = {lv: r["success"] for lv, r in evaluated[mode].items()}
-        progress[mode] = {lv: r["progress"] for lv, r in evaluated[mode].items()}
-        episodes[mode] = [e for r in evaluated[mode].values() for e in r["episodes"]]
-    result = {**rates, "episodes_per_level": args.episodes, "quick": args.quick, "progress": progress,
-              "difference": paired_by_level(evaluated),
-              "settings": settings, "timing": timing, "episodes": episodes}  # fmt: skip
+    evaluated = {arm: {**reused, **evaluated}[arm] for arm in arms}
+    rates = {arm: {lv: r["success"] for lv, r in per_level.items()} for arm, per_level in evaluated.items()}
+    reference_2d = best_2d(rates)
+    result = {
+        "arms": rates, "levels": list(LEVELS), "episodes_per_level": args.episodes, "quick": args.quick,
+        "progress": {arm: {lv: r["progress"] for lv, r in per_level.items()} for arm, per_level in evaluated.items()},
+        "difference": comparisons(evaluated, reference_2d), "best_2d": reference_2d,
+        "settings": settings, "timing": timing,
+        "episodes": {arm: [e for r in per_level.values() for e in r["episodes"]] for arm, per_level in evaluated.items()},
+    }  # fmt: skip
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
     plot(result, args.out.with_suffix(".png"))
-    print(f"{'success %':>10}" + "".join(f"{lv:>9}" for lv in LEVELS))
-    for mode in MODES:
-        print(f"{mode:>10}" + "".join(f"{rates[mode][lv]:9.1f}" for lv in LEVELS))
-    diff = result["difference"]
-    print(f"{'difference':>10}" + "".join(f"{diff[lv]['points']:+9.1f}" for lv in LEVELS)
-          + "  (gensplat - baseline, points; 95% CI " + ", ".join(
-              f"{lv} [{diff[lv]['ci95'][0]:+.0f}, {diff[lv]['ci95'][1]:+.0f}]" for lv in LEVELS) + ")")  # fmt: skip
+    print_summary(result)
     print(
         f"wrote {args.out} ({timing['total_seconds']:.0f} s{', QUICK: not a result' if args.quick else ''})"
     )

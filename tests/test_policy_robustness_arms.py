@@ -1,0 +1,173 @@
+"""The arms of benchmarks/policy_robustness.py: what each passes to lerobot-train (and that
+LeRobot's config accepts it), the perspective arm's transform, the comparisons, and the
+settings checks of --reuse-from and of a resumed --work."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import policy_robustness as pr  # noqa: E402
+from lerobot.configs.default import DatasetConfig  # noqa: E402
+from lerobot.transforms import ImageTransforms, ImageTransformsConfig  # noqa: E402
+from lerobot.transforms.transforms import ImageTransformConfig, make_transform_from_config  # noqa: E402
+
+ROOT, OUT, CONFIG = Path("/data/ds"), Path("/work/arm"), Path("/work/diffusion.json")
+
+
+def image_transforms(extra: list[str]) -> ImageTransformsConfig:
+    """LeRobot's image-transforms config parsed from an arm's ``--dataset.*`` arguments."""
+    import draccus
+
+    args = [a.removeprefix("--dataset.") for a in extra]
+    return draccus.parse(DatasetConfig, args=["--repo_id=x", *(f"--{a}" for a in args)]).image_transforms
+
+
+def test_each_arm_passes_its_augmentation_to_lerobot_train():
+    args = pr.parse_args([])
+    assert args.arms == pr.ARMS and args.episodes == 100 and args.probability == 0.25
+    commands = {arm: pr.train_command(arm, ROOT, OUT, CONFIG, args) for arm in pr.ARMS}
+    base = commands["baseline"]
+    assert base[:4] == ["bash", str(pr.ROOT / "policies" / "train.sh"), str(CONFIG), "baseline"]
+    assert f"--steps={args.steps}" in base and f"--dataset.root={ROOT}" in base and f"--output_dir={OUT}" in base
+    assert not any("image_transforms" in a for a in base)
+    for arm, cmd in commands.items():  # the same training but for the mode and the added arguments
+        mode = "gensplat" if arm in pr.GENSPLAT_ARMS else "baseline"
+        assert cmd[3] == mode and cmd[: len(base)] == [*base[:3], mode, *base[4:]], arm
+        extra = cmd[len(base) :]
+        assert extra == pr.arm_arguments(arm, args)[1:]
+        if arm in ("baseline", "gensplat"):
+            assert extra == []
+            continue
+        config = image_transforms(extra)
+        assert config.enable
+        transforms = ImageTransforms(config)  # every transform exists in LeRobot / torchvision
+        if arm == "perspective":
+            assert config.max_num_transforms == 1 and list(config.tfs) == ["perspective"]
+            tf = config.tfs["perspective"]
+            assert tf.type == "RandomPerspective"
+            assert tf.kwargs == {"distortion_scale": pr.PERSPECTIVE_DISTORTION, "p": args.probability}
+        else:  # lerobot2d and gensplat+lerobot2d: the same 2D augmentation
+            assert config.max_num_transforms == 3
+            assert set(config.tfs) == {"brightness", "contrast", "saturation", "hue", "sharpness", "affine", "crop"}
+            assert config.tfs["affine"].kwargs["degrees"] == [-20.0, 20.0]
+            assert config.tfs["crop"].kwargs["size"] == [args.size, args.size]
+        for image in (torch.rand(3, 96, 96), torch.randint(0, 256, (2, 3, 96, 96), dtype=torch.uint8)):
+            out = transforms(image)
+            assert out.shape == image.shape and out.dtype == image.dtype
+    augment = pr.result_settings(args)["augmentation"]
+    assert augment["baseline"] == {} and set(augment["gensplat+lerobot2d"]) == {"gensplat", "image_transforms"}
+    assert augment["gensplat"]["gensplat"]["replace"] == ["left"] and augment["gensplat"]["gensplat"]["probability"] == 0.25
+    assert pr.parse_args(["--arms", "gensplat,baseline"]).arms == ("baseline", "gensplat")  # in ARMS order
+    with pytest.raises(SystemExit):
+        pr.parse_args(["--arms", "baseline,mixup"])
+    with pytest.raises(SystemExit):  # LeRobot would warp the wrist camera too
+        pr.parse_args(["--cameras", "left,wrist", "--arms", "perspective"])
+    assert pr.parse_args(["--cameras", "left,wrist", "--arms", "lerobot2d"]).arms == ("lerobot2d",)
+
+
+def perspective(distortion: float, probability: float = 1.0):
+    kwargs = {**pr.perspective_transforms(probability)["tfs"]["perspective"]["kwargs"], "distortion_scale": distortion}
+    return make_transform_from_config(ImageTransformConfig(type="RandomPerspective", kwargs=kwargs))
+
+
+def test_perspective_transform():
+    torch.manual_seed(0)
+    image = torch.rand(3, 96, 96)
+    torch.testing.assert_close(perspective(0.0)(image), image, atol=1e-5, rtol=0)  # zero distortion: identity
+    warp = perspective(pr.PERSPECTIVE_DISTORTION)
+    for x in (image, (image * 255).to(torch.uint8)):
+        out = warp(x)
+        assert out.shape == x.shape and out.dtype == x.dtype and not torch.equal(out, x)
+        if x.is_floating_point():
+            assert torch.isfinite(out).all() and 0 <= out.min() and out.max() <= 1
+    stack = warp(image.expand(2, 3, 96, 96))  # a temporal stack: one warp for every frame
+    assert stack.shape == (2, 3, 96, 96) and torch.equal(stack[0], stack[1])
+    sometimes = perspective(pr.PERSPECTIVE_DISTORTION, probability=0.25)  # GenSplat's default probability
+    warped = sum(not torch.equal(sometimes(image), image) for _ in range(800)) / 800
+    assert abs(warped - 0.25) < 0.05
+
+
+def records(successes: list[bool], level: str) -> dict:
+    episodes = [{"level": level, "episode": i, "success": s} for i, s in enumerate(successes)]
+    return {"success": 100 * sum(successes) / len(successes), "progress": {}, "episodes": episodes}
+
+
+def test_comparisons_and_best_2d():
+    n = 10
+    rates = {"none": 0, "small": 0, "medium": 0, "large": 0}
+    solved = {"baseline": 2, "lerobot2d": 4, "perspective": 6, "gensplat": 9}  # episodes solved at every level
+    evaluated = {arm: {lv: records([i < k for i in range(n)], lv) for lv in rates} for arm, k in solved.items()}
+    rates = {arm: {lv: r["success"] for lv, r in per.items()} for arm, per in evaluated.items()}
+    assert pr.best_2d(rates) == "perspective" and pr.best_2d({"baseline": rates["baseline"]}) is None
+    diff = pr.comparisons(evaluated, "perspective")
+    assert set(diff["vs_baseline"]) == {"lerobot2d", "perspective", "gensplat"}
+    assert diff["vs_baseline"]["gensplat"]["large"]["points"] == 70.0
+    assert set(diff["vs_best_2d"]) == {"gensplat"} and diff["vs_best_2d"]["gensplat"]["small"]["points"] == 30.0
+    assert diff["vs_best_2d"]["gensplat"]["none"]["b_only"] == 3
+    assert set(pr.comparisons({k: evaluated[k] for k in ("lerobot2d", "gensplat")}, None)) == set()
+
+
+def earlier_result(path: Path, args, arms: tuple[str, ...], episodes: int, quick: bool = False) -> Path:
+    """A result file as the script writes it, for ``arms`` evaluated under ``args``."""
+    settings = pr.result_settings(args)
+    evaluated = {a: {lv: records([i % 2 == 0 for i in range(episodes)], lv) for lv in pr.LEVELS} for a in arms}
+    result = {"arms": {a: {lv: r["success"] for lv, r in per.items()} for a, per in evaluated.items()},
+              "progress": {a: {lv: {"lift_percent": 0.0} for lv in pr.LEVELS} for a in arms},
+              "episodes_per_level": episodes, "quick": quick, "settings": settings,
+              "timing": {f"train_{a}": {"s_per_step": 1.0} for a in arms},
+              "episodes": {a: [e for r in per.values() for e in r["episodes"]] for a, per in evaluated.items()}}  # fmt: skip
+    path.write_text(json.dumps(result))
+    return path
+
+
+def test_reuse_checks_the_settings(tmp_path, capsys):
+    args = pr.parse_args(["--episodes", "4"])
+    old = earlier_result(tmp_path / "old.json", args, ("baseline", "gensplat"), 4)
+    settings = pr.result_settings(args)
+    reused, timing, sources = pr.reused_arms([old], args.arms, settings, 4)
+    assert set(reused) == {"baseline", "gensplat"} and sources == {"baseline": "old.json", "gensplat": "old.json"}
+    assert [e["episode"] for e in reused["gensplat"]["large"]["episodes"]] == [0, 1, 2, 3]
+    assert reused["baseline"]["small"]["success"] == 50.0 and timing["train_gensplat"] == {"s_per_step": 1.0}
+    # another GenSplat probability: the baseline is reused, GenSplat is named and trained again
+    other = pr.parse_args(["--episodes", "4", "--probability", "0.5"])
+    reused, _, _ = pr.reused_arms([old], other.arms, pr.result_settings(other), 4)
+    assert set(reused) == {"baseline"} and "not reusing gensplat" in capsys.readouterr().out
+    # other common settings or another episode count: nothing is reused
+    for argv, episodes in ((["--episodes", "4", "--steps", "100"], 4), (["--episodes", "5"], 5)):
+        changed = pr.parse_args(argv)
+        assert pr.reused_arms([old], changed.arms, pr.result_settings(changed), episodes)[0] == {}
+    # the first file that holds an arm with matching settings decides
+    newer = earlier_result(tmp_path / "newer.json", args, ("lerobot2d", "gensplat"), 4)
+    _, _, sources = pr.reused_arms([newer, old], args.arms, settings, 4)
+    assert sources == {"lerobot2d": "newer.json", "gensplat": "newer.json", "baseline": "old.json"}
+    # not reusable at all: a quick check, a result from before the arms, episodes missing
+    quick = earlier_result(tmp_path / "quick.json", args, ("baseline",), 4, quick=True)
+    legacy = tmp_path / "legacy.json"
+    legacy.write_text(json.dumps({"baseline": {}, "quick": False}))
+    gap = json.loads(old.read_text())
+    gap["episodes"]["baseline"] = [e for e in gap["episodes"]["baseline"] if e["episode"] != 2]
+    (tmp_path / "gap.json").write_text(json.dumps(gap))
+    for path, message in ((quick, "quick"), (legacy, "before the arms"), (tmp_path / "gap.json", "not all there")):
+        with pytest.raises(SystemExit, match=message):
+            pr.reused_arms([path], args.arms, settings, 4)
+
+
+def test_work_refuses_another_augmentation(tmp_path, monkeypatch):
+    args = pr.parse_args(["--work", str(tmp_path)])
+    pr.check_work(tmp_path, ("baseline", "perspective"), args)
+    pr.check_work(tmp_path, ("gensplat",), args)  # adding an arm later
+    assert set(json.loads((tmp_path / "settings.json").read_text())["augmentation"]) == {
+        "baseline", "perspective", "gensplat"}  # fmt: skip
+    with pytest.raises(SystemExit, match="other settings"):
+        pr.check_work(tmp_path, ("baseline",), pr.parse_args(["--work", str(tmp_path), "--steps", "10"]))
+    monkeypatch.setattr(pr, "PERSPECTIVE_DISTORTION", 0.4)  # the perspective arm's checkpoint no longer fits
+    pr.check_work(tmp_path, ("baseline", "gensplat"), args)
+    with pytest.raises(SystemExit, match="perspective"):
+        pr.check_work(tmp_path, ("perspective",), args)
