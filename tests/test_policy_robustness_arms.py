@@ -13,10 +13,10 @@ import torch
 
 pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-import policy_robustness as pr  # noqa: E402
-from lerobot.configs.default import DatasetConfig  # noqa: E402
-from lerobot.transforms import ImageTransforms, ImageTransformsConfig  # noqa: E402
-from lerobot.transforms.transforms import ImageTransformConfig, make_transform_from_config  # noqa: E402
+import policy_robustness as pr
+from lerobot.configs.default import DatasetConfig
+from lerobot.transforms import ImageTransforms, ImageTransformsConfig
+from lerobot.transforms.transforms import ImageTransformConfig, make_transform_from_config
 
 ROOT, OUT, CONFIG = Path("/data/ds"), Path("/work/arm"), Path("/work/diffusion.json")
 
@@ -35,7 +35,9 @@ def test_each_arm_passes_its_augmentation_to_lerobot_train():
     commands = {arm: pr.train_command(arm, ROOT, OUT, CONFIG, args) for arm in pr.ARMS}
     base = commands["baseline"]
     assert base[:4] == ["bash", str(pr.ROOT / "policies" / "train.sh"), str(CONFIG), "baseline"]
-    assert f"--steps={args.steps}" in base and f"--dataset.root={ROOT}" in base and f"--output_dir={OUT}" in base
+    assert (
+        f"--steps={args.steps}" in base and f"--dataset.root={ROOT}" in base and f"--output_dir={OUT}" in base
+    )
     assert not any("image_transforms" in a for a in base)
     for arm, cmd in commands.items():  # the same training but for the mode and the added arguments
         mode = "gensplat" if arm in pr.GENSPLAT_ARMS else "baseline"
@@ -55,15 +57,29 @@ def test_each_arm_passes_its_augmentation_to_lerobot_train():
             assert tf.kwargs == {"distortion_scale": pr.PERSPECTIVE_DISTORTION, "p": args.probability}
         else:  # lerobot2d and gensplat+lerobot2d: the same 2D augmentation
             assert config.max_num_transforms == 3
-            assert set(config.tfs) == {"brightness", "contrast", "saturation", "hue", "sharpness", "affine", "crop"}
+            assert set(config.tfs) == {
+                "brightness",
+                "contrast",
+                "saturation",
+                "hue",
+                "sharpness",
+                "affine",
+                "crop",
+            }
             assert config.tfs["affine"].kwargs["degrees"] == [-20.0, 20.0]
             assert config.tfs["crop"].kwargs["size"] == [args.size, args.size]
         for image in (torch.rand(3, 96, 96), torch.randint(0, 256, (2, 3, 96, 96), dtype=torch.uint8)):
             out = transforms(image)
             assert out.shape == image.shape and out.dtype == image.dtype
     augment = pr.result_settings(args)["augmentation"]
-    assert augment["baseline"] == {} and set(augment["gensplat+lerobot2d"]) == {"gensplat", "image_transforms"}
-    assert augment["gensplat"]["gensplat"]["replace"] == ["left"] and augment["gensplat"]["gensplat"]["probability"] == 0.25
+    assert augment["baseline"] == {} and set(augment["gensplat+lerobot2d"]) == {
+        "gensplat",
+        "image_transforms",
+    }
+    assert (
+        augment["gensplat"]["gensplat"]["replace"] == ["left"]
+        and augment["gensplat"]["gensplat"]["probability"] == 0.25
+    )
     assert pr.parse_args(["--arms", "gensplat,baseline"]).arms == ("baseline", "gensplat")  # in ARMS order
     with pytest.raises(SystemExit):
         pr.parse_args(["--arms", "baseline,mixup"])
@@ -73,7 +89,10 @@ def test_each_arm_passes_its_augmentation_to_lerobot_train():
 
 
 def perspective(distortion: float, probability: float = 1.0):
-    kwargs = {**pr.perspective_transforms(probability)["tfs"]["perspective"]["kwargs"], "distortion_scale": distortion}
+    kwargs = {
+        **pr.perspective_transforms(probability)["tfs"]["perspective"]["kwargs"],
+        "distortion_scale": distortion,
+    }
     return make_transform_from_config(ImageTransformConfig(type="RandomPerspective", kwargs=kwargs))
 
 
@@ -102,14 +121,23 @@ def records(successes: list[bool], level: str) -> dict:
 def test_comparisons_and_best_2d():
     n = 10
     rates = {"none": 0, "small": 0, "medium": 0, "large": 0}
-    solved = {"baseline": 2, "lerobot2d": 4, "perspective": 6, "gensplat": 9}  # episodes solved at every level
-    evaluated = {arm: {lv: records([i < k for i in range(n)], lv) for lv in rates} for arm, k in solved.items()}
+    solved = {
+        "baseline": 2,
+        "lerobot2d": 4,
+        "perspective": 6,
+        "gensplat": 9,
+    }  # episodes solved at every level
+    evaluated = {
+        arm: {lv: records([i < k for i in range(n)], lv) for lv in rates} for arm, k in solved.items()
+    }
     rates = {arm: {lv: r["success"] for lv, r in per.items()} for arm, per in evaluated.items()}
     assert pr.best_2d(rates) == "perspective" and pr.best_2d({"baseline": rates["baseline"]}) is None
     diff = pr.comparisons(evaluated, "perspective")
     assert set(diff["vs_baseline"]) == {"lerobot2d", "perspective", "gensplat"}
     assert diff["vs_baseline"]["gensplat"]["large"]["points"] == 70.0
-    assert set(diff["vs_best_2d"]) == {"gensplat"} and diff["vs_best_2d"]["gensplat"]["small"]["points"] == 30.0
+    assert (
+        set(diff["vs_best_2d"]) == {"gensplat"} and diff["vs_best_2d"]["gensplat"]["small"]["points"] == 30.0
+    )
     assert diff["vs_best_2d"]["gensplat"]["none"]["b_only"] == 3
     assert set(pr.comparisons({k: evaluated[k] for k in ("lerobot2d", "gensplat")}, None)) == set()
 
@@ -117,7 +145,9 @@ def test_comparisons_and_best_2d():
 def earlier_result(path: Path, args, arms: tuple[str, ...], episodes: int, quick: bool = False) -> Path:
     """A result file as the script writes it, for ``arms`` evaluated under ``args``."""
     settings = pr.result_settings(args)
-    evaluated = {a: {lv: records([i % 2 == 0 for i in range(episodes)], lv) for lv in pr.LEVELS} for a in arms}
+    evaluated = {
+        a: {lv: records([i % 2 == 0 for i in range(episodes)], lv) for lv in pr.LEVELS} for a in arms
+    }
     result = {"arms": {a: {lv: r["success"] for lv, r in per.items()} for a, per in evaluated.items()},
               "progress": {a: {lv: {"lift_percent": 0.0} for lv in pr.LEVELS} for a in arms},
               "episodes_per_level": episodes, "quick": quick, "settings": settings,
@@ -132,7 +162,10 @@ def test_reuse_checks_the_settings(tmp_path, capsys):
     old = earlier_result(tmp_path / "old.json", args, ("baseline", "gensplat"), 4)
     settings = pr.result_settings(args)
     reused, timing, sources = pr.reused_arms([old], args.arms, settings, 4)
-    assert set(reused) == {"baseline", "gensplat"} and sources == {"baseline": "old.json", "gensplat": "old.json"}
+    assert set(reused) == {"baseline", "gensplat"} and sources == {
+        "baseline": "old.json",
+        "gensplat": "old.json",
+    }
     assert [e["episode"] for e in reused["gensplat"]["large"]["episodes"]] == [0, 1, 2, 3]
     assert reused["baseline"]["small"]["success"] == 50.0 and timing["train_gensplat"] == {"s_per_step": 1.0}
     # another GenSplat probability: the baseline is reused, GenSplat is named and trained again
@@ -154,7 +187,11 @@ def test_reuse_checks_the_settings(tmp_path, capsys):
     gap = json.loads(old.read_text())
     gap["episodes"]["baseline"] = [e for e in gap["episodes"]["baseline"] if e["episode"] != 2]
     (tmp_path / "gap.json").write_text(json.dumps(gap))
-    for path, message in ((quick, "quick"), (legacy, "before the arms"), (tmp_path / "gap.json", "not all there")):
+    for path, message in (
+        (quick, "quick"),
+        (legacy, "before the arms"),
+        (tmp_path / "gap.json", "not all there"),
+    ):
         with pytest.raises(SystemExit, match=message):
             pr.reused_arms([path], args.arms, settings, 4)
 

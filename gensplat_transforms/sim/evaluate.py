@@ -1,10 +1,17 @@
-"""Policy evaluation under camera perturbation (the paper's RQ1 protocol, in simulation).
+"""Policy evaluation under camera perturbation, in simulation.
 
 :class:`PerturbedCameraEnv` is a Gymnasium environment of one task in which the named
-external cameras are moved, once per episode, by the perturbation that
-``PerturbationSampler(level, seed=seed).sample(episode_index)`` draws, about the pivot of the
-two external cameras' nominal poses. Observations use the recorded datasets' keys and the
-library's conventions, so a policy trained on a recorded dataset runs unchanged:
+external cameras are moved, once per episode, by one of two protocols (``EvalConfig.protocol``):
+
+* ``"paper"`` (the default; the paper's RQ1 protocol): the perturbation that
+  ``PerturbationSampler(level, seed=seed).sample(episode_index)`` draws, about the pivot of
+  the two external cameras' nominal poses; levels none / small / medium / large / extreme;
+* ``"vista"``: VISTA's samplers (:mod:`.vista`), levels ``small_perturb`` and ``arc_90deg``:
+  ``VistaSampler(level, seed=seed).sample(episode_index)``, about the point each camera
+  looks at in the scene layout.
+
+Observations use the recorded datasets' keys and the library's conventions, so a policy
+trained on a recorded dataset runs unchanged:
 
 * ``observation.images.<camera>``: (3, H, W) float32 tensor in [0, 1];
 * ``observation.state``: (12,) float32 tensor;
@@ -19,6 +26,7 @@ Example (``my_policy``: any ``policy(obs) -> action``)::
 
     env = PerturbedCameraEnv(EvalConfig(task="pick_place", level="large"))
     evaluate(my_policy, env, episodes=20).success_rate
+    vista = PerturbedCameraEnv(EvalConfig(task="pick_place", level="arc_90deg", protocol="vista"))
 """
 
 from __future__ import annotations
@@ -37,6 +45,7 @@ from ..perturbation import Perturbation, PerturbationSampler, pivot_point
 from .control import ACTION_HIGH, ACTION_LOW
 from .scene import mat_to_quat
 from .tasks import episode_seed
+from .vista import VistaSampler
 from .world import CAMERA_NAMES, EXTERNAL_CAMERAS, STATE_NAMES, SimWorld, WorldConfig
 
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0])
@@ -46,11 +55,13 @@ _GL_TO_CV = np.diag([1.0, -1.0, -1.0])
 class EvalConfig:
     """Attributes:
     task: task name.
-    level: perturbation level (none / small / medium / large / extreme, or any key of LEVELS).
+    level: perturbation level: with protocol "paper" none / small / medium / large / extreme
+        (or any key of LEVELS), with "vista" small_perturb / arc_90deg.
     perturbed: external cameras that are moved (each by the same perturbation).
     seed: seeds the episode layouts (evaluation stream, disjoint from recording) and the perturbations.
     max_steps: step budget per episode (default: the task's).
     world: scene settings; keep the camera layout of the training data.
+    protocol: "paper" (default) or "vista"; see the module docstring.
     """
 
     task: str = "pick_place"
@@ -59,6 +70,10 @@ class EvalConfig:
     seed: int = 0
     max_steps: int | None = None
     world: WorldConfig = field(default_factory=WorldConfig)
+    protocol: str = "paper"
+
+
+PROTOCOLS = ("paper", "vista")
 
 
 class PerturbedCameraEnv(gym.Env):
@@ -71,12 +86,20 @@ class PerturbedCameraEnv(gym.Env):
         bad = [c for c in self.config.perturbed if c not in EXTERNAL_CAMERAS]
         if bad:
             raise ValueError(f"only external cameras {EXTERNAL_CAMERAS} can be perturbed, got {bad}")
+        if self.config.protocol not in PROTOCOLS:
+            raise ValueError(f"unknown evaluation protocol {self.config.protocol!r}, choose from {PROTOCOLS}")
+        paper = self.config.protocol == "paper"
+        sampler = PerturbationSampler if paper else VistaSampler
+        self.sampler = sampler(self.config.level, seed=self.config.seed)
         self.world = SimWorld(self.config.task, self.config.world)
-        self.sampler = PerturbationSampler(self.config.level, seed=self.config.seed)
         self.max_steps = self.config.max_steps or self.world.task.max_steps
         nominal = self.world.cameras(EXTERNAL_CAMERAS)
         self.nominal_c2w = dict(zip(EXTERNAL_CAMERAS, nominal.c2w))
         self.pivot = pivot_point(nominal.c2w[0], nominal.c2w[1])
+        # the point each camera is moved about: the pivot, or (VISTA) the point it looks at
+        external = self.config.world.scene.external
+        self.centre = {n: self.pivot if paper else torch.tensor(external[n].target, dtype=torch.float64)
+                       for n in EXTERNAL_CAMERAS}  # fmt: skip
         self.perturbation = Perturbation()
         self.episode_index = -1
         self._steps = 0
@@ -105,9 +128,8 @@ class PerturbedCameraEnv(gym.Env):
         self.perturbation = self.sampler.sample(self.episode_index)
         for name in EXTERNAL_CAMERAS:
             c2w = self.nominal_c2w[name]
-            self._place_camera(
-                name, self.perturbation.apply(c2w, self.pivot) if name in self.config.perturbed else c2w
-            )
+            moved = name in self.config.perturbed
+            self._place_camera(name, self.perturbation.apply(c2w, self.centre[name]) if moved else c2w)
         episode = self.world.reset(episode_seed(self.config.seed, self.episode_index, "eval"))
         self._steps = 0
         info = {
