@@ -120,6 +120,12 @@ def test_bad_inputs_raise_clear_errors(scene_views):
         RGBDReconstructor().reconstruct(Views(images, None, depths))
     with pytest.raises(ValueError, match="Views.images"):
         Views(images[:, :2], cams, depths)
+    for value in (float("nan"), float("inf"), -float("inf")):
+        for dtype in (torch.float32, torch.float16, torch.bfloat16):
+            bad = images.to(dtype, copy=True)
+            bad[1, 2, 5, 7] = value
+            with pytest.raises(ValueError, match="Views.images: contains NaN or Inf"):
+                Views(bad, cams, depths)
     with pytest.raises(ValueError, match="Views.cameras"):
         Views(images, cams[:2], depths)
     with pytest.raises(ValueError, match="Views.depths"):
