@@ -119,9 +119,12 @@ class Cameras:
         _check_rigid(c2w)
         self._checked = self._state()
 
-    def _state(self) -> tuple:
+    def _state(self) -> tuple | None:
         """Identity of the current values: size, and each tensor's storage, torch's in-place
-        version counter and layout."""
+        version counter and layout; None for inference-mode tensors, which have no version
+        counter (cameras derived from them are checked in full)."""
+        if self.K.is_inference() or self.c2w.is_inference():
+            return None
         return (self.width, self.height, *((t.data_ptr(), t._version, t.shape, t.stride(), t.dtype, t.device)
                                            for t in (self.K, self.c2w)))  # fmt: skip
 

@@ -125,6 +125,9 @@ class Perturbation:
         return asdict(self)
 
 
+_NUMPY_FLOATS = {torch.float32: np.float32, torch.float64: np.float64}
+
+
 def axis_rotation(axis: str, theta_deg: float, dtype=torch.float64, device=None) -> torch.Tensor:
     """(3, 3) rotation by ``theta_deg`` about the world X or Y axis (right-handed): kornia's
     ``axis_angle_to_rotation_matrix`` of the axis-angle vector in ``dtype``, for float32 and
@@ -138,9 +141,6 @@ def axis_rotation(axis: str, theta_deg: float, dtype=torch.float64, device=None)
     axis_angle = torch.zeros(3, dtype=dtype, device=device)
     axis_angle[AXES.index(axis)] = math.radians(theta_deg)
     return axis_angle_to_rotation_matrix(axis_angle)
-
-
-_NUMPY_FLOATS = {torch.float32: np.float32, torch.float64: np.float64}
 
 
 def _axis_angle_rotation(axis_angle: list[float], dtype: torch.dtype) -> list[list]:

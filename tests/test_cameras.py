@@ -421,6 +421,16 @@ def test_cameras_derived_from_checked_ones_are_not_checked_again(cams, monkeypat
         cams[0]
 
 
+def test_cameras_of_inference_mode_tensors_are_checked_every_time(cams, monkeypatch):
+    """Inference-mode tensors have no version counter to trust: indexing them checks again."""
+    with torch.inference_mode():
+        frozen = Cameras(cams.K.clone(), cams.c2w.clone(), W, H)
+        calls = []
+        monkeypatch.setattr(cameras_module, "_check_rigid", lambda c2w: calls.append(len(c2w)))
+        torch.testing.assert_close(frozen[2].c2w, cams.c2w[2:])
+    assert calls == [1]
+
+
 def test_float32_round_off_of_composed_poses_passes():
     """Hundreds of float32 pose compositions drift by ~1e-6, far inside the tolerance."""
     step = look_at((0.01, 0.02, -1.0), (0.0, 0.0, 0.0)).float()
