@@ -592,18 +592,21 @@ class _EpisodeFile:
         return Cameras(self.K[frame], self.c2w[frame], self.width, self.height)
 
     def depth_views(self, frame: int, images: torch.Tensor) -> Views:
-        """Views of one frame: the given images, the cached cameras and depth."""
-        depth = self.depth(frame)
+        """Views of one frame: the given images, the cached cameras and depth (a linked
+        file's uncleaned: ``assemble`` cleans it)."""
+        depth = self.depth(frame, clean=False)
         want = (self.num_views, 3, self.height, self.width)
         if tuple(images.shape) != want:
             raise ValueError(f"GaussianCache.read: images of shape {tuple(images.shape)}, the cache holds {want}")
         return Views(images, self.cameras(frame), depth)
 
-    def depth(self, frame: int) -> torch.Tensor:
-        """(V, 1, H, W) float32 depth of one frame."""
+    def depth(self, frame: int, clean: bool = True) -> torch.Tensor:
+        """(V, 1, H, W) float32 depth of one frame; a linked file's is the dataset's, cleaned
+        as the reconstructor cleans it unless ``clean`` is False (stored depth is clean)."""
         self._check_frame(frame)
-        if self._linked:  # the dataset's own depth, cleaned as the reconstructor cleans it
-            return self._clean(torch.stack([d[frame : frame + 1] for d in self._linked]))
+        if self._linked:
+            depth = torch.stack([d[frame : frame + 1] for d in self._linked]).float()
+            return self._clean(depth) if clean else depth
         if self._reference is None:  # decoded once per process and episode, then reused
             blob = self.tensor("depth.reference").numpy().tobytes()
             try:
