@@ -52,10 +52,13 @@ class Gaussians:
         if self.validate:
             self.check()
 
-    def _fingerprint(self) -> tuple:
-        """Identity of the current tensors: storage, torch's in-place version counter, layout."""
-        return tuple((t.data_ptr(), t._version, t.shape, t.stride(), t.dtype, t.device)
-                     for t in self.tensors().values())  # fmt: skip
+    def _fingerprint(self) -> tuple | None:
+        """Identity of the current tensors: storage, torch's in-place version counter, layout;
+        None for inference-mode tensors, which have no version counter (checked every time)."""
+        tensors = self.tensors().values()
+        if any(t.is_inference() for t in tensors):
+            return None
+        return tuple((t.data_ptr(), t._version, t.shape, t.stride(), t.dtype, t.device) for t in tensors)
 
     def mark_checked(self) -> Gaussians:
         """Record the tensors as valid without scanning them: only for values valid by

@@ -88,6 +88,22 @@ def test_a_passed_check_is_remembered_until_a_tensor_changes():
         g.check(force=True)
 
 
+def test_gaussians_of_inference_mode_tensors_work_and_are_checked_every_time():
+    """Inference-mode tensors (LeRobot evaluates under torch.inference_mode) have no version
+    counter: construction, cat, rendering and rechecks work, and every check scans."""
+    from gensplat_transforms import Cameras, look_at, render
+
+    with torch.inference_mode():
+        g = make(5)
+        assert g._checked is None and len(Gaussians.cat([g, make(2)])) == 7
+        g.means[1, 0] = float("nan")
+        with pytest.raises(ValueError, match=r"Gaussians.means: 1 Gaussian\(s\) have NaN"):
+            g.check()
+        camera = Cameras.from_intrinsics(20.0, 20.0, 8.0, 8.0, look_at((0, -1, 0), (0, 0, 0)), 16, 16)
+        out = render(make(5), camera, backend="fast")
+        assert torch.isfinite(out.rgb).all()
+
+
 def test_cat_of_checked_gaussians_stays_checked():
     a, b = make(3), make(4, degree=2)
     assert Gaussians.cat([a, b])._checked is not None
