@@ -9,8 +9,10 @@ wrist camera; 224x224, 96x96 with --quick, or --height x --width), once with PNG
 once with MP4 video, for the dataset's own bytes per timestep. On one of them (PNG, or MP4
 with --video) the cache is built, and the same DataLoader (same workers, batch size and
 sample order) is iterated with and without GenSplat (probability 1, level "train"). The
-per-sample split times one worker's steps directly (one thread): LeRobot's frame decoding (the
-dataset's own cost, apart from GenSplat's), the depth read (from the dataset's depth files,
+per-sample split times one worker's steps directly, on one thread, in CPU time of the thread
+(``split_ms``, ``transform_ms``; wall time beside it, ``split_wall_ms``, ``transform_wall_ms``,
+which other jobs on a shared machine inflate): LeRobot's frame decoding (the dataset's own
+cost, apart from GenSplat's), the depth read (from the dataset's depth files,
 which the default cache links), rebuilding the Gaussians from the depth and the item's
 images, render of the replaced cameras, uint8 conversion, and the whole transform. The
 default cache is compared with a compressed copy of the depth (``gensplat cache
@@ -65,29 +67,30 @@ def loader_rate(dataset, workers: int, batch: int, batches: int) -> float:
     return n / (time.perf_counter() - t0)
 
 
-def split_ms(ds, samples: int) -> dict:
-    """Median per-sample milliseconds of the transform's steps, in this process."""
+def split_ms(ds, samples: int, clock=time.thread_time) -> dict:
+    """Median per-sample milliseconds of the transform's steps, in this process, by ``clock``
+    (default: this thread's CPU time, which other jobs on a shared machine do not inflate)."""
     tf = ds.gensplat
     keys = [tf.cfg.image_key.format(name=n) for n in tf.cfg.cameras]
     times = {k: [] for k in ("frame_decode", "cache_read", "assemble", "render", "to_uint8", "transform_total")}
     for idx in torch.linspace(0, len(ds) - 1, samples).long().tolist():
-        t0 = time.perf_counter()
+        t0 = clock()
         item = LeRobotDataset.__getitem__(ds, idx)
-        t1 = time.perf_counter()
+        t1 = clock()
         ep, fr = int(item["episode_index"]), int(item["frame_index"])
         images = torch.stack([item[k].float() / 255 if item[k].dtype == torch.uint8 else item[k] for k in keys])
         views = tf.cache._file(ep).depth_views(fr, images)
-        t2 = time.perf_counter()
+        t2 = clock()
         rec = tf.cache.reconstructor.assemble(views)
-        t3 = time.perf_counter()
+        t3 = clock()
         for name in tf.cfg.replace:
             target = tf.sampler.sample(ep, fr).move(rec.cameras, tf.cfg.cameras.index(name))
             out = render_view(rec.gaussians, target, tf.cfg)
-        t4 = time.perf_counter()
+        t4 = clock()
         (out.rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8)
-        t5 = time.perf_counter()
+        t5 = clock()
         tf(item)
-        t6 = time.perf_counter()
+        t6 = clock()
         for k, v in zip(times, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4, t6 - t5)):
             times[k].append(v * 1e3)
     return {k: round(statistics.median(v), 2) for k, v in times.items()}
@@ -176,6 +179,7 @@ def main() -> None:
     plain = LeRobotDataset(REPO, root=root, video_backend=video_backend())
     gensplat = enable_gensplat(LeRobotDataset(REPO, root=root, video_backend=video_backend()))
     split = split_ms(gensplat, samples)
+    wall = split_ms(gensplat, samples, time.perf_counter)
     result = {
         "quick": args.quick, "backend": args.backend, "workers": args.workers, "resolution": [height, width],
         "episodes": episodes,
@@ -184,6 +188,7 @@ def main() -> None:
         "samples_per_s_plain": round(loader_rate(plain, args.workers, 4, batches), 2),
         "samples_per_s_gensplat": round(loader_rate(gensplat, args.workers, 4, batches), 2),
         "transform_ms": split["transform_total"], "split_ms": split,
+        "transform_wall_ms": wall["transform_total"], "split_wall_ms": wall,
         "video": args.video,
         "cache_bytes_per_timestep": round(sum(s.bytes for s in stats.values()) / frames),
         "copied_depth_bytes_per_timestep": round(copy_bytes / frames),
