@@ -32,10 +32,10 @@ class Panel:
 
 
 def line_panels(path: Path, panels: list[Panel], colours: dict[str, RGB], note: str = "",
-                panel_size: tuple[int, int] = (420, 300)) -> None:  # fmt: skip
-    """Draw ``panels`` side by side with one legend (a line per series name in ``colours``)
-    and an optional ``note`` under it; save the PNG to ``path`` (``panel_size`` in pixels at
-    100 dpi)."""
+                panel_size: tuple[int, int] = (420, 300), legend_columns: int = 4) -> None:  # fmt: skip
+    """Draw ``panels`` side by side with one legend (a line per series name in ``colours``,
+    ``legend_columns`` to a row) and an optional ``note`` under it; save the PNG to ``path``
+    (``panel_size`` in pixels at 100 dpi)."""
     dpi = 100
     fig = Figure(figsize=(len(panels) * panel_size[0] / dpi, (panel_size[1] + 110) / dpi), dpi=dpi)
     axes = fig.subplots(1, len(panels), squeeze=False)
@@ -53,8 +53,9 @@ def line_panels(path: Path, panels: list[Panel], colours: dict[str, RGB], note: 
             if ticks:
                 set_ticks([t for t, _ in ticks], [text for _, text in ticks])
     handles = [Line2D([], [], color=tuple(c / 255 for c in rgb), lw=3) for rgb in colours.values()]
-    fig.legend(handles, list(colours), loc="lower left", ncol=4, frameon=False, bbox_to_anchor=(0, 0.04))
+    fig.legend(handles, list(colours), loc="lower left", ncol=legend_columns, frameon=False,
+               bbox_to_anchor=(0, 0.04))  # fmt: skip
     if note:
         fig.text(0.01, 0.01, note, fontsize=8)
-    fig.tight_layout(rect=(0, 0.08 + 0.05 * (-(-len(colours) // 4)), 1, 1))
+    fig.tight_layout(rect=(0, 0.08 + 0.05 * (-(-len(colours) // legend_columns)), 1, 1))
     fig.savefig(path)

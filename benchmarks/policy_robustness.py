@@ -41,9 +41,14 @@ resumes where it was; a ``--work`` made with other settings is refused):
    * ``gensplat+lerobot2d``: both; LeRobot's transforms apply after GenSplat's views;
 
 4. evaluate every arm's checkpoint in ``PerturbedCameraEnv`` with the left external camera
-   perturbed once per episode at none / small / medium / large. Episode layouts come from
-   the evaluation stream (never a training layout) and every policy meets the same layouts,
-   perturbations and sampling noise (torch is seeded per episode).
+   moved once per episode, under two protocols (``PROTOCOLS``): ``paper`` (the paper's:
+   rotation about the pivot of the external cameras and a forward move, levels none / small /
+   medium / large) and ``vista`` (VISTA's camera samplers, ``gensplat_transforms.sim.vista``:
+   ``small_perturb``, 3 cm position and 0.075 rad rotation noise; ``arc_90deg``, the camera
+   anywhere on a +-45 deg arc about the point it looks at). Episode layouts come from the
+   evaluation stream (never a training layout), the same under both protocols, and every
+   policy meets the same layouts, camera moves and sampling noise (torch is seeded per
+   episode).
 
 Defaults, sized for this 2-core CPU: the ``reach_solo`` task (bring the open gripper 2 cm
 above the one 5 cm cube on the table, placed at random; the policy must find it in the
@@ -51,11 +56,13 @@ image), 300 demonstrations at 96x96, the policy sees the left camera and the sta
 Diffusion Policy as in ``policies/diffusion.json`` (ResNet-18 encoder from scratch, U-Net
 ``down_dims`` 64-128-256, horizon 16, 8 executed actions) with 1 observation step, DDIM and
 10 inference steps; 2500 steps at batch 32 (warm-up a tenth of the steps, at most 500); 100
-evaluation episodes per level of at most 50 control steps (the demonstrations take 15-18).
-Measured here: 1.29 s per training step without GenSplat and 1.45 s with it (54 and 60 min
-per policy), evaluation at 0.07-0.08 s per control step in two processes, recording 5 min;
-``timing`` in the result holds the measured values. Harder tasks did not train at this
-budget: ``reach`` (a 4 cm cube among two distractors of random colours) stayed at about
+evaluation episodes per level of at most 50 control steps (the demonstrations take 15-18),
+6 levels per arm. Measured here for the earlier two-arm run: 1.29 s per training step without
+GenSplat and 1.45 s with it (54 and 60 min per policy), evaluation at 0.07-0.08 s per
+control step in two processes, recording 5 min; 40-step runs of every arm later measured
+2.2-2.35 s per step on the then busier machine, the 2D arms and GenSplat within 5 % of the
+baseline. The five arms thus take about 6 h (up to 10 h on a busy machine); ``timing`` in
+the result holds the measured values. Harder tasks did not train at this budget: ``reach`` (a 4 cm cube among two distractors of random colours) stayed at about
 10 % success at every level, and ``pick_place`` (``--cameras left,right,wrist``) lifted no
 cube after 1500 steps at batch 8 (see the README); ``--device cuda --steps 20000`` is the
 setting to aim for on a GPU. Measured on one H100 machine (16 cores): with
@@ -74,10 +81,13 @@ only that arm.
 level of at most 20 steps: it checks the pipeline end to end, its success rates mean nothing.
 
 Writes ``benchmarks/results/policy_robustness.json`` (``policy_robustness_quick.json`` with
-``--quick``): ``{"arms": {arm: {level: success %}}, "levels", "episodes_per_level": n,
-"progress": {arm: {level: {lift_percent, median_reach_cm}}}, "difference": {"vs_baseline":
-{arm: {level: {points, ci95, a_only, b_only, mcnemar_p}}}, "vs_best_2d": {...}},
-"best_2d", "quick", "settings", "timing", "episodes": {arm: [per-episode records]}}``.
+``--quick``) and a plot beside it (success and closest approach of every arm under both
+protocols): ``{"arms": {arm: {level: success %}}, "levels", "progress": {arm: {level:
+{lift_percent, median_reach_cm}}}, "difference": {"vs_baseline": {arm: {level: {points,
+ci95, a_only, b_only, mcnemar_p}}}, "vs_best_2d": {...}}, "best_2d", "episodes_per_level": n,
+"quick", "protocols": {"vista": {the same keys from "arms" to "best_2d", and "episodes"}},
+"settings", "timing", "episodes": {arm: [per-episode records]}}``, the top level for the
+paper protocol.
 ``difference`` compares two arms episode by episode (they met the same episodes): every arm
 against the baseline, and the GenSplat arms against ``best_2d``, the 2D arm (``lerobot2d``,
 ``perspective``) with the highest mean success over the perturbed levels (chosen on the
@@ -114,10 +124,13 @@ from gensplat_transforms.sim.evaluate import EvalConfig, PerturbedCameraEnv, eva
 from gensplat_transforms.sim.policy_adapter import LeRobotPolicy
 from gensplat_transforms.sim.record import RecordConfig, record
 from gensplat_transforms.sim.tasks import TASKS
+from gensplat_transforms.sim.vista import SAMPLERS
 from gensplat_transforms.sim.world import CAMERA_NAMES, EXTERNAL_CAMERAS, STATE_NAMES, WorldConfig
 from gensplat_transforms.transform import GenSplatConfig
 
 LEVELS = ("none", "small", "medium", "large")
+#: The evaluation protocols and their levels (``PerturbedCameraEnv``'s ``protocol``).
+PROTOCOLS = {"paper": LEVELS, "vista": SAMPLERS}
 ARMS = ("baseline", "lerobot2d", "perspective", "gensplat", "gensplat+lerobot2d")
 TWO_D_ARMS = ("lerobot2d", "perspective")
 GENSPLAT_ARMS = ("gensplat", "gensplat+lerobot2d")
@@ -146,18 +159,18 @@ RUN_SETTINGS = ("task", "cameras", "demos", "size", "steps", "batch_size", "work
 def lerobot2d_transforms(size: int) -> dict:
     """LeRobot ``ImageTransformsConfig`` fields of the lerobot2d arms, as plain values (see the
     module docstring); ``size``: the image side, which the crop returns to."""
-    def jitter(kind: str, kwargs: dict) -> dict:
+    def tf(kind: str, kwargs: dict) -> dict:
         return {"type": kind, "kwargs": kwargs}
 
     return {"max_num_transforms": 3, "tfs": {
-        "brightness": jitter("ColorJitter", {"brightness": [0.8, 1.2]}),
-        "contrast": jitter("ColorJitter", {"contrast": [0.8, 1.2]}),
-        "saturation": jitter("ColorJitter", {"saturation": [0.5, 1.5]}),
-        "hue": jitter("ColorJitter", {"hue": [-0.05, 0.05]}),
-        "sharpness": jitter("SharpnessJitter", {"sharpness": [0.5, 1.5]}),
-        "affine": jitter("RandomAffine", {"degrees": [-20.0, 20.0], "translate": [0.05, 0.05],
-                                          "scale": [0.98, 1.08], "interpolation": 2}),  # 2: bilinear
-        "crop": jitter("RandomResizedCrop", {"size": [size, size], "scale": [0.85, 1.0], "ratio": [1.0, 1.0]}),
+        "brightness": tf("ColorJitter", {"brightness": [0.8, 1.2]}),
+        "contrast": tf("ColorJitter", {"contrast": [0.8, 1.2]}),
+        "saturation": tf("ColorJitter", {"saturation": [0.5, 1.5]}),
+        "hue": tf("ColorJitter", {"hue": [-0.05, 0.05]}),
+        "sharpness": tf("SharpnessJitter", {"sharpness": [0.5, 1.5]}),
+        "affine": tf("RandomAffine", {"degrees": [-20.0, 20.0], "translate": [0.05, 0.05],
+                                      "scale": [0.98, 1.08], "interpolation": 2}),  # 2: bilinear
+        "crop": tf("RandomResizedCrop", {"size": [size, size], "scale": [0.85, 1.0], "ratio": [1.0, 1.0]}),
     }}  # fmt: skip
 
 
@@ -277,15 +290,15 @@ def train(arm: str, root: Path, out: Path, args) -> dict:
     return timing
 
 
-def evaluate_level(checkpoint: Path, level: str, args) -> dict:
-    """Evaluate one checkpoint at one level (one torch thread): {"success" %, "progress"
-    ({lift_percent, median_reach_cm}), "episodes" (per-episode records), "seconds",
-    "steps"}."""
+def evaluate_level(checkpoint: Path, protocol: str, level: str, args) -> dict:
+    """Evaluate one checkpoint at one level of one protocol (one torch thread): {"success" %,
+    "progress" ({lift_percent, median_reach_cm}), "episodes" (per-episode records),
+    "seconds", "steps"}."""
     torch.set_num_threads(1)
     t0 = time.perf_counter()
     policy = LeRobotPolicy(checkpoint, device=args.device)
     env = PerturbedCameraEnv(EvalConfig(args.task, level, ("left",), seed=args.seed, max_steps=args.max_steps,
-                                        world=WorldConfig(height=args.size, width=args.size)))  # fmt: skip
+                                        world=WorldConfig(height=args.size, width=args.size), protocol=protocol))  # fmt: skip
     try:
         result = evaluate(policy, env, args.episodes, reset=policy.reset)
     finally:
@@ -300,17 +313,17 @@ def evaluate_level(checkpoint: Path, level: str, args) -> dict:
 
 
 def evaluate_all(work: Path, arms: tuple[str, ...], args) -> dict:
-    """{arm: {level: evaluate_level(...)}}, ``args.eval_jobs`` (arm, level) pairs at a time
-    in separate processes."""
-    jobs = [(arm, level) for arm in arms for level in LEVELS]
+    """{protocol: {arm: {level: evaluate_level(...)}}}, ``args.eval_jobs`` (protocol, arm,
+    level) jobs at a time in separate processes."""
+    jobs = [(protocol, arm, level) for protocol, levels in PROTOCOLS.items() for arm in arms for level in levels]
     with ProcessPoolExecutor(args.eval_jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
-        futures = {job: pool.submit(evaluate_level, work / job[0], job[1], args) for job in jobs}
-        out: dict = {arm: {} for arm in arms}
-        for (arm, level), future in futures.items():
-            r = out[arm][level] = future.result()
-            print(f"  {arm:>18} {level:>6}: {r['success']:5.1f} % success, {r['progress']['lift_percent']:5.1f} % "
-                  f"lifted, median closest approach {r['progress']['median_reach_cm']:.1f} cm over "
-                  f"{args.episodes} episodes", flush=True)  # fmt: skip
+        futures = {job: pool.submit(evaluate_level, work / job[1], *job[::2], args) for job in jobs}
+        out: dict = {protocol: {arm: {} for arm in arms} for protocol in PROTOCOLS}
+        for (protocol, arm, level), future in futures.items():
+            r = out[protocol][arm][level] = future.result()
+            print(f"  {arm:>18} {protocol:>5} {level:>13}: {r['success']:5.1f} % success, "
+                  f"{r['progress']['lift_percent']:5.1f} % lifted, median closest approach "
+                  f"{r['progress']['median_reach_cm']:.1f} cm over {args.episodes} episodes", flush=True)  # fmt: skip
     return out
 
 
@@ -320,36 +333,44 @@ ARM_SETTINGS = ("task", "policy_cameras", "demos", "size", "steps", "batch_size"
                 "n_obs_steps", "inference_steps", "max_steps", "seed", "device")  # fmt: skip
 
 
+def protocol_part(result: dict, protocol: str) -> dict | None:
+    """The part of a result that holds one protocol's evaluation (None when it has none)."""
+    return result if protocol == "paper" else result.get("protocols", {}).get(protocol)
+
+
 def reused_arms(paths: list[Path], arms: tuple[str, ...], settings: dict, episodes: int) -> tuple[dict, dict, dict]:
-    """The arms of ``arms`` that earlier results hold with the same settings: ({arm: {level:
-    evaluate_level-like record}}, {"train_<arm>" / "eval_<arm>": their timing}, {arm: file
-    name}); the first file that holds an arm decides. Prints which arms are reused, and why an
-    arm a file holds is not. Raises SystemExit for a --quick result, one from before the arms,
-    or missing episodes."""
-    reused, timing, sources = {}, {}, {}
+    """The arms of ``arms`` that earlier results hold with the same settings, evaluated under
+    every protocol: ({protocol: {arm: {level: evaluate_level-like record}}}, {"train_<arm>" /
+    "eval_<arm>": their timing}, {arm: file name}); the first file that holds an arm decides.
+    Prints which arms are reused, and why an arm a file holds is not. Raises SystemExit for a
+    --quick result, one from before the arms, or missing episodes."""
+    reused, timing, sources = {protocol: {} for protocol in PROTOCOLS}, {}, {}
     for path in paths:
         old = json.loads(path.read_text())
         if old.get("quick") or "arms" not in old:
             why = "a --quick result" if old.get("quick") else "a result from before the arms"
             raise SystemExit(f"--reuse-from {path}: {why} is not reusable")
-        for arm in (a for a in arms if a in old["arms"] and a not in reused):
+        for arm in (a for a in arms if a in old["arms"] and a not in sources):
             changed = {k: (old["settings"].get(k), settings[k]) for k in ARM_SETTINGS
                        if old["settings"].get(k) != settings[k]}  # fmt: skip
             if old["settings"]["augmentation"].get(arm) != settings["augmentation"][arm]:
                 changed["augmentation"] = (old["settings"]["augmentation"].get(arm), settings["augmentation"][arm])
             if old["episodes_per_level"] != episodes:
                 changed["episodes"] = (old["episodes_per_level"], episodes)
-            if changed:
-                print(f"not reusing {arm} from {path}: made with other settings {changed} (was, now)", flush=True)
+            missing = [p for p in PROTOCOLS if arm not in (protocol_part(old, p) or {}).get("arms", {})]
+            if changed or missing:
+                why = f"made with other settings {changed} (was, now)" if changed else f"not evaluated under {missing}"
+                print(f"not reusing {arm} from {path}: {why}", flush=True)
                 continue
-            reused[arm] = {}
-            for level in LEVELS:
-                records = sorted((e for e in old["episodes"][arm] if e["level"] == level), key=lambda e: e["episode"])
-                if [e["episode"] for e in records] != list(range(episodes)):
-                    raise SystemExit(f"--reuse-from {path}: episodes 0-{episodes - 1} of {arm} at {level} "
-                                     "are not all there")  # fmt: skip
-                reused[arm][level] = {"success": old["arms"][arm][level], "progress": old["progress"][arm][level],
-                                      "episodes": records}  # fmt: skip
+            for protocol, levels in PROTOCOLS.items():
+                part, reused[protocol][arm] = protocol_part(old, protocol), {}
+                for level in levels:
+                    records = sorted((e for e in part["episodes"][arm] if e["level"] == level), key=lambda e: e["episode"])
+                    if [e["episode"] for e in records] != list(range(episodes)):
+                        raise SystemExit(f"--reuse-from {path}: episodes 0-{episodes - 1} of {arm} at {protocol} "
+                                         f"{level} are not all there")  # fmt: skip
+                    reused[protocol][arm][level] = {"success": part["arms"][arm][level], "episodes": records,
+                                                    "progress": part["progress"][arm][level]}  # fmt: skip
             timing |= {k: old["timing"][k] for k in (f"train_{arm}", f"eval_{arm}") if k in old["timing"]}
             sources[arm] = path.name
             print(f"reusing {arm} from {path}", flush=True)
@@ -382,42 +403,71 @@ def comparisons(evaluated: dict, reference_2d: str | None) -> dict:
     return out
 
 
+def protocol_result(evaluated: dict, protocol: str) -> dict:
+    """One protocol's part of the result from its {arm: {level: record}}: success rates,
+    progress, paired differences, the best 2D arm and the episode records."""
+    rates = {arm: {lv: r["success"] for lv, r in per_level.items()} for arm, per_level in evaluated.items()}
+    reference_2d = best_2d(rates)
+    return {
+        "arms": rates, "levels": list(PROTOCOLS[protocol]),
+        "progress": {arm: {lv: r["progress"] for lv, r in per_level.items()} for arm, per_level in evaluated.items()},
+        "difference": comparisons(evaluated, reference_2d), "best_2d": reference_2d,
+        "episodes": {arm: [e for r in per_level.values() for e in r["episodes"]] for arm, per_level in evaluated.items()},
+    }  # fmt: skip
+
+
+def build_result(evaluated: dict, episodes: int, quick: bool, settings: dict, timing: dict) -> dict:
+    """The result (see the module docstring) of {protocol: {arm: {level: record}}}: the paper
+    protocol's part at the top, the others under ``protocols``."""
+    parts = {protocol: protocol_result(evaluated[protocol], protocol) for protocol in PROTOCOLS}
+    paper = parts.pop("paper")
+    return {**{k: v for k, v in paper.items() if k != "episodes"}, "episodes_per_level": episodes, "quick": quick,
+            "protocols": parts, "settings": settings, "timing": timing, "episodes": paper["episodes"]}  # fmt: skip
+
+
 #: Line colours of the arms in the plot.
 COLOURS = {"baseline": (214, 39, 40), "lerobot2d": (31, 119, 180), "perspective": (148, 103, 189),
            "gensplat": (44, 160, 44), "gensplat+lerobot2d": (255, 127, 14)}  # fmt: skip
 
 
 def plot(result: dict, path: Path) -> None:
-    """Two panels against the level, a line per arm: success % and the median closest
-    approach (cm)."""
+    """Four panels, a line per arm: success % and the median closest approach (cm) against the
+    level, under each protocol."""
     arms = list(result["arms"])
-    x_ticks = list(enumerate(LEVELS))
-    success = {a: [(j, result["arms"][a][lv], "") for j, lv in x_ticks] for a in arms}
-    reach = {a: [(j, result["progress"][a][lv]["median_reach_cm"], "") for j, lv in x_ticks] for a in arms}
-    top = max(5.0, max(y for pts in reach.values() for _, y, _ in pts))
-    top = float(np.ceil(top / 5) * 5)
-    x_range = (-0.5, len(LEVELS) - 0.5)
-    panels = [
-        Panel("success (%)", success, x_range, (0, 100), x_ticks, [(t, str(t)) for t in range(0, 101, 20)]),
-        Panel("median closest approach (cm)", reach, x_range, (0, top), x_ticks,
-              [(t, f"{t:.0f}") for t in np.arange(0, top + 1e-9, 5)]),
-    ]  # fmt: skip
+    panels = []
+    for metric in ("success", "reach"):
+        for protocol in PROTOCOLS:
+            part = protocol_part(result, protocol)
+            x_ticks = list(enumerate(part["levels"]))
+            x_range = (-0.5, len(x_ticks) - 0.5)
+            if metric == "success":
+                series = {a: [(j, part["arms"][a][lv], "") for j, lv in x_ticks] for a in arms}
+                panels.append(Panel(f"success (%), {protocol}", series, x_range, (0, 100), x_ticks,
+                                    [(t, str(t)) for t in range(0, 101, 20)]))  # fmt: skip
+                continue
+            series = {a: [(j, part["progress"][a][lv]["median_reach_cm"], "") for j, lv in x_ticks] for a in arms}
+            top = float(np.ceil(max(5.0, *(y for pts in series.values() for _, y, _ in pts)) / 5) * 5)
+            panels.append(Panel(f"median closest approach (cm), {protocol}", series, x_range, (0, top), x_ticks,
+                                [(t, f"{t:.0f}") for t in np.arange(0, top + 1e-9, 5)]))  # fmt: skip
     s = result["settings"]
     note = (f"{s['task']}, Diffusion Policy, {s['steps']} steps at batch {s['batch_size']}, "
             f"{result['episodes_per_level']} episodes per level, left camera perturbed")  # fmt: skip
-    line_panels(path, panels, {a: COLOURS[a] for a in arms}, note)
+    line_panels(path, panels, {a: COLOURS[a] for a in arms}, note, panel_size=(360, 300), legend_columns=len(arms))
 
 
 def print_summary(result: dict) -> None:
-    """The success table and the paired differences, as printed at the end of a run."""
-    print(f"{'success %':>18}" + "".join(f"{lv:>9}" for lv in LEVELS))
-    for arm, rates in result["arms"].items():
-        print(f"{arm:>18}" + "".join(f"{rates[lv]:9.1f}" for lv in LEVELS))
-    for key, reference in (("vs_baseline", "baseline"), ("vs_best_2d", result["best_2d"])):
-        for arm, diff in result["difference"].get(key, {}).items():
-            print(f"{arm + ' - ' + reference:>30}: " + ", ".join(
-                f"{lv} {diff[lv]['points']:+.1f} [{diff[lv]['ci95'][0]:+.0f}, {diff[lv]['ci95'][1]:+.0f}]"
-                for lv in LEVELS) + " (points, paired 95 % CI)")  # fmt: skip
+    """The success tables and the paired differences, as printed at the end of a run."""
+    for protocol in PROTOCOLS:
+        part = protocol_part(result, protocol)
+        levels = part["levels"]
+        print(f"{protocol + ' success %':>18}" + "".join(f"{lv:>14}" for lv in levels))
+        for arm, rates in part["arms"].items():
+            print(f"{arm:>18}" + "".join(f"{rates[lv]:14.1f}" for lv in levels))
+        for key, reference in (("vs_baseline", "baseline"), ("vs_best_2d", part["best_2d"])):
+            for arm, diff in part["difference"].get(key, {}).items():
+                print(f"{arm + ' - ' + reference:>30}: " + ", ".join(
+                    f"{lv} {diff[lv]['points']:+.1f} [{diff[lv]['ci95'][0]:+.0f}, {diff[lv]['ci95'][1]:+.0f}]"
+                    for lv in levels) + " (points, paired 95 % CI)")  # fmt: skip
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -488,7 +538,8 @@ def result_settings(args) -> dict:
                                              "parallel_train")}  # fmt: skip
     settings.update(task=args.task, policy_cameras=list(args.cameras), arms=list(args.arms),
                     policy="diffusion (policies/diffusion.json + the overrides above)", perturbed_camera="left",
-                    augmentation={arm: augmentation(arm, args) for arm in args.arms})  # fmt: skip
+                    augmentation={arm: augmentation(arm, args) for arm in args.arms},
+                    protocols={protocol: list(levels) for protocol, levels in PROTOCOLS.items()})  # fmt: skip
     return settings
 
 
@@ -522,20 +573,14 @@ def main() -> None:
     t0 = time.perf_counter()
     evaluated = evaluate_all(work, to_run, args)
     timing["eval_seconds"] = round(time.perf_counter() - t0, 1)
-    for arm, per_level in evaluated.items():
-        seconds, steps = (sum(r[k] for r in per_level.values()) for k in ("seconds", "steps"))
-        timing[f"eval_{arm}"] = {"process_seconds": round(seconds, 1), "s_per_control_step": round(seconds / steps, 3)}
+    for arm in to_run:
+        records = [evaluated[protocol][arm][level] for protocol, levels in PROTOCOLS.items() for level in levels]
+        seconds, steps = (sum(r[k] for r in records) for k in ("seconds", "steps"))
+        timing[f"eval_{arm}"] = {"process_seconds": round(seconds, 1), "s_per_control_step": round(seconds / steps, 3),
+                                 "s_per_episode": round(seconds / (len(records) * args.episodes), 2)}  # fmt: skip
     timing["total_seconds"] = round(time.perf_counter() - t_start, 1)
-    evaluated = {arm: {**reused, **evaluated}[arm] for arm in arms}
-    rates = {arm: {lv: r["success"] for lv, r in per_level.items()} for arm, per_level in evaluated.items()}
-    reference_2d = best_2d(rates)
-    result = {
-        "arms": rates, "levels": list(LEVELS), "episodes_per_level": args.episodes, "quick": args.quick,
-        "progress": {arm: {lv: r["progress"] for lv, r in per_level.items()} for arm, per_level in evaluated.items()},
-        "difference": comparisons(evaluated, reference_2d), "best_2d": reference_2d,
-        "settings": settings, "timing": timing,
-        "episodes": {arm: [e for r in per_level.values() for e in r["episodes"]] for arm, per_level in evaluated.items()},
-    }  # fmt: skip
+    evaluated = {p: {arm: {**reused[p], **evaluated[p]}[arm] for arm in arms} for p in PROTOCOLS}
+    result = build_result(evaluated, args.episodes, args.quick, settings, timing)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
     plot(result, args.out.with_suffix(".png"))

@@ -8,8 +8,10 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
@@ -115,45 +117,60 @@ def test_perspective_transform():
 
 def records(successes: list[bool], level: str) -> dict:
     episodes = [{"level": level, "episode": i, "success": s} for i, s in enumerate(successes)]
-    return {"success": 100 * sum(successes) / len(successes), "progress": {}, "episodes": episodes}
+    return {"success": 100 * sum(successes) / len(successes), "episodes": episodes,
+            "progress": {"lift_percent": 0.0, "median_reach_cm": 3.0}}  # fmt: skip
 
 
-def test_comparisons_and_best_2d():
-    n = 10
-    rates = {"none": 0, "small": 0, "medium": 0, "large": 0}
-    solved = {
-        "baseline": 2,
-        "lerobot2d": 4,
-        "perspective": 6,
-        "gensplat": 9,
-    }  # episodes solved at every level
-    evaluated = {
-        arm: {lv: records([i < k for i in range(n)], lv) for lv in rates} for arm, k in solved.items()
+def evaluation(solved: dict[str, int], episodes: int) -> dict:
+    """{protocol: {arm: {level: record}}} in which each arm solves its first ``solved[arm]``
+    episodes at every level."""
+    return {protocol: {arm: {lv: records([i < k for i in range(episodes)], lv) for lv in levels}
+                       for arm, k in solved.items()} for protocol, levels in pr.PROTOCOLS.items()}  # fmt: skip
+
+
+def test_result_compares_every_arm_under_both_protocols(tmp_path, capsys):
+    solved = {"baseline": 2, "lerobot2d": 4, "perspective": 6, "gensplat": 9, "gensplat+lerobot2d": 7}
+    args = pr.parse_args(["--episodes", "10"])
+    result = pr.build_result(evaluation(solved, 10), 10, False, pr.result_settings(args), {})
+    assert list(result["protocols"]) == ["vista"] and result["episodes_per_level"] == 10
+    for part, levels in ((result, pr.LEVELS), (result["protocols"]["vista"], ("small_perturb", "arc_90deg"))):
+        assert part["levels"] == list(levels) and list(part["arms"]) == list(pr.ARMS)
+        assert part["arms"]["gensplat"] == dict.fromkeys(levels, 90.0) and part["best_2d"] == "perspective"
+        diff = part["difference"]
+        assert set(diff["vs_baseline"]) == set(pr.ARMS) - {"baseline"} and set(diff["vs_best_2d"]) == set(
+            pr.GENSPLAT_ARMS
+        )
+        assert all(diff["vs_baseline"]["gensplat"][lv]["points"] == 70.0 for lv in levels)
+        assert diff["vs_best_2d"]["gensplat+lerobot2d"][levels[-1]] == {
+            "points": 10.0, "ci95": diff["vs_best_2d"]["gensplat+lerobot2d"][levels[-1]]["ci95"],
+            "a_only": 0, "b_only": 1, "mcnemar_p": 1.0}  # fmt: skip
+        assert {e["level"] for e in part["episodes"]["lerobot2d"]} == set(levels) and len(
+            part["episodes"]["lerobot2d"]
+        ) == 10 * len(levels)
+    pr.print_summary(result)
+    assert "gensplat - perspective" in capsys.readouterr().out
+    pr.plot(result, tmp_path / "plot.png")  # every arm's line, in its colour
+    image = np.asarray(Image.open(tmp_path / "plot.png").convert("RGB")).astype(int)
+    for rgb in pr.COLOURS.values():
+        assert (np.abs(image - rgb).sum(-1) < 10).sum() > 50, rgb
+
+
+def test_best_2d_and_missing_references():
+    rates = {"baseline": {"none": 50, "large": 0}, "lerobot2d": {"none": 90, "large": 10},
+             "perspective": {"none": 10, "large": 20}}  # fmt: skip
+    assert pr.best_2d(rates) == "perspective"  # over the perturbed levels only
+    assert pr.best_2d({"baseline": rates["baseline"]}) is None
+    evaluated = evaluation({"lerobot2d": 1, "gensplat": 2}, 4)["paper"]  # no baseline
+    assert pr.comparisons(evaluated, None) == {} and set(pr.comparisons(evaluated, "lerobot2d")) == {
+        "vs_best_2d"
     }
-    rates = {arm: {lv: r["success"] for lv, r in per.items()} for arm, per in evaluated.items()}
-    assert pr.best_2d(rates) == "perspective" and pr.best_2d({"baseline": rates["baseline"]}) is None
-    diff = pr.comparisons(evaluated, "perspective")
-    assert set(diff["vs_baseline"]) == {"lerobot2d", "perspective", "gensplat"}
-    assert diff["vs_baseline"]["gensplat"]["large"]["points"] == 70.0
-    assert (
-        set(diff["vs_best_2d"]) == {"gensplat"} and diff["vs_best_2d"]["gensplat"]["small"]["points"] == 30.0
-    )
-    assert diff["vs_best_2d"]["gensplat"]["none"]["b_only"] == 3
-    assert set(pr.comparisons({k: evaluated[k] for k in ("lerobot2d", "gensplat")}, None)) == set()
 
 
 def earlier_result(path: Path, args, arms: tuple[str, ...], episodes: int, quick: bool = False) -> Path:
     """A result file as the script writes it, for ``arms`` evaluated under ``args``."""
-    settings = pr.result_settings(args)
-    evaluated = {
-        a: {lv: records([i % 2 == 0 for i in range(episodes)], lv) for lv in pr.LEVELS} for a in arms
-    }
-    result = {"arms": {a: {lv: r["success"] for lv, r in per.items()} for a, per in evaluated.items()},
-              "progress": {a: {lv: {"lift_percent": 0.0} for lv in pr.LEVELS} for a in arms},
-              "episodes_per_level": episodes, "quick": quick, "settings": settings,
-              "timing": {f"train_{a}": {"s_per_step": 1.0} for a in arms},
-              "episodes": {a: [e for r in per.values() for e in r["episodes"]] for a, per in evaluated.items()}}  # fmt: skip
-    path.write_text(json.dumps(result))
+    timing = {f"train_{a}": {"s_per_step": 1.0} for a in arms}
+    evaluated = evaluation(dict.fromkeys(arms, episodes // 2), episodes)
+    path.write_text(json.dumps(pr.build_result(evaluated, episodes, quick, pr.result_settings(args), timing)))
     return path
 
 
@@ -162,30 +179,38 @@ def test_reuse_checks_the_settings(tmp_path, capsys):
     old = earlier_result(tmp_path / "old.json", args, ("baseline", "gensplat"), 4)
     settings = pr.result_settings(args)
     reused, timing, sources = pr.reused_arms([old], args.arms, settings, 4)
-    assert set(reused) == {"baseline", "gensplat"} and sources == {
-        "baseline": "old.json",
-        "gensplat": "old.json",
+    assert sources == {"baseline": "old.json", "gensplat": "old.json"}
+    assert set(reused["paper"]) == set(reused["vista"]) == {"baseline", "gensplat"}
+    assert [e["episode"] for e in reused["vista"]["gensplat"]["arc_90deg"]["episodes"]] == [0, 1, 2, 3]
+    assert reused["paper"]["baseline"]["small"]["success"] == 50.0 and timing["train_gensplat"] == {
+        "s_per_step": 1.0
     }
-    assert [e["episode"] for e in reused["gensplat"]["large"]["episodes"]] == [0, 1, 2, 3]
-    assert reused["baseline"]["small"]["success"] == 50.0 and timing["train_gensplat"] == {"s_per_step": 1.0}
     # another GenSplat probability: the baseline is reused, GenSplat is named and trained again
     other = pr.parse_args(["--episodes", "4", "--probability", "0.5"])
-    reused, _, _ = pr.reused_arms([old], other.arms, pr.result_settings(other), 4)
-    assert set(reused) == {"baseline"} and "not reusing gensplat" in capsys.readouterr().out
+    _, _, sources = pr.reused_arms([old], other.arms, pr.result_settings(other), 4)
+    assert sources == {"baseline": "old.json"} and "not reusing gensplat" in capsys.readouterr().out
     # other common settings or another episode count: nothing is reused
     for argv, episodes in ((["--episodes", "4", "--steps", "100"], 4), (["--episodes", "5"], 5)):
         changed = pr.parse_args(argv)
-        assert pr.reused_arms([old], changed.arms, pr.result_settings(changed), episodes)[0] == {}
+        assert pr.reused_arms([old], changed.arms, pr.result_settings(changed), episodes)[2] == {}
     # the first file that holds an arm with matching settings decides
     newer = earlier_result(tmp_path / "newer.json", args, ("lerobot2d", "gensplat"), 4)
     _, _, sources = pr.reused_arms([newer, old], args.arms, settings, 4)
     assert sources == {"lerobot2d": "newer.json", "gensplat": "newer.json", "baseline": "old.json"}
+    # an arm not evaluated under every protocol is evaluated again
+    partial = json.loads(old.read_text())
+    del partial["protocols"]["vista"]["arms"]["gensplat"]
+    (tmp_path / "partial.json").write_text(json.dumps(partial))
+    _, _, sources = pr.reused_arms([tmp_path / "partial.json"], args.arms, settings, 4)
+    assert (
+        sources == {"baseline": "partial.json"} and "not evaluated under ['vista']" in capsys.readouterr().out
+    )
     # not reusable at all: a quick check, a result from before the arms, episodes missing
     quick = earlier_result(tmp_path / "quick.json", args, ("baseline",), 4, quick=True)
     legacy = tmp_path / "legacy.json"
     legacy.write_text(json.dumps({"baseline": {}, "quick": False}))
     gap = json.loads(old.read_text())
-    gap["episodes"]["baseline"] = [e for e in gap["episodes"]["baseline"] if e["episode"] != 2]
+    gap["protocols"]["vista"]["episodes"]["baseline"].pop(2)
     (tmp_path / "gap.json").write_text(json.dumps(gap))
     for path, message in (
         (quick, "quick"),
