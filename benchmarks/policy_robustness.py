@@ -551,7 +551,7 @@ def main() -> None:
     reused, timing, sources = reused_arms(args.reuse_from, arms, settings, args.episodes)
     if sources:
         settings["reused"] = sources
-    to_run = tuple(a for a in arms if a not in reused)
+    to_run = tuple(a for a in arms if a not in sources)
     if to_run:
         check_work(work, to_run, args)
     t_start = time.perf_counter()

@@ -221,6 +221,36 @@ def test_reuse_checks_the_settings(tmp_path, capsys):
             pr.reused_arms([path], args.arms, settings, 4)
 
 
+def test_a_run_of_reused_arms_only_trains_and_evaluates_nothing(tmp_path, monkeypatch):
+    args = pr.parse_args(["--episodes", "4"])
+    old = earlier_result(tmp_path / "old.json", args, ("baseline", "perspective", "gensplat"), 4)
+    out, work = tmp_path / "new.json", tmp_path / "work"
+    argv = [
+        "--episodes",
+        "4",
+        "--arms",
+        "gensplat,baseline",
+        "--reuse-from",
+        str(old),
+        "--out",
+        str(out),
+        "--work",
+        str(work),
+    ]
+    monkeypatch.setattr(sys, "argv", ["policy_robustness.py", *argv])
+    pr.main()
+    assert not work.exists()  # no recording, no training
+    result, before = json.loads(out.read_text()), json.loads(old.read_text())
+    assert result["settings"]["reused"] == {"baseline": "old.json", "gensplat": "old.json"}
+    assert list(result["arms"]) == ["baseline", "gensplat"] and result["best_2d"] is None
+    assert result["episodes"]["gensplat"] == before["episodes"]["gensplat"]
+    assert (
+        result["protocols"]["vista"]["episodes"]["baseline"]
+        == before["protocols"]["vista"]["episodes"]["baseline"]
+    )
+    assert set(result["difference"]) == {"vs_baseline"} and out.with_suffix(".png").is_file()
+
+
 def test_work_refuses_another_augmentation(tmp_path, monkeypatch):
     args = pr.parse_args(["--work", str(tmp_path)])
     pr.check_work(tmp_path, ("baseline", "perspective"), args)
