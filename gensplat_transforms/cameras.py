@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from .checked import tensors_state
+
 # OpenGL / nerfstudio / MuJoCo cameras look along -z with y up: flip y and z.
 _GL_TO_CV = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
 #: largest accepted |R^T R - I| entry, |det R - 1| and bottom-row error of a c2w (float32
@@ -120,13 +122,10 @@ class Cameras:
         self._checked = self._state()
 
     def _state(self) -> tuple | None:
-        """Identity of the current values: size, and each tensor's storage, torch's in-place
-        version counter and layout; None for inference-mode tensors, which have no version
-        counter (cameras derived from them are checked in full)."""
-        if self.K.is_inference() or self.c2w.is_inference():
-            return None
-        return (self.width, self.height, *((t.data_ptr(), t._version, t.shape, t.stride(), t.dtype, t.device)
-                                           for t in (self.K, self.c2w)))  # fmt: skip
+        """What a passed check saw: the image size and :func:`.checked.tensors_state` of K and
+        c2w (None for inference-mode tensors: cameras derived from them are checked in full)."""
+        state = tensors_state((self.K, self.c2w))
+        return None if state is None else (self.width, self.height, *state)
 
     def _derive(self, K: torch.Tensor, c2w: torch.Tensor) -> Cameras:
         """Cameras of this image size from (B, 3, 3) K and (B, 4, 4) c2w that the library

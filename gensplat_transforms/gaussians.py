@@ -11,6 +11,7 @@ import torch
 from plyfile import PlyData, PlyElement, PlyListProperty, PlyParseError
 from safetensors.torch import load_file, save_file
 
+from .checked import tensors_state
 from .sh import MAX_DEGREE, num_sh_bases, sh_degree_from_bases
 
 FORMAT_NAME = "gensplat-gaussians"
@@ -53,12 +54,8 @@ class Gaussians:
             self.check()
 
     def _fingerprint(self) -> tuple | None:
-        """Identity of the current tensors: storage, torch's in-place version counter, layout;
-        None for inference-mode tensors, which have no version counter (checked every time)."""
-        tensors = self.tensors().values()
-        if any(t.is_inference() for t in tensors):
-            return None
-        return tuple((t.data_ptr(), t._version, t.shape, t.stride(), t.dtype, t.device) for t in tensors)
+        """What a passed check saw (see :func:`.checked.tensors_state`)."""
+        return tensors_state(self.tensors().values())
 
     def mark_checked(self) -> Gaussians:
         """Record the tensors as valid without scanning them: only for values valid by
