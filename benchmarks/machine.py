@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 
 def cpu_model() -> dict:
-    """CPU model and widest SIMD from /proc/cpuinfo (the fast backend's speed follows it)."""
+    """CPU model, family (CPUs of one name differ by generation: AMD EPYC family 23 is Zen 1-2,
+    25 Zen 3-4, 26 Zen 5) and widest SIMD from /proc/cpuinfo (the fast backend's speed
+    follows them), and the CPU numba compiles for when ``NUMBA_CPU_NAME`` overrides it."""
     try:
         info = Path("/proc/cpuinfo").read_text()
     except OSError:
@@ -20,7 +23,9 @@ def cpu_model() -> dict:
         fields[key.strip()] = value.strip()
     flags = set(fields.get("flags", "").split())
     simd = next((f for f in ("avx512f", "avx2", "avx", "sse4_2") if f in flags), "none")
-    return {"cpu_model": fields.get("model name", ""), "simd": simd}
+    family = f"{fields.get('cpu family', '?')}/{fields.get('model', '?')}"
+    target = {"numba_cpu_name": os.environ["NUMBA_CPU_NAME"]} if os.environ.get("NUMBA_CPU_NAME") else {}
+    return {"cpu_model": fields.get("model name", ""), "cpu_family_model": family, "simd": simd, **target}
 
 
 def write_result(result: dict, out: Path) -> None:

@@ -1,6 +1,6 @@
 """Render speed of the "fast" CPU backend on the standard scene, against the reference.
 
-Usage: python benchmarks/render_speed.py [--quick] [--out PATH]
+Usage: python benchmarks/render_speed.py [--quick] [--avx2] [--out PATH]
 
 Times ``render(..., backend="fast", threads=n)`` for n = 1 and 2 (median of repeated
 frames after warm-up), the backend alone with its time split (projection / binning /
@@ -11,6 +11,11 @@ backend (``gsplat`` in the JSON: the Gaussians resident on the GPU, and uploaded
 against the fast image; elsewhere ``gsplat.available`` is false with the reason. Prints a
 table and writes benchmarks/results/render_speed.json (``--out`` to write elsewhere).
 The machine may be shared: figures are medians, and min/max are recorded beside them.
+
+``--avx2`` compiles the fast backend for this CPU with its AVX-512 features off (numba's
+``NUMBA_CPU_FEATURES``; compiled code is cached per feature set), so that one core measures
+what the vector width alone costs: an AVX-512 machine then runs the code an AVX2-only CPU
+would get (``codegen`` in the JSON).
 
 OpenMP threads sleep between parallel regions here (OMP_WAIT_POLICY=PASSIVE unless set):
 with the default busy-waiting, numba's idle worker threads took the second core from the
@@ -32,6 +37,24 @@ import time
 from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch and numba load OpenMP
+
+
+def _avx2_features() -> str:
+    """This CPU's LLVM feature string with every AVX-512 and AVX10 feature turned off."""
+    import llvmlite.binding as llvm
+
+    features = llvm.get_host_cpu_features()
+    off = {name for name in features if name.startswith(("avx512", "avx10", "amx-avx512"))}
+    return ",".join(("+" if on and name not in off else "-") + name for name, on in sorted(features.items()))
+
+
+if "--avx2" in sys.argv:  # before numba reads its configuration
+    os.environ["NUMBA_CPU_FEATURES"] = _avx2_features()
+
+
+def _codegen() -> str:
+    """What numba compiles for: "native", "avx2 (AVX-512 off)" or the user's feature string."""
+    return "avx2 (AVX-512 off)" if "--avx2" in sys.argv else os.environ.get("NUMBA_CPU_FEATURES") or "native"
 
 import numba
 import torch
@@ -182,6 +205,7 @@ def run(quick: bool) -> dict:
             **_scene_stats(light), "ms_1thread": light_ms[1], "ms_2threads": light_ms[2],
         },
         "gsplat": gsplat,
+        "codegen": _codegen(),
         "first_call_s": first_call_s,
         "scene_build_s": build_s,
         "quick": quick,
@@ -211,6 +235,8 @@ def _print_table(r: dict) -> None:
         ("Gaussians / visible splats", f"{r['num_gaussians']} / {r['visible_splats']}"),
         ("(splat, pixel) pairs in boxes", f"{r['box_pairs'] / 1e6:.1f} M"),
         ("resolution", "x".join(map(str, r["resolution"]))),
+        ("CPU (family/model), SIMD; compiled for", f"{r['machine'].get('cpu_model')} "
+         f"({r['machine'].get('cpu_family_model')}), {r['machine'].get('simd')}; {r['codegen']}"),
         ("fast, 1 thread (render())", f"{r['ms_1thread']:.1f} ms (CPU time {r['cpu_ms_1thread']:.1f} ms)"),
         ("fast, 2 threads (render())", f"{r['ms_2threads']:.1f} ms"),
         ("  backend split, 1 thread", _split(s1)),
@@ -243,6 +269,7 @@ def _print_table(r: dict) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer repetitions (under a minute)")
+    parser.add_argument("--avx2", action="store_true", help="compile for this CPU without AVX-512")
     parser.add_argument("--out", type=Path, default=RESULTS, help=f"JSON path (default {RESULTS})")
     args = parser.parse_args()
     result = run(args.quick)
