@@ -84,14 +84,16 @@ Writes ``benchmarks/results/policy_robustness.json`` (``policy_robustness_quick.
 ``--quick``) and a plot beside it (success and closest approach of every arm under both
 protocols): ``{"arms": {arm: {level: success %}}, "levels", "progress": {arm: {level:
 {lift_percent, median_reach_cm}}}, "difference": {"vs_baseline": {arm: {level: {points,
-ci95, a_only, b_only, mcnemar_p}}}, "vs_best_2d": {...}}, "best_2d", "episodes_per_level": n,
+ci95, a_only, b_only, mcnemar_p}}}, "vs_best_2d": {...}, "vs_2d": {2D arm: {...}}}, "best_2d",
+"episodes_per_level": n,
 "quick", "protocols": {"vista": {the same keys from "arms" to "best_2d", and "episodes"}},
 "settings", "timing", "episodes": {arm: [per-episode records]}}``, the top level for the
 paper protocol.
 ``difference`` compares two arms episode by episode (they met the same episodes): every arm
 against the baseline, and the GenSplat arms against ``best_2d``, the 2D arm (``lerobot2d``,
 ``perspective``) with the highest mean success over the perturbed levels (chosen on the
-same episodes, so the comparison favours it); in points (arm minus reference), a
+same episodes, so the comparison favours it), and, free of that choice, against each 2D arm
+(``vs_2d``); in points (arm minus reference), a
 paired-bootstrap 95 % interval, and an exact McNemar test on the episodes only one of them
 solved. ``progress`` tells apart policies that do not succeed yet: the share of episodes
 that lifted the cube (pick and place) and the median closest approach of the pinch point to
@@ -386,8 +388,9 @@ def best_2d(rates: dict) -> str | None:
 
 def comparisons(evaluated: dict, reference_2d: str | None) -> dict:
     """{"vs_baseline": {arm: {level: paired_difference}} for every other arm, "vs_best_2d": {arm:
-    {...}} for the GenSplat arms}: arm minus reference, on the same episodes; a comparison
-    whose reference is not among ``evaluated`` ({arm: {level: record}}) is left out."""
+    {...}} and "vs_2d": {2D arm: {arm: {...}}} for the GenSplat arms}: arm minus reference, on
+    the same episodes; a comparison whose reference is not among ``evaluated`` ({arm: {level:
+    record}}) is left out."""
     def successes(arm: str, level: str) -> list[bool]:
         return [e["success"] for e in evaluated[arm][level]["episodes"]]
 
@@ -400,6 +403,9 @@ def comparisons(evaluated: dict, reference_2d: str | None) -> dict:
         out["vs_baseline"] = against("baseline", ARMS)
     if reference_2d is not None:
         out["vs_best_2d"] = against(reference_2d, GENSPLAT_ARMS)
+    two_d = {reference: against(reference, GENSPLAT_ARMS) for reference in TWO_D_ARMS if reference in evaluated}
+    if two_d:
+        out["vs_2d"] = two_d
     return out
 
 
@@ -463,9 +469,11 @@ def print_summary(result: dict) -> None:
         print(f"{protocol + ' success %':>18}" + "".join(f"{lv:>14}" for lv in levels))
         for arm, rates in part["arms"].items():
             print(f"{arm:>18}" + "".join(f"{rates[lv]:14.1f}" for lv in levels))
-        for key, reference in (("vs_baseline", "baseline"), ("vs_best_2d", part["best_2d"])):
-            for arm, diff in part["difference"].get(key, {}).items():
-                print(f"{arm + ' - ' + reference:>30}: " + ", ".join(
+        diffs = part["difference"]
+        for reference, against in (("baseline", diffs.get("vs_baseline", {})), *diffs.get("vs_2d", {}).items()):
+            for arm, diff in against.items():
+                best = " (best 2D)" if reference == part["best_2d"] else ""
+                print(f"{arm + ' - ' + reference + best:>40}: " + ", ".join(
                     f"{lv} {diff[lv]['points']:+.1f} [{diff[lv]['ci95'][0]:+.0f}, {diff[lv]['ci95'][1]:+.0f}]"
                     for lv in levels) + " (points, paired 95 % CI)")  # fmt: skip
 

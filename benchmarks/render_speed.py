@@ -230,13 +230,13 @@ def _split(t: dict) -> str:
 
 def _print_table(r: dict) -> None:
     s1, s2 = r["time_split_ms"]["1thread"], r["time_split_ms"]["2threads"]
-    light = r["light_scene_sigma_px_0.4"]
+    light, m = r["light_scene_sigma_px_0.4"], r["machine"]
     rows = [
         ("Gaussians / visible splats", f"{r['num_gaussians']} / {r['visible_splats']}"),
         ("(splat, pixel) pairs in boxes", f"{r['box_pairs'] / 1e6:.1f} M"),
         ("resolution", "x".join(map(str, r["resolution"]))),
-        ("CPU (family/model), SIMD; compiled for", f"{r['machine'].get('cpu_model')} "
-         f"({r['machine'].get('cpu_family_model')}), {r['machine'].get('simd')}; {r['codegen']}"),
+        ("CPU (family/model), SIMD", f"{m.get('cpu_model')} ({m.get('cpu_family_model')}), {m.get('simd')}"),
+        ("compiled for", r["codegen"]),
         ("fast, 1 thread (render())", f"{r['ms_1thread']:.1f} ms (CPU time {r['cpu_ms_1thread']:.1f} ms)"),
         ("fast, 2 threads (render())", f"{r['ms_2threads']:.1f} ms"),
         ("  backend split, 1 thread", _split(s1)),

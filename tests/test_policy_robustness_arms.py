@@ -144,11 +144,15 @@ def test_result_compares_every_arm_under_both_protocols(tmp_path, capsys):
         assert diff["vs_best_2d"]["gensplat+lerobot2d"][levels[-1]] == {
             "points": 10.0, "ci95": diff["vs_best_2d"]["gensplat+lerobot2d"][levels[-1]]["ci95"],
             "a_only": 0, "b_only": 1, "mcnemar_p": 1.0}  # fmt: skip
+        # every GenSplat arm against every 2D arm too, not only the best one
+        assert set(diff["vs_2d"]) == set(pr.TWO_D_ARMS) and diff["vs_2d"]["perspective"] == diff["vs_best_2d"]
+        assert all(diff["vs_2d"]["lerobot2d"]["gensplat"][lv]["points"] == 50.0 for lv in levels)
         assert {e["level"] for e in part["episodes"]["lerobot2d"]} == set(levels) and len(
             part["episodes"]["lerobot2d"]
         ) == 10 * len(levels)
     pr.print_summary(result)
-    assert "gensplat - perspective" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "gensplat - perspective (best 2D)" in out and "gensplat - lerobot2d:" in out
     pr.plot(result, tmp_path / "plot.png")  # every arm's line, in its colour
     image = np.asarray(Image.open(tmp_path / "plot.png").convert("RGB")).astype(int)
     for rgb in pr.COLOURS.values():
@@ -161,9 +165,10 @@ def test_best_2d_and_missing_references():
     assert pr.best_2d(rates) == "perspective"  # over the perturbed levels only
     assert pr.best_2d({"baseline": rates["baseline"]}) is None
     evaluated = evaluation({"lerobot2d": 1, "gensplat": 2}, 4)["paper"]  # no baseline
-    assert pr.comparisons(evaluated, None) == {} and set(pr.comparisons(evaluated, "lerobot2d")) == {
-        "vs_best_2d"
+    assert set(pr.comparisons(evaluated, None)) == {"vs_2d"} and set(pr.comparisons(evaluated, "lerobot2d")) == {
+        "vs_best_2d", "vs_2d"
     }
+    assert pr.comparisons(evaluation({"gensplat": 2}, 4)["paper"], None) == {}
 
 
 def earlier_result(path: Path, args, arms: tuple[str, ...], episodes: int, quick: bool = False) -> Path:
