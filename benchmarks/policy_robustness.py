@@ -76,7 +76,7 @@ the settings that shape it and its evaluation match (the common ones, its augmen
 the episodes per level; checked, and the arms whose settings differ are named and trained);
 ``settings["reused"]`` names the file of each reused arm. Within one ``--work``, a trained
 checkpoint is not trained again (its augmentation is checked), so adding an arm later trains
-only that arm.
+only that arm. ``--table RESULT.json`` prints a result's tables in Markdown (benchmarks/README.md's).
 ``--quick`` (a few minutes): 2 demos, 4 steps at batch 4, a smaller U-Net, 2 episodes per
 level of at most 20 steps: it checks the pipeline end to end, its success rates mean nothing.
 
@@ -478,6 +478,33 @@ def print_summary(result: dict) -> None:
                     for lv in levels) + " (points, paired 95 % CI)")  # fmt: skip
 
 
+def markdown(result: dict) -> str:
+    """The success tables of ``result`` in Markdown, one per protocol: a row per arm, each cell
+    the success % and, for the other arms, the paired difference from the baseline in points
+    with its 95 % interval; then the GenSplat arms against each 2D arm (McNemar p beside)."""
+    lines = []
+    for protocol in PROTOCOLS:
+        part = protocol_part(result, protocol)
+        levels, diffs = part["levels"], part["difference"]
+        lines += [f"{protocol} protocol, success % (points vs baseline [paired 95 % CI]):", "",
+                  "| arm | " + " | ".join(levels) + " |", "|---" * (len(levels) + 1) + "|"]  # fmt: skip
+        for arm, rates in part["arms"].items():
+            diff = diffs.get("vs_baseline", {}).get(arm)
+            cells = [f"{rates[lv]:.0f}" + (f" ({_points(diff[lv])})" if diff else "") for lv in levels]
+            lines.append(f"| {arm} | " + " | ".join(cells) + " |")
+        for reference, against in diffs.get("vs_2d", {}).items():
+            for arm, diff in against.items():
+                best = ", the best 2D arm" if reference == part["best_2d"] else ""
+                cells = [f"{_points(diff[lv])}, p = {diff[lv]['mcnemar_p']:.2g}" for lv in levels]
+                lines.append(f"| {arm} - {reference}{best} | " + " | ".join(cells) + " |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def _points(diff: dict) -> str:
+    return f"{diff['points']:+.0f} [{diff['ci95'][0]:+.0f}, {diff['ci95'][1]:+.0f}]"
+
+
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     """The command line with its defaults filled in (full or ``--quick``); ``arms`` and
     ``cameras`` as tuples."""
@@ -517,6 +544,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     parser.add_argument("--reuse-from", type=Path, action="append", default=[], metavar="RESULT.json",
                         help="reuse the arms an earlier result holds with the same settings (repeatable)")  # fmt: skip
+    parser.add_argument("--table", type=Path, metavar="RESULT.json",
+                        help="print a result's tables in Markdown and exit (runs nothing)")  # fmt: skip
     parser.add_argument("--out", type=Path, help="result JSON (default benchmarks/results/policy_robustness.json; "
                         "with --quick policy_robustness_quick.json, so a check never replaces the result)")  # fmt: skip
     args = parser.parse_args(argv)
@@ -553,6 +582,9 @@ def result_settings(args) -> dict:
 
 def main() -> None:
     args = parse_args()
+    if args.table:
+        print(markdown(json.loads(args.table.read_text())))
+        return
     arms, work = args.arms, args.work
     root = work / "dataset"
     settings = result_settings(args)

@@ -153,6 +153,10 @@ def test_result_compares_every_arm_under_both_protocols(tmp_path, capsys):
     pr.print_summary(result)
     out = capsys.readouterr().out
     assert "gensplat - perspective (best 2D)" in out and "gensplat - lerobot2d:" in out
+    table = pr.markdown(result)  # the tables of benchmarks/README.md
+    assert "| gensplat | 90 (+70 [" in table and "| baseline | 20 | 20 | 20 | 20 |" in table
+    assert "| gensplat+lerobot2d - perspective, the best 2D arm | +10 [" in table
+    assert table.count("| arm |") == len(pr.PROTOCOLS)
     pr.plot(result, tmp_path / "plot.png")  # every arm's line, in its colour
     image = np.asarray(Image.open(tmp_path / "plot.png").convert("RGB")).astype(int)
     for rgb in pr.COLOURS.values():
