@@ -28,6 +28,16 @@ def cpu_model() -> dict:
     return {"cpu_model": fields.get("model name", ""), "cpu_family_model": family, "simd": simd, **target}
 
 
+def avx2_features() -> str:
+    """This CPU's LLVM feature string with every AVX-512 and AVX10 feature turned off: as
+    ``NUMBA_CPU_FEATURES``, numba then compiles the code an AVX2-only CPU would get."""
+    import llvmlite.binding as llvm
+
+    features = llvm.get_host_cpu_features()
+    off = {name for name in features if name.startswith(("avx512", "avx10", "amx-avx512"))}
+    return ",".join(("+" if on and name not in off else "-") + name for name, on in sorted(features.items()))
+
+
 def write_result(result: dict, out: Path) -> None:
     """Write a benchmark's result as indented JSON to ``out`` (its folder created) and say so."""
     out.parent.mkdir(exist_ok=True)

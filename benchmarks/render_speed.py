@@ -37,30 +37,14 @@ import time
 from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch and numba load OpenMP
-
-
-def _avx2_features() -> str:
-    """This CPU's LLVM feature string with every AVX-512 and AVX10 feature turned off."""
-    import llvmlite.binding as llvm
-
-    features = llvm.get_host_cpu_features()
-    off = {name for name in features if name.startswith(("avx512", "avx10", "amx-avx512"))}
-    return ",".join(("+" if on and name not in off else "-") + name for name, on in sorted(features.items()))
-
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from machine import avx2_features, cpu_model
 
 if "--avx2" in sys.argv:  # before numba reads its configuration
-    os.environ["NUMBA_CPU_FEATURES"] = _avx2_features()
-
-
-def _codegen() -> str:
-    """What numba compiles for: "native", "avx2 (AVX-512 off)" or the user's feature string."""
-    return "avx2 (AVX-512 off)" if "--avx2" in sys.argv else os.environ.get("NUMBA_CPU_FEATURES") or "native"
+    os.environ["NUMBA_CPU_FEATURES"] = avx2_features()
 
 import numba
 import torch
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from machine import cpu_model
 from standard_scene import standard_scene
 
 from gensplat_transforms import render
@@ -68,6 +52,11 @@ from gensplat_transforms.rendering import project
 from gensplat_transforms.rendering.fast import render_fast
 
 RESULTS = Path(__file__).resolve().parent / "results" / "render_speed.json"
+
+
+def _codegen() -> str:
+    """What numba compiles for: "native", "avx2 (AVX-512 off)" or the user's feature string."""
+    return "avx2 (AVX-512 off)" if "--avx2" in sys.argv else os.environ.get("NUMBA_CPU_FEATURES") or "native"
 
 
 def _time(fn, repeats: int, clock=time.perf_counter) -> list[float]:
