@@ -122,5 +122,5 @@ def _render_scene(means, quats, scales, sh, keep, cameras: Cameras, opacity: flo
     """(C, 3, H, W): one scene's discs (N, ...) where ``keep``, as float32 Gaussians in the
     worker's order, rendered by :func:`.transform.render_view` with ``cfg.backend``."""
     means, quats, scales, sh = (t[keep].float() for t in (means, quats, scales, sh))
-    g = Gaussians(means, quats, scales, torch.full((len(means),), opacity), sh)
+    g = Gaussians(means, quats, scales, means.new_full((len(means),), opacity), sh)
     return render_view(g, cameras, cfg).rgb
