@@ -164,6 +164,15 @@ def test_on_cuda_one_gsplat_call_renders_the_worker_views(setup):
     torch.testing.assert_close(got["gensplat.theta_deg"], expected["gensplat.theta_deg"])
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="a CUDA batch needs a CUDA device")
+def test_on_cuda_a_named_backend_renders_scene_by_scene_on_the_batch_device(setup):
+    """backend="reference" on a CUDA batch: no gsplat, every tensor stays on the batch's device."""
+    cache, ds = setup
+    items = [ds[i] for i in (0, 5)]
+    expected, got = both_ways(cache, items, seed=3, backend="reference", device="cuda", probability=1.0)
+    assert_same_batch(expected, got, atol=1e-4)
+
+
 # ---------------------------------------------------------------------------- LeRobot
 
 lerobot = pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
