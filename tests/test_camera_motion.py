@@ -1,0 +1,44 @@
+"""benchmarks/camera_motion.py: the image motion and viewpoint change of the robustness study's
+camera moves."""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
+pytest.importorskip("mujoco", reason="the sim extra is not installed (pip install -e '.[sim]')")
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import camera_motion as cm
+
+
+def test_homography_takes_the_corners_where_they_were_drawn():
+    src = torch.tensor([[0.0, 0.0], [95.0, 0.0], [95.0, 95.0], [0.0, 95.0]], dtype=torch.float64)
+    dst = src + torch.tensor([[3.0, -2.0], [-5.0, 1.0], [2.0, 4.0], [-1.0, -3.0]], dtype=torch.float64)
+    H = cm.homography(src, dst)
+    mapped = torch.cat([src, src.new_ones(4, 1)], 1) @ H.T
+    torch.testing.assert_close(mapped[:, :2] / mapped[:, 2:], dst)
+
+
+def test_motion_of_a_shift_and_of_a_turn_about_the_workspace_centre():
+    before = torch.tensor([[10.0, 10.0], [50.0, 50.0], [90.0, 20.0]])
+    shift, outside, angle = cm.motion(before, before + torch.tensor([9.6, 0.0]), 96)
+    assert shift == pytest.approx(10.0) and outside == pytest.approx(100 / 3) and math.isnan(angle)
+    eye = cm.CENTRE + torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    turned = cm.CENTRE + torch.tensor([0.0, 2.0, 0.0], dtype=torch.float64)  # 90 deg, another distance
+    assert cm.motion(before, before, 96, (eye, turned))[2] == pytest.approx(90.0)
+    assert cm.summary([(1.0, 0.0, math.nan), (3.0, 0.0, math.nan)])["view_change_deg_median"] is None
+
+
+def test_a_small_run_orders_the_paper_levels():
+    rows = cm.run(episodes=6, size=48)["rows"]
+    assert set(rows) == {"paper/none", "paper/small", "paper/medium", "paper/large", "vista/small_perturb",
+                         "vista/arc_90deg", "train/gensplat", "train/perspective"}  # fmt: skip
+    assert rows["paper/none"]["shift_pct_median"] == 0.0 and rows["paper/none"]["view_change_deg_median"] == 0.0
+    shifts = [rows[f"paper/{lv}"]["shift_pct_median"] for lv in ("small", "medium", "large")]
+    assert shifts == sorted(shifts) and shifts[0] > 0
+    assert rows["train/perspective"]["view_change_deg_median"] is None and rows["train/gensplat"]["moves"] == 18
