@@ -57,12 +57,12 @@ Diffusion Policy as in ``policies/diffusion.json`` (ResNet-18 encoder from scrat
 ``down_dims`` 64-128-256, horizon 16, 8 executed actions) with 1 observation step, DDIM and
 10 inference steps; 2500 steps at batch 32 (warm-up a tenth of the steps, at most 500); 100
 evaluation episodes per level of at most 50 control steps (the demonstrations take 15-18),
-6 levels per arm. Measured here for the earlier two-arm run: 1.29 s per training step without
-GenSplat and 1.45 s with it (54 and 60 min per policy), evaluation at 0.07-0.08 s per
-control step in two processes, recording 5 min; 40-step runs of every arm later measured
-2.2-2.35 s per step on the then busier machine, the 2D arms and GenSplat within 5 % of the
-baseline. The five arms thus take about 6 h (up to 10 h on a busy machine); ``timing`` in
-the result holds the measured values. Harder tasks did not train at this budget: ``reach`` (a 4 cm cube among two distractors of random colours) stayed at about
+6 levels per arm. Measured on a 2-core AMD EPYC (Zen 5) with no other job: 1.09 s per
+training step for the baseline and 1.05 s for GenSplat (46 and 44 min per policy),
+evaluation 10.5 min per arm in two processes (0.05 s per control step), recording 4 min; on
+an older, busier 2-core EPYC 1.29-2.35 s per step (the 2D arms and GenSplat within 5 % of
+the baseline in 40-step runs). The five arms thus take 5-10 h; ``timing`` in the result
+holds the measured values. Harder tasks did not train at this budget: ``reach`` (a 4 cm cube among two distractors of random colours) stayed at about
 10 % success at every level, and ``pick_place`` (``--cameras left,right,wrist``) lifted no
 cube after 1500 steps at batch 8 (see the README); ``--device cuda --steps 20000`` is the
 setting to aim for on a GPU. Measured on one H100 machine (16 cores): with
