@@ -10,6 +10,8 @@ from pathlib import Path
 import pytest
 import torch
 
+import gensplat_transforms.sim  # noqa: F401  (selects MuJoCo's headless backend before mujoco loads)
+
 pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
 pytest.importorskip("mujoco", reason="the sim extra is not installed (pip install -e '.[sim]')")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
