@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 
 def cpu_model() -> dict:
     """CPU model, family (CPUs of one name differ by generation: AMD EPYC family 23 is Zen 1-2,
     25 Zen 3-4, 26 Zen 5) and widest SIMD from /proc/cpuinfo (the fast backend's speed
-    follows them), and the CPU numba compiles for when ``NUMBA_CPU_NAME`` overrides it."""
+    follows them)."""
     try:
         info = Path("/proc/cpuinfo").read_text()
     except OSError:
@@ -24,8 +23,7 @@ def cpu_model() -> dict:
     flags = set(fields.get("flags", "").split())
     simd = next((f for f in ("avx512f", "avx2", "avx", "sse4_2") if f in flags), "none")
     family = f"{fields.get('cpu family', '?')}/{fields.get('model', '?')}"
-    target = {"numba_cpu_name": os.environ["NUMBA_CPU_NAME"]} if os.environ.get("NUMBA_CPU_NAME") else {}
-    return {"cpu_model": fields.get("model name", ""), "cpu_family_model": family, "simd": simd, **target}
+    return {"cpu_model": fields.get("model name", ""), "cpu_family_model": family, "simd": simd}
 
 
 def avx2_features() -> str:

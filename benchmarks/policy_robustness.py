@@ -84,16 +84,16 @@ Writes ``benchmarks/results/policy_robustness.json`` (``policy_robustness_quick.
 ``--quick``) and a plot beside it (success and closest approach of every arm under both
 protocols): ``{"arms": {arm: {level: success %}}, "levels", "progress": {arm: {level:
 {lift_percent, median_reach_cm}}}, "difference": {"vs_baseline": {arm: {level: {points,
-ci95, a_only, b_only, mcnemar_p}}}, "vs_best_2d": {...}, "vs_2d": {2D arm: {...}}}, "best_2d",
+ci95, a_only, b_only, mcnemar_p}}}, "vs_2d": {2D arm: {GenSplat arm: {...}}}}, "best_2d",
 "episodes_per_level": n,
 "quick", "protocols": {"vista": {the same keys from "arms" to "best_2d", and "episodes"}},
 "settings", "timing", "episodes": {arm: [per-episode records]}}``, the top level for the
 paper protocol.
 ``difference`` compares two arms episode by episode (they met the same episodes): every arm
-against the baseline, and the GenSplat arms against ``best_2d``, the 2D arm (``lerobot2d``,
-``perspective``) with the highest mean success over the perturbed levels (chosen on the
-same episodes, so the comparison favours it), and, free of that choice, against each 2D arm
-(``vs_2d``); in points (arm minus reference), a
+against the baseline, and the GenSplat arms against each 2D arm (``vs_2d``); ``best_2d``
+names the 2D arm (``lerobot2d``, ``perspective``) with the highest mean success over the
+perturbed levels (chosen on the same episodes, so the comparison with it favours it); in
+points (arm minus reference), a
 paired-bootstrap 95 % interval, and an exact McNemar test on the episodes only one of them
 solved. ``progress`` tells apart policies that do not succeed yet: the share of episodes
 that lifted the cube (pick and place) and the median closest approach of the pinch point to
@@ -386,11 +386,10 @@ def best_2d(rates: dict) -> str | None:
     return max(arms, key=lambda a: np.mean([v for lv, v in rates[a].items() if lv != "none"])) if arms else None
 
 
-def comparisons(evaluated: dict, reference_2d: str | None) -> dict:
-    """{"vs_baseline": {arm: {level: paired_difference}} for every other arm, "vs_best_2d": {arm:
-    {...}} and "vs_2d": {2D arm: {arm: {...}}} for the GenSplat arms}: arm minus reference, on
-    the same episodes; a comparison whose reference is not among ``evaluated`` ({arm: {level:
-    record}}) is left out."""
+def comparisons(evaluated: dict) -> dict:
+    """{"vs_baseline": {arm: {level: paired_difference}} for every other arm, "vs_2d": {2D arm:
+    {GenSplat arm: {...}}}}: arm minus reference, on the same episodes; a comparison whose
+    reference is not among ``evaluated`` ({arm: {level: record}}) is left out."""
     def successes(arm: str, level: str) -> list[bool]:
         return [e["success"] for e in evaluated[arm][level]["episodes"]]
 
@@ -401,8 +400,6 @@ def comparisons(evaluated: dict, reference_2d: str | None) -> dict:
     out = {}
     if "baseline" in evaluated:
         out["vs_baseline"] = against("baseline", ARMS)
-    if reference_2d is not None:
-        out["vs_best_2d"] = against(reference_2d, GENSPLAT_ARMS)
     two_d = {reference: against(reference, GENSPLAT_ARMS) for reference in TWO_D_ARMS if reference in evaluated}
     if two_d:
         out["vs_2d"] = two_d
@@ -413,11 +410,10 @@ def protocol_result(evaluated: dict, protocol: str) -> dict:
     """One protocol's part of the result from its {arm: {level: record}}: success rates,
     progress, paired differences, the best 2D arm and the episode records."""
     rates = {arm: {lv: r["success"] for lv, r in per_level.items()} for arm, per_level in evaluated.items()}
-    reference_2d = best_2d(rates)
     return {
         "arms": rates, "levels": list(PROTOCOLS[protocol]),
         "progress": {arm: {lv: r["progress"] for lv, r in per_level.items()} for arm, per_level in evaluated.items()},
-        "difference": comparisons(evaluated, reference_2d), "best_2d": reference_2d,
+        "difference": comparisons(evaluated), "best_2d": best_2d(rates),
         "episodes": {arm: [e for r in per_level.values() for e in r["episodes"]] for arm, per_level in evaluated.items()},
     }  # fmt: skip
 

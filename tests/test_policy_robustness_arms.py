@@ -137,15 +137,13 @@ def test_result_compares_every_arm_under_both_protocols(tmp_path, capsys):
         assert part["levels"] == list(levels) and list(part["arms"]) == list(pr.ARMS)
         assert part["arms"]["gensplat"] == dict.fromkeys(levels, 90.0) and part["best_2d"] == "perspective"
         diff = part["difference"]
-        assert set(diff["vs_baseline"]) == set(pr.ARMS) - {"baseline"} and set(diff["vs_best_2d"]) == set(
-            pr.GENSPLAT_ARMS
-        )
+        assert set(diff) == {"vs_baseline", "vs_2d"} and set(diff["vs_baseline"]) == set(pr.ARMS) - {"baseline"}
+        assert set(diff["vs_2d"]) == set(pr.TWO_D_ARMS) and set(diff["vs_2d"]["perspective"]) == set(pr.GENSPLAT_ARMS)
         assert all(diff["vs_baseline"]["gensplat"][lv]["points"] == 70.0 for lv in levels)
-        assert diff["vs_best_2d"]["gensplat+lerobot2d"][levels[-1]] == {
-            "points": 10.0, "ci95": diff["vs_best_2d"]["gensplat+lerobot2d"][levels[-1]]["ci95"],
+        best = diff["vs_2d"][part["best_2d"]]
+        assert best["gensplat+lerobot2d"][levels[-1]] == {
+            "points": 10.0, "ci95": best["gensplat+lerobot2d"][levels[-1]]["ci95"],
             "a_only": 0, "b_only": 1, "mcnemar_p": 1.0}  # fmt: skip
-        # every GenSplat arm against every 2D arm too, not only the best one
-        assert set(diff["vs_2d"]) == set(pr.TWO_D_ARMS) and diff["vs_2d"]["perspective"] == diff["vs_best_2d"]
         assert all(diff["vs_2d"]["lerobot2d"]["gensplat"][lv]["points"] == 50.0 for lv in levels)
         assert {e["level"] for e in part["episodes"]["lerobot2d"]} == set(levels) and len(
             part["episodes"]["lerobot2d"]
@@ -169,10 +167,8 @@ def test_best_2d_and_missing_references():
     assert pr.best_2d(rates) == "perspective"  # over the perturbed levels only
     assert pr.best_2d({"baseline": rates["baseline"]}) is None
     evaluated = evaluation({"lerobot2d": 1, "gensplat": 2}, 4)["paper"]  # no baseline
-    assert set(pr.comparisons(evaluated, None)) == {"vs_2d"} and set(pr.comparisons(evaluated, "lerobot2d")) == {
-        "vs_best_2d", "vs_2d"
-    }
-    assert pr.comparisons(evaluation({"gensplat": 2}, 4)["paper"], None) == {}
+    assert set(pr.comparisons(evaluated)) == {"vs_2d"} and set(pr.comparisons(evaluated)["vs_2d"]) == {"lerobot2d"}
+    assert pr.comparisons(evaluation({"gensplat": 2}, 4)["paper"]) == {}
 
 
 def earlier_result(path: Path, args, arms: tuple[str, ...], episodes: int, quick: bool = False) -> Path:
