@@ -36,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import write_result
 from policy_robustness import PERSPECTIVE_DISTORTION, PROTOCOLS
 
-from gensplat_transforms.perturbation import PerturbationSampler, pivot_point
+from gensplat_transforms.perturbation import PerturbationSampler
 from gensplat_transforms.sim.evaluate import EvalConfig, PerturbedCameraEnv
 from gensplat_transforms.sim.scene import WORKSPACE_HIGH, WORKSPACE_LOW
 from gensplat_transforms.sim.world import WorldConfig
@@ -98,25 +98,20 @@ def camera_move(left, c2w: torch.Tensor, points: torch.Tensor, before: torch.Ten
 
 
 def run(episodes: int, size: int) -> dict:
-    cameras, points, result = None, workspace_points(), {}
-    for protocol, levels in PROTOCOLS.items():
-        for level in levels:
-            env = PerturbedCameraEnv(EvalConfig(task="reach_solo", level=level, protocol=protocol,
-                                                world=WorldConfig(height=size, width=size)))  # fmt: skip
-            if cameras is None:  # the nominal external cameras
-                cameras = env.world.cameras(("left", "right"))
-                left = cameras[0]
-                before = left.project(points)[0][0]
-            rows = []
-            for i in range(episodes):
-                c2w = env.sampler.sample(i).apply(env.nominal_c2w["left"], env.centre["left"])
-                rows.append(camera_move(left, c2w, points, before, size))
-            env.close()
-            result[f"{protocol}/{level}"] = summary(rows)
-    sampler, pivot = PerturbationSampler("train", seed=0), pivot_point(cameras.c2w[0], cameras.c2w[1])
-    rows = [camera_move(left, sampler.sample(i, view=v).apply(left.c2w[0], pivot), points, before, size)
-            for i in range(episodes) for v in range(3)]  # fmt: skip
-    result["train/gensplat"] = summary(rows)
+    world = WorldConfig(height=size, width=size)
+    envs = {f"{protocol}/{level}": PerturbedCameraEnv(EvalConfig("reach_solo", level, protocol=protocol, world=world))
+            for protocol, levels in PROTOCOLS.items() for level in levels}  # fmt: skip
+    first = next(iter(envs.values()))
+    left, points = first.world.cameras(("left",)), workspace_points()
+    before = left.project(points)[0][0]
+    result = {}
+    for name, env in envs.items():
+        moves = [env.sampler.sample(i).apply(env.nominal_c2w["left"], env.centre["left"]) for i in range(episodes)]
+        result[name] = summary([camera_move(left, c2w, points, before, size) for c2w in moves])
+        env.close()
+    sampler = PerturbationSampler("train", seed=0)
+    moves = [sampler.sample(i, view=v).apply(left.c2w[0], first.pivot) for i in range(episodes) for v in range(3)]
+    result["train/gensplat"] = summary([camera_move(left, c2w, points, before, size) for c2w in moves])
     torch.manual_seed(0)
     rows = []
     for _ in range(3 * episodes):
