@@ -2,11 +2,12 @@
 dataloader workers, and GenSplat rendering each batch on the training GPU.
 
     python benchmarks/training_throughput.py [--quick] [--batch-size B] [--workers W] [--steps N]
-        [--size S] [--probability P] [--repeats R] [--config policies/diffusion.json]
-        [--out results/training_throughput.json]
+        [--size S] [--episodes E] [--probability P] [--repeats R] [--config policies/diffusion.json]
+        [--root DIR] [--out results/training_throughput.json]
 
 A simulated pick-and-place dataset (two external cameras with depth and a wrist camera, S x S
-PNG images) is recorded and its GenSplat cache built. Then the stock ``lerobot-train`` trains
+PNG images) is recorded and its GenSplat cache built (``--root``: kept in DIR and reused when
+it holds a recording, e.g. one made on another machine). Then the stock ``lerobot-train`` trains
 the same policy config (``--config``; default the small CPU Diffusion Policy) with the same
 batch size, workers and seed three times: without GenSplat ("plain"), with GenSplat at
 ``--probability`` rendering in the workers ("worker", the fast CPU backend), and rendering
@@ -15,13 +16,20 @@ recorded as missing). Samples per second over the last ``N`` steps (after ``N`` 
 are lerobot-train's own ``batch / (updt_s + data_s)``, its averages over that log window. The
 modes run in turn, ``R`` rounds; each row is its best run (all runs are recorded), so that a
 load that other jobs put on the machine for a while does not pass for a mode's cost.
-Defaults: batch 64, 6 workers, 224x224, 50 steps on CUDA; batch 8, 2 workers, 96x96, 5 steps
-on a CPU. Writes benchmarks/results/training_throughput.json (or --out).
+An epoch must hold at least two batches per worker: LeRobot's loader gives each batch of an
+epoch to one worker and begins the next epoch after the last batch, so with fewer batches the
+workers wait on the epoch's end (a 2-episode recording at batch 64 and 12 workers ran for
+minutes on an H100 machine without finishing). The default ``E`` records four per worker.
+Defaults: batch 64, 6 workers, 224x224, 50 steps on CUDA (26 episodes); batch 8, 2 workers,
+96x96, 5 steps on a CPU (3 episodes). The policy ``policies/diffusion_full.json`` is LeRobot's
+Diffusion Policy at its default widths (no pretrained backbone: nothing is downloaded). Writes benchmarks/results/training_throughput.json (or --out).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import math
 import os
 import re
 import subprocess
@@ -37,8 +45,6 @@ import torch
 from gensplat_lerobot import load_settings, prepare, save_settings
 from machine import cpu_model, write_result
 
-from gensplat_transforms.sim.record import RecordConfig, record
-from gensplat_transforms.sim.world import WorldConfig
 from gensplat_transforms.transform import GenSplatConfig
 
 REPO = "gensplat/bench_pick_place"
@@ -46,23 +52,31 @@ HERE = Path(__file__).resolve().parent
 TRAIN_SH = HERE.parent / "policies" / "train.sh"
 #: lerobot-train's log line: "step:20 smpl:160 ... updt_s:0.123 data_s:0.010 smp/s:..."
 LOG_LINE = re.compile(r"step:(\S+) .*updt_s:([\d.]+) data_s:([\d.]+)")
+#: an epoch must give each dataloader worker this many batches (see main)
+MIN_BATCHES_PER_WORKER = 2
+#: frames of one simulated pick-and-place episode, about
+EPISODE_FRAMES = 60
 #: the GenSplat plugin's line at the same steps
 AUGMENTED = re.compile(r"GenSplat step \d+: (\d+) of (\d+) samples augmented")
 
 
 def train(root: Path, config: Path, mode: str, args, device: str) -> dict:
-    """One lerobot-train run: samples/s and the step split over its last log window."""
+    """One lerobot-train run: samples/s and the step split over its last log window. Its log
+    is written as it runs (the path is printed first), so a run cut short leaves its trace."""
+    out = Path(tempfile.mkdtemp(prefix=f"throughput_{mode}_"))
     overrides = [
         f"--dataset.repo_id={REPO}", f"--dataset.root={root}",
-        f"--output_dir={Path(tempfile.mkdtemp()) / 'out'}", f"--policy.device={device}",
+        f"--output_dir={out / 'out'}", f"--policy.device={device}",
         f"--batch_size={args.batch_size}", f"--num_workers={args.workers}", f"--steps={2 * args.steps}",
         f"--log_freq={args.steps}", "--save_checkpoint=false", "--seed=0",
     ]  # fmt: skip
     cmd = ["bash", str(TRAIN_SH), str(config), "baseline" if mode == "plain" else "gensplat", *overrides]
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}"}
+    print(f"{mode}: lerobot-train, log {out / 'train.log'}", flush=True)
     t0, load = time.perf_counter(), os.getloadavg()[0]
-    run = subprocess.run(cmd, capture_output=True, text=True, env=env, check=False)
-    log = run.stdout + run.stderr
+    with open(out / "train.log", "w") as log_file:
+        run = subprocess.run(cmd, stdout=log_file, stderr=subprocess.STDOUT, text=True, env=env, check=False)
+    log = (out / "train.log").read_text()
     if run.returncode != 0:
         raise RuntimeError(f"lerobot-train ({mode}) failed:\n{log[-3000:]}")
     step, update_s, data_s = LOG_LINE.findall(log)[-1]
@@ -70,6 +84,7 @@ def train(root: Path, config: Path, mode: str, args, device: str) -> dict:
     row = {"samples_per_s": round(args.batch_size / (update_s + data_s), 2), "update_s": update_s,
            "data_s": data_s, "window_steps": args.steps, "last_step": step,
            "run_s": round(time.perf_counter() - t0, 1), "load_average_at_start": round(load, 2)}  # fmt: skip
+    print(f"{mode}: {row['samples_per_s']} samples/s ({row['run_s']} s)", flush=True)
     if mode != "plain":
         augmented, samples = map(int, AUGMENTED.findall(log)[-1])
         row["augmented_share"] = round(augmented / max(samples, 1), 3)
@@ -84,39 +99,66 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=6 if cuda else 2)
     parser.add_argument("--steps", type=int, default=50 if cuda else 5, help="warm-up steps, then measured steps")
     parser.add_argument("--size", type=int, default=224 if cuda else 96, help="image height and width")
-    parser.add_argument("--episodes", type=int, default=2)
+    parser.add_argument("--episodes", type=int, help=f"recorded episodes (default: {MIN_BATCHES_PER_WORKER * 2} "
+                        "batches per worker in an epoch, at least 2)")
     parser.add_argument("--probability", type=float, default=0.5)
     parser.add_argument("--repeats", type=int, default=2, help="rounds of runs; a row is its mode's best run")
     parser.add_argument("--config", type=Path, default=HERE.parent / "policies" / "diffusion.json")
+    parser.add_argument("--root", type=Path, help="dataset folder, reused when it holds a recording (default: temporary)")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "training_throughput.json")
     args = parser.parse_args()
     if args.quick:
         args.batch_size, args.workers, args.steps, args.size, args.episodes, args.repeats = 4, 1, 2, 64, 1, 1
     device = "cuda" if cuda else "cpu"
+    if args.episodes is None:
+        batches = MIN_BATCHES_PER_WORKER * 2 * args.workers
+        args.episodes = max(2, math.ceil(batches * args.batch_size / EPISODE_FRAMES))
 
-    root = Path(tempfile.mkdtemp()) / "ds"
-    record(RecordConfig(root, "pick_place", args.episodes, seed=0, use_videos=False, repo_id=REPO,
-                        world=WorldConfig(width=args.size, height=args.size)), progress=False)  # fmt: skip
+    root = args.root or Path(tempfile.mkdtemp()) / "ds"
+    info = root / "meta" / "info.json"
+    if not info.exists():
+        from gensplat_transforms.sim.record import RecordConfig, record  # MuJoCo: only to record
+        from gensplat_transforms.sim.world import WorldConfig
+
+        record(RecordConfig(root, "pick_place", args.episodes, seed=0, use_videos=False, repo_id=REPO,
+                            world=WorldConfig(width=args.size, height=args.size)), progress=False)  # fmt: skip
+    meta = json.loads(info.read_text())
+    height, width, _ = meta["features"]["observation.images.left"]["shape"]
+    if (height, width) != (args.size, args.size):
+        raise SystemExit(f"{root} holds {height}x{width} images, not --size {args.size}")
+    batches_per_epoch = meta["total_frames"] // args.batch_size
+    if batches_per_epoch < MIN_BATCHES_PER_WORKER * max(args.workers, 1):
+        raise SystemExit(
+            f"{root} holds {meta['total_frames']} frames: {batches_per_epoch} batches of {args.batch_size} per epoch, "
+            f"fewer than {MIN_BATCHES_PER_WORKER} per worker ({args.workers} workers). LeRobot's loader hands each "
+            "batch of an epoch to one worker and starts the next epoch after the last, so most workers would "
+            "wait and the rows would measure the epoch's end, not the rendering. Record more episodes.")
     prepare(root, REPO, GenSplatConfig(probability=args.probability), progress=False)
     config, reconstructor = load_settings(root)
     load_before = os.getloadavg()
     runs = {mode: [] for mode in ("plain", "worker", "batch")[: 3 if cuda else 2]}
+    failures = {}
     for _ in range(args.repeats):
         for mode, done in runs.items():  # plain ignores the settings
             save_settings(root, replace(config, render_in="worker" if mode == "plain" else mode), reconstructor)
-            done.append(train(root, args.config, mode, args, device))
+            try:
+                done.append(train(root, args.config, mode, args, device))
+            except RuntimeError as error:  # recorded; the other modes still run
+                print(error, file=sys.stderr)
+                failures[mode] = str(error)[-1500:]
     rows = {mode: {**max(r, key=lambda row: row["samples_per_s"]), "samples_per_s_runs": [x["samples_per_s"] for x in r]}
-            for mode, r in runs.items()}  # fmt: skip
+            if r else {"failed": failures[mode]} for mode, r in runs.items()}  # fmt: skip
     if not cuda:
         rows["batch"] = {"missing": "no CUDA device: GenSplat batched on the GPU renders with gsplat on CUDA"}
-    plain = rows["plain"]["samples_per_s"]
+    plain = rows["plain"].get("samples_per_s")
     for row in rows.values():
-        if "samples_per_s" in row:
+        if "samples_per_s" in row and plain:
             row["of_plain"] = round(row["samples_per_s"] / plain, 3)
     result = {
         "quick": args.quick, "policy_config": str(args.config.resolve().relative_to(HERE.parent)),
         "device": torch.cuda.get_device_name() if cuda else "cpu", "batch_size": args.batch_size,
-        "workers": args.workers, "resolution": [args.size, args.size], "episodes": args.episodes,
+        "workers": args.workers, "resolution": [args.size, args.size], "episodes": meta["total_episodes"],
+        "batches_per_epoch": batches_per_epoch,
         "probability": args.probability, "cameras_replaced": list(config.replace), "repeats": args.repeats,
         "rows": rows,
         "machine": {"cpus": os.cpu_count(), **cpu_model()},
@@ -124,10 +166,10 @@ def main() -> None:
     }  # fmt: skip
     print(f"{'':8}{'samples/s':>12}{'of plain':>10}{'update s':>10}{'data s':>10}")
     for name, row in rows.items():
-        if "missing" in row:
-            print(f"{name:8}  missing: {row['missing']}")
+        if "samples_per_s" not in row:
+            print(f"{name:8}  {next(iter(row))}: {next(iter(row.values()))[-200:]}")
         else:
-            print(f"{name:8}{row['samples_per_s']:>12}{row['of_plain']:>10}{row['update_s']:>10}{row['data_s']:>10}")
+            print(f"{name:8}{row['samples_per_s']:>12}{row.get('of_plain', '-'):>10}{row['update_s']:>10}{row['data_s']:>10}")
     write_result(result, args.out)
 
 
