@@ -25,13 +25,12 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from pathlib import Path
 
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
+from .atomic import atomic_write
 from .cameras import Cameras, opengl_to_opencv
 from .dataset_format import (
     CALIBRATION_FORMAT,
@@ -66,10 +65,7 @@ def calibrate(root: str | Path, source: str | Path, convention: str = "auto") ->
     out = calibration_path(root)
     out.parent.mkdir(parents=True, exist_ok=True)
     data = {"format": CALIBRATION_FORMAT, "cameras": {n: camera_info(c.K, c.c2w, c.mount) for n, c in cameras.items()}}
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
-    with os.fdopen(fd, "w") as fh:
-        json.dump(data, fh, indent=2)
-    os.replace(tmp, out)
+    atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(data, indent=2)))
     return cameras
 
 

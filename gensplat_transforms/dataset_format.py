@@ -23,8 +23,6 @@ image feature would be fed to the policy as an extra camera):
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,6 +30,7 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import save_file
 
+from .atomic import atomic_write
 from .cameras import Cameras
 
 DEPTH_FORMAT = "gensplat-depth"
@@ -129,16 +128,8 @@ def save_depth(root: str | Path, camera: str, episode: int, depth: torch.Tensor)
     path.parent.mkdir(parents=True, exist_ok=True)
     meta = {"format": DEPTH_FORMAT, "format_version": DEPTH_FORMAT_VERSION, "camera": camera,
             "episode_index": str(int(episode)), "num_frames": str(depth.shape[0])}  # fmt: skip
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        d = torch.nan_to_num(depth.float(), nan=0.0, posinf=0.0, neginf=0.0).clamp(0, 6e4)
-        save_file({"depth": d.to(torch.float16).contiguous()}, tmp, metadata=meta)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+    d = torch.nan_to_num(depth.float(), nan=0.0, posinf=0.0, neginf=0.0).clamp(0, 6e4)
+    return atomic_write(path, lambda tmp: save_file({"depth": d.to(torch.float16).contiguous()}, tmp, metadata=meta))
 
 
 def load_depth(root: str | Path, camera: str, episode: int, frame: int | None = None) -> torch.Tensor:

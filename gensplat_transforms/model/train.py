@@ -27,8 +27,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 import time
 from collections import defaultdict
 from dataclasses import asdict, dataclass, field
@@ -39,6 +37,7 @@ from torch.optim.swa_utils import AveragedModel
 from torch.utils.data import Dataset
 from tqdm.auto import tqdm
 
+from ..atomic import atomic_write
 from ..cameras import Cameras
 from ..reconstruction import Views
 from ..rendering import render
@@ -302,17 +301,7 @@ class Trainer:
 
     def save(self) -> Path:
         """Write ``checkpoint.pt`` atomically (temporary file + rename)."""
-        self.out.mkdir(parents=True, exist_ok=True)
-        path = self.out / CHECKPOINT_FILE
-        fd, tmp = tempfile.mkstemp(dir=self.out, prefix=".checkpoint-", suffix=".tmp")
-        os.close(fd)
-        try:
-            torch.save(self.state_dict(), tmp)
-            os.replace(tmp, path)
-        finally:
-            if os.path.exists(tmp):
-                os.remove(tmp)
-        return path
+        return atomic_write(self.out / CHECKPOINT_FILE, lambda tmp: torch.save(self.state_dict(), tmp))
 
     def load(self, path: str | Path) -> None:
         """Resume from a checkpoint written by :meth:`save`. Only tensors and plain containers

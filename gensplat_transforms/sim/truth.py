@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from dataclasses import asdict
 from pathlib import Path
 
@@ -31,6 +30,7 @@ import torch
 from safetensors import safe_open
 from safetensors.numpy import save_file
 
+from ..atomic import atomic_write
 from ..cameras import Cameras
 from .sensor import SensorDepthConfig
 from .tasks import EpisodeSpec
@@ -38,18 +38,6 @@ from .world import CAMERA_NAMES, SimState, SimWorld, WorldConfig
 
 SIM_FORMAT = "gensplat-sim"
 SIM_FORMAT_VERSION = "1"
-
-
-def _atomic_write(path: Path, write) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def sim_episode_path(root: str | os.PathLike, episode_index: int) -> Path:
@@ -67,7 +55,7 @@ def save_world(
         "world": world.config.to_dict(),
         "sensor_depth": None if sensor_depth is None else asdict(sensor_depth),
     }
-    _atomic_write(
+    atomic_write(
         Path(root) / "sim" / "world.json", lambda tmp: Path(tmp).write_text(json.dumps(doc, indent=2))
     )
 
@@ -80,7 +68,7 @@ def save_sim_episode(
         k: np.stack([getattr(s, k) for s in states]).astype(np.float64) for k in ("qpos", "qvel", "ctrl")
     }
     meta = {"episode": json.dumps(episode.to_dict())}
-    _atomic_write(sim_episode_path(root, episode_index), lambda tmp: save_file(tensors, tmp, metadata=meta))
+    atomic_write(sim_episode_path(root, episode_index), lambda tmp: save_file(tensors, tmp, metadata=meta))
 
 
 def load_sim_episode(root: str | os.PathLike, episode_index: int) -> tuple[EpisodeSpec, list[SimState]]:

@@ -1,0 +1,30 @@
+"""Atomic file writes: readers see the old file or the whole new one, never a part."""
+
+from __future__ import annotations
+
+import os
+import secrets
+from collections.abc import Callable
+from pathlib import Path
+
+
+def atomic_write(path: str | Path, write: Callable[[str], object]) -> Path:
+    """Write ``path`` through ``write(tmp)`` on a temporary file beside it, then rename.
+
+    The file gets the mode a plain ``open(path, "w")`` would: 0o666 less the umask, whatever
+    mode ``write`` leaves (:mod:`tempfile` and safetensors make files private to their owner). The temporary file
+    is removed when ``write`` fails. Returns ``path``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.parent / f".{path.name}.{secrets.token_hex(6)}.tmp"
+    fd = os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)  # the umask applies
+    mode = os.fstat(fd).st_mode
+    os.close(fd)
+    try:
+        write(str(tmp))
+        os.chmod(tmp, mode)  # writers that replace the file (safetensors does) make it private
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
