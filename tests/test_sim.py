@@ -306,7 +306,10 @@ def test_paired_difference():
     a, b = [False] * 8 + [True] * 12, [True] * 20
     r = paired_difference(a, b)
     assert r["points"] == 40 and (r["a_only"], r["b_only"]) == (0, 8)
-    assert r["mcnemar_p"] == round(2 / 2**8, 4) and 15 < r["ci95"][0] < 40 < r["ci95"][1] < 65
+    assert r["mcnemar_p"] == float(f"{2 / 2**8:.3g}") and 15 < r["ci95"][0] < 40 < r["ci95"][1] < 65
+    # a 21 / 1 split of 100 episodes: p = 2 * 23 / 2**22, small but not zero
+    r = paired_difference([False] * 21 + [True] + [False] * 78, [True] * 21 + [False] * 79)
+    assert r["mcnemar_p"] == float(f"{46 / 2**22:.3g}") > 0
     assert paired_difference(b, a)["points"] == -40
     with pytest.raises(ValueError, match="equal"):
         paired_difference([True], [True, False])

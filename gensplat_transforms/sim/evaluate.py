@@ -239,7 +239,8 @@ def paired_difference(a: list[bool], b: list[bool], resamples: int = 10000, seed
 
     Returns {"points", "ci95" (paired bootstrap over episodes), "a_only" / "b_only" (episodes
     only that one solved), "mcnemar_p" (exact two-sided McNemar test on those discordant
-    episodes: the chance of a split at least this uneven if both policies were equal)}.
+    episodes: the chance of a split at least this uneven if both policies were equal; three
+    significant digits, never rounded to 0)}.
     """
     if len(a) != len(b) or not a:
         raise ValueError(f"paired_difference: need two equal, non-empty lists, got {len(a)} and {len(b)}")
@@ -251,4 +252,4 @@ def paired_difference(a: list[bool], b: list[bool], resamples: int = 10000, seed
     n, k = a_only + b_only, min(a_only, b_only)
     p = min(1.0, 2 * sum(math.comb(n, j) for j in range(k + 1)) / 2**n) if n else 1.0
     return {"points": round(100 * float(d.mean()), 2), "ci95": [round(100 * float(lo), 2), round(100 * float(hi), 2)],
-            "a_only": a_only, "b_only": b_only, "mcnemar_p": round(p, 4)}  # fmt: skip
+            "a_only": a_only, "b_only": b_only, "mcnemar_p": float(f"{p:.3g}")}  # fmt: skip
