@@ -21,8 +21,9 @@ epoch to one worker and begins the next epoch after the last batch, so with fewe
 workers wait on the epoch's end (6 persistent workers fed 31 % of their rate from 2 batches per
 epoch, 93 % from 12, 96-98 % from 24). The default ``E`` records four batches per worker.
 Defaults: batch 64, 6 workers, 224x224, 50 steps on CUDA (26 episodes); batch 8, 2 workers,
-96x96, 5 steps on a CPU (3 episodes). The policy ``policies/diffusion_full.json`` is LeRobot's
-Diffusion Policy at its default widths (no pretrained backbone: nothing is downloaded). Writes benchmarks/results/training_throughput.json (or --out).
+96x96, 5 steps on a CPU (3 episodes). ``--config policies/diffusion_full.json`` is LeRobot's
+Diffusion Policy at its default widths (no pretrained backbone: nothing is downloaded).
+Writes benchmarks/results/training_throughput.json (or --out).
 """
 
 from __future__ import annotations
