@@ -11,9 +11,9 @@ from pathlib import Path
 def atomic_write(path: str | Path, write: Callable[[str], object]) -> Path:
     """Write ``path`` through ``write(tmp)`` on a temporary file beside it, then rename.
 
-    The file gets the mode a plain ``open(path, "w")`` would: 0o666 less the umask, whatever
-    mode ``write`` leaves (:mod:`tempfile` and safetensors make files private to their owner). The temporary file
-    is removed when ``write`` fails. Returns ``path``."""
+    The file gets the mode a plain ``open(path, "w")`` would, 0o666 less the umask, whatever
+    mode ``write`` leaves (safetensors makes its files private to their owner). The temporary
+    file is removed when ``write`` fails. Returns ``path``."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.parent / f".{path.name}.{secrets.token_hex(6)}.tmp"

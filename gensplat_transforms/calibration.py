@@ -62,10 +62,8 @@ def calibrate(root: str | Path, source: str | Path, convention: str = "auto") ->
     sizes = {k[len(IMAGE_KEY_PREFIX) :]: (ft["shape"][1], ft["shape"][0])
              for k, ft in features.items() if k.startswith(IMAGE_KEY_PREFIX)}  # fmt: skip
     cameras = read_calibration(source, sizes, convention)
-    out = calibration_path(root)
-    out.parent.mkdir(parents=True, exist_ok=True)
     data = {"format": CALIBRATION_FORMAT, "cameras": {n: camera_info(c.K, c.c2w, c.mount) for n, c in cameras.items()}}
-    atomic_write(out, lambda tmp: Path(tmp).write_text(json.dumps(data, indent=2)))
+    atomic_write(calibration_path(root), lambda tmp: Path(tmp).write_text(json.dumps(data, indent=2)))
     return cameras
 
 

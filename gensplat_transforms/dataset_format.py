@@ -125,7 +125,6 @@ def save_depth(root: str | Path, camera: str, episode: int, depth: torch.Tensor)
     if depth.ndim != 3:
         raise ValueError(f"save_depth: expected (T, H, W) depth, got {tuple(depth.shape)}")
     path = depth_path(root, camera, episode)
-    path.parent.mkdir(parents=True, exist_ok=True)
     meta = {"format": DEPTH_FORMAT, "format_version": DEPTH_FORMAT_VERSION, "camera": camera,
             "episode_index": str(int(episode)), "num_frames": str(depth.shape[0])}  # fmt: skip
     d = torch.nan_to_num(depth.float(), nan=0.0, posinf=0.0, neginf=0.0).clamp(0, 6e4)
