@@ -62,9 +62,9 @@ training step for the baseline and 1.05 s for GenSplat (46 and 44 min per policy
 evaluation 10.5 min per arm in two processes (0.05 s per control step), recording 4 min; on
 an older, busier 2-core EPYC 1.29-2.35 s per step (the 2D arms and GenSplat within 5 % of
 the baseline in 40-step runs). The five arms thus take 5-10 h; ``timing`` in the result
-holds the measured values. Harder tasks did not train at this budget: ``reach`` (a 4 cm cube among two distractors of random colours) stayed at about
-10 % success at every level, and ``pick_place`` (``--cameras left,right,wrist``) lifted no
-cube after 1500 steps at batch 8 (see the README); ``--device cuda --steps 20000`` is the
+holds the measured values. Harder tasks did not train at this budget: ``reach`` (a 4 cm cube
+among two distractors of random colours) stayed at about 10 % success at every level, and
+``pick_place`` (``--cameras left,right,wrist``) lifted no cube after 1500 steps at batch 8 (see the README); ``--device cuda --steps 20000`` is the
 setting to aim for on a GPU. Measured on one H100 machine (16 cores): with
 ``--parallel-train --workers 6`` each policy ran at 3-4 steps/s, bound by the dataloader
 (LeRobot decoding PNG frames), so 20000 steps take about 1.5 h there.

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import secrets
 from collections.abc import Callable
@@ -28,3 +29,9 @@ def atomic_write(path: str | Path, write: Callable[[str], object]) -> Path:
         tmp.unlink(missing_ok=True)
         raise
     return path
+
+
+def atomic_write_json(path: str | Path, data) -> Path:
+    """:func:`atomic_write` of ``data`` as indented JSON. Returns ``path``."""
+    text = json.dumps(data, indent=2) + "\n"
+    return atomic_write(path, lambda tmp: Path(tmp).write_text(text))

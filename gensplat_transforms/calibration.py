@@ -30,7 +30,7 @@ from pathlib import Path
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
-from .atomic import atomic_write
+from .atomic import atomic_write_json
 from .cameras import Cameras, opengl_to_opencv
 from .dataset_format import (
     CALIBRATION_FORMAT,
@@ -63,7 +63,7 @@ def calibrate(root: str | Path, source: str | Path, convention: str = "auto") ->
              for k, ft in features.items() if k.startswith(IMAGE_KEY_PREFIX)}  # fmt: skip
     cameras = read_calibration(source, sizes, convention)
     data = {"format": CALIBRATION_FORMAT, "cameras": {n: camera_info(c.K, c.c2w, c.mount) for n, c in cameras.items()}}
-    atomic_write(calibration_path(root), lambda tmp: Path(tmp).write_text(json.dumps(data, indent=2)))
+    atomic_write_json(calibration_path(root), data)
     return cameras
 
 

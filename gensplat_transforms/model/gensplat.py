@@ -15,7 +15,7 @@ import torch
 from safetensors.torch import load_file, save_file
 from torch import nn
 
-from ..atomic import atomic_write
+from ..atomic import atomic_write, atomic_write_json
 from ..gaussians import Gaussians
 from ..rotations import rotmat_to_quat
 from ..sh import rgb_to_sh_dc
@@ -124,7 +124,7 @@ class GenSplatModel(nn.Module):
         meta = {"format": FORMAT_NAME, "format_version": FORMAT_VERSION, "config": self.config.to_dict()}
         state = {k: v.detach().contiguous().cpu() for k, v in self.state_dict().items()}
         atomic_write(directory / WEIGHTS_FILE, lambda tmp: save_file(state, tmp, metadata={"format": FORMAT_NAME}))
-        atomic_write(directory / CONFIG_FILE, lambda tmp: Path(tmp).write_text(json.dumps(meta, indent=2) + "\n"))
+        atomic_write_json(directory / CONFIG_FILE, meta)
         return directory
 
     @classmethod

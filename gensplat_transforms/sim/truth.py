@@ -30,7 +30,7 @@ import torch
 from safetensors import safe_open
 from safetensors.numpy import save_file
 
-from ..atomic import atomic_write
+from ..atomic import atomic_write, atomic_write_json
 from ..cameras import Cameras
 from .sensor import SensorDepthConfig
 from .tasks import EpisodeSpec
@@ -55,9 +55,7 @@ def save_world(
         "world": world.config.to_dict(),
         "sensor_depth": None if sensor_depth is None else asdict(sensor_depth),
     }
-    atomic_write(
-        Path(root) / "sim" / "world.json", lambda tmp: Path(tmp).write_text(json.dumps(doc, indent=2))
-    )
+    atomic_write_json(Path(root) / "sim" / "world.json", doc)
 
 
 def save_sim_episode(

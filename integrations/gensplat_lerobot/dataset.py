@@ -10,7 +10,7 @@ from pathlib import Path
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from safetensors import SafetensorError, safe_open
 
-from gensplat_transforms.atomic import atomic_write
+from gensplat_transforms.atomic import atomic_write_json
 from gensplat_transforms.cache import GaussianCache, StaleCacheError
 from gensplat_transforms.dataset_format import GENSPLAT_DIR
 from gensplat_transforms.distributed import OnDevice, Shard
@@ -37,8 +37,7 @@ def cache_command(root: str | Path, repo_id: str | None) -> str:
 
 def save_settings(root: str | Path, config: GenSplatConfig, reconstructor: dict) -> Path:
     """Store the transform settings beside the dataset (read by :func:`enable_gensplat`)."""
-    text = json.dumps({"transform": config.to_dict(), "reconstructor": reconstructor}, indent=2)
-    return atomic_write(settings_path(root), lambda tmp: Path(tmp).write_text(text))
+    return atomic_write_json(settings_path(root), {"transform": config.to_dict(), "reconstructor": reconstructor})
 
 
 def load_settings(root: str | Path, repo_id: str | None = None) -> tuple[GenSplatConfig, dict]:
@@ -190,8 +189,7 @@ def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructo
         rec = make_reconstructor(reconstructor, shard.device if reconstructor["name"] == "geometry" else None)
     if shard.rank == 0:
         save_settings(root, config, reconstructor)
-        text = json.dumps({"fingerprint": source.fingerprint, "content": source.content})
-        atomic_write(content_path(root), lambda tmp: Path(tmp).write_text(text))
+        atomic_write_json(content_path(root), {"fingerprint": source.fingerprint, "content": source.content})
     total = len(source.dataset.meta.episodes["length"])
     episodes = range(total) if episodes is None else episodes
     return build_cache(dataset_cache(root, rec, source, link_depth), source, episodes, progress, shard, verify)
