@@ -2,24 +2,30 @@
 dataloader workers, and GenSplat rendering each batch on the training GPU.
 
     python benchmarks/training_throughput.py [--quick] [--batch-size B] [--workers W] [--steps N]
-        [--size S] [--episodes E] [--probability P] [--repeats R] [--config policies/diffusion.json]
+        [--size S] [--episodes E] [--probability P] [--repeats R] [--modes plain,worker,batch]
+        [--config policies/diffusion.json]
         [--root DIR] [--out results/training_throughput.json]
 
-A simulated pick-and-place dataset (two external cameras with depth and a wrist camera, S x S
-PNG images) is recorded and its GenSplat cache built (``--root``: kept in DIR and reused when
+A simulated pick-and-place dataset (two external cameras with depth and a wrist camera, S x S,
+MP4 video as users' datasets are) is recorded and its GenSplat cache built (``--root``: kept in DIR and reused when
 it holds a recording, e.g. one made on another machine). Then the stock ``lerobot-train`` trains
 the same policy config (``--config``; default the small CPU Diffusion Policy) with the same
 batch size, workers and seed three times: without GenSplat ("plain"), with GenSplat at
 ``--probability`` rendering in the workers ("worker", the fast CPU backend), and rendering
 each batch after collation on the GPU ("batch", gsplat; needs CUDA: without it the row is
 recorded as missing). Samples per second over the last ``N`` steps (after ``N`` warm-up steps)
-are lerobot-train's own ``batch / (updt_s + data_s)``, its averages over that log window. The
+are lerobot-train's own ``batch / (updt_s + data_s)``, its averages over that log window; on
+CUDA, ``gpu_busy`` is the mean GPU utilisation (NVML, sampled every 0.5 s) in that window. The
 modes run in turn, ``R`` rounds; each row is its best run (all runs are recorded), so that a
 load that other jobs put on the machine for a while does not pass for a mode's cost.
 An epoch must hold at least two batches per worker: LeRobot's loader gives each batch of an
 epoch to one worker and begins the next epoch after the last batch, so with fewer batches the
 workers wait on the epoch's end (6 persistent workers fed 31 % of their rate from 2 batches per
 epoch, 93 % from 12, 96-98 % from 24). The default ``E`` records four batches per worker.
+A recording of PNG images (``--root``) is slow to load in LeRobot: each query of a delta timestamp
+decodes every image column of every row it reads (75 decodes per Diffusion Policy sample, not 9),
+so the loader, not the GPU, sets the pace; the result records ``storage``. The result is
+rewritten after each run (``complete``: false until the last), so a run cut short keeps its rows.
 Defaults: batch 64, 6 workers, 224x224, 50 steps on CUDA (26 episodes); batch 8, 2 workers,
 96x96, 5 steps on a CPU (3 episodes). ``--config policies/diffusion_full.json`` is LeRobot's
 Diffusion Policy at its default widths (no pretrained backbone: nothing is downloaded).
@@ -29,6 +35,7 @@ Writes benchmarks/results/training_throughput.json (or --out).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -36,9 +43,12 @@ import re
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from dataclasses import replace
+from datetime import datetime
 from pathlib import Path
+from typing import Self
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
@@ -51,14 +61,49 @@ from gensplat_transforms.transform import GenSplatConfig
 REPO = "gensplat/bench_pick_place"
 HERE = Path(__file__).resolve().parent
 TRAIN_SH = HERE.parent / "policies" / "train.sh"
-#: lerobot-train's log line: "step:20 smpl:160 ... updt_s:0.123 data_s:0.010 smp/s:..."
-LOG_LINE = re.compile(r"step:(\S+) .*updt_s:([\d.]+) data_s:([\d.]+)")
+#: lerobot-train's log line: "INFO 2026-11-26 16:36:56 ot_train.py:641 step:20 ... updt_s:0.123 data_s:0.010 ..."
+LOG_LINE = re.compile(r"(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d) \S+ step:(\S+) .*updt_s:([\d.]+) data_s:([\d.]+)")
 #: an epoch must give each dataloader worker this many batches (see main)
 MIN_BATCHES_PER_WORKER = 2
 #: frames of one simulated pick-and-place episode, about
 EPISODE_FRAMES = 60
 #: the GenSplat plugin's line at the same steps
 AUGMENTED = re.compile(r"GenSplat step \d+: (\d+) of (\d+) samples augmented")
+
+
+class GpuBusy:
+    """GPU utilisation (%, NVML through torch) sampled every ``period`` s in a thread while the
+    context is open; ``mean(start, end)`` over a window of Unix times (None without samples)."""
+
+    def __init__(self, period: float = 0.5):
+        self.samples: list[tuple[float, float]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._sample, args=(period,), daemon=True)
+
+    def _sample(self, period: float) -> None:
+        while not self._stop.wait(period):
+            try:
+                self.samples.append((time.time(), float(torch.cuda.utilization())))
+            except Exception as error:  # noqa: BLE001 (pynvml missing, or NVML's own error types)
+                print(f"GPU utilisation not sampled: {error}", file=sys.stderr)
+                return
+
+    def __enter__(self) -> Self:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def mean(self, start: float, end: float) -> float | None:
+        window = [busy for t, busy in self.samples if start <= t <= end]
+        return round(sum(window) / len(window), 1) if window else None
+
+
+def log_time(stamp: str) -> float:
+    """Unix time of a lerobot-train log stamp ("2026-11-26 16:36:56", this machine's local time)."""
+    return datetime.strptime(stamp, "%Y-%m-%d %H:%M:%S").timestamp()
 
 
 def train(root: Path, config: Path, mode: str, args, device: str) -> dict:
@@ -75,16 +120,20 @@ def train(root: Path, config: Path, mode: str, args, device: str) -> dict:
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}"}
     print(f"{mode}: lerobot-train, log {out / 'train.log'}", flush=True)
     t0, load = time.perf_counter(), os.getloadavg()[0]
-    with open(out / "train.log", "w") as log_file:
+    busy = GpuBusy() if device == "cuda" else contextlib.nullcontext()
+    with open(out / "train.log", "w") as log_file, busy:
         run = subprocess.run(cmd, stdout=log_file, stderr=subprocess.STDOUT, text=True, env=env, check=False)
     log = (out / "train.log").read_text()
     if run.returncode != 0:
         raise RuntimeError(f"lerobot-train ({mode}) failed:\n{log[-3000:]}")
-    step, update_s, data_s = LOG_LINE.findall(log)[-1]
+    lines = LOG_LINE.findall(log)
+    end, step, update_s, data_s = lines[-1]
     update_s, data_s = float(update_s), float(data_s)
     row = {"samples_per_s": round(args.batch_size / (update_s + data_s), 2), "update_s": update_s,
            "data_s": data_s, "window_steps": args.steps, "last_step": step,
            "run_s": round(time.perf_counter() - t0, 1), "load_average_at_start": round(load, 2)}  # fmt: skip
+    if device == "cuda" and len(lines) > 1:
+        row["gpu_busy"] = busy.mean(log_time(lines[-2][0]), log_time(end))
     print(f"{mode}: {row['samples_per_s']} samples/s ({row['run_s']} s)", flush=True)
     if mode != "plain":
         augmented, samples = map(int, AUGMENTED.findall(log)[-1])
@@ -104,6 +153,8 @@ def main() -> None:
                         "batches per worker in an epoch; at least 2)")
     parser.add_argument("--probability", type=float, default=0.5)
     parser.add_argument("--repeats", type=int, default=2, help="rounds of runs; a row is its mode's best run")
+    parser.add_argument("--modes", default="plain,worker,batch", help="modes in the order they run (plain first: "
+                        "the others are compared with it); batch needs CUDA")
     parser.add_argument("--config", type=Path, default=HERE.parent / "policies" / "diffusion.json")
     parser.add_argument("--root", type=Path, help="dataset folder, reused when it holds a recording (default: temporary)")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "training_throughput.json")
@@ -111,6 +162,9 @@ def main() -> None:
     if args.quick:
         args.batch_size, args.workers, args.steps, args.size, args.episodes, args.repeats = 4, 1, 2, 64, 1, 1
     device = "cuda" if cuda else "cpu"
+    args.modes = args.modes.split(",")
+    if args.modes[0] != "plain" or not set(args.modes) <= {"plain", "worker", "batch"}:
+        parser.error(f"--modes: plain first, then worker and/or batch; got {','.join(args.modes)}")
     if args.episodes is None:
         batches = MIN_BATCHES_PER_WORKER * 2 * args.workers
         args.episodes = max(2, math.ceil(batches * args.batch_size / EPISODE_FRAMES))
@@ -121,7 +175,7 @@ def main() -> None:
         from gensplat_transforms.sim.record import RecordConfig, record  # MuJoCo: only to record
         from gensplat_transforms.sim.world import WorldConfig
 
-        record(RecordConfig(root, "pick_place", args.episodes, seed=0, use_videos=False, repo_id=REPO,
+        record(RecordConfig(root, "pick_place", args.episodes, seed=0, use_videos=True, repo_id=REPO,
                             world=WorldConfig(width=args.size, height=args.size)), progress=False)  # fmt: skip
     meta = json.loads(info.read_text())
     height, width, _ = meta["features"]["observation.images.left"]["shape"]
@@ -137,8 +191,16 @@ def main() -> None:
     prepare(root, REPO, GenSplatConfig(probability=args.probability), progress=False)
     config, reconstructor = load_settings(root)
     load_before = os.getloadavg()
-    runs = {mode: [] for mode in ("plain", "worker", "batch")[: 3 if cuda else 2]}
+    runs = {mode: [] for mode in args.modes if cuda or mode != "batch"}
     failures = {}
+    result = {
+        "quick": args.quick, "policy_config": str(args.config.resolve().relative_to(HERE.parent)),
+        "device": torch.cuda.get_device_name() if cuda else "cpu", "batch_size": args.batch_size,
+        "workers": args.workers, "resolution": [args.size, args.size], "episodes": meta["total_episodes"],
+        "storage": meta["features"]["observation.images.left"]["dtype"], "batches_per_epoch": batches_per_epoch,
+        "probability": args.probability, "cameras_replaced": list(config.replace), "repeats": args.repeats,
+        "machine": {"cpus": os.cpu_count(), **cpu_model()},
+    }  # fmt: skip
     for _ in range(args.repeats):
         for mode, done in runs.items():  # plain ignores the settings
             save_settings(root, replace(config, render_in="worker" if mode == "plain" else mode), reconstructor)
@@ -147,32 +209,37 @@ def main() -> None:
             except RuntimeError as error:  # recorded; the other modes still run
                 print(error, file=sys.stderr)
                 failures[mode] = str(error)[-1500:]
-    rows = {mode: {**max(r, key=lambda row: row["samples_per_s"]), "samples_per_s_runs": [x["samples_per_s"] for x in r]}
-            if r else {"failed": failures[mode]} for mode, r in runs.items()}  # fmt: skip
+            result.update(complete=False, rows=rows_of(runs, failures, cuda))
+            write_result(result, args.out)  # a run cut short keeps the rows so far
+    load = {"before": load_before, "after": os.getloadavg()}
+    result.update(complete=True, rows=rows_of(runs, failures, cuda), load_average=load)
+    print(f"{'':8}{'samples/s':>12}{'of plain':>10}{'update s':>10}{'data s':>10}{'GPU busy %':>12}")
+    for name, row in result["rows"].items():
+        if "samples_per_s" not in row:
+            print(f"{name:8}  {next(iter(row))}: {next(iter(row.values()))[-200:]}")
+        else:
+            print(f"{name:8}{row['samples_per_s']:>12}{row.get('of_plain', '-'):>10}{row['update_s']:>10}"
+                  f"{row['data_s']:>10}{row.get('gpu_busy', '-')!s:>12}")
+    write_result(result, args.out)
+
+
+def rows_of(runs: dict[str, list[dict]], failures: dict[str, str], cuda: bool) -> dict[str, dict]:
+    """Each mode's row: its best run (with every run's samples/s and its share of plain's), its
+    failure, or why it is missing."""
+    rows = {}
+    for mode, done in runs.items():
+        if done:
+            best = max(done, key=lambda row: row["samples_per_s"])
+            rows[mode] = {**best, "samples_per_s_runs": [row["samples_per_s"] for row in done]}
+        else:
+            rows[mode] = {"failed": failures[mode]} if mode in failures else {"missing": "not run yet"}
     if not cuda:
         rows["batch"] = {"missing": "no CUDA device: GenSplat batched on the GPU renders with gsplat on CUDA"}
     plain = rows["plain"].get("samples_per_s")
     for row in rows.values():
         if "samples_per_s" in row and plain:
             row["of_plain"] = round(row["samples_per_s"] / plain, 3)
-    result = {
-        "quick": args.quick, "policy_config": str(args.config.resolve().relative_to(HERE.parent)),
-        "device": torch.cuda.get_device_name() if cuda else "cpu", "batch_size": args.batch_size,
-        "workers": args.workers, "resolution": [args.size, args.size], "episodes": meta["total_episodes"],
-        "batches_per_epoch": batches_per_epoch,
-        "probability": args.probability, "cameras_replaced": list(config.replace), "repeats": args.repeats,
-        "rows": rows,
-        "machine": {"cpus": os.cpu_count(), **cpu_model()},
-        "load_average": {"before": load_before, "after": os.getloadavg()},
-    }  # fmt: skip
-    print(f"{'':8}{'samples/s':>12}{'of plain':>10}{'update s':>10}{'data s':>10}")
-    for name, row in rows.items():
-        if "samples_per_s" not in row:
-            print(f"{name:8}  {next(iter(row))}: {next(iter(row.values()))[-200:]}")
-        else:
-            print(f"{name:8}{row['samples_per_s']:>12}{row.get('of_plain', '-'):>10}{row['update_s']:>10}{row['data_s']:>10}")
-    write_result(result, args.out)
-
+    return rows
 
 if __name__ == "__main__":
     main()
