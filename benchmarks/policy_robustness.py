@@ -10,7 +10,7 @@ resumes where it was; a ``--work`` made with other settings is refused):
    ``--seed``; lossless PNG frames, calibration and depth sidecars);
 2. when a GenSplat arm is trained: write the GenSplat settings beside the dataset and build
    its Gaussian cache (RGB-D reconstruction of the left + right cameras);
-3. train Diffusion Policy once per arm (``--arms``, default all five) with LeRobot's stock
+3. train Diffusion Policy once per arm (``--arms``, default all six) with LeRobot's stock
    trainer through ``policies/train.sh``: same data, seed, steps, batch and policy settings;
    the policy sees ``--cameras`` and the robot state. The arms differ only in the training
    augmentation (``augmentation`` and ``train_command`` give what each passes):
@@ -39,6 +39,8 @@ resumes where it was; a ``--work`` made with other settings is refused):
      from the training range (|theta| <= 30 deg, 0.5-6 cm), one camera per trajectory,
      ``--views-per-source`` (default 3) distinct cameras per source trajectory;
    * ``gensplat+lerobot2d``: both; LeRobot's transforms apply after GenSplat's views;
+   * ``gensplat+color``: GenSplat with only the colour and sharpness jitter of ``lerobot2d``
+     (3 of those 5 per sample), no affine or crop;
 
 4. evaluate every arm's checkpoint in ``PerturbedCameraEnv`` with the left external camera
    moved once per episode, under two protocols (``PROTOCOLS``): ``paper`` (the paper's:
@@ -61,7 +63,7 @@ evaluation episodes per level of at most 50 control steps (the demonstrations ta
 training step for the baseline and 1.05 s for GenSplat (46 and 44 min per policy),
 evaluation 10.5 min per arm in two processes (0.05 s per control step), recording 4 min; on
 an older, busier 2-core EPYC 1.29-2.35 s per step (the 2D arms and GenSplat within 5 % of
-the baseline in 40-step runs). The five arms thus take 5-10 h; ``timing`` in the result
+the baseline in 40-step runs). The six arms thus take 6-12 h; ``timing`` in the result
 holds the measured values. Harder tasks did not train at this budget: ``reach`` (a 4 cm cube
 among two distractors of random colours) stayed at about 10 % success at every level, and
 ``pick_place`` (``--cameras left,right,wrist``) lifted no cube after 1500 steps at batch 8 (see the README); ``--device cuda --steps 20000`` is the
@@ -133,9 +135,9 @@ from gensplat_transforms.transform import GenSplatConfig
 LEVELS = ("none", "small", "medium", "large")
 #: The evaluation protocols and their levels (``PerturbedCameraEnv``'s ``protocol``).
 PROTOCOLS = {"paper": LEVELS, "vista": SAMPLERS}
-ARMS = ("baseline", "lerobot2d", "perspective", "gensplat", "gensplat+lerobot2d")
+ARMS = ("baseline", "lerobot2d", "perspective", "gensplat", "gensplat+lerobot2d", "gensplat+color")
 TWO_D_ARMS = ("lerobot2d", "perspective")
-GENSPLAT_ARMS = ("gensplat", "gensplat+lerobot2d")
+GENSPLAT_ARMS = ("gensplat", "gensplat+lerobot2d", "gensplat+color")
 #: RandomPerspective's distortion_scale of the perspective arm (see the module docstring).
 PERSPECTIVE_DISTORTION = 0.25
 ROOT = Path(__file__).resolve().parents[1]
@@ -158,13 +160,14 @@ RUN_SETTINGS = ("task", "cameras", "demos", "size", "steps", "batch_size", "work
                 "n_obs_steps", "views_per_source", "probability", "fill_holes", "seed", "device")  # fmt: skip
 
 
-def lerobot2d_transforms(size: int) -> dict:
+def lerobot2d_transforms(size: int, geometric: bool = True) -> dict:
     """LeRobot ``ImageTransformsConfig`` fields of the lerobot2d arms, as plain values (see the
-    module docstring); ``size``: the image side, which the crop returns to."""
+    module docstring); ``size``: the image side, which the crop returns to. Without
+    ``geometric``, only the colour and sharpness jitter (the ``gensplat+color`` arm)."""
     def tf(kind: str, kwargs: dict) -> dict:
         return {"type": kind, "kwargs": kwargs}
 
-    return {"max_num_transforms": 3, "tfs": {
+    tfs = {
         "brightness": tf("ColorJitter", {"brightness": [0.8, 1.2]}),
         "contrast": tf("ColorJitter", {"contrast": [0.8, 1.2]}),
         "saturation": tf("ColorJitter", {"saturation": [0.5, 1.5]}),
@@ -173,7 +176,10 @@ def lerobot2d_transforms(size: int) -> dict:
         "affine": tf("RandomAffine", {"degrees": [-20.0, 20.0], "translate": [0.05, 0.05],
                                       "scale": [0.98, 1.08], "interpolation": 2}),  # 2: bilinear
         "crop": tf("RandomResizedCrop", {"size": [size, size], "scale": [0.85, 1.0], "ratio": [1.0, 1.0]}),
-    }}  # fmt: skip
+    }  # fmt: skip
+    if not geometric:
+        tfs = {name: t for name, t in tfs.items() if name not in ("affine", "crop")}
+    return {"max_num_transforms": 3, "tfs": tfs}
 
 
 def perspective_transforms(probability: float) -> dict:
@@ -201,6 +207,8 @@ def augmentation(arm: str, args) -> dict:
                            "fill_holes": g.fill_holes}  # fmt: skip
     if arm.endswith("lerobot2d"):
         out["image_transforms"] = lerobot2d_transforms(args.size)
+    elif arm == "gensplat+color":
+        out["image_transforms"] = lerobot2d_transforms(args.size, geometric=False)
     elif arm == "perspective":
         out["image_transforms"] = perspective_transforms(args.probability)
     return out
@@ -429,7 +437,7 @@ def build_result(evaluated: dict, episodes: int, quick: bool, settings: dict, ti
 
 #: Line colours of the arms in the plot.
 COLOURS = {"baseline": (214, 39, 40), "lerobot2d": (31, 119, 180), "perspective": (148, 103, 189),
-           "gensplat": (44, 160, 44), "gensplat+lerobot2d": (255, 127, 14)}  # fmt: skip
+           "gensplat": (44, 160, 44), "gensplat+lerobot2d": (255, 127, 14), "gensplat+color": (140, 86, 75)}  # fmt: skip
 
 
 def plot(result: dict, path: Path) -> None:

@@ -57,6 +57,9 @@ def test_each_arm_passes_its_augmentation_to_lerobot_train():
             tf = config.tfs["perspective"]
             assert tf.type == "RandomPerspective"
             assert tf.kwargs == {"distortion_scale": pr.PERSPECTIVE_DISTORTION, "p": args.probability}
+        elif arm == "gensplat+color":  # the colour and sharpness jitter of lerobot2d alone
+            assert config.max_num_transforms == 3
+            assert set(config.tfs) == {"brightness", "contrast", "saturation", "hue", "sharpness"}
         else:  # lerobot2d and gensplat+lerobot2d: the same 2D augmentation
             assert config.max_num_transforms == 3
             assert set(config.tfs) == {
@@ -129,7 +132,7 @@ def evaluation(solved: dict[str, int], episodes: int) -> dict:
 
 
 def test_result_compares_every_arm_under_both_protocols(tmp_path, capsys):
-    solved = {"baseline": 2, "lerobot2d": 4, "perspective": 6, "gensplat": 9, "gensplat+lerobot2d": 7}
+    solved = {"baseline": 2, "lerobot2d": 4, "perspective": 6, "gensplat": 9, "gensplat+lerobot2d": 7, "gensplat+color": 8}
     args = pr.parse_args(["--episodes", "10"])
     result = pr.build_result(evaluation(solved, 10), 10, False, pr.result_settings(args), {})
     assert list(result["protocols"]) == ["vista"] and result["episodes_per_level"] == 10
