@@ -7,8 +7,8 @@ dataloader workers, and GenSplat rendering each batch on the training GPU.
         [--root DIR] [--out results/training_throughput.json]
 
 A simulated pick-and-place dataset (two external cameras with depth and a wrist camera, S x S,
-MP4 video as users' datasets are) is recorded and its GenSplat cache built (``--root``: kept in DIR and reused when
-it holds a recording, e.g. one made on another machine). Then the stock ``lerobot-train`` trains
+MP4 video as users' datasets are) is recorded and its GenSplat cache built (``--root``: kept
+in DIR and reused when it holds a recording, e.g. one made on another machine). Then the stock ``lerobot-train`` trains
 the same policy config (``--config``; default the small CPU Diffusion Policy) with the same
 batch size, workers and seed three times: without GenSplat ("plain"), with GenSplat at
 ``--probability`` rendering in the workers ("worker", the fast CPU backend), and rendering
@@ -23,8 +23,8 @@ epoch to one worker and begins the next epoch after the last batch, so with fewe
 workers wait on the epoch's end (6 persistent workers fed 31 % of their rate from 2 batches per
 epoch, 93 % from 12, 96-98 % from 24). The default ``E`` records four batches per worker.
 A recording of PNG images (``--root``) is slow to load in LeRobot: each query of a delta timestamp
-decodes every image column of every row it reads (75 decodes per Diffusion Policy sample, not 9),
-so the loader, not the GPU, sets the pace; the result records ``storage``. The result is
+decodes every image column of every row it reads (75 decodes per Diffusion Policy sample for
+the 6 frames it uses), so the loader, not the GPU, sets the pace; the result records ``storage``. The result is
 rewritten after each run (``complete``: false until the last), so a run cut short keeps its rows.
 Defaults: batch 64, 6 workers, 224x224, 50 steps on CUDA (26 episodes); batch 8, 2 workers,
 96x96, 5 steps on a CPU (3 episodes). ``--config policies/diffusion_full.json`` is LeRobot's
