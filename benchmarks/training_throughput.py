@@ -7,28 +7,29 @@ dataloader workers, and GenSplat rendering each batch on the training GPU.
         [--root DIR] [--out results/training_throughput.json]
 
 A simulated pick-and-place dataset (two external cameras with depth and a wrist camera, S x S,
-MP4 video as users' datasets are) is recorded and its GenSplat cache built (``--root``: kept
-in DIR and reused when it holds a recording, e.g. one made on another machine). Then the stock ``lerobot-train`` trains
-the same policy config (``--config``; default the small CPU Diffusion Policy) with the same
-batch size, workers and seed three times: without GenSplat ("plain"), with GenSplat at
-``--probability`` rendering in the workers ("worker", the fast CPU backend), and rendering
-each batch after collation on the GPU ("batch", gsplat; needs CUDA: without it the row is
-recorded as missing). Samples per second over the last ``N`` steps (after ``N`` warm-up steps)
-are lerobot-train's own ``batch / (updt_s + data_s)``, its averages over that log window; on
-CUDA, ``gpu_busy`` is the mean GPU utilisation (NVML, sampled every 0.5 s) in that window. The
-modes run in turn, ``R`` rounds; each row is its best run (all runs are recorded), so that a
-load that other jobs put on the machine for a while does not pass for a mode's cost.
-An epoch must hold at least two batches per worker: LeRobot's loader gives each batch of an
-epoch to one worker and begins the next epoch after the last batch, so with fewer batches the
-workers wait on the epoch's end (6 persistent workers fed 31 % of their rate from 2 batches per
-epoch, 93 % from 12, 96-98 % from 24). The default ``E`` records four batches per worker.
-A recording of PNG images (``--root``) is slow to load in LeRobot: each query of a delta timestamp
-decodes every image column of every row it reads (75 decodes per Diffusion Policy sample for
-the 6 frames it uses), so the loader, not the GPU, sets the pace; the result records ``storage``. The result is
-rewritten after each run (``complete``: false until the last), so a run cut short keeps its rows.
-Defaults: batch 64, 6 workers, 224x224, 50 steps on CUDA (26 episodes); batch 8, 2 workers,
-96x96, 5 steps on a CPU (3 episodes). ``--config policies/diffusion_full.json`` is LeRobot's
-Diffusion Policy at its default widths (no pretrained backbone: nothing is downloaded).
+MP4 video as users' datasets are) is recorded and its GenSplat cache built (``--root``: kept in
+DIR and reused when it holds a recording, e.g. one made on another machine). Then the stock
+``lerobot-train`` trains the same policy config (``--config``; default the small CPU Diffusion
+Policy) with the same batch size, workers and seed three times: without GenSplat ("plain"), with
+GenSplat at ``--probability`` rendering in the workers ("worker", the fast CPU backend), and
+rendering each batch after collation on the GPU ("batch", gsplat; needs CUDA: without it the row
+is recorded as missing). Samples per second over the last ``N`` steps (after ``N`` warm-up
+steps) are lerobot-train's own ``batch / (updt_s + data_s)``, its averages over that log window;
+on CUDA, ``gpu_busy`` is the mean GPU utilisation (NVML, sampled every 0.5 s) in that window.
+The modes run in turn, ``R`` rounds; each row is its best run (all runs are recorded), so that a
+load that other jobs put on the machine for a while does not pass for a mode's cost. An epoch
+must hold at least two batches per worker: LeRobot's loader gives each batch of an epoch to one
+worker and begins the next epoch after the last batch, so with fewer batches the workers wait on
+the epoch's end (6 persistent workers fed 31 % of their rate from 2 batches per epoch, 93 % from
+12, 96-98 % from 24). The default ``E`` records four batches per worker. A recording of PNG
+images (``--root``) is slow to load in LeRobot: each query of a delta timestamp decodes every
+image column of every row it reads (75 decodes per Diffusion Policy sample for the 6 frames it
+uses), so the loader, not the GPU, sets the pace; the result records ``storage``. The result is
+rewritten after each run (``complete``: false until the last), so a run cut short keeps its
+rows. Defaults: batch 64, 6 workers, 224x224, 50 steps on CUDA (26 episodes); batch 8, 2
+workers, 96x96, 5 steps on a CPU (3 episodes). ``--config policies/diffusion_full.json`` is
+LeRobot's Diffusion Policy at its default widths (no pretrained backbone: nothing is
+downloaded).
 Writes benchmarks/results/training_throughput.json (or --out).
 """
 
