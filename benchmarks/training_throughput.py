@@ -179,7 +179,8 @@ def main() -> None:
         record(RecordConfig(root, "pick_place", args.episodes, seed=0, use_videos=True, repo_id=REPO,
                             world=WorldConfig(width=args.size, height=args.size)), progress=False)  # fmt: skip
     meta = json.loads(info.read_text())
-    height, width, _ = meta["features"]["observation.images.left"]["shape"]
+    left = meta["features"]["observation.images.left"]
+    height, width, _ = left["shape"]
     if (height, width) != (args.size, args.size):
         raise SystemExit(f"{root} holds {height}x{width} images, not --size {args.size}")
     batches_per_epoch = meta["total_frames"] // args.batch_size
@@ -198,7 +199,7 @@ def main() -> None:
         "quick": args.quick, "policy_config": str(args.config.resolve().relative_to(HERE.parent)),
         "device": torch.cuda.get_device_name() if cuda else "cpu", "batch_size": args.batch_size,
         "workers": args.workers, "resolution": [args.size, args.size], "episodes": meta["total_episodes"],
-        "storage": meta["features"]["observation.images.left"]["dtype"], "batches_per_epoch": batches_per_epoch,
+        "storage": left["dtype"], "batches_per_epoch": batches_per_epoch,
         "probability": args.probability, "cameras_replaced": list(config.replace), "repeats": args.repeats,
         "machine": {"cpus": os.cpu_count(), **cpu_model()},
     }  # fmt: skip
@@ -241,6 +242,7 @@ def rows_of(runs: dict[str, list[dict]], failures: dict[str, str], cuda: bool) -
         if "samples_per_s" in row and plain:
             row["of_plain"] = round(row["samples_per_s"] / plain, 3)
     return rows
+
 
 if __name__ == "__main__":
     main()

@@ -2,6 +2,7 @@
 
 import os
 import stat
+from pathlib import Path
 
 import pytest
 import torch
@@ -25,7 +26,7 @@ def mode(path) -> int:
 @pytest.mark.parametrize("mask", [0o022, 0o077, 0o002])
 def test_the_file_gets_the_mode_of_a_plain_open(tmp_path, umask, mask):
     umask(mask)
-    atomic_write(tmp_path / "a" / "f.json", lambda tmp: open(tmp, "w").write("{}"))
+    atomic_write(tmp_path / "a" / "f.json", lambda tmp: Path(tmp).write_text("{}"))
     with open(tmp_path / "plain", "w") as fh:
         fh.write("{}")
     assert mode(tmp_path / "a" / "f.json") == mode(tmp_path / "plain") == 0o666 & ~mask
@@ -36,7 +37,7 @@ def test_a_failed_write_keeps_the_old_file_and_leaves_no_temporary(tmp_path):
     path.write_text("old")
 
     def half_then_fail(tmp):
-        open(tmp, "w").write("new, cut")
+        Path(tmp).write_text("new, cut")
         raise KeyboardInterrupt  # a user stopping the process mid-write
 
     with pytest.raises(KeyboardInterrupt):
