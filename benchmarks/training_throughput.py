@@ -29,7 +29,9 @@ rewritten after each run (``complete``: false until the last), so a run cut shor
 rows. Defaults: batch 64, 6 workers, 224x224, 50 steps on CUDA (26 episodes); batch 8, 2
 workers, 96x96, 5 steps on a CPU (3 episodes). ``--config policies/diffusion_full.json`` is
 LeRobot's Diffusion Policy at its default widths (no pretrained backbone: nothing is
-downloaded).
+downloaded). Before the runs, ``loader`` measures what each mode costs a dataloader worker
+per sample (``--loader-rounds`` rounds over the same batches, one thread, no GPU needed):
+while training waits on its loader, samples/s scale as its inverse.
 Writes benchmarks/results/training_throughput.json (or --out).
 """
 
@@ -41,6 +43,7 @@ import json
 import math
 import os
 import re
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -54,7 +57,7 @@ from typing import Self
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 import torch
-from gensplat_lerobot import load_settings, prepare, save_settings
+from gensplat_lerobot import enable_gensplat, load_settings, prepare, save_settings
 from machine import cpu_model, write_result
 
 from gensplat_transforms.transform import GenSplatConfig
@@ -142,6 +145,47 @@ def train(root: Path, config: Path, mode: str, args, device: str) -> dict:
     return row
 
 
+def loader_cost(root: Path, policy_config: Path, config: GenSplatConfig, reconstructor: dict, modes: list[str],
+                batch_size: int, batches: int, rounds: int) -> dict:
+    """Wall milliseconds per sample that a dataloader worker spends on each mode's items
+    (``LeRobotDataset[i]`` with the policy's delta timestamps, GenSplat's transform where
+    enabled, then collation into batches of ``batch_size``), on one thread as in a worker.
+    The modes take turns over the same ``batches`` random batches with the same draws, for
+    ``rounds`` rounds; each mode's figure is its median round. When training waits on its
+    loader, samples/s scale as 1 / these figures."""
+    from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
+    from lerobot.datasets.factory import resolve_delta_timestamps
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    from lerobot.policies.factory import make_policy_config
+    from torch.utils.data import default_collate
+
+    settings = json.loads(policy_config.read_text())
+    policy = {**settings["policy"], "device": "cuda" if torch.cuda.is_available() else "cpu"}
+    policy = make_policy_config(policy.pop("type"), **policy)
+    deltas = resolve_delta_timestamps(policy, LeRobotDatasetMetadata(REPO, root=root))
+    backend = settings.get("dataset", {}).get("video_backend")
+    datasets = {}
+    for mode in modes:
+        ds = LeRobotDataset(REPO, root=root, delta_timestamps=deltas, video_backend=backend)
+        datasets[mode] = ds if mode == "plain" else enable_gensplat(ds, replace(config, render_in=mode), reconstructor)
+    order = torch.randint(len(ds), (rounds, batches, batch_size), generator=torch.Generator().manual_seed(0))
+    threads, times = torch.get_num_threads(), {mode: [] for mode in modes}
+    torch.set_num_threads(1)
+    try:
+        for r in range(rounds):
+            for mode, ds in datasets.items():
+                torch.manual_seed(r)  # the same samples augmented, with the same moves, in each mode
+                t0 = time.perf_counter()
+                for batch in order[r]:
+                    default_collate([ds[int(i)] for i in batch])
+                times[mode].append(round((time.perf_counter() - t0) / order[r].numel() * 1e3, 2))
+    finally:
+        torch.set_num_threads(threads)
+    ms = {mode: statistics.median(t) for mode, t in times.items()}
+    return {"ms_per_sample": ms, "of_plain": {mode: round(ms["plain"] / v, 3) for mode, v in ms.items()},
+            "rounds_ms": times, "samples_per_round": order[0].numel()}  # fmt: skip
+
+
 def main() -> None:
     cuda = torch.cuda.is_available()
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -153,9 +197,10 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, help=f"recorded episodes (default: {MIN_BATCHES_PER_WORKER * 2} "
                         "batches per worker in an epoch; at least 2)")
     parser.add_argument("--probability", type=float, default=0.5)
-    parser.add_argument("--repeats", type=int, default=2, help="rounds of runs; a row is its mode's best run")
+    parser.add_argument("--repeats", type=int, default=2, help="rounds of runs; a row is its mode's best run (0: only the loader cost)")
     parser.add_argument("--modes", default="plain,worker,batch", help="modes in the order they run (plain first: "
                         "the others are compared with it); batch needs CUDA")
+    parser.add_argument("--loader-rounds", type=int, default=3, help="rounds of the loader-side cost (0: skip it)")
     parser.add_argument("--config", type=Path, default=HERE.parent / "policies" / "diffusion.json")
     parser.add_argument("--root", type=Path, help="dataset folder, reused when it holds a recording (default: temporary)")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "training_throughput.json")
@@ -192,6 +237,12 @@ def main() -> None:
             "wait and the rows would measure the epoch's end, not the rendering. Record more episodes.")
     prepare(root, REPO, GenSplatConfig(probability=args.probability), progress=False)
     config, reconstructor = load_settings(root)
+    if args.loader_rounds > 0:
+        loader = loader_cost(root, args.config, config, reconstructor, ["plain", "batch", "worker"], args.batch_size,
+                             4, args.loader_rounds)  # fmt: skip
+        print(f"{'loader':8}{'ms/sample':>12}{'of plain':>10}")
+        for mode, ms in loader["ms_per_sample"].items():
+            print(f"{mode:8}{ms:>12}{loader['of_plain'][mode]:>10}")
     load_before = os.getloadavg()
     runs = {mode: [] for mode in args.modes if cuda or mode != "batch"}
     failures = {}
@@ -203,6 +254,8 @@ def main() -> None:
         "probability": args.probability, "cameras_replaced": list(config.replace), "repeats": args.repeats,
         "machine": {"cpus": os.cpu_count(), **cpu_model()},
     }  # fmt: skip
+    if args.loader_rounds > 0:
+        result["loader"] = loader
     for _ in range(args.repeats):
         for mode, done in runs.items():  # plain ignores the settings
             save_settings(root, replace(config, render_in="worker" if mode == "plain" else mode), reconstructor)

@@ -1,15 +1,16 @@
 """Rendering the augmented views of a whole batch at once, after collation.
 
-With ``GenSplatConfig.render_in="batch"`` the transform does everything but render in the
-dataloader workers: it draws whether a sample is augmented and its perturbation exactly as
-``"worker"`` does (the same RNG calls, in the same order), reads the cached depth and cameras
-and adds them to the item (``transform.BATCH_KEYS``). :func:`render_batch` then rebuilds the
-Gaussians of every augmented sample from that depth and the batch's own images with the
-PyTorch disc rule (:func:`.reconstruction.rgbd.dense_discs`, in float64), renders all
-target cameras, fills the holes and writes the images back, in the images' dtype, range and
-size. On CUDA all scenes go through one gsplat call; elsewhere (tests) each scene is
-rendered with ``config.backend``, through the same :func:`.transform.render_view` as the
-worker, so the images match the worker path's up to the disc rule's round-off.
+With ``GenSplatConfig.render_in="batch"`` the workers do the least they can: the transform
+draws whether a sample is augmented and its perturbation exactly as ``"worker"`` does (the
+same RNG calls, in the same order) and adds the moves, the cached cameras and the cached
+depth as stored (two bytes a pixel) to the item (``transform.BATCH_KEYS``). :func:`render_batch`
+decodes the depth and moves the cameras of the whole batch at once, rebuilds the Gaussians
+of every augmented sample from that depth and the batch's own images with the PyTorch disc
+rule (:func:`.reconstruction.rgbd.dense_discs`, in float64), renders all target cameras,
+fills the holes and writes the images back, in the images' dtype, range and size. On CUDA
+all scenes go through one gsplat call; elsewhere (tests) each scene is rendered with
+``config.backend``, through the same :func:`.transform.render_view` as the worker, so the
+images match the worker path's up to the disc rule's round-off.
 """
 
 from __future__ import annotations
@@ -19,7 +20,9 @@ from dataclasses import replace
 import torch
 
 from .cameras import Cameras
+from .depth_codec import depth_from_words
 from .gaussians import Gaussians
+from .perturbation import perturb_pose, pivot_point
 from .reconstruction import Reconstructor
 from .reconstruction.rgbd import RGBDReconstructor, dense_discs
 from .rendering import RenderOutput
@@ -80,7 +83,8 @@ def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None 
     rows = batch["gensplat.render"].nonzero()[:, 0]
     if len(rows) == 0:
         return out
-    depth = batch["gensplat.depth"][rows]  # (S, T, V, h, w)
+    coded = batch["gensplat.coded"][rows].reshape(-1, 1, 1, 1, 1)
+    depth = depth_from_words(batch["gensplat.depth"][rows], coded)  # (S, T, V, h, w)
     S, T, _, h, w = depth.shape
     images = torch.stack([_stacked(batch[cfg.image_key.format(name=n)][rows], T, h, w) for n in cfg.cameras], 2)
     f64 = torch.float64
@@ -92,7 +96,7 @@ def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None 
         sh = torch.cat([sh, sh.new_zeros(*sh.shape[:2], num_sh_bases(discs.cfg.sh_degree) - 1, 3)], 2)
     views = [cfg.cameras.index(name) for name in cfg.replace]
     K = batch["gensplat.K"][rows][:, :, views].flatten(0, 1)  # (S*T, R, 3, 3)
-    c2w = batch["gensplat.targets"][rows].transpose(1, 2).flatten(0, 1)  # (S*T, R, 4, 4)
+    c2w = _targets(batch["gensplat.c2w"][rows], batch["gensplat.moves"][rows], views).flatten(0, 1)  # (S*T, R, 4, 4)
     opacity = discs.cfg.opacity
     backend = backend or ("gsplat" if depth.device.type == "cuda" else cfg.backend)
     if backend == "gsplat":
@@ -109,6 +113,15 @@ def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None 
         image = out[key] = batch[key].clone()
         image[rows] = like_images(rgb[:, :, r].flatten(0, 1), image).reshape(image[rows].shape)
     return out
+
+
+def _targets(c2w: torch.Tensor, moves: torch.Tensor, views: list[int]) -> torch.Tensor:
+    """(S, T, R, 4, 4) perturbed poses of the replaced cameras ``views`` from the (S, T, V, 4, 4)
+    cached poses and the (S, R, 3) moves (axis index, theta_deg, mu_m), each about the pivot of
+    cameras 0 and 1 at its frame, as :meth:`.perturbation.Perturbation.move` moves one."""
+    pivot = pivot_point(c2w[:, :, 0], c2w[:, :, 1])[:, :, None]  # (S, T, 1, 3)
+    axis, theta, mu = (moves[:, None, :, i].expand(-1, c2w.shape[1], -1) for i in range(3))  # (S, T, R)
+    return perturb_pose(c2w[:, :, views], pivot, axis.long(), theta, mu)
 
 
 def _stacked(images: torch.Tensor, T: int, height: int, width: int) -> torch.Tensor:

@@ -383,10 +383,18 @@ class GaussianCache:
     def read_depth(self, episode: int, frame: int) -> tuple[torch.Tensor, Cameras]:
         """The stored depth (V, 1, H, W) float32 and cameras of one timestep of a ``depth``
         cache (what :meth:`read` builds the Gaussians from). Raises as :meth:`read`."""
+        return self._depth_file(episode).depth(frame), self._file(episode).cameras(frame)
+
+    def read_depth_words(self, episode: int, frame: int) -> tuple[tuple[torch.Tensor, bool], Cameras]:
+        """The depth of one timestep as stored, ((V, H, W) int16 words, whether they are log
+        codes), uncleaned (:func:`.depth_codec.depth_from_words` decodes them), and its cameras:
+        half the bytes of :meth:`read_depth`'s float32, for a process that decodes elsewhere."""
+        return self._depth_file(episode).depth_words(frame), self._file(episode).cameras(frame)
+
+    def _depth_file(self, episode: int) -> _EpisodeFile:
         if self.kind != "depth":
-            raise ValueError(f"GaussianCache.read_depth: {self.identity} stores Gaussians, not depth")
-        f = self._file(episode)
-        return f.depth(frame), f.cameras(frame)
+            raise ValueError(f"GaussianCache: {self.identity} stores Gaussians, not depth")
+        return self._file(episode)
 
     def _file(self, episode: int) -> _EpisodeFile:
         episode = int(episode)
@@ -603,10 +611,17 @@ class _EpisodeFile:
     def depth(self, frame: int, clean: bool = True) -> torch.Tensor:
         """(V, 1, H, W) float32 depth of one frame; a linked file's is the dataset's, cleaned
         as the reconstructor cleans it unless ``clean`` is False (stored depth is clean)."""
+        words, coded = self.depth_words(frame)
+        depth = depth_codec.depth_from_words(words, coded)[:, None]
+        return self._clean(depth) if clean and not coded else depth
+
+    def depth_words(self, frame: int) -> tuple[torch.Tensor, bool]:
+        """(V, H, W) int16: one frame's depth as stored, two bytes a pixel, and whether they
+        are log codes (stored depth) rather than float16 bits (a linked file's); see
+        :func:`.depth_codec.depth_from_words`."""
         self._check_frame(frame)
         if self._linked:
-            depth = torch.stack([d[frame : frame + 1] for d in self._linked]).float()
-            return self._clean(depth) if clean else depth
+            return torch.cat([d[frame : frame + 1] for d in self._linked]).view(torch.int16), False
         if self._reference is None:  # decoded once per process and episode, then reused
             blob = self.tensor("depth.reference").numpy().tobytes()
             try:
@@ -615,10 +630,10 @@ class _EpisodeFile:
                 raise CorruptCacheError(f"{self.path}: undecodable depth reference ({e})") from e
         blob = self.tensor(f"depth.f{frame}").numpy().tobytes()
         try:
-            depth = depth_codec.decode_frame(self._reference, blob)
+            codes = depth_codec.decode_codes(self._reference, blob)
         except (zlib.error, ValueError) as e:
             raise CorruptCacheError(f"{self.path}: undecodable depth of frame {frame} ({e})") from e
-        return depth
+        return torch.from_numpy(codes.view(np.int16)), True
 
     def gaussians(self, frame: int) -> Reconstruction:
         self._check_frame(frame)

@@ -151,6 +151,8 @@ def open_depth(path: str | Path):
         depth = f.get_slice("depth")
         if len(depth.get_shape()) != 3:
             raise ValueError(f"{path}: depth of shape {depth.get_shape()}, expected (T, H, W)")
+        if depth.get_dtype() != "F16":
+            raise ValueError(f"{path}: depth of dtype {depth.get_dtype()}, expected F16 (float16)")
         return depth
     except ValueError:
         raise

@@ -37,10 +37,21 @@ def quantize_depth(depth: torch.Tensor) -> np.ndarray:
     return np.where(ok, k, 0).astype(np.uint16)
 
 
-def dequantize_depth(codes: np.ndarray) -> torch.Tensor:
-    """Inverse of :func:`quantize_depth`: float32 metres, 0 where the code is 0."""
-    k = codes.astype(np.float64)
-    return torch.from_numpy(np.where(codes > 0, D_MIN * np.exp((k - 1) * STEP), 0.0).astype(np.float32))
+def dequantize_depth(codes: np.ndarray | torch.Tensor) -> torch.Tensor:
+    """Inverse of :func:`quantize_depth`: float32 metres, 0 where the code is 0 (on the
+    device of a tensor; int16 tensors are read as uint16)."""
+    k = torch.as_tensor(codes.astype(np.int32) if isinstance(codes, np.ndarray) else codes).to(torch.int32) & 0xFFFF
+    return torch.where(k > 0, D_MIN * torch.exp((k - 1).double() * STEP), 0.0).float()
+
+
+def depth_from_words(words: torch.Tensor, coded: torch.Tensor | bool) -> torch.Tensor:
+    """float32 metres from (...) int16 depth words, two bytes a pixel as a cache stores them:
+    log codes where ``coded`` (broadcastable; :func:`quantize_depth`), else the bits of float16
+    metres (a dataset's linked depth files)."""
+    if words.dtype != torch.int16:
+        raise ValueError(f"depth_from_words: expected int16 words, got {words.dtype}")
+    coded = torch.as_tensor(coded, device=words.device)
+    return torch.where(coded, dequantize_depth(words), words.view(torch.float16).float())
 
 
 def _pack(codes: np.ndarray) -> bytes:
@@ -66,6 +77,11 @@ def decode_reference(blob: bytes, shape: tuple[int, ...]) -> np.ndarray:
     return _unpack(blob, shape)
 
 
+def decode_codes(reference: np.ndarray, blob: bytes) -> np.ndarray:
+    """(V, H, W) uint16 codes of one frame from the reference codes and its blob."""
+    return reference + _unpack(blob, reference.shape)
+
+
 def decode_frame(reference: np.ndarray, blob: bytes) -> torch.Tensor:
     """(V, 1, H, W) float32 depth of one frame from the reference codes and its blob."""
-    return dequantize_depth(reference + _unpack(blob, reference.shape))[:, None]
+    return dequantize_depth(decode_codes(reference, blob))[:, None]

@@ -125,51 +125,68 @@ class Perturbation:
         return asdict(self)
 
 
-def axis_rotation(axis: str, theta_deg: float, dtype=torch.float64, device=None) -> torch.Tensor:
-    """(3, 3) rotation by ``theta_deg`` about the world X or Y axis (right-handed)."""
-    if axis not in AXES:
-        raise ValueError(f"axis must be one of {AXES}, got {axis!r}")
-    axis_angle = torch.zeros(3, dtype=dtype, device=device)
-    axis_angle[AXES.index(axis)] = math.radians(theta_deg)
-    return axis_angle_to_rotation_matrix(axis_angle)
+def axis_rotation(axis: str | torch.Tensor, theta_deg: float | torch.Tensor, dtype=torch.float64,
+                  device=None) -> torch.Tensor:
+    """(..., 3, 3) rotations by ``theta_deg`` (degrees, float or (...)) about the world X or Y
+    axis (right-handed); ``axis`` is "x" or "y", or (...) indices into ``AXES``. Kornia's
+    axis-angle formula, element by element (a batch gives each element's own bits)."""
+    if isinstance(axis, str):
+        if axis not in AXES:
+            raise ValueError(f"axis must be one of {AXES}, got {axis!r}")
+        axis = torch.tensor(AXES.index(axis), device=device)
+    elif not bool(((axis == 0) | (axis == 1)).all()):
+        raise ValueError(f"axis indices must be 0 (x) or 1 (y), got {axis.unique().tolist()}")
+    theta = (torch.as_tensor(theta_deg, dtype=torch.float64, device=device) * (math.pi / 180)).to(dtype)
+    theta, axis = torch.broadcast_tensors(theta, axis.to(device=theta.device))
+    axis_angle = torch.zeros(*theta.shape, 3, dtype=dtype, device=theta.device)
+    axis_angle.scatter_(-1, axis[..., None].long(), theta[..., None])
+    return axis_angle_to_rotation_matrix(axis_angle.reshape(-1, 3)).reshape(*theta.shape, 3, 3)
 
 
-def perturb_pose(
-    c2w: torch.Tensor, pivot: torch.Tensor, axis: str, theta_deg: float, mu_m: float
-) -> torch.Tensor:
+def perturb_pose(c2w: torch.Tensor, pivot: torch.Tensor, axis: str | torch.Tensor, theta_deg: float | torch.Tensor,
+                 mu_m: float | torch.Tensor) -> torch.Tensor:
     """Apply the protocol to (..., 4, 4) OpenCV camera-to-world poses.
 
-    R' = R_axis R, c' = p + R_axis (c - p) + mu * R'[:, 2], with p the (3,) pivot.
+    R' = R_axis R, c' = p + R_axis (c - p) + mu * R'[:, 2], with p the pivot ((3,) or
+    (..., 3)); ``axis``, ``theta_deg`` and ``mu_m`` are one move or (...) moves, one per pose
+    (see :func:`axis_rotation`).
     """
     Ra = axis_rotation(axis, theta_deg, c2w.dtype, c2w.device)
     p = torch.as_tensor(pivot, dtype=c2w.dtype, device=c2w.device)
+    mu = torch.as_tensor(mu_m, dtype=c2w.dtype, device=c2w.device)
     out = c2w.clone()
     R = Ra @ c2w[..., :3, :3]
-    center = p + (c2w[..., :3, 3] - p) @ Ra.T
+    center = p + (Ra @ (c2w[..., :3, 3] - p)[..., None])[..., 0]
     out[..., :3, :3] = R
-    out[..., :3, 3] = center + mu_m * R[..., :, 2]
+    out[..., :3, 3] = center + mu[..., None] * R[..., :, 2]
     return out
+
+
+def _closest(c2w_a: torch.Tensor, c2w_b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Closest points (..., 3) on the optical axes of (..., 4, 4) poses, and |d1 x d2|^2 (...)
+    (the points are not finite where it is 0: parallel axes)."""
+    o1, d1 = c2w_a[..., :3, 3], c2w_a[..., :3, 2] / c2w_a[..., :3, 2].norm(dim=-1, keepdim=True)
+    o2, d2 = c2w_b[..., :3, 3], c2w_b[..., :3, 2] / c2w_b[..., :3, 2].norm(dim=-1, keepdim=True)
+    w = o1 - o2
+    b = (d1 * d2).sum(-1)
+    denom = 1.0 - b * b  # |d1 x d2|^2 for unit directions
+    d, e = (d1 * w).sum(-1), (d2 * w).sum(-1)
+    s = (b * e - d) / denom
+    t = (e - b * d) / denom
+    return o1 + s[..., None] * d1, o2 + t[..., None] * d2, denom
 
 
 def closest_points_between_axes(
     c2w_a: torch.Tensor, c2w_b: torch.Tensor, parallel_tol: float = 1e-6
 ) -> tuple[torch.Tensor, torch.Tensor] | None:
     """Closest points on the two optical axes (infinite lines), or None when parallel."""
-    o1, d1 = c2w_a[:3, 3], c2w_a[:3, 2] / c2w_a[:3, 2].norm()
-    o2, d2 = c2w_b[:3, 3], c2w_b[:3, 2] / c2w_b[:3, 2].norm()
-    w = o1 - o2
-    b = d1 @ d2
-    denom = 1.0 - b * b  # |d1 x d2|^2 for unit directions
-    if denom < parallel_tol:
-        return None
-    d, e = d1 @ w, d2 @ w
-    s = (b * e - d) / denom
-    t = (e - b * d) / denom
-    return o1 + s * d1, o2 + t * d2
+    pa, pb, denom = _closest(c2w_a, c2w_b)
+    return None if denom < parallel_tol else (pa, pb)
 
 
 def pivot_point(c2w_a: torch.Tensor, c2w_b: torch.Tensor, parallel_tol: float = 1e-6) -> torch.Tensor:
-    """(3,) pivot: midpoint of the shortest segment between two cameras' optical axes.
+    """(..., 3) pivot of (..., 4, 4) camera pairs: midpoint of the shortest segment between
+    two cameras' optical axes.
 
     Falls back to the midpoint of the camera centres when the axes are (near) parallel.
 
@@ -179,10 +196,9 @@ def pivot_point(c2w_a: torch.Tensor, c2w_b: torch.Tensor, parallel_tol: float = 
         >>> torch.allclose(pivot, torch.zeros(3, dtype=torch.float64))
         True
     """
-    pts = closest_points_between_axes(c2w_a, c2w_b, parallel_tol)
-    if pts is None:
-        return 0.5 * (c2w_a[:3, 3] + c2w_b[:3, 3])
-    return 0.5 * (pts[0] + pts[1])
+    pa, pb, denom = _closest(c2w_a, c2w_b)
+    parallel = (denom < parallel_tol)[..., None]
+    return torch.where(parallel, 0.5 * (c2w_a[..., :3, 3] + c2w_b[..., :3, 3]), 0.5 * (pa + pb))
 
 
 class PerturbationSampler:

@@ -25,7 +25,7 @@ logger = logging.getLogger(__name__)
 
 RENDER_IN = ("auto", "worker", "batch")
 #: item keys the transform adds with ``render_in="batch"`` and ``render_batch`` removes
-BATCH_KEYS = ("gensplat.render", "gensplat.depth", "gensplat.K", "gensplat.c2w", "gensplat.targets")
+BATCH_KEYS = ("gensplat.render", "gensplat.depth", "gensplat.coded", "gensplat.K", "gensplat.c2w", "gensplat.moves")
 
 
 @dataclass
@@ -232,7 +232,7 @@ class GenSplatTransform:
                 raise IndexError(f"GenSplatTransform: frame_index {frame} outside episode {episode} (0..{last})")
         read: dict[int, Reconstruction] = {}  # frame -> Gaussians, read once per item
         for ci, name in enumerate(self.cfg.replace):
-            p = self.sampler.sample(episode, frame, view=view * len(self.cfg.replace) + ci)
+            p = self.sampler.sample(episode, frame, view=view * len(self.cfg.replace) + ci) if applied else Perturbation()
             if applied and not batch:
                 out[keys[name]] = self._render_like(item, keys, episode, frame, name, p, read)
             moves.append(p)
@@ -278,12 +278,14 @@ class GenSplatTransform:
                       moves: list[Perturbation]) -> dict[str, torch.Tensor]:
         """The ``BATCH_KEYS`` of an item for :func:`.batched.render_batch`, of the same shapes
         whether augmented or not (zeros when not), so that default collation stacks them:
-        ``gensplat.render`` () bool, augmented; ``gensplat.depth`` (T, V, h, w) float32, the
-        cached depth of the V reconstructed cameras at the T frames of the stack, at the cache's
-        size; ``gensplat.K`` (T, V, 3, 3) and ``gensplat.c2w`` (T, V, 4, 4) float64, their
-        cached cameras; ``gensplat.targets`` (R, T, 4, 4) float64, the perturbed poses of the R
-        replaced cameras. Their images are taken from the batch, so every reconstructed camera
-        must be stacked alike."""
+        ``gensplat.render`` () bool, augmented; ``gensplat.depth`` (T, V, h, w) int16, the
+        cached depth of the V reconstructed cameras at the T frames of the stack as the cache
+        stores it (two bytes a pixel, uncleaned: the batch side decodes and cleans it, see
+        :func:`.depth_codec.depth_from_words`) and ``gensplat.coded`` () bool, how it is coded;
+        ``gensplat.K`` (T, V, 3, 3) and ``gensplat.c2w`` (T, V, 4, 4) float64, their cached
+        cameras; ``gensplat.moves`` (R, 3) float64, the move of each of the R replaced cameras
+        as (axis index, theta_deg, mu_m) (the batch side moves the cameras, all at once). Their
+        images are taken from the batch, so every reconstructed camera must be stacked alike."""
         stacks = {tuple(item[keys[n]].shape[:-3]) for n in self.cfg.cameras}
         if len(stacks) > 1:
             raise ValueError(f"GenSplatTransform: render_in='batch' needs the images of {self.cfg.cameras} stacked "
@@ -291,16 +293,15 @@ class GenSplatTransform:
         frames = self._stack_frames(item[keys[self.cfg.replace[0]]], episode, frame)
         width, height = self.cache.image_size(episode)
         T, V, R = len(frames), len(self.cfg.cameras), len(self.cfg.replace)
-        depth = torch.zeros(T, V, height, width)
+        depth = torch.zeros(T, V, height, width, dtype=torch.int16)
         K = torch.zeros(T, V, 3, 3, dtype=torch.float64)
         c2w = torch.zeros(T, V, 4, 4, dtype=torch.float64)
-        targets = torch.zeros(R, T, 4, 4, dtype=torch.float64)
+        coded = False
         for k, (_, f) in enumerate(frames if applied else []):
-            d, cameras = self._read(episode, lambda f=f: self.cache.read_depth(episode, f))
-            depth[k], K[k], c2w[k] = d[:, 0], cameras.K, cameras.c2w
-            for r, (name, p) in enumerate(zip(self.cfg.replace, moves)):
-                targets[r, k] = p.move(cameras, self.cfg.cameras.index(name)).c2w[0]
-        return dict(zip(BATCH_KEYS, (torch.tensor(applied), depth, K, c2w, targets)))
+            (depth[k], coded), cameras = self._read(episode, lambda f=f: self.cache.read_depth_words(episode, f))
+            K[k], c2w[k] = cameras.K, cameras.c2w
+        moved = torch.tensor([[AXES.index(p.axis), p.theta_deg, p.mu_m] for p in moves], dtype=torch.float64)
+        return dict(zip(BATCH_KEYS, (torch.tensor(applied), depth, torch.tensor(coded), K, c2w, moved.reshape(R, 3))))
 
     def _source_images(self, item: dict, keys: dict[str, str], k: int, offset: int, episode: int,
                        frame: int) -> torch.Tensor:

@@ -96,6 +96,44 @@ def test_depth_codec_error_is_bounded_and_invalid_stays_invalid():
     assert np.array_equal(dc.quantize_depth(out), dc.quantize_depth(d))
 
 
+def test_depth_words_decode_codes_and_float16_bits_alike():
+    """Two bytes a pixel either way: log codes give dequantize's metres, float16 bits their
+    float16 value; a batch mixes both by its per-sample flag; other dtypes are refused."""
+    d = torch.tensor([[0.0, 1e-3, 0.5], [1.25, 7.0, 6e4]])
+    codes = torch.from_numpy(dc.quantize_depth(d).view(np.int16))
+    assert torch.equal(dc.depth_from_words(codes, True), dc.dequantize_depth(dc.quantize_depth(d)))
+    half = d.half().view(torch.int16)
+    assert torch.equal(dc.depth_from_words(half, False), d.half().float())
+    mixed = dc.depth_from_words(torch.stack([codes, half]), torch.tensor([True, False])[:, None, None])
+    assert torch.equal(mixed, torch.stack([dc.depth_from_words(codes, True), d.half().float()]))
+    with pytest.raises(ValueError, match="expected int16 words, got torch.float16"):
+        dc.depth_from_words(d.half(), False)
+
+
+@pytest.mark.parametrize("kind", ["stored", "linked"])
+def test_depth_words_are_the_depth_as_stored(kind, built, linked):
+    """read_depth_words decodes to read_depth's metres (uncleaned for a linked file) in half
+    the bytes, and says how it is coded."""
+    cache = built[0] if kind == "stored" else linked[0]
+    for t in range(2):
+        (words, coded), cameras = cache.read_depth_words(0, t)
+        assert words.dtype == torch.int16 and coded == (kind == "stored")
+        want = cache._file(0).depth(t, clean=False)[:, 0]
+        assert torch.equal(dc.depth_from_words(words, coded), want)
+        assert torch.equal(cameras.c2w, cache.read_depth(0, t)[1].c2w)
+
+
+def test_a_depth_file_of_another_dtype_is_refused(tmp_path):
+    from safetensors.torch import save_file
+
+    from gensplat_transforms.dataset_format import DEPTH_FORMAT, open_depth
+
+    path = tmp_path / "episode_000000.safetensors"
+    save_file({"depth": torch.ones(2, 4, 4)}, str(path), metadata={"format": DEPTH_FORMAT})
+    with pytest.raises(ValueError, match="depth of dtype F32, expected F16"):
+        open_depth(path)
+
+
 def test_depth_codec_rejects_a_blob_of_the_wrong_size():
     ref, _ = dc.encode_episode(torch.ones(2, 1, 4, 4))
     with pytest.raises(ValueError, match="expected 32"):

@@ -360,3 +360,27 @@ def test_axis_rotation_has_kornias_bits(axis, dtype):
         want, got = axis_angle_to_rotation_matrix(axis_angle), axis_rotation(axis, theta, dtype)
         assert got.dtype == dtype
         assert torch.equal(got, want) and torch.equal(got.signbit(), want.signbit()), theta
+
+
+def test_batched_moves_equal_one_move_at_a_time():
+    """perturb_pose and pivot_point over (S, T, ...) batches give each element's own move,
+    a parallel pair among them included (its pivot falls back to the centres' midpoint)."""
+    g = torch.Generator().manual_seed(0)
+    eyes = [(1.0, 0.5, 0.5), (1.0, -0.5, 0.5), (0.8, 0.0, 0.9), (0.5, 0.6, 0.4)]
+    c2w = torch.stack([look_at(e, (0.0, 0.0, 0.1 * i)) for i, e in enumerate(eyes)]).reshape(2, 2, 4, 4)
+    c2w[1, 1] = c2w[1, 0].clone()
+    c2w[1, 1, :3, 3] += torch.tensor([0.0, 0.3, 0.0], dtype=DTYPE)  # parallel axes
+    pivots = pivot_point(c2w[:, 0], c2w[:, 1])
+    for s in range(2):
+        torch.testing.assert_close(pivots[s], pivot_point(c2w[s, 0], c2w[s, 1]), rtol=0, atol=1e-15)
+    torch.testing.assert_close(pivots[1], 0.5 * (c2w[1, 0, :3, 3] + c2w[1, 1, :3, 3]))
+    axis = torch.tensor([[0, 1], [1, 0]])
+    theta = torch.empty(2, 2, dtype=DTYPE).uniform_(-30, 30, generator=g)
+    mu = torch.empty(2, 2, dtype=DTYPE).uniform_(0, 0.06, generator=g)
+    moved = perturb_pose(c2w, pivots[:, None], axis, theta, mu)
+    for s in range(2):
+        for v in range(2):
+            one = perturb_pose(c2w[s, v], pivots[s], AXES[int(axis[s, v])], float(theta[s, v]), float(mu[s, v]))
+            torch.testing.assert_close(moved[s, v], one, rtol=0, atol=1e-15)
+    with pytest.raises(ValueError, match=r"axis indices must be 0 \(x\) or 1 \(y\), got \[0, 2\]"):
+        perturb_pose(c2w, pivots[:, None], torch.tensor([[0, 2], [0, 0]]), theta, mu)

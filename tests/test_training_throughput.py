@@ -84,3 +84,24 @@ def test_rows_of_a_run_cut_short_say_what_is_missing():
 def test_modes_must_start_with_plain(small, monkeypatch, capsys):
     assert run_main(monkeypatch, "--root", str(small), "--modes", "worker,plain") == "2"
     assert "--modes: plain first, then worker and/or batch; got worker,plain" in capsys.readouterr().err
+
+
+def test_loader_cost_times_every_mode_on_the_same_batches(small, tmp_path):
+    """The loader-side cost runs each mode's items (GenSplat in batch mode carrying its
+    BATCH_KEYS) over the same batches and reports each against plain."""
+    import shutil
+
+    from gensplat_lerobot import load_settings, prepare
+
+    from gensplat_transforms.transform import GenSplatConfig
+
+    root = tmp_path / "ds"
+    shutil.copytree(small, root)
+    prepare(root, tt.REPO, GenSplatConfig(probability=1.0), progress=False)
+    config, reconstructor = load_settings(root)
+    policy = Path(tt.__file__).parents[1] / "policies" / "diffusion.json"
+    cost = tt.loader_cost(root, policy, config, reconstructor, ["plain", "batch", "worker"], 2, 2, 2)
+    assert set(cost["ms_per_sample"]) == {"plain", "batch", "worker"} and cost["samples_per_round"] == 4
+    assert all(len(runs) == 2 and min(runs) > 0 for runs in cost["rounds_ms"].values())
+    assert cost["of_plain"]["plain"] == 1.0
+    assert cost["of_plain"]["worker"] == round(cost["ms_per_sample"]["plain"] / cost["ms_per_sample"]["worker"], 3)
