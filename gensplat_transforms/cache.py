@@ -5,7 +5,7 @@ What it stores depends on the reconstructor:
 
 * ``depth`` (any :class:`~.reconstruction.DepthReconstructor`, e.g. RGB-D): only what the
   worker cannot recompute cheaply: each view's depth, compressed with a bounded error
-  (:mod:`.depth_codec`: 16-bit log codes, the static scene once, zlib), and the cameras. The
+  (:mod:`.depth_codec`: 16-bit log codes, the static scene once, Zstandard), and the cameras. The
   worker rebuilds the Gaussians from the item's own images with
   ``reconstructor.assemble`` (a few milliseconds per timestep). About 10-20 kB per
   timestep for two 224x224 views.
@@ -442,8 +442,8 @@ def _encode_depth(frames: Sequence[Views]) -> tuple[dict[str, torch.Tensor], dic
     _, v, h, w = depths.shape
     cam = frames[0].cameras
     meta = {"image_size": json.dumps([cam.width, cam.height]), "num_views": str(v),
-            "depth_codec": json.dumps({"step": depth_codec.STEP, "d_min": depth_codec.D_MIN,
-                                       "d_max": depth_codec.D_MAX})}  # fmt: skip
+            "depth_codec": json.dumps({"step": depth_codec.STEP, "d_min": depth_codec.D_MIN, "d_max": depth_codec.D_MAX,
+                                       "compression": depth_codec.COMPRESSION})}  # fmt: skip
     if (h, w) != (cam.height, cam.width):
         raise ValueError(f"GaussianCache: depth maps are {w}x{h}, the cameras {cam.width}x{cam.height}")
     return {**tensors, **_cameras(frames)}, meta
@@ -557,6 +557,10 @@ class _EpisodeFile:
                       for d in json.loads(meta.get("depth_links", "[]"))]  # fmt: skip
         if self.links and len(self.links) != self.num_views:
             raise ValueError(f"{len(self.links)} linked depth files for {self.num_views} views")
+        #: how the stored depth's blobs are compressed (files that do not say: zlib)
+        self.compression = json.loads(meta.get("depth_codec", "{}")).get("compression", "zlib")
+        if self.compression not in depth_codec.COMPRESSIONS:
+            raise ValueError(f"depth compression {self.compression!r}, known: {depth_codec.COMPRESSIONS}")
         K, c2w = self.tensor("K"), self.tensor("c2w")
         want = (1 if self.links else self.num_frames, self.num_views)  # linked: the cameras once
         if K.shape != (*want, 3, 3) or c2w.shape != (*want, 4, 4) or K.dtype != torch.float64:
@@ -625,13 +629,14 @@ class _EpisodeFile:
         if self._reference is None:  # decoded once per process and episode, then reused
             blob = self.tensor("depth.reference").numpy().tobytes()
             try:
-                self._reference = depth_codec.decode_reference(blob, (self.num_views, self.height, self.width))
-            except (zlib.error, ValueError) as e:
+                shape = (self.num_views, self.height, self.width)
+                self._reference = depth_codec.decode_reference(blob, shape, self.compression)
+            except ValueError as e:
                 raise CorruptCacheError(f"{self.path}: undecodable depth reference ({e})") from e
         blob = self.tensor(f"depth.f{frame}").numpy().tobytes()
         try:
-            codes = depth_codec.decode_codes(self._reference, blob)
-        except (zlib.error, ValueError) as e:
+            codes = depth_codec.decode_codes(self._reference, blob, self.compression)
+        except ValueError as e:
             raise CorruptCacheError(f"{self.path}: undecodable depth of frame {frame} ({e})") from e
         return torch.from_numpy(codes.view(np.int16)), True
 

@@ -10,8 +10,11 @@ and lose them far away.
 
 An episode is coded as its per-pixel median code (the static scene, stored once) plus, per
 frame, the difference to it (zero wherever nothing moved), each made a row-wise difference
-(smooth surfaces give small numbers) and compressed with zlib. All arithmetic is modulo
-2^16, so decoding is exact. Every frame decodes on its own from the median and its blob.
+(smooth surfaces give small numbers) and compressed with Zstandard (``COMPRESSION``; files
+written with zlib, the earlier choice, still decode: ``compression="zlib"``). All arithmetic
+is modulo 2^16, so decoding is exact. Every frame decodes on its own from the median and its
+blob. Zstandard level 6 decompresses a 2x224x224 frame in about 0.04 ms where zlib takes
+0.25 ms, compresses it 3-5x faster, and to about the same size.
 """
 
 from __future__ import annotations
@@ -21,11 +24,15 @@ import zlib
 
 import numpy as np
 import torch
+import zstandard
 
 D_MIN = 1e-6
 D_MAX = 1e6
 STEP = 2.0**-11
 MAX_RELATIVE_ERROR = math.expm1(STEP / 2)
+#: how new blobs are compressed; ``COMPRESSIONS`` are those that decode
+COMPRESSION = "zstd"
+COMPRESSIONS = ("zstd", "zlib")
 _LEVEL = 6
 
 
@@ -55,33 +62,45 @@ def depth_from_words(words: torch.Tensor, coded: torch.Tensor | bool) -> torch.T
 
 
 def _pack(codes: np.ndarray) -> bytes:
-    return zlib.compress(np.diff(codes, axis=-1, prepend=np.uint16(0)).tobytes(), _LEVEL)
+    return zstandard.ZstdCompressor(level=_LEVEL).compress(np.diff(codes, axis=-1, prepend=np.uint16(0)).tobytes())
 
 
-def _unpack(blob: bytes, shape: tuple[int, ...]) -> np.ndarray:
-    raw = np.frombuffer(zlib.decompress(blob), dtype=np.uint16)
+def _unpack(blob: bytes, shape: tuple[int, ...], compression: str) -> np.ndarray:
+    """Raises ValueError for a blob that does not decode to ``shape``."""
+    size = 2 * math.prod(shape)
+    try:
+        if compression == "zlib":
+            data = zlib.decompress(blob)
+        elif compression == "zstd":
+            data = zstandard.ZstdDecompressor().decompress(blob, max_output_size=size)
+        else:
+            raise ValueError(f"unknown depth compression {compression!r}; known: {COMPRESSIONS}")
+    except (zlib.error, zstandard.ZstdError) as e:
+        raise ValueError(f"undecodable depth blob ({type(e).__name__}: {e})") from e
+    raw = np.frombuffer(data, dtype=np.uint16)
     if raw.size != math.prod(shape):
         raise ValueError(f"depth blob holds {raw.size} values, expected {math.prod(shape)}")
     return np.cumsum(raw.reshape(shape), axis=-1, dtype=np.uint16)
 
 
 def encode_episode(depths: torch.Tensor) -> tuple[bytes, list[bytes]]:
-    """(T, V, H, W) depth of an episode -> (reference blob, one blob per frame)."""
+    """(T, V, H, W) depth of an episode -> (reference blob, one blob per frame), compressed
+    with ``COMPRESSION``."""
     codes = quantize_depth(depths)
     ref = np.median(codes, axis=0).astype(np.uint16)  # T >= 1
     return _pack(ref), [_pack(c - ref) for c in codes]  # uint16 arithmetic wraps modulo 2^16
 
 
-def decode_reference(blob: bytes, shape: tuple[int, ...]) -> np.ndarray:
-    """The (V, H, W) reference codes of an episode."""
-    return _unpack(blob, shape)
+def decode_reference(blob: bytes, shape: tuple[int, ...], compression: str = COMPRESSION) -> np.ndarray:
+    """The (V, H, W) reference codes of an episode; raises ValueError for a bad blob."""
+    return _unpack(blob, shape, compression)
 
 
-def decode_codes(reference: np.ndarray, blob: bytes) -> np.ndarray:
+def decode_codes(reference: np.ndarray, blob: bytes, compression: str = COMPRESSION) -> np.ndarray:
     """(V, H, W) uint16 codes of one frame from the reference codes and its blob."""
-    return reference + _unpack(blob, reference.shape)
+    return reference + _unpack(blob, reference.shape, compression)
 
 
-def decode_frame(reference: np.ndarray, blob: bytes) -> torch.Tensor:
+def decode_frame(reference: np.ndarray, blob: bytes, compression: str = COMPRESSION) -> torch.Tensor:
     """(V, 1, H, W) float32 depth of one frame from the reference codes and its blob."""
-    return dequantize_depth(decode_codes(reference, blob))[:, None]
+    return dequantize_depth(decode_codes(reference, blob, compression))[:, None]

@@ -134,6 +134,44 @@ def test_a_depth_file_of_another_dtype_is_refused(tmp_path):
         open_depth(path)
 
 
+def test_depth_codec_names_what_it_cannot_decode():
+    ref, _ = dc.encode_episode(torch.ones(2, 1, 4, 4))
+    with pytest.raises(ValueError, match="undecodable depth blob"):
+        dc.decode_reference(b"not a zstd frame", (2, 4, 4))
+    with pytest.raises(ValueError, match="undecodable depth blob"):
+        dc.decode_reference(ref, (2, 4, 4), "zlib")  # a zstd blob read as zlib
+    with pytest.raises(ValueError, match="unknown depth compression 'lz4'"):
+        dc.decode_reference(ref, (2, 4, 4), "lz4")
+
+
+def test_a_cache_written_with_zlib_still_reads(tmp_path, source, built, monkeypatch):
+    """Episode files from before Zstandard (zlib blobs, no "compression" in the header) give
+    the same depth as new ones; a header naming an unknown compression is corrupt."""
+    import zlib
+
+    def zlib_pack(codes):
+        return zlib.compress(np.diff(codes, axis=-1, prepend=np.uint16(0)).tobytes(), 6)
+
+    def old_header(frames, encode=cache_module._encode_depth):
+        tensors, meta = encode(frames)
+        meta["depth_codec"] = json.dumps({k: v for k, v in json.loads(meta["depth_codec"]).items() if k != "compression"})
+        return tensors, meta
+
+    with monkeypatch.context() as m:
+        m.setattr(dc, "_pack", zlib_pack)
+        m.setattr(cache_module, "_encode_depth", old_header)
+        old = GaussianCache(tmp_path / "old", RGBDReconstructor(), source.fingerprint)
+        build_cache(old, source, range(1), progress=False)
+    assert "compression" not in old.path(0).read_bytes()[:4096].decode(errors="replace")
+    new = built[0]
+    assert old.path(0).stat().st_size != new.path(0).stat().st_size
+    for t in range(3):
+        assert torch.equal(fresh(old).read_depth(0, t)[0], new.read_depth(0, t)[0])
+    edit_header(old.path(0), set_meta("depth_codec", json.dumps({"compression": "lz4"})))
+    edit_header(old.path(0), _header_is_still_consistent)
+    assert fresh(old).status(0) == "corrupt"
+
+
 def test_depth_codec_rejects_a_blob_of_the_wrong_size():
     ref, _ = dc.encode_episode(torch.ones(2, 1, 4, 4))
     with pytest.raises(ValueError, match="expected 32"):
