@@ -57,6 +57,8 @@ def depth_from_words(words: torch.Tensor, coded: torch.Tensor | bool) -> torch.T
     metres (a dataset's linked depth files)."""
     if words.dtype != torch.int16:
         raise ValueError(f"depth_from_words: expected int16 words, got {words.dtype}")
+    if isinstance(coded, bool):  # one coding: decode only that way
+        return dequantize_depth(words) if coded else words.view(torch.float16).float()
     coded = torch.as_tensor(coded, device=words.device)
     return torch.where(coded, dequantize_depth(words), words.view(torch.float16).float())
 
