@@ -151,8 +151,10 @@ def loader_cost(root: Path, policy_config: Path, config: GenSplatConfig, reconst
     (``LeRobotDataset[i]`` with the policy's delta timestamps, GenSplat's transform where
     enabled, then collation into batches of ``batch_size``), on one thread as in a worker.
     The modes take turns over the same ``batches`` random batches with the same draws, for
-    ``rounds`` rounds; each mode's figure is its median round. When training waits on its
-    loader, samples/s scale as 1 / these figures."""
+    ``rounds`` rounds; each mode's figure is its median round, and its rate against plain's
+    the median of the rounds' ratios (a round's modes run back to back, so a load that comes
+    and goes shifts them alike). When training waits on its loader, samples/s scale as
+    1 / these figures."""
     from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
     from lerobot.datasets.factory import resolve_delta_timestamps
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -181,8 +183,9 @@ def loader_cost(root: Path, policy_config: Path, config: GenSplatConfig, reconst
                 times[mode].append(round((time.perf_counter() - t0) / order[r].numel() * 1e3, 2))
     finally:
         torch.set_num_threads(threads)
-    ms = {mode: statistics.median(t) for mode, t in times.items()}
-    return {"ms_per_sample": ms, "of_plain": {mode: round(ms["plain"] / v, 3) for mode, v in ms.items()},
+    ratios = {mode: statistics.median(p / m for p, m in zip(times["plain"], t)) for mode, t in times.items()}
+    return {"ms_per_sample": {mode: statistics.median(t) for mode, t in times.items()},
+            "of_plain": {mode: round(r, 3) for mode, r in ratios.items()},
             "rounds_ms": times, "samples_per_round": order[0].numel()}  # fmt: skip
 
 

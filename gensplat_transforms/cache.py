@@ -193,6 +193,10 @@ class CacheStats:
         return self.bytes / max(self.num_frames, 1)
 
 
+#: parsed episode files that link the dataset's depth, kept per process (a few kB each)
+MAX_LINKED_KEPT = 1024
+
+
 class GaussianCache:
     """Episode files for one (reconstructor, dataset) pair.
 
@@ -202,7 +206,9 @@ class GaussianCache:
             the files, and a :class:`~.reconstruction.DepthReconstructor` makes this a
             ``depth`` cache (see the module docstring).
         dataset: fingerprint of the dataset (anything that changes when its content does).
-        max_open: episode files kept open (memory-mapped) per process.
+        max_open: episode files kept open (memory-mapped) per process. Episodes that link the
+            dataset's depth map nothing once parsed: up to ``MAX_LINKED_KEPT`` of them stay
+            parsed besides, so that a worker sampling at random does not reopen them.
         link_depth: link the dataset's own depth files instead of storing a copy, where the
             reconstructor only cleans given depth and the source names the files (see the
             module docstring); False stores the copy, and makes linked episodes stale.
@@ -231,10 +237,16 @@ class GaussianCache:
         self.dataset = dataset
         self.max_open = max_open
         self.link_depth = link_depth and getattr(reconstructor, "given_depth", False)
-        self._open: OrderedDict[int, _EpisodeFile] = OrderedDict()
+        self._open: OrderedDict[int, _EpisodeFile] = OrderedDict()  # memory-mapped
+        self._linking: OrderedDict[int, _EpisodeFile] = OrderedDict()  # parsed, nothing mapped
 
     def __getstate__(self) -> dict:  # open file handles do not cross process boundaries
-        return {**self.__dict__, "_open": OrderedDict()}
+        return {**self.__dict__, "_open": OrderedDict(), "_linking": OrderedDict()}
+
+    def _forget(self, episode: int) -> None:
+        """Drop the parsed file of ``episode`` (it is being rebuilt or was replaced)."""
+        self._open.pop(int(episode), None)
+        self._linking.pop(int(episode), None)
 
     def path(self, episode: int) -> Path:
         return self.root / f"episode_{int(episode):06d}.safetensors"
@@ -249,7 +261,7 @@ class GaussianCache:
         if not verify and self.status(episode) == "ok":
             return None
         with self.lock(episode):
-            self._open.pop(int(episode), None)  # another process may have replaced the file
+            self._forget(episode)  # another process may have replaced the file
             if self.status(episode) == "ok" and (not verify or self.verify(episode)):
                 return None
             return self._build(episode, source)
@@ -295,7 +307,7 @@ class GaussianCache:
             if os.path.exists(tmp):
                 os.unlink(tmp)
             os.close(fd)
-        self._open.pop(int(episode), None)
+        self._forget(episode)
         return CacheStats(n, len(data))
 
     def _tmp(self, episode: int) -> Path:
@@ -398,13 +410,15 @@ class GaussianCache:
 
     def _file(self, episode: int) -> _EpisodeFile:
         episode = int(episode)
-        if episode in self._open:
-            self._open.move_to_end(episode)
-            return self._open[episode]
+        for kept in (self._linking, self._open):
+            if episode in kept:
+                kept.move_to_end(episode)
+                return kept[episode]
         f = _EpisodeFile(self.path(episode), episode, self)
-        self._open[episode] = f
-        while len(self._open) > self.max_open:
-            self._open.popitem(last=False)
+        kept, most = (self._linking, MAX_LINKED_KEPT) if f.handle is None else (self._open, self.max_open)
+        kept[episode] = f
+        while len(kept) > most:
+            kept.popitem(last=False)
         return f
 
 
@@ -530,6 +544,8 @@ class _EpisodeFile:
             raise CorruptCacheError(f"{path}: malformed header ({type(e).__name__}: {e})") from e
         self._linked = [self._open_link(p, size) for p, size, _ in self.links]
         self._clean = cache.reconstructor.clean_depth if self.links else None
+        if self.links:  # everything else it holds is parsed: map nothing (tensor() reopens)
+            self.handle = None
         self._static: Gaussians | None = None
         self._reference: np.ndarray | None = None
 
@@ -589,7 +605,8 @@ class _EpisodeFile:
     def tensor(self, name: str) -> torch.Tensor:
         """One stored tensor, checksum verified."""
         try:
-            t = self.handle.get_tensor(name)
+            handle = self.handle if self.handle is not None else safe_open(str(self.path), framework="pt")
+            t = handle.get_tensor(name)
         except Exception as e:
             raise CorruptCacheError(f"{self.path}: cannot read {name!r} ({e})") from e
         if _tensor_crc(name, t) != self.crc.get(name):
@@ -625,7 +642,10 @@ class _EpisodeFile:
         :func:`.depth_codec.depth_from_words`."""
         self._check_frame(frame)
         if self._linked:
-            return torch.cat([d[frame : frame + 1] for d in self._linked]).view(torch.int16), False
+            try:
+                return torch.cat([d[frame : frame + 1] for d in self._linked]).view(torch.int16), False
+            except (OSError, ValueError) as e:  # removed or cut short since the episode was opened
+                raise StaleCacheError(f"{self.path}: the dataset's depth file it links changed ({e})") from e
         if self._reference is None:  # decoded once per process and episode, then reused
             blob = self.tensor("depth.reference").numpy().tobytes()
             try:

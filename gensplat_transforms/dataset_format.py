@@ -23,11 +23,12 @@ image feature would be fed to the policy as an extra camera):
 from __future__ import annotations
 
 import json
+import os
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-from safetensors import safe_open
 from safetensors.torch import save_file
 
 from .atomic import atomic_write
@@ -132,7 +133,7 @@ def save_depth(root: str | Path, camera: str, episode: int, depth: torch.Tensor)
 
 
 def load_depth(root: str | Path, camera: str, episode: int, frame: int | None = None) -> torch.Tensor:
-    """Metric depth, float32: (T, 1, H, W), or (1, H, W) for one ``frame`` (memory-mapped)."""
+    """Metric depth, float32: (T, 1, H, W), or (1, H, W) for one ``frame`` (only that one read)."""
     path = depth_path(root, camera, episode)
     if not path.exists():
         raise FileNotFoundError(f"no depth for camera {camera!r}, episode {episode}: {path} is missing")
@@ -140,21 +141,59 @@ def load_depth(root: str | Path, camera: str, episode: int, frame: int | None = 
     return depth[:].float()[:, None] if frame is None else depth[frame : frame + 1].float()
 
 
-def open_depth(path: str | Path):
-    """The ``"depth"`` tensor of a depth file, memory-mapped: slicing it reads only those
-    frames (``[t : t + 1]`` -> (1, H, W) float16); ``.get_shape()`` is (T, H, W).
-    Raises ValueError naming the file when it is not a readable depth file."""
-    try:
-        f = safe_open(str(path), framework="pt")
-        if (f.metadata() or {}).get("format") != DEPTH_FORMAT:
+def open_depth(path: str | Path) -> DepthFile:
+    """The ``"depth"`` tensor of a depth file, read frame by frame (``[t : t + 1]`` -> (1, H, W)
+    float16); ``.get_shape()`` is (T, H, W). Raises ValueError naming the file when it is not
+    a readable depth file."""
+    return DepthFile(path)
+
+
+class DepthFile:
+    """A depth sidecar's ``"depth"`` tensor, its safetensors header checked once, its frames
+    read with positioned reads when sliced. No memory map: a worker opens one per sample at
+    random, and mapping and unmapping three files costs it about 4x more than reading."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        try:
+            with open(self.path, "rb") as f:
+                size = os.fstat(f.fileno()).st_size
+                (n,) = struct.unpack("<Q", f.read(8))
+                if not 0 < n <= min(size - 8, 1 << 24):
+                    raise ValueError(f"header length {n} in a file of {size} bytes")
+                header = json.loads(f.read(n))
+        except (OSError, ValueError, struct.error) as e:  # JSONDecodeError is a ValueError
+            raise ValueError(f"{path}: unreadable depth file ({e})") from e
+        if not isinstance(header, dict) or (header.get("__metadata__") or {}).get("format") != DEPTH_FORMAT:
             raise ValueError(f"{path}: not a GenSplat depth file")
-        depth = f.get_slice("depth")
-        if len(depth.get_shape()) != 3:
-            raise ValueError(f"{path}: depth of shape {depth.get_shape()}, expected (T, H, W)")
-        if depth.get_dtype() != "F16":
-            raise ValueError(f"{path}: depth of dtype {depth.get_dtype()}, expected F16 (float16)")
-        return depth
-    except ValueError:
-        raise
-    except Exception as e:
-        raise ValueError(f"{path}: unreadable depth file ({e})") from e
+        depth = header.get("depth") or {}
+        shape, dtype, (lo, hi) = depth.get("shape"), depth.get("dtype"), depth.get("data_offsets", (0, -1))
+        if not isinstance(shape, list) or len(shape) != 3:
+            raise ValueError(f"{path}: depth of shape {shape}, expected (T, H, W)")
+        if dtype != "F16":
+            raise ValueError(f"{path}: depth of dtype {dtype}, expected F16 (float16)")
+        self.shape = tuple(int(x) for x in shape)
+        self._start, self._frame_bytes = 8 + n + int(lo), 2 * self.shape[1] * self.shape[2]
+        if int(hi) - int(lo) != self._frame_bytes * self.shape[0] or self._start + int(hi) - int(lo) > size:
+            raise ValueError(f"{path}: unreadable depth file (its data does not hold {self.shape} float16 values)")
+
+    def get_shape(self) -> tuple[int, int, int]:
+        return self.shape
+
+    def __getitem__(self, frames: slice) -> torch.Tensor:
+        """(n, H, W) float16 frames ``frames`` (a slice with step 1, clamped to the file)."""
+        start, stop, step = frames.indices(self.shape[0])
+        if step != 1:
+            raise ValueError(f"DepthFile: frames must be a slice with step 1, got {frames}")
+        n = max(stop - start, 0)
+        if n == 0:
+            return torch.zeros(0, *self.shape[1:], dtype=torch.float16)
+        buffer = bytearray(n * self._frame_bytes)
+        fd = os.open(self.path, os.O_RDONLY)
+        try:
+            got = os.preadv(fd, [buffer], self._start + start * self._frame_bytes)
+        finally:
+            os.close(fd)
+        if got != len(buffer):
+            raise ValueError(f"{self.path}: read {got} of {len(buffer)} bytes of depth (the file was truncated)")
+        return torch.frombuffer(buffer, dtype=torch.float16).reshape(n, *self.shape[1:])

@@ -172,6 +172,57 @@ def test_a_cache_written_with_zlib_still_reads(tmp_path, source, built, monkeypa
     assert fresh(old).status(0) == "corrupt"
 
 
+def test_a_depth_file_is_read_frame_by_frame_and_checked(tmp_path):
+    """Slices read only their frames and equal the stored ones; a file cut short or with a
+    damaged header is refused when opened, and one cut short later when read."""
+    from gensplat_transforms.dataset_format import depth_path, open_depth, save_depth
+
+    depth = torch.rand(5, 6, 7) * 3
+    path = save_depth(tmp_path, "left", 0, depth)
+    f = open_depth(path)
+    assert f.get_shape() == (5, 6, 7)
+    assert torch.equal(f[1:3], depth[1:3].half()) and f[4:9].shape == (1, 6, 7) and f[9:10].shape == (0, 6, 7)
+    data = path.read_bytes()
+    path.write_bytes(data[:-10])
+    with pytest.raises(ValueError, match="does not hold"):
+        open_depth(path)
+    path.write_bytes(data)
+    f = open_depth(path)
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ValueError, match="truncated"):
+        f[4:5]
+    path.write_bytes(b"\xff" * 8 + data[8:])
+    with pytest.raises(ValueError, match="unreadable depth file"):
+        open_depth(depth_path(tmp_path, "left", 0))
+
+
+def test_a_linked_depth_file_cut_short_while_open_is_stale(linked):
+    cache = linked[0]
+    cache.read_depth(0, 0)  # the episode is open
+    path = cache._file(0).links[0][0]
+    path.write_bytes(path.read_bytes()[:200])
+    with pytest.raises(StaleCacheError, match="depth file it links changed"):
+        cache.read_depth(0, 2)
+
+
+def test_linked_episodes_stay_parsed_without_a_mapping(linked, built):
+    """Episodes that link the dataset's depth keep nothing mapped, so max_open does not evict
+    them (a worker sampling at random does not reopen them); stored ones count against it.
+    A parsed linked episode still verifies (its file is reopened for the checksums)."""
+    cache, _, _ = linked
+    c = fresh(cache)
+    c.max_open = 1
+    for e in (0, 1, 0):
+        c.read_depth(e, 1)
+    assert list(c._linking) == [1, 0] and not c._open and c._file(0).handle is None
+    assert c.verify(0) and c.verify(1)
+    stored = fresh(built[0])
+    stored.max_open = 1
+    for e in (0, 1):
+        stored.read_depth(e, 1)
+    assert list(stored._open) == [1] and not stored._linking
+
+
 def test_depth_codec_rejects_a_blob_of_the_wrong_size():
     ref, _ = dc.encode_episode(torch.ones(2, 1, 4, 4))
     with pytest.raises(ValueError, match="expected 32"):
