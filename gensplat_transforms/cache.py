@@ -13,8 +13,8 @@ What it stores depends on the reconstructor:
   depth, ``DepthReconstructor.given_depth``) and the source names that depth's files
   (``depth_files``), nothing of it is stored: the episode file *links* the dataset's depth
   files (paths relative to the cache folder, their sizes and CRC-32s) and holds the cameras
-  once, about 1 kB per episode; workers read each frame's depth from the dataset, memory-
-  mapped. ``link_depth=False`` stores the compressed copy instead (e.g. where the dataset
+  once, about 1 kB per episode; workers read each frame's depth from the dataset, frame
+  by frame. ``link_depth=False`` stores the compressed copy instead (e.g. where the dataset
   sits on slow network storage: 4-17 kB per timestep to read instead of the raw depth).
 * ``gaussians`` (any other reconstructor, e.g. the feed-forward model's Gaussian head):
   the Gaussians themselves, quantised (means as uint16 inside the episode's bounding box,
@@ -584,7 +584,7 @@ class _EpisodeFile:
         self.K, self.c2w = K.expand(self.num_frames, -1, -1, -1), c2w.expand(self.num_frames, -1, -1, -1)
 
     def _open_link(self, path: Path, size: int):
-        """A linked depth file, memory-mapped, after checking it is the file that was linked
+        """A linked depth file (read frame by frame), after checking it is the file that was linked
         (as far as its size and shape tell; its CRC is checked by ``verify``)."""
         try:
             now = path.stat().st_size
