@@ -57,6 +57,7 @@ from .cameras import Cameras
 from .dataset_format import open_depth
 from .gaussians import Gaussians
 from .reconstruction import DepthReconstructor, Reconstruction, Reconstructor, Views
+from .reconstruction.base import nearest_pixels
 
 FORMAT = "gensplat-cache"
 FORMAT_VERSION = "2"
@@ -373,13 +374,17 @@ class GaussianCache:
         f = self._file(episode)
         return f.width, f.height
 
-    def read(self, episode: int, frame: int, images: torch.Tensor | None = None) -> Reconstruction:
+    def read(self, episode: int, frame: int, images: torch.Tensor | None = None,
+             size: tuple[int, int] | None = None) -> Reconstruction:  # fmt: skip
         """Gaussians (float32) and source cameras of one timestep.
 
         Args:
-            images: (V, 3, H, W) float in [0, 1], the reconstructed cameras' images of this
-                timestep at the cached size; required by a ``depth`` cache, which builds the
+            images: (V, 3, h, w) float in [0, 1], the reconstructed cameras' images of this
+                timestep at ``size``; required by a ``depth`` cache, which builds the
                 Gaussians from them, ignored otherwise.
+            size: (width, height) to build at, default the cached size: the cameras'
+                intrinsics are scaled to it and a depth cache takes the depth at the pixel
+                nearest each pixel centre of that size (:func:`.reconstruction.base.nearest_pixels`).
         Raises:
             FileNotFoundError: the episode is not cached.
             IndexError: ``frame`` is outside the episode.
@@ -387,10 +392,12 @@ class GaussianCache:
         """
         f = self._file(episode)
         if self.kind == "gaussians":
-            return f.gaussians(frame)
+            found = f.gaussians(frame)
+            resized = size not in (None, (f.width, f.height))
+            return Reconstruction(found.gaussians, found.cameras.resize(*size)) if resized else found
         if images is None:
             raise ValueError(f"GaussianCache.read: a depth cache ({self.identity}) needs the views' images")
-        return self.reconstructor.assemble(f.depth_views(frame, images))
+        return self.reconstructor.assemble(f.depth_views(frame, images, size))
 
     def read_depth(self, episode: int, frame: int) -> tuple[torch.Tensor, Cameras]:
         """The stored depth (V, 1, H, W) float32 and cameras of one timestep of a ``depth``
@@ -620,14 +627,18 @@ class _EpisodeFile:
     def cameras(self, frame: int) -> Cameras:
         return Cameras(self.K[frame], self.c2w[frame], self.width, self.height)
 
-    def depth_views(self, frame: int, images: torch.Tensor) -> Views:
-        """Views of one frame: the given images, the cached cameras and depth (a linked
-        file's uncleaned: ``assemble`` cleans it)."""
-        depth = self.depth(frame, clean=False)
-        want = (self.num_views, 3, self.height, self.width)
+    def depth_views(self, frame: int, images: torch.Tensor, size: tuple[int, int] | None = None) -> Views:
+        """Views of one frame at ``size`` (width, height; default the cached size): the given
+        images, the cached cameras and depth (a linked file's uncleaned: ``assemble`` cleans
+        it), see :meth:`GaussianCache.read`."""
+        width, height = size or (self.width, self.height)
+        want = (self.num_views, 3, height, width)
         if tuple(images.shape) != want:
-            raise ValueError(f"GaussianCache.read: images of shape {tuple(images.shape)}, the cache holds {want}")
-        return Views(images, self.cameras(frame), depth)
+            raise ValueError(f"GaussianCache.read: images of shape {tuple(images.shape)}, expected {want}")
+        depth, cameras = self.depth(frame, clean=False), self.cameras(frame)
+        if (width, height) != (self.width, self.height):
+            depth, cameras = nearest_pixels(depth, width, height), cameras.resize(width, height)
+        return Views(images, cameras, depth)
 
     def depth(self, frame: int, clean: bool = True) -> torch.Tensor:
         """(V, 1, H, W) float32 depth of one frame; a linked file's is the dataset's, cleaned

@@ -64,6 +64,10 @@ def build_parser() -> argparse.ArgumentParser:
     cache.add_argument("--render-in", choices=["auto", "worker", "batch"], default="auto",
                        help="worker: render in the dataloader workers; batch: render each batch on the training "
                             "device after collation; auto: batch when training on CUDA (default: auto)")
+    cache.add_argument("--render-scale", type=float, default=1.0,
+                       help="render the augmented views at this fraction of the frame size, then resize them to it: "
+                            "about scale^2 of the render time, e.g. 0.5 for 640x480 frames that the policy shrinks "
+                            "to 320x240 (benchmarks/render_scale.py; default: 1.0)")
     cache.add_argument("--episodes", type=int, nargs="+", default=None, help="only these episodes (default: all)")
     cache.add_argument("--trust-headers", dest="verify", action="store_false",
                        help="resume without reading cached data: skip every episode whose header is valid (data "
@@ -244,7 +248,7 @@ def _cache(args) -> None:
     config = GenSplatConfig(
         cameras=cameras, replace=args.replace, level=args.level, probability=args.probability, mode=args.mode,
         views_per_source=args.views_per_source, seed=args.seed, backend=args.backend, fill_holes=args.fill_holes,
-        render_in=args.render_in,
+        render_in=args.render_in, render_scale=args.render_scale,
     )  # fmt: skip
     spec = None if args.reconstructor is None else {"name": args.reconstructor}
     if args.model:

@@ -19,6 +19,7 @@ from .gaussians import Gaussians
 from .holes import fill_holes
 from .perturbation import AXES, Perturbation, PerturbationRange, PerturbationSampler
 from .reconstruction import Reconstruction
+from .reconstruction.base import nearest_pixels
 from .rendering import BACKENDS, RenderOutput, render
 
 logger = logging.getLogger(__name__)
@@ -54,6 +55,12 @@ class GenSplatConfig:
             source camera saw) and soften silhouette edges with the surrounding colours
             (``holes.fill_holes``), instead of ``background``.
         report: add ``gensplat.*`` keys describing the perturbation to the item.
+        render_scale: build and render the augmented views at this fraction of the cached
+            image size, in (0, 1], then resize them to the image size (see
+            :func:`render_size`): about scale^2 of the render's time. A policy that shrinks
+            its input images loses little when the views are rendered near its input size,
+            e.g. 0.35 of 640x480 frames for a policy that reads 224x168
+            (``benchmarks/render_scale.py`` gives the fidelity and time of each scale).
         render_in: "worker" renders in the transform; "batch" only reads the cache and draws
             the perturbation there, adding the inputs of :func:`.batched.render_batch` to the
             item, which renders a whole batch at once after collation (on the training GPU).
@@ -81,6 +88,7 @@ class GenSplatConfig:
     fill_holes: bool = True
     report: bool = False
     render_in: str = "auto"
+    render_scale: float = 1.0
 
     def __post_init__(self) -> None:
         self.cameras = tuple(self.cameras)
@@ -97,6 +105,8 @@ class GenSplatConfig:
         if self.backend not in (*BACKENDS, "auto"):
             raise ValueError(f"GenSplatConfig.backend: unknown {self.backend!r}; available {sorted(BACKENDS)} "
                              "or 'auto'")
+        if not 0 < self.render_scale <= 1:
+            raise ValueError(f"GenSplatConfig.render_scale must be in (0, 1], got {self.render_scale}")
         if self.render_in not in RENDER_IN:
             raise ValueError(f"GenSplatConfig.render_in must be one of {RENDER_IN}, got {self.render_in!r}")
 
@@ -122,6 +132,17 @@ class GenSplatConfig:
 
 def _tuples(d: dict) -> dict:
     return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+
+
+def render_size(width: int, height: int, scale: float) -> tuple[int, int]:
+    """(width, height) of the views rendered for ``width x height`` images at ``scale``
+    (``GenSplatConfig.render_scale``), at least one pixel each.
+
+    Example:
+        >>> render_size(640, 480, 0.35)
+        (224, 168)
+    """
+    return max(1, round(width * scale)), max(1, round(height * scale))
 
 
 def render_view(gaussians: Gaussians, camera: Cameras, config: GenSplatConfig) -> RenderOutput:
@@ -252,16 +273,21 @@ class GenSplatTransform:
     def _render_like(self, item: dict, keys: dict[str, str], episode: int, frame: int, name: str,
                      p: Perturbation, read: dict[int, Reconstruction]) -> torch.Tensor:
         """Rendered replacement of ``item[keys[name]]`` with its shape and dtype (:func:`like_images`)."""
-        image = item[keys[name]]
+        image, size = item[keys[name]], self._render_size(episode)
         rgbs = []
         for k, (o, f) in enumerate(self._stack_frames(image, episode, frame)):
             if f not in read:
-                images = self._source_images(item, keys, k, o, episode, f) if self.cache.kind == "depth" else None
-                read[f] = self._read(episode, lambda f=f, images=images: self.cache.read(episode, f, images))
+                depth = self.cache.kind == "depth"
+                images = self._source_images(item, keys, k, o, episode, f, size) if depth else None
+                read[f] = self._read(episode, lambda f=f, images=images: self.cache.read(episode, f, images, size))
             target = p.move(read[f].cameras, self.cfg.cameras.index(name))
             rgbs.append(render_view(read[f].gaussians, target, self.cfg).rgb[0])
         rgb = like_images(torch.stack(rgbs), image)
         return rgb if image.ndim == 4 else rgb[0]
+
+    def _render_size(self, episode: int) -> tuple[int, int]:
+        """(width, height) of the views rendered for ``episode`` (see :func:`render_size`)."""
+        return render_size(*self.cache.image_size(episode), self.cfg.render_scale)
 
     def _stack_frames(self, image: torch.Tensor, episode: int, frame: int) -> list[tuple[int, int]]:
         """(offset, frame) of each image of ``image``'s temporal stack, one for a single image;
@@ -281,9 +307,10 @@ class GenSplatTransform:
         ``gensplat.render`` () bool, augmented; ``gensplat.depth`` (T, V, h, w) int16, the
         cached depth of the V reconstructed cameras at the T frames of the stack as the cache
         stores it (two bytes a pixel, uncleaned: the batch side decodes and cleans it, see
-        :func:`.depth_codec.depth_from_words`) and ``gensplat.coded`` () bool, how it is coded;
+        :func:`.depth_codec.depth_from_words`), at the render size (:func:`render_size`: the
+        pixels nearest its pixel centres) and ``gensplat.coded`` () bool, how it is coded;
         ``gensplat.K`` (T, V, 3, 3) and ``gensplat.c2w`` (T, V, 4, 4) float64, their cached
-        cameras; ``gensplat.moves`` (R, 3) float64, the move of each of the R replaced cameras
+        cameras (intrinsics at the render size); ``gensplat.moves`` (R, 3) float64, the move of each of the R replaced cameras
         as (axis index, theta_deg, mu_m) (the batch side moves the cameras, all at once). Their
         images are taken from the batch, so every reconstructed camera must be stacked alike."""
         stacks = {tuple(item[keys[n]].shape[:-3]) for n in self.cfg.cameras}
@@ -291,22 +318,25 @@ class GenSplatTransform:
             raise ValueError(f"GenSplatTransform: render_in='batch' needs the images of {self.cfg.cameras} stacked "
                              f"alike, got stacks {sorted(stacks)}: use render_in='worker'")  # fmt: skip
         frames = self._stack_frames(item[keys[self.cfg.replace[0]]], episode, frame)
-        width, height = self.cache.image_size(episode)
+        width, height = self._render_size(episode)
+        resized = (width, height) != self.cache.image_size(episode)
         T, V, R = len(frames), len(self.cfg.cameras), len(self.cfg.replace)
         depth = torch.zeros(T, V, height, width, dtype=torch.int16)
         K = torch.zeros(T, V, 3, 3, dtype=torch.float64)
         c2w = torch.zeros(T, V, 4, 4, dtype=torch.float64)
         coded = False
         for k, (_, f) in enumerate(frames if applied else []):
-            (depth[k], coded), cameras = self._read(episode, lambda f=f: self.cache.read_depth_words(episode, f))
-            K[k], c2w[k] = cameras.K, cameras.c2w
+            (words, coded), cameras = self._read(episode, lambda f=f: self.cache.read_depth_words(episode, f))
+            if resized:
+                words, cameras = nearest_pixels(words, width, height), cameras.resize(width, height)
+            depth[k], K[k], c2w[k] = words, cameras.K, cameras.c2w
         moved = torch.tensor([[AXES.index(p.axis), p.theta_deg, p.mu_m] for p in moves], dtype=torch.float64)
         return dict(zip(BATCH_KEYS, (torch.tensor(applied), depth, torch.tensor(coded), K, c2w, moved.reshape(R, 3))))
 
     def _source_images(self, item: dict, keys: dict[str, str], k: int, offset: int, episode: int,
-                       frame: int) -> torch.Tensor:
-        """(V, 3, H, W) float images of the reconstructed cameras at stack index ``k`` (frame
-        ``frame``, offset ``offset`` from the item's), at the cache's size (a depth cache builds
+                       frame: int, size: tuple[int, int]) -> torch.Tensor:
+        """(V, 3, h, w) float images of the reconstructed cameras at stack index ``k`` (frame
+        ``frame``, offset ``offset`` from the item's), at ``size`` = (w, h) (a depth cache builds
         the Gaussians from them). Frames the item does not carry are read from the source."""
         if any(item[keys[n]].ndim == 3 for n in self.cfg.cameras) and offset != 0:
             if self.source is None:
@@ -316,7 +346,7 @@ class GenSplatTransform:
             images = list(self.source.views(episode, frame).images)
         else:
             images = [item[keys[n]] if item[keys[n]].ndim == 3 else item[keys[n]][k] for n in self.cfg.cameras]
-        width, height = self.cache.image_size(episode)
+        width, height = size
         return torch.cat([as_cache_images(image[None], height, width) for image in images])
 
     def _ensure(self, episode: int, verify: bool = False) -> None:

@@ -240,6 +240,8 @@ def test_cli_user_mistakes_end_with_the_message(dataset_root, tmp_path, capsys):
     err = capsys.readouterr().err
     assert err == f"gensplat: error: {tmp_path / 'nothing'}: not a local LeRobot dataset " \
                   f"({tmp_path / 'nothing' / 'meta' / 'info.json'} does not exist)\n"
+    assert main(["cache", "--root", str(dataset_root), "--repo-id", REPO, "--render-scale", "2"]) == 2
+    assert capsys.readouterr().err == "gensplat: error: GenSplatConfig.render_scale must be in (0, 1], got 2.0\n"
     info_path = dataset_root / "meta" / "info.json"
     info = json.loads(info_path.read_text())
     info["features"]["observation.images.right"]["info"] = {}  # one calibrated external camera left
@@ -261,9 +263,10 @@ def test_cache_command_writes_settings_and_cache(dataset_root, capsys):
     assert config.level == "large" and config.probability == 0.7 and config.cameras == ("left", "right")
     assert reconstructor["name"] == "rgbd" and config.fill_holes
     assert config.render_in == "auto"
-    main(["cache", "--root", str(dataset_root), "--repo-id", REPO, "--no-fill-holes", "--render-in", "batch"])
+    main(["cache", "--root", str(dataset_root), "--repo-id", REPO, "--no-fill-holes", "--render-in", "batch",
+          "--render-scale", "0.5"])  # fmt: skip
     config = load_settings(dataset_root)[0]
-    assert not config.fill_holes and config.render_in == "batch"
+    assert not config.fill_holes and config.render_in == "batch" and config.render_scale == 0.5
 
 
 def test_missing_settings_or_depth_raise_clear_errors(dataset_root):
@@ -335,7 +338,7 @@ def test_lerobot_train_diffusion_policy_with_the_one_line(data, request, tmp_pat
     # at the start, one block: what GenSplat does, and that a resumed run needs the line again
     start = log[log.index("GenSplat enabled on the training dataset:") :].splitlines()[1:4]
     assert re.fullmatch(r"  cache: \S+gensplat/cache/rgbd-\w+ \(0 of \d episodes cached\), reconstructor rgbd-\w+", start[0])
-    assert start[1] == "  probability 1.0, level train, mode episode, cameras replaced: left, right " \
+    assert start[1] == "  probability 1.0, level train, mode episode, render scale 1.0, cameras replaced: left, right " \
                        "(reconstructed from left, right)"
     assert "--resume=true" in start[2] and "--gensplat.discover_packages_path=gensplat_lerobot.plugin" in start[2]
     # at every log step (--log_freq=1): counts gathered from the two spawn workers (which may

@@ -12,7 +12,7 @@ from tiny_model import TINY
 
 from gensplat_transforms.cli import main as cli_main
 from gensplat_transforms.model import GenSplatModel, ModelConfig
-from gensplat_transforms.model.data import ProceduralViews, RigConfig, resize_views
+from gensplat_transforms.model.data import ProceduralViews, RigConfig
 from gensplat_transforms.model.losses import LossWeights
 from gensplat_transforms.model.teacher import Pi3Teacher, TrueGeometryTeacher, camera_points
 from gensplat_transforms.model.train import (
@@ -310,13 +310,13 @@ def test_rig_cameras_respect_the_azimuth_range_and_separation():
         torch.testing.assert_close(cams.forward, looking_at_target)
 
 
-def test_resize_views_keeps_intrinsics_consistent():
+def test_resized_views_keep_intrinsics_consistent():
     views = ProceduralViews(1, 56, 2)[0]
-    small = resize_views(views, 28, 42)
+    small = views.resized(42, 28)
     assert small.images.shape == (2, 3, 28, 42) and small.depths.shape == (2, 1, 28, 42)
     assert (small.cameras.width, small.cameras.height) == (42, 28)
     torch.testing.assert_close(small.cameras.K[:, 0, 0], views.cameras.K[:, 0, 0] * 42 / 56)
-    assert resize_views(views, 56, 56) is views
+    assert views.resized(56, 56) is views
 
 
 def test_lerobot_views_train_with_the_recorded_geometry(tmp_path, monkeypatch):

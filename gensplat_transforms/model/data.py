@@ -13,7 +13,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch.utils.data import Dataset
 
 from ..cameras import Cameras, focal_from_fov, look_at
@@ -96,16 +95,4 @@ class ProceduralViews(Dataset):
         cameras = self.rig.sample(np.random.default_rng([self.seed, i]), self.num_views, self.size)
         rgb, depth = TabletopScene(self.seed + i).render(cameras)
         return Views(rgb, cameras, depth)
-
-
-def resize_views(views: Views, height: int, width: int) -> Views:
-    """Views resized to ``height x width`` (area-antialiased images, nearest depth, scaled intrinsics)."""
-    _, _, H, W = views.images.shape
-    if (H, W) == (height, width):
-        return views
-    images = F.interpolate(views.images.float(), size=(height, width), mode="bilinear", antialias=True,
-                           align_corners=False).clamp(0, 1)  # fmt: skip
-    depths = None if views.depths is None else F.interpolate(views.depths.float(), size=(height, width))
-    cameras = None if views.cameras is None else views.cameras.resize(width, height)
-    return Views(images, cameras, depths)
 

@@ -9,6 +9,7 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 
 from ..cameras import Cameras
 from ..gaussians import Gaussians
@@ -23,6 +24,15 @@ def valid_depth(depth: torch.Tensor) -> torch.Tensor:
     """Bool mask, same shape as ``depth``, of the values that are depths: > 0 and
     <= ``MAX_VIEW_DEPTH`` (so NaN and +-Inf are not)."""
     return (depth > 0) & (depth <= MAX_VIEW_DEPTH)
+
+
+def nearest_pixels(x: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """(..., H, W) values of any dtype at ``width x height``: each new pixel takes the value of
+    the source pixel nearest its centre (PyTorch's "nearest-exact"), so depths are never mixed."""
+    H, W = x.shape[-2:]
+    rows = ((torch.arange(height, device=x.device) + 0.5) * (H / height)).long().clamp_(max=H - 1)
+    cols = ((torch.arange(width, device=x.device) + 0.5) * (W / width)).long().clamp_(max=W - 1)
+    return x[..., rows[:, None], cols]
 
 
 @dataclass
@@ -70,6 +80,18 @@ class Views:
 
     def __len__(self) -> int:
         return self.images.shape[0]
+
+    def resized(self, width: int, height: int) -> Views:
+        """The views at ``width x height``: images resized with area antialiasing, depth
+        sampled at the source pixel nearest each new pixel centre (never a mix of depths across
+        an edge), intrinsics scaled; ``self`` when the size is unchanged."""
+        if self.images.shape[-2:] == (height, width):
+            return self
+        images = F.interpolate(self.images, size=(height, width), mode="bilinear", antialias=True,
+                               align_corners=False)  # fmt: skip
+        depths = None if self.depths is None else nearest_pixels(self.depths, width, height)
+        cameras = None if self.cameras is None else self.cameras.resize(width, height)
+        return Views(images.clamp(0, 1), cameras, depths)
 
 
 @dataclass

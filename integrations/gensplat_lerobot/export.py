@@ -7,7 +7,6 @@ from collections.abc import Iterable
 from pathlib import Path
 
 from gensplat_transforms.gaussians import Gaussians
-from gensplat_transforms.model.data import resize_views
 from gensplat_transforms.reconstruction import make_reconstructor
 
 from .dataset import dataset_cache, load_settings
@@ -45,7 +44,7 @@ def timestep_gaussians(root: str | Path, repo_id: str, episode: int, frame: int)
     images = None
     if cache.kind == "depth":  # the cache holds depth: the Gaussians are built from the frame's images
         width, height = cache.image_size(episode)
-        images = resize_views(source.views(episode, frame), height, width).images
+        images = source.views(episode, frame).resized(width, height).images
     return cache.read(episode, frame, images).gaussians
 
 

@@ -23,7 +23,6 @@ from gensplat_transforms.dataset_format import (
     load_depth,
 )
 from gensplat_transforms.model import PATCH_SIZE
-from gensplat_transforms.model.data import resize_views
 from gensplat_transforms.reconstruction import Views
 
 
@@ -135,7 +134,7 @@ class LeRobotViews(Dataset):
         return len(self.index)
 
     def __getitem__(self, i: int) -> Views:
-        return resize_views(self.source.views(*self.index[i]), self.size, self.size)
+        return self.source.views(*self.index[i]).resized(self.size, self.size)
 
 
 @cache

@@ -60,7 +60,8 @@ def start_message(train, cfg) -> str:
     return "\n".join([
         "GenSplat enabled on the training dataset:",
         f"  cache: {tf.cache.root} ({cached} of {total} episodes cached), reconstructor {tf.cache.identity}",
-        f"  probability {c.probability}, level {c.level}, mode {c.mode}, cameras replaced: {', '.join(c.replace)} "
+        f"  probability {c.probability}, level {c.level}, mode {c.mode}, render scale {c.render_scale}, "
+        + f"cameras replaced: {', '.join(c.replace)} "
         + f"(reconstructed from {', '.join(c.cameras)})",
         f"  {resumed}a run resumed with --resume=true trains without GenSplat unless {LINE} is given again",
     ])  # fmt: skip
