@@ -336,11 +336,13 @@ def test_lerobot_train_diffusion_policy_with_the_one_line(data, request, tmp_pat
     assert run.returncode == 0, run.stderr[-3000:]
     log = run.stderr + run.stdout
     # at the start, one block: what GenSplat does, and that a resumed run needs the line again
-    start = log[log.index("GenSplat enabled on the training dataset:") :].splitlines()[1:4]
+    start = log[log.index("GenSplat enabled on the training dataset:") :].splitlines()[1:5]
     assert re.fullmatch(r"  cache: \S+gensplat/cache/rgbd-\w+ \(0 of \d episodes cached\), reconstructor rgbd-\w+", start[0])
-    assert start[1] == "  probability 1.0, level train, mode episode, render scale 1.0, cameras replaced: left, right " \
+    assert start[1] == "  probability 1.0, level train, mode episode, cameras replaced: left, right " \
                        "(reconstructed from left, right)"
-    assert "--resume=true" in start[2] and "--gensplat.discover_packages_path=gensplat_lerobot.plugin" in start[2]
+    assert re.fullmatch(r"  views rendered at (\d+x\d+) of \1 frames \(render scale 1.0\); the policy reads \d+x\d+",
+                        start[2])  # fmt: skip
+    assert "--resume=true" in start[3] and "--gensplat.discover_packages_path=gensplat_lerobot.plugin" in start[3]
     # at every log step (--log_freq=1): counts gathered from the two spawn workers (which may
     # have made every sample the run needs by step 1: they prefetch)
     assert re.findall(r"GenSplat step (\d+): ", log) == ["1", "2"]
@@ -356,6 +358,33 @@ def test_lerobot_train_diffusion_policy_with_the_one_line(data, request, tmp_pat
         assert "gensplat_lerobot" not in saved_file.read_text() and '"gensplat.' not in saved_file.read_text()
     policy_cfg = json.loads(next(out.rglob("pretrained_model/config.json")).read_text())
     assert policy_cfg["type"] == "diffusion"
+
+
+def test_policy_input_size_is_read_and_a_smaller_render_is_warned_of(dataset_root):
+    from types import SimpleNamespace
+
+    from gensplat_lerobot.plugin import policy_input_size, render_warning, start_message
+    from lerobot.policies.act.configuration_act import ACTConfig
+    from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
+    from lerobot.policies.pi0.configuration_pi0 import PI0Config
+    from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
+
+    assert policy_input_size(DiffusionConfig(), 640, 480) == (640, 480)  # it crops at full size
+    assert policy_input_size(DiffusionConfig(resize_shape=(240, 320)), 640, 480) == (320, 240)
+    assert policy_input_size(PI0Config(), 640, 480) == (224, 168)  # fit into 224x224, aspect kept
+    assert policy_input_size(SmolVLAConfig(resize_imgs_with_padding=(512, 256)), 640, 480) == (341, 256)
+    assert policy_input_size(ACTConfig(), 640, 480) == (640, 480)
+    assert policy_input_size(SimpleNamespace(type="vqbet"), 640, 480) is None
+    save_settings(dataset_root, GenSplatConfig(probability=1.0, render_scale=0.5), {"name": "rgbd"})
+    ds = enable_gensplat(LeRobotDataset(REPO, root=dataset_root))  # 48x48 frames
+    full, half = (SimpleNamespace(policy=p, resume=False) for p in (DiffusionConfig(),
+                                                                    DiffusionConfig(resize_shape=(24, 24))))
+    assert render_warning(ds, full) == (
+        "GenSplat renders its views at 24x24 (render scale 0.5), smaller than the 48x48 the policy reads: augmented "
+        "samples are blurrier than the others; run `gensplat cache` with --render-scale 1 or more")
+    assert render_warning(ds, half) is None and render_warning(ds, SimpleNamespace(policy=None)) is None
+    lines = start_message(ds, half).splitlines()
+    assert lines[3] == "  views rendered at 24x24 of 48x48 frames (render scale 0.5); the policy reads 24x24"
 
 
 def test_progress_line_says_when_the_workers_are_ahead():

@@ -4,9 +4,11 @@ log frequency how many samples it augmented and its time per sample. The evaluat
 evaluation scripts and saved checkpoints are untouched."""
 
 import logging
+import math
 import sys
 
 from gensplat_transforms.counters import SampleCounters
+from gensplat_transforms.transform import render_size
 
 from .. import batched
 from ..dataset import enable_gensplat
@@ -36,6 +38,8 @@ def _install() -> None:
             train.gensplat.counters = SampleCounters(cfg.num_workers)  # shared before the workers start
             _run.update(counters=train.gensplat.counters, log_freq=cfg.log_freq)
             log.info(start_message(train, cfg))
+            if (warning := render_warning(train, cfg)) is not None:
+                log.warning(warning)
             return train, evaluation
 
         def update_policy(train_metrics, *args, _original=module.update_policy, _run=run, **kwargs):
@@ -52,17 +56,62 @@ def _install() -> None:
         batched.install(module)
 
 
+def policy_input_size(policy, width: int, height: int) -> tuple[int, int] | None:
+    """(width, height) at which ``policy`` (a LeRobot policy config) reads ``width x height``
+    frames: Diffusion Policy's ``resize_shape`` (else the frame itself: it crops at full size),
+    the aspect-keeping fit into pi0 / pi0.5's ``image_resolution`` (height, width) and
+    SmolVLA's ``resize_imgs_with_padding`` (width, height), the frame for ACT; None for
+    other policies."""
+    kind = getattr(policy, "type", None)
+    if kind == "diffusion":
+        shape = getattr(policy, "resize_shape", None)
+        return (shape[1], shape[0]) if shape else (width, height)
+    if kind == "act":
+        return width, height
+    if kind in ("pi0", "pi05") and policy.image_resolution:
+        box_h, box_w = policy.image_resolution
+    elif kind == "smolvla" and policy.resize_imgs_with_padding:
+        box_w, box_h = policy.resize_imgs_with_padding
+    else:
+        return None
+    scale = min(box_h / height, box_w / width)
+    return round(width * scale), round(height * scale)
+
+
+def render_sizes(train, cfg) -> tuple[tuple[int, int], tuple[int, int], tuple[int, int] | None]:
+    """(width, height) of the first replaced camera's frames, of its rendered views and of
+    what the policy reads (None where unknown)."""
+    c = train.gensplat.cfg
+    height, width = train.meta.features[c.image_key.format(name=c.replace[0])]["shape"][:2]
+    policy = policy_input_size(getattr(cfg, "policy", None), width, height)
+    return (width, height), render_size(width, height, c.render_scale), policy
+
+
+def render_warning(train, cfg) -> str | None:
+    """A warning when GenSplat renders its views smaller than the policy reads them (the
+    augmented samples would be blurrier than the others), else None."""
+    (width, height), (w, h), policy = render_sizes(train, cfg)
+    if policy is None or (w >= policy[0] and h >= policy[1]):
+        return None
+    need = math.ceil(100 * max(policy[0] / width, policy[1] / height)) / 100
+    return (f"GenSplat renders its views at {w}x{h} (render scale {train.gensplat.cfg.render_scale}), smaller than "
+            f"the {policy[0]}x{policy[1]} the policy reads: augmented samples are blurrier than the others; run "
+            f"`gensplat cache` with --render-scale {min(need, 1.0):g} or more")  # fmt: skip
+
+
 def start_message(train, cfg) -> str:
     """The INFO block logged when training starts: what GenSplat will do to the samples."""
     tf, (cached, total) = train.gensplat, train.gensplat_cached
     c = tf.cfg
+    (width, height), (w, h), policy = render_sizes(train, cfg)
+    reads = "" if policy is None else f"; the policy reads {policy[0]}x{policy[1]}"
     resumed = "this run resumes a checkpoint with GenSplat on again; " if cfg.resume else ""
     return "\n".join([
         "GenSplat enabled on the training dataset:",
         f"  cache: {tf.cache.root} ({cached} of {total} episodes cached), reconstructor {tf.cache.identity}",
-        f"  probability {c.probability}, level {c.level}, mode {c.mode}, render scale {c.render_scale}, "
-        + f"cameras replaced: {', '.join(c.replace)} "
+        f"  probability {c.probability}, level {c.level}, mode {c.mode}, cameras replaced: {', '.join(c.replace)} "
         + f"(reconstructed from {', '.join(c.cameras)})",
+        f"  views rendered at {w}x{h} of {width}x{height} frames (render scale {c.render_scale}){reads}",
         f"  {resumed}a run resumed with --resume=true trains without GenSplat unless {LINE} is given again",
     ])  # fmt: skip
 
