@@ -37,11 +37,12 @@ from __future__ import annotations
 
 import fcntl
 import json
+import logging
 import math
 import os
 import zlib
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -53,11 +54,14 @@ from safetensors import safe_open
 from safetensors.torch import save
 
 from . import depth_codec
+from .atomic import atomic_write
 from .cameras import Cameras
 from .dataset_format import open_depth
 from .gaussians import Gaussians
 from .reconstruction import DepthReconstructor, Reconstruction, Reconstructor, Views
 from .reconstruction.base import nearest_pixels
+
+logger = logging.getLogger(__name__)
 
 FORMAT = "gensplat-cache"
 FORMAT_VERSION = "2"
@@ -196,6 +200,8 @@ class CacheStats:
 
 #: parsed episode files that link the dataset's depth, kept per process (a few kB each)
 MAX_LINKED_KEPT = 1024
+#: the files found valid, with their stat (see :meth:`GaussianCache.statuses`)
+INDEX_NAME = "index.json"
 
 
 class GaussianCache:
@@ -355,6 +361,47 @@ class GaussianCache:
             return "missing"
         return "ok"
 
+    def statuses(self, episodes: Iterable[int]) -> dict[int, str]:
+        """:meth:`status` of many episodes, without opening the files checked before.
+
+        Every file found "ok" is listed in ``<root>/index.json`` with its size, modification
+        time and inode, under the format version, reconstructor identity, dataset fingerprint
+        and depth linking it was checked for; a listed file whose ``stat`` still matches is
+        "ok" without being opened (one ``stat`` instead of a header read: what makes checking
+        a cache of many thousands of episodes before training take a second). Every other
+        episode is checked by :meth:`status`, and the index rewritten atomically when it
+        changed. An index that is unreadable or made for other settings is ignored (and
+        replaced); a folder that cannot be written to only loses the speed-up. Data checksums
+        are checked on every read, as always."""
+        index_path, identity = self.root / INDEX_NAME, self._index_identity()
+        try:
+            index = json.loads(index_path.read_text())
+            known = index["files"] if index["for"] == identity and isinstance(index["files"], dict) else {}
+        except (OSError, ValueError, KeyError, TypeError):
+            known = {}
+        listed, found = dict(known), {}
+        for episode in episodes:
+            episode, name = int(episode), self.path(episode).name
+            key = _stat_key(self.path(episode))  # before the header is read: a file replaced
+            if key is not None and known.get(name) == key:  # meanwhile is checked again next time
+                found[episode] = "ok"
+                continue
+            found[episode] = self.status(episode)
+            listed.pop(name, None)
+            if found[episode] == "ok" and key is not None:
+                listed[name] = key
+        if listed != known and self.root.is_dir():
+            try:
+                text = json.dumps({"for": identity, "files": listed}, separators=(",", ":"))
+                atomic_write(index_path, lambda tmp: Path(tmp).write_text(text))
+            except OSError as e:
+                logger.info("GaussianCache: cannot write %s (%s): the next check opens every file again", index_path, e)
+        return found
+
+    def _index_identity(self) -> dict[str, str | bool]:
+        return {"format_version": FORMAT_VERSION, "reconstructor": self.identity, "dataset": self.dataset,
+                "link_depth": self.link_depth}  # fmt: skip
+
     def verify(self, episode: int) -> bool:
         """Whether every tensor of a readable episode file passes its checksum, and every
         depth file it links has the CRC-32 it had when linked."""
@@ -427,6 +474,15 @@ class GaussianCache:
         while len(kept) > most:
             kept.popitem(last=False)
         return f
+
+
+def _stat_key(path: Path) -> list[int] | None:
+    """[size, modification time in ns, inode] of a file (as JSON lists it), None if absent."""
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    return [st.st_size, st.st_mtime_ns, st.st_ino]
 
 
 def _remove_or_wait(tmp: Path) -> None:

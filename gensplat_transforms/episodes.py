@@ -31,7 +31,8 @@ def build_cache(
     Resumable and idempotent: an episode whose file passes every checksum is skipped (its
     value in the result is None); stale, corrupt or half-written ones are rebuilt. With
     ``verify=False`` a file whose header is valid is skipped without reading its data (a
-    resume that reads kilobytes per episode instead of the whole cache): its data checksums
+    resume that reads kilobytes per episode instead of the whole cache, or only the file's
+    ``stat`` where the cache's index lists it, see :meth:`GaussianCache.statuses`): its data checksums
     are still checked on every read, which rebuilds a failing file (transform with a source)
     or raises ``CorruptCacheError``. Several
     processes may run it on the same episodes at once (see :meth:`GaussianCache.ensure`).
@@ -52,7 +53,8 @@ def build_cache(
     """
     episodes = list(episodes) if shard is None else shard.select(episodes, source.num_frames)
     desc = "caching" if shard is None or shard.world == 1 else f"caching (rank {shard.rank}/{shard.world})"
-    return {ep: cache.ensure(ep, source, verify=verify)
+    valid = set() if verify else {e for e, s in cache.statuses(episodes).items() if s == "ok"}
+    return {ep: None if ep in valid else cache.ensure(ep, source, verify=verify)
             for ep in tqdm(episodes, desc=desc, unit="episode", disable=not progress)}  # fmt: skip
 
 

@@ -277,6 +277,64 @@ def test_stale_cache_is_detected(built):
             c.read(0, 0, torch.zeros(2, 3, 48, 48))
 
 
+def counting_status(cache, monkeypatch) -> list[int]:
+    """Episodes whose header ``cache.status`` reads, in order."""
+    opened, status = [], cache.status
+    monkeypatch.setattr(cache, "status", lambda e: opened.append(e) or status(e))
+    return opened
+
+
+def test_statuses_open_only_files_not_checked_before(built, source, monkeypatch):
+    cache, _ = built
+    first = fresh(cache)
+    opened = counting_status(first, monkeypatch)
+    assert first.statuses([0, 1, 2]) == {0: "ok", 1: "ok", 2: "missing"} and opened == [0, 1, 2]
+    again = fresh(cache)
+    opened = counting_status(again, monkeypatch)
+    assert again.statuses(range(3)) == {0: "ok", 1: "ok", 2: "missing"} and opened == [2]  # from the index
+    cache.path(1).write_bytes(cache.path(1).read_bytes()[:-7])  # cut short: new size and time
+    cache.ensure(2, source)
+    later = fresh(cache)
+    opened = counting_status(later, monkeypatch)
+    assert later.statuses(range(3)) == {0: "ok", 1: "corrupt", 2: "ok"} and opened == [1, 2]
+    files = json.loads((cache.root / cache_module.INDEX_NAME).read_text())["files"]
+    assert sorted(files) == [cache.path(0).name, cache.path(2).name]  # the corrupt file left out
+    cache.ensure(1, source)  # rebuilt: a new file, checked again
+    last = fresh(cache)
+    opened = counting_status(last, monkeypatch)
+    assert last.statuses(range(3)) == {0: "ok", 1: "ok", 2: "ok"} and opened == [1]
+
+
+def test_an_index_for_other_settings_or_unreadable_is_not_used(built, monkeypatch):
+    cache, _ = built
+    cache.statuses(range(2))
+    index = cache.root / cache_module.INDEX_NAME
+    others = [GaussianCache(cache.root, RGBDReconstructor(sigma_px=0.3), cache.dataset),
+              GaussianCache(cache.root, cache.reconstructor, "another-dataset")]  # fmt: skip
+    for other in others:
+        opened = counting_status(other, monkeypatch)
+        assert other.statuses(range(2)) == {0: "stale", 1: "stale"} and opened == [0, 1]
+    cache.statuses(range(2))  # lists them again for this cache
+    valid = index.read_text()
+    for text in ("{not json", "[]", '{"for": 1, "files": {}}', valid.replace('"files":{', '"files":{"x":1,'),
+                 valid.replace(cache.dataset, "another-dataset")):  # fmt: skip
+        index.write_text(text)
+        checker = fresh(cache)
+        opened = counting_status(checker, monkeypatch)
+        assert checker.statuses(range(2)) == {0: "ok", 1: "ok"}
+        assert opened == ([] if text.startswith(valid[:20]) and "another-dataset" not in text else [0, 1]), text
+        assert {cache.path(0).name, cache.path(1).name} <= json.loads(index.read_text())["files"].keys()
+
+
+def test_an_index_that_cannot_be_written_only_costs_the_speed_up(built, monkeypatch):
+    cache, _ = built
+    (cache.root / cache_module.INDEX_NAME).mkdir()  # in the way of the index file
+    for _ in range(2):
+        checker = fresh(cache)
+        opened = counting_status(checker, monkeypatch)
+        assert checker.statuses(range(2)) == {0: "ok", 1: "ok"} and opened == [0, 1]
+
+
 def test_a_source_of_another_dataset_is_refused(tmp_path, source):
     cache = GaussianCache(tmp_path, RGBDReconstructor(), "not-this-dataset")
     with pytest.raises(StaleCacheError, match="fingerprint"):
@@ -515,6 +573,15 @@ def test_a_resume_that_trusts_headers_reads_no_data_and_reads_still_verify(built
         for t in range(3):
             c.read_depth(0, t)
     assert build_cache(fresh(cache), counting, range(2), progress=False)[0] is not None  # a full check rebuilds it
+
+
+def test_a_second_resume_that_trusts_headers_opens_no_file(built, source, monkeypatch):
+    cache, _ = built
+    assert build_cache(fresh(cache), source, range(2), progress=False, verify=False) == {0: None, 1: None}
+    again = fresh(cache)
+    opened = counting_status(again, monkeypatch)
+    assert build_cache(again, source, range(2), progress=False, verify=False) == {0: None, 1: None}
+    assert opened == []  # both found in the index the first resume wrote
 
 
 def test_missing_episode_and_frame_raise(built):

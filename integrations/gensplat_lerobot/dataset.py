@@ -73,7 +73,7 @@ def check_cache(transform: GenSplatTransform, episodes, repo_id: str) -> int:
     :class:`~gensplat_transforms.cache.StaleCacheError` naming what differs when cache files
     were built from other dataset content (the dataset changed since ``gensplat cache``)."""
     cache, source = transform.cache, transform.source
-    status = {e: cache.status(e) for e in episodes}
+    status = cache.statuses(episodes)  # one stat per episode file found valid before
     built_for = {_built_for(cache.path(e)) for e, s in status.items() if s == "stale"} - {None, source.fingerprint}
     command = cache_command(source.root, repo_id)
     if built_for:

@@ -1,0 +1,109 @@
+"""What checking a cache before training costs per episode: every header read, against the
+index of files found valid before (``GaussianCache.statuses``).
+
+    python benchmarks/cache_check.py [--episodes 2000] [--frames 100] [--repeats 3]
+
+Builds a depth cache (stored depth, one tensor per frame, as a model reconstructor's or
+``--copy-depth`` cache) of ``--episodes`` episodes of ``--frames`` frames each (the views of
+one procedural 16x16 episode reused for all of them: the header's size follows the frame
+count, not the pixels), then times, each in a new ``GaussianCache`` object:
+
+* ``headers``: ``status`` of every episode (reads and checks every file header; what the
+  check before training did without an index);
+* ``first_check``: ``statuses`` without an index (the same reads, plus writing the index);
+* ``indexed``: ``statuses`` with the index (one ``stat`` per file).
+
+The files are in the page cache in every round (a first check on a cold disk or a network
+filesystem reads the headers from storage, and costs more). Medians of ``--repeats`` rounds;
+milliseconds per episode and the extrapolation to DROID's 76k episodes. Writes
+benchmarks/results/cache_check.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+from machine import cpu_model, write_result
+from tqdm.auto import tqdm
+
+from gensplat_transforms.cache import INDEX_NAME, GaussianCache
+from gensplat_transforms.episodes import SceneEpisodes
+from gensplat_transforms.reconstruction import RGBDReconstructor, Views
+
+DROID_EPISODES = 76_000
+
+
+class Repeated:
+    """Episodes that all show the views of one procedural episode (rendered once)."""
+
+    camera_names = ("left", "right")
+
+    def __init__(self, episodes: int, frames: int, size: int) -> None:
+        scene = SceneEpisodes(num_episodes=1, num_frames=frames, size=size)
+        self.frames = [scene.views(0, t) for t in range(frames)]
+        self.episodes = episodes
+        self.fingerprint = f"repeated-{episodes}x{frames}-{size}"
+
+    def num_frames(self, episode: int) -> int:
+        return len(self.frames)
+
+    def views(self, episode: int, frame: int) -> Views:
+        return self.frames[frame]
+
+
+def timed_ms(fn) -> float:
+    t0 = time.perf_counter()
+    fn()
+    return (time.perf_counter() - t0) * 1e3
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--episodes", type=int, default=2000, help="episodes cached (default: 2000)")
+    parser.add_argument("--frames", type=int, default=100, help="frames per episode (default: 100)")
+    parser.add_argument("--repeats", type=int, default=3, help="rounds; medians reported (default: 3)")
+    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "cache_check.json",
+                        help="result file (default: benchmarks/results/cache_check.json)")
+    args = parser.parse_args()
+    source = Repeated(args.episodes, args.frames, 16)
+    root, rec = Path(tempfile.mkdtemp(prefix="cache_check_")), RGBDReconstructor()
+    cache = GaussianCache(root, rec, source.fingerprint)
+    for episode in tqdm(range(args.episodes), desc="building", unit="episode"):
+        cache.ensure(episode, source)
+    episodes, index = range(args.episodes), root / INDEX_NAME
+
+    def new() -> GaussianCache:
+        return GaussianCache(root, rec, source.fingerprint)
+
+    def first_check() -> None:
+        index.unlink(missing_ok=True)
+        statuses = new().statuses(episodes)
+        assert set(statuses.values()) == {"ok"}
+
+    rounds = {"headers": [], "first_check": [], "indexed": []}
+    for _ in range(args.repeats):
+        rounds["headers"].append(timed_ms(lambda: [new().status(e) for e in episodes]))
+        rounds["first_check"].append(timed_ms(first_check))
+        rounds["indexed"].append(timed_ms(lambda: new().statuses(episodes)))
+    ms = {k: statistics.median(v) / args.episodes for k, v in rounds.items()}
+    result = {
+        "episodes": args.episodes, "frames_per_episode": args.frames,
+        "episode_file_bytes": cache.path(0).stat().st_size, "index_bytes_per_episode": round(index.stat().st_size / args.episodes, 1),
+        "ms_per_episode": {k: round(v, 4) for k, v in ms.items()},
+        "indexed_speedup": round(ms["headers"] / ms["indexed"], 1),
+        "droid_seconds": {k: round(v * DROID_EPISODES / 1e3, 1) for k, v in ms.items()},
+        "rounds_ms": rounds, "machine": {"cpus": os.cpu_count(), **cpu_model()}, "load_average": os.getloadavg(),
+    }  # fmt: skip
+    print(f"{'check':>12} {'ms per episode':>15} {'s at 76k episodes':>18}")
+    for k, v in ms.items():
+        print(f"{k:>12} {v:>15.4f} {result['droid_seconds'][k]:>18.1f}")
+    write_result(result, args.out)
+
+
+if __name__ == "__main__":
+    main()
