@@ -13,9 +13,15 @@ count, not the pixels), then times, each in a new ``GaussianCache`` object:
 * ``first_check``: ``statuses`` without an index (the same reads, plus writing the index);
 * ``indexed``: ``statuses`` with the index (one ``stat`` per file).
 
+The check before training also digests the dataset's folders (its content fingerprint,
+``gensplat_lerobot.source.files_digest``): with one depth file per episode and camera, a
+folder of ``--episodes`` files (64 KiB each; only their first and last 16 KiB are read) is
+digested by reading every file, and from the digests memo (one ``stat`` per file).
+
 The files are in the page cache in every round (a first check on a cold disk or a network
 filesystem reads the headers from storage, and costs more). Medians of ``--repeats`` rounds;
-milliseconds per episode and the extrapolation to DROID's 76k episodes. Writes
+milliseconds per episode (per file for the digests) and the extrapolation to DROID's 76k
+episodes. Writes
 benchmarks/results/cache_check.json.
 """
 
@@ -28,6 +34,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from gensplat_lerobot.source import files_digest
 from machine import cpu_model, write_result
 from tqdm.auto import tqdm
 
@@ -90,12 +97,23 @@ def main() -> None:
         rounds["headers"].append(timed_ms(lambda: [new().status(e) for e in episodes]))
         rounds["first_check"].append(timed_ms(first_check))
         rounds["indexed"].append(timed_ms(lambda: new().statuses(episodes)))
+    folder = root / "dataset" / "depth" / "left"
+    folder.mkdir(parents=True)
+    for episode in range(args.episodes):
+        (folder / f"episode_{episode:06d}.safetensors").write_bytes(os.urandom(1 << 16))
+    memo = root / "dataset" / "digests.json"
+    files_digest(root / "dataset", "depth/left", memo)  # writes the memo
+    rounds.update(digest_read=[], digest_memo=[])
+    for _ in range(args.repeats):
+        rounds["digest_read"].append(timed_ms(lambda: files_digest(root / "dataset", "depth/left")))
+        rounds["digest_memo"].append(timed_ms(lambda: files_digest(root / "dataset", "depth/left", memo)))
     ms = {k: statistics.median(v) / args.episodes for k, v in rounds.items()}
     result = {
         "episodes": args.episodes, "frames_per_episode": args.frames,
         "episode_file_bytes": cache.path(0).stat().st_size, "index_bytes_per_episode": round(index.stat().st_size / args.episodes, 1),
         "ms_per_episode": {k: round(v, 4) for k, v in ms.items()},
         "indexed_speedup": round(ms["headers"] / ms["indexed"], 1),
+        "digest_memo_speedup": round(ms["digest_read"] / ms["digest_memo"], 1),
         "droid_seconds": {k: round(v * DROID_EPISODES / 1e3, 1) for k, v in ms.items()},
         "rounds_ms": rounds, "machine": {"cpus": os.cpu_count(), **cpu_model()}, "load_average": os.getloadavg(),
     }  # fmt: skip

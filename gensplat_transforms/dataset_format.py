@@ -62,6 +62,12 @@ def camera_info(K: torch.Tensor, c2w: torch.Tensor | None, mount: str) -> dict:
     return info
 
 
+def digests_path(root: str | Path) -> Path:
+    """``<root>/gensplat/digests.json``: digests of the dataset's folders, with the file stats
+    they were computed for (see ``gensplat_lerobot.source.files_digest``)."""
+    return Path(root) / GENSPLAT_DIR / "digests.json"
+
+
 def calibration_path(root: str | Path) -> Path:
     """``<root>/gensplat/calibration.json``: calibration kept beside the dataset."""
     return Path(root) / GENSPLAT_DIR / "calibration.json"

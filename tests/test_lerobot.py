@@ -387,6 +387,52 @@ def test_policy_input_size_is_read_and_a_smaller_render_is_warned_of(dataset_roo
     assert lines[3] == "  views rendered at 24x24 of 48x48 frames (render scale 0.5); the policy reads 24x24"
 
 
+def test_folder_digests_are_remembered_by_file_stats(dataset_root, monkeypatch):
+    from pathlib import Path as P
+
+    from gensplat_lerobot.source import files_digest
+
+    from gensplat_transforms.dataset_format import digests_path
+
+    memo, folder = digests_path(dataset_root), "depth/left"
+    plain = files_digest(dataset_root, folder)
+    assert files_digest(dataset_root, folder, memo) == plain and not memo.exists()  # no gensplat/ folder made
+    memo.parent.mkdir()
+    assert files_digest(dataset_root, folder, memo) == plain and folder in json.loads(memo.read_text())
+    opened, open_ = [], P.open
+    monkeypatch.setattr(P, "open", lambda self, *a, **k: opened.append(self.parent) or open_(self, *a, **k))
+    assert files_digest(dataset_root, folder, memo) == plain
+    assert dataset_root / folder not in opened  # from the memo: no depth file read
+    depth = min((dataset_root / folder).iterdir())
+    data = bytearray(depth.read_bytes())
+    data[-1] ^= 0xFF  # same size, new modification time
+    depth.write_bytes(bytes(data))
+    changed = files_digest(dataset_root, folder, memo)
+    assert changed != plain and changed == files_digest(dataset_root, folder) and dataset_root / folder in opened
+    memo.write_text("{not json")
+    assert files_digest(dataset_root, folder, memo) == changed and folder in json.loads(memo.read_text())
+
+
+def test_folder_digest_keeps_its_formula(tmp_path):
+    """Caches are keyed by these digests: a change of formula would make every cache stale."""
+    import hashlib
+
+    from gensplat_lerobot.source import files_digest
+
+    (tmp_path / "v" / "a" / "b").mkdir(parents=True)
+    (tmp_path / "v" / "a-c").mkdir()
+    for name, data in {"a/b/f": b"x", "a-c/g": b"yy", "a.txt": b"z", "big": bytes(range(256)) * 200}.items():
+        (tmp_path / "v" / name).write_bytes(data)
+    (tmp_path / "v" / "link").symlink_to(tmp_path / "v" / "a.txt")
+    (tmp_path / "v" / "broken").symlink_to(tmp_path / "nothing")
+    (tmp_path / "v" / "dirlink").symlink_to(tmp_path / "v" / "a")
+    h = hashlib.sha256()
+    for rel in ("v/a/b/f", "v/a-c/g", "v/a.txt", "v/big", "v/link"):  # pathlib's order; no broken or folder link
+        data = (tmp_path / rel).read_bytes()
+        h.update(f"{rel}\0{len(data)}\0".encode() + data[:16384] + data[max(16384, len(data) - 16384):])
+    assert files_digest(tmp_path, "v") == h.hexdigest()
+
+
 def test_progress_line_says_when_the_workers_are_ahead():
     from gensplat_lerobot.plugin import progress_message
 

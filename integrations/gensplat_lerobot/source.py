@@ -6,12 +6,16 @@ from __future__ import annotations
 import hashlib
 import importlib
 import json
+import logging
+import os
+import stat
 from functools import cache, cached_property
 from pathlib import Path
 
 import torch
 from torch.utils.data import Dataset
 
+from gensplat_transforms.atomic import atomic_write_json
 from gensplat_transforms.cache import DepthFiles
 from gensplat_transforms.dataset_format import (
     IMAGE_KEY_PREFIX,
@@ -19,11 +23,14 @@ from gensplat_transforms.dataset_format import (
     calibration_path,
     camera_info,
     depth_path,
+    digests_path,
     load_calibration,
     load_depth,
 )
 from gensplat_transforms.model import PATCH_SIZE
 from gensplat_transforms.reconstruction import Views
+
+log = logging.getLogger(__name__)
 
 
 class LeRobotSource:
@@ -67,7 +74,7 @@ class LeRobotSource:
         cameras = [[n, info["features"][IMAGE_KEY_PREFIX + n], camera_info(c.K, c.c2w, c.mount)]
                    for n, c in calib.items()]  # fmt: skip
         return {"episodes": info.get("total_episodes"), "frames": info.get("total_frames"), "fps": info.get("fps"),
-                "cameras": cameras, "files": {d: files_digest(self.root, [d]) for d in self._content_dirs()}}  # fmt: skip
+                "cameras": cameras, "files": {d: files_digest(self.root, d, digests_path(self.root)) for d in self._content_dirs()}}  # fmt: skip
 
     @cached_property
     def fingerprint(self) -> str:
@@ -157,21 +164,63 @@ def read_info(root: Path) -> dict:
     return json.loads(path.read_text())
 
 
-def files_digest(root: Path, dirs: list[str], sample: int = 16384) -> str:
-    """SHA-256 over the files under ``root/dirs``: each file's relative path, size, and its
+def files_digest(root: Path, folder: str, memo: Path | None = None, sample: int = 16384) -> str:
+    """SHA-256 over the files under ``root/folder``: each file's relative path, size, and its
     first and last ``sample`` bytes (cheap on large video files; an edit that keeps the size
-    and both ends is not noticed). Missing folders count as empty."""
+    and both ends is not noticed). A missing folder counts as empty.
+
+    With ``memo`` (a JSON file, written atomically where its folder exists), a folder whose files all
+    have the paths, sizes, modification times and inodes they had when its digest was last
+    computed gets that digest back without a file being read (one ``stat`` per file instead
+    of two reads: what makes a folder of many thousands of depth files quick to check)."""
+    files = _regular_files(root, folder)
+    listing = hashlib.sha256("".join(f"{rel}\0{st.st_size}\0{st.st_mtime_ns}\0{st.st_ino}\n"
+                                     for _, rel, st in files).encode()).hexdigest()  # fmt: skip
+    memos = _read_json(memo) if memo is not None else {}
+    known = memos.get(folder)
+    if isinstance(known, dict) and known.get("listing") == listing and isinstance(known.get("digest"), str):
+        return known["digest"]
     h = hashlib.sha256()
-    files = sorted(f for d in dirs if (root / d).is_dir() for f in (root / d).rglob("*") if f.is_file())
-    for f in files:
-        size = f.stat().st_size
-        h.update(f"{f.relative_to(root).as_posix()}\0{size}\0".encode())
-        with f.open("rb") as fh:
+    for path, rel, st in files:
+        h.update(f"{rel}\0{st.st_size}\0".encode())
+        with open(path, "rb") as fh:
             h.update(fh.read(sample))
-            if size > sample:
-                fh.seek(max(sample, size - sample))
+            if st.st_size > sample:
+                fh.seek(max(sample, st.st_size - sample))
                 h.update(fh.read(sample))
-    return h.hexdigest()
+    digest = h.hexdigest()
+    if memo is not None and memo.parent.is_dir():
+        try:
+            atomic_write_json(memo, {**memos, folder: {"listing": listing, "digest": digest}})
+        except OSError as e:
+            log.info("cannot write %s (%s): the next check reads the files again", memo, e)
+    return digest
+
+
+def _regular_files(root: Path, folder: str) -> list[tuple[str, str, os.stat_result]]:
+    """(path, path relative to ``root``, stat) of the files under ``root/folder`` (links to
+    files followed, links to folders not), in ``pathlib`` path order; plain strings, which
+    make a folder of many thousands of files several times quicker to list than ``Path``."""
+    base, found = str(root / folder), []
+    for top, _, names in os.walk(base):
+        for name in names:
+            path = os.path.join(top, name)
+            try:
+                st = os.stat(path)
+            except OSError:  # e.g. a broken link
+                continue
+            if stat.S_ISREG(st.st_mode):
+                found.append((path, Path(folder).as_posix() + path[len(base) :], st))
+    return sorted(found, key=lambda f: f[1].split("/"))
+
+
+def _read_json(path: Path) -> dict:
+    """The JSON object in ``path``, {} when it is missing, unreadable or not an object."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
 
 
 def _as_float(image: torch.Tensor) -> torch.Tensor:
