@@ -321,11 +321,13 @@ def train_diffusion(*overrides: str) -> subprocess.CompletedProcess:
 
 @pytest.mark.parametrize("data", ["png_square", "mp4_non_square"])
 def test_lerobot_train_diffusion_policy_with_the_one_line(data, request, tmp_path):
-    """Two lerobot-train steps with the one GenSplat line: on the procedural 48x48 PNG dataset,
-    and on the simulated 48x64 (HxW) MP4 recording (``gensplat record``, ``gensplat cache``)."""
+    """Two lerobot-train steps with the one GenSplat line: on the procedural 48x48 PNG dataset
+    (views rendered at half size), and on the simulated 48x64 (HxW) MP4 recording (``gensplat
+    record``, ``gensplat cache``)."""
+    scale = 0.5 if data == "png_square" else 1.0
     if data == "png_square":
         dataset_root, repo = request.getfixturevalue("dataset_root"), REPO
-        save_settings(dataset_root, GenSplatConfig(probability=1.0), {"name": "rgbd"})
+        save_settings(dataset_root, GenSplatConfig(probability=1.0, render_scale=scale), {"name": "rgbd"})
     else:
         dataset_root, repo = tmp_path / "sim", SIM_REPO
         shutil.copytree(request.getfixturevalue("sim_video"), dataset_root)
@@ -340,8 +342,11 @@ def test_lerobot_train_diffusion_policy_with_the_one_line(data, request, tmp_pat
     assert re.fullmatch(r"  cache: \S+gensplat/cache/rgbd-\w+ \(0 of \d episodes cached\), reconstructor rgbd-\w+", start[0])
     assert start[1] == "  probability 1.0, level train, mode episode, cameras replaced: left, right " \
                        "(reconstructed from left, right)"
-    assert re.fullmatch(r"  views rendered at (\d+x\d+) of \1 frames \(render scale 1.0\); the policy reads \d+x\d+",
-                        start[2])  # fmt: skip
+    size = re.fullmatch(r"  views rendered at (\d+)x(\d+) of (\d+)x(\d+) frames \(render scale ([\d.]+)\); "
+                        r"the policy reads (\d+)x(\d+)", start[2]).groups()  # fmt: skip
+    w, h, width, height = (int(x) for x in size[:4])
+    assert (w, h) == (round(width * scale), round(height * scale)) and float(size[4]) == scale
+    assert ("smaller than the" in log) == (scale < 1)  # Diffusion Policy reads the frame at full size
     assert "--resume=true" in start[3] and "--gensplat.discover_packages_path=gensplat_lerobot.plugin" in start[3]
     # at every log step (--log_freq=1): counts gathered from the two spawn workers (which may
     # have made every sample the run needs by step 1: they prefetch)
