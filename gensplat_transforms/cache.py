@@ -513,10 +513,9 @@ def _cameras(frames) -> dict[str, torch.Tensor]:
 
 def _encode_depth(frames: Sequence[Views]) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
     """Tensors and header fields of a depth episode (frames from ``predict_depth``)."""
-    depths = torch.stack([f.depths[:, 0] for f in frames])  # (T, V, H, W)
-    ref, blobs = depth_codec.encode_episode(depths)
+    ref, blobs = depth_codec.encode_episode([f.depths[:, 0] for f in frames])  # T of (V, H, W)
     tensors = {"depth.reference": _blob(ref), **{f"depth.f{t}": _blob(b) for t, b in enumerate(blobs)}}
-    _, v, h, w = depths.shape
+    v, _, h, w = frames[0].depths.shape
     cam = frames[0].cameras
     meta = {"image_size": json.dumps([cam.width, cam.height]), "num_views": str(v),
             "depth_codec": json.dumps({"step": depth_codec.STEP, "d_min": depth_codec.D_MIN, "d_max": depth_codec.D_MAX,

@@ -96,6 +96,20 @@ def test_depth_codec_error_is_bounded_and_invalid_stays_invalid():
     assert np.array_equal(dc.quantize_depth(out), dc.quantize_depth(d))
 
 
+@pytest.mark.parametrize("frames", [1, 4, 7])
+def test_depth_codec_reference_is_the_per_pixel_median_rounded_down(frames, monkeypatch):
+    monkeypatch.setattr(dc, "_MEDIAN_BLOCK", 100)  # several blocks, the last one partial
+    g = torch.Generator().manual_seed(frames)
+    d = torch.exp(torch.empty(frames, 2, 9, 17).uniform_(-3, 3, generator=g))
+    d[0, 1, 2, :4] = torch.tensor([0.0, float("nan"), -1.0, 3e6])
+    ref, blobs = dc.encode_episode(d)
+    codes = dc.quantize_depth(d)
+    assert np.array_equal(dc.decode_reference(ref, (2, 9, 17)), np.median(codes, axis=0).astype(np.uint16))
+    assert dc.encode_episode(list(d)) == (ref, blobs)  # frames one by one: the same bytes
+    decoded = [dc.decode_codes(dc.decode_reference(ref, (2, 9, 17)), b) for b in blobs]
+    assert np.array_equal(np.stack(decoded), codes)
+
+
 def test_depth_words_decode_codes_and_float16_bits_alike():
     """Two bytes a pixel either way: log codes give dequantize's metres, float16 bits their
     float16 value; a batch mixes both by its per-sample flag; other dtypes are refused."""
