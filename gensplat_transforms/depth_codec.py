@@ -93,8 +93,8 @@ def encode_episode(depths: torch.Tensor | Sequence[torch.Tensor]) -> tuple[bytes
 
     Frames are quantised one at a time and the median taken over blocks of pixels, each
     block's codes made contiguous per pixel first: the float64 temporaries and the median's
-    reads stay in the CPU caches (at 2x640x480, 100 frames: 43 ms per frame as one array,
-    15 ms this way)."""
+    reads stay in the CPU caches (at 2x640x480, 100 frames, on an AMD EPYC Zen 5: 40 ms per
+    frame as one array, 8.6 ms this way)."""
     codes = np.stack([quantize_depth(d) for d in depths])  # (T, V, H, W), T >= 1
     flat, ref = codes.reshape(len(codes), -1), np.empty(codes[0].size, np.uint16)
     for i in range(0, flat.shape[1], _MEDIAN_BLOCK):
