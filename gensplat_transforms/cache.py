@@ -371,8 +371,10 @@ class GaussianCache:
         a cache of many thousands of episodes before training take a second). Every other
         episode is checked by :meth:`status`, and the index rewritten atomically when it
         changed. An index that is unreadable or made for other settings is ignored (and
-        replaced); a folder that cannot be written to only loses the speed-up. Data checksums
-        are checked on every read, as always."""
+        replaced); a folder that cannot be written to only loses the speed-up. Linked depth
+        files are not looked at for a listed episode: their changes are the dataset
+        fingerprint's to show (a LeRobot dataset's covers them); opening the episode to read
+        it still checks their sizes. Data checksums are checked on every read, as always."""
         index_path, identity = self.root / INDEX_NAME, self._index_identity()
         try:
             index = json.loads(index_path.read_text())
