@@ -380,6 +380,7 @@ def test_policy_input_size_is_read_and_a_smaller_render_is_warned_of(dataset_roo
     assert policy_input_size(SmolVLAConfig(resize_imgs_with_padding=(512, 256)), 640, 480) == (341, 256)
     assert policy_input_size(ACTConfig(), 640, 480) == (640, 480)
     assert policy_input_size(SimpleNamespace(type="vqbet"), 640, 480) is None
+    assert policy_input_size(SimpleNamespace(type="pi0"), 640, 480) is None  # a version without the field
     save_settings(dataset_root, GenSplatConfig(probability=1.0, render_scale=0.5), {"name": "rgbd"})
     ds = enable_gensplat(LeRobotDataset(REPO, root=dataset_root))  # 48x48 frames
     full, half = (SimpleNamespace(policy=p, resume=False) for p in (DiffusionConfig(),

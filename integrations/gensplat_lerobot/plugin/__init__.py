@@ -68,9 +68,9 @@ def policy_input_size(policy, width: int, height: int) -> tuple[int, int] | None
         return (shape[1], shape[0]) if shape else (width, height)
     if kind == "act":
         return width, height
-    if kind in ("pi0", "pi05") and policy.image_resolution:
+    if kind in ("pi0", "pi05") and getattr(policy, "image_resolution", None):
         box_h, box_w = policy.image_resolution
-    elif kind == "smolvla" and policy.resize_imgs_with_padding:
+    elif kind == "smolvla" and getattr(policy, "resize_imgs_with_padding", None):
         box_w, box_h = policy.resize_imgs_with_padding
     else:
         return None
