@@ -142,11 +142,13 @@ def fake_rasterization(means, quats, scales, opacities, colors, viewmats, Ks, wi
     return torch.stack(rgbs), torch.stack(alphas), {}
 
 
-def test_the_single_gsplat_call_lays_out_scenes_and_cameras_as_the_worker(setup, monkeypatch):
+@pytest.mark.parametrize("render_scale", [1.0, 0.5])
+def test_the_single_gsplat_call_lays_out_scenes_and_cameras_as_the_worker(setup, monkeypatch, render_scale):
     cache, ds = setup
     monkeypatch.setattr(gsplat_backend, "_rasterization", lambda: fake_rasterization)
     items = [as_uint8(ds[i]) for i in (0, 2, 5, 6)]
-    expected, got = both_ways(cache, items, seed=0, backend="gsplat", probability=1.0, views_per_source=3)
+    expected, got = both_ways(cache, items, seed=0, backend="gsplat", probability=1.0, views_per_source=3,
+                              render_scale=render_scale)  # fmt: skip
     for key in (LEFT, RIGHT):  # float32 poses and gsplat's conventions: a level here and there
         diff = (got[key].float() - expected[key].float()).abs()
         assert diff.max() <= 3 and diff.mean() < 0.05, key
