@@ -84,7 +84,8 @@ def _unpack(blob: bytes, shape: tuple[int, ...], compression: str) -> np.ndarray
     raw = np.frombuffer(data, dtype=np.uint16)
     if raw.size != math.prod(shape):
         raise ValueError(f"depth blob holds {raw.size} values, expected {math.prod(shape)}")
-    return np.cumsum(raw.reshape(shape), axis=-1, dtype=np.uint16)
+    # one output array, which decode_codes adds the reference to in place
+    return np.cumsum(raw.reshape(shape), axis=-1, dtype=np.uint16, out=np.empty(shape, np.uint16))
 
 
 def encode_episode(depths: torch.Tensor | Sequence[torch.Tensor]) -> tuple[bytes, list[bytes]]:
@@ -110,7 +111,8 @@ def decode_reference(blob: bytes, shape: tuple[int, ...], compression: str = COM
 
 def decode_codes(reference: np.ndarray, blob: bytes, compression: str = COMPRESSION) -> np.ndarray:
     """(V, H, W) uint16 codes of one frame from the reference codes and its blob."""
-    return reference + _unpack(blob, reference.shape, compression)
+    codes = _unpack(blob, reference.shape, compression)
+    return np.add(codes, reference, out=codes)
 
 
 def decode_frame(reference: np.ndarray, blob: bytes, compression: str = COMPRESSION) -> torch.Tensor:
