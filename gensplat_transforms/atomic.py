@@ -1,4 +1,5 @@
-"""Atomic file writes: readers see the old file or the whole new one, never a part."""
+"""Atomic file writes (readers see the old file or the whole new one, never a part), and
+reading back the JSON files written that way without trusting them."""
 
 from __future__ import annotations
 
@@ -35,3 +36,18 @@ def atomic_write_json(path: str | Path, data) -> Path:
     """:func:`atomic_write` of ``data`` as indented JSON. Returns ``path``."""
     text = json.dumps(data, indent=2) + "\n"
     return atomic_write(path, lambda tmp: Path(tmp).write_text(text))
+
+
+def read_json_object(path: str | Path) -> dict:
+    """The JSON object in ``path``; {} when it is missing, unreadable, not JSON or not an object."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, ValueError):  # JSONDecodeError and UnicodeDecodeError are ValueErrors
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def stat_stamp(st: os.stat_result) -> list[int]:
+    """[size, modification time in ns, inode] of a file: what changes when it is rewritten,
+    replaced or edited (as JSON lists it), for records that trust a file while it is unchanged."""
+    return [st.st_size, st.st_mtime_ns, st.st_ino]

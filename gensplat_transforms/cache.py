@@ -54,7 +54,7 @@ from safetensors import safe_open
 from safetensors.torch import save
 
 from . import depth_codec
-from .atomic import atomic_write
+from .atomic import atomic_write, read_json_object, stat_stamp
 from .cameras import Cameras
 from .dataset_format import open_depth
 from .gaussians import Gaussians
@@ -376,11 +376,9 @@ class GaussianCache:
         fingerprint's to show (a LeRobot dataset's covers them); opening the episode to read
         it still checks their sizes. Data checksums are checked on every read, as always."""
         index_path, identity = self.root / INDEX_NAME, self._index_identity()
-        try:
-            index = json.loads(index_path.read_text())
-            known = index["files"] if index["for"] == identity and isinstance(index["files"], dict) else {}
-        except (OSError, ValueError, KeyError, TypeError):
-            known = {}
+        index = read_json_object(index_path)
+        known = index.get("files") if index.get("for") == identity else None
+        known = known if isinstance(known, dict) else {}
         listed, found = dict(known), {}
         for episode in episodes:
             episode, name = int(episode), self.path(episode).name
@@ -479,12 +477,11 @@ class GaussianCache:
 
 
 def _stat_key(path: Path) -> list[int] | None:
-    """[size, modification time in ns, inode] of a file (as JSON lists it), None if absent."""
+    """:func:`.atomic.stat_stamp` of a file, None if absent."""
     try:
-        st = path.stat()
+        return stat_stamp(path.stat())
     except OSError:
         return None
-    return [st.st_size, st.st_mtime_ns, st.st_ino]
 
 
 def _remove_or_wait(tmp: Path) -> None:

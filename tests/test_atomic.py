@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from gensplat_transforms.atomic import atomic_write
+from gensplat_transforms.atomic import atomic_write, atomic_write_json, read_json_object, stat_stamp
 from gensplat_transforms.dataset_format import load_depth, save_depth
 
 
@@ -50,3 +50,25 @@ def test_depth_sidecars_are_readable_as_the_umask_allows(tmp_path, umask):
     path = save_depth(tmp_path, "left", 0, torch.full((2, 4, 5), 1.5))
     assert mode(path) == 0o644
     assert load_depth(tmp_path, "left", 0).shape == (2, 1, 4, 5)
+
+
+def test_json_read_back_is_an_object_or_nothing(tmp_path):
+    path = tmp_path / "a.json"
+    assert read_json_object(path) == {}  # missing
+    for text in ("{not json", "[1, 2]", "3"):
+        path.write_text(text)
+        assert read_json_object(path) == {}, text
+    path.write_bytes(b"\xff\xfe\x00")  # not UTF-8
+    assert read_json_object(path) == {}
+    atomic_write_json(path, {"k": [1, 2]})
+    assert read_json_object(path) == {"k": [1, 2]}
+
+
+def test_a_rewritten_file_gets_another_stamp(tmp_path):
+    path = tmp_path / "f"
+    path.write_bytes(b"ab")
+    first = stat_stamp(path.stat())
+    assert stat_stamp(path.stat()) == first
+    atomic_write(path, lambda tmp: Path(tmp).write_bytes(b"ab"))  # same bytes, a new file
+    assert stat_stamp(path.stat()) != first
+

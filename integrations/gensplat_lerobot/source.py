@@ -15,7 +15,7 @@ from pathlib import Path
 import torch
 from torch.utils.data import Dataset
 
-from gensplat_transforms.atomic import atomic_write_json
+from gensplat_transforms.atomic import atomic_write_json, read_json_object, stat_stamp
 from gensplat_transforms.cache import DepthFiles
 from gensplat_transforms.dataset_format import (
     IMAGE_KEY_PREFIX,
@@ -174,9 +174,8 @@ def files_digest(root: Path, folder: str, memo: Path | None = None, sample: int 
     computed gets that digest back without a file being read (one ``stat`` per file instead
     of two reads: what makes a folder of many thousands of depth files quick to check)."""
     files = _regular_files(root, folder)
-    listing = hashlib.sha256("".join(f"{rel}\0{st.st_size}\0{st.st_mtime_ns}\0{st.st_ino}\n"
-                                     for _, rel, st in files).encode()).hexdigest()  # fmt: skip
-    memos = _read_json(memo) if memo is not None else {}
+    listing = hashlib.sha256(json.dumps([[rel, *stat_stamp(st)] for _, rel, st in files]).encode()).hexdigest()
+    memos = read_json_object(memo) if memo is not None else {}
     known = memos.get(folder)
     if isinstance(known, dict) and known.get("listing") == listing and isinstance(known.get("digest"), str):
         return known["digest"]
@@ -201,7 +200,7 @@ def _regular_files(root: Path, folder: str) -> list[tuple[str, str, os.stat_resu
     """(path, path relative to ``root``, stat) of the files under ``root/folder`` (links to
     files followed, links to folders not), in ``pathlib`` path order; plain strings, which
     make a folder of many thousands of files several times quicker to list than ``Path``."""
-    base, found = str(root / folder), []
+    base, prefix, found = str(root / folder), Path(folder).as_posix(), []
     for top, _, names in os.walk(base):
         for name in names:
             path = os.path.join(top, name)
@@ -210,17 +209,8 @@ def _regular_files(root: Path, folder: str) -> list[tuple[str, str, os.stat_resu
             except OSError:  # e.g. a broken link
                 continue
             if stat.S_ISREG(st.st_mode):
-                found.append((path, Path(folder).as_posix() + path[len(base) :], st))
+                found.append((path, prefix + path[len(base) :], st))
     return sorted(found, key=lambda f: f[1].split("/"))
-
-
-def _read_json(path: Path) -> dict:
-    """The JSON object in ``path``, {} when it is missing, unreadable or not an object."""
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return {}
-    return data if isinstance(data, dict) else {}
 
 
 def _as_float(image: torch.Tensor) -> torch.Tensor:
