@@ -1,4 +1,4 @@
-"""Per-episode cache of what a reconstructor computed (safetensors, memory-mapped reads).
+"""Per-episode cache of what a reconstructor computed (safetensors, positioned reads).
 
 One file per episode, ``<root>/episode_<index:06d>.safetensors``, holding every timestep.
 What it stores depends on the reconstructor:
@@ -50,7 +50,6 @@ from typing import Protocol
 
 import numpy as np
 import torch
-from safetensors import safe_open
 from safetensors.torch import save
 
 from . import depth_codec
@@ -60,15 +59,16 @@ from .dataset_format import open_depth
 from .gaussians import Gaussians
 from .reconstruction import DepthReconstructor, Reconstruction, Reconstructor, Views
 from .reconstruction.base import nearest_pixels
+from .tensor_file import FileChangedError, TensorFile
 
 logger = logging.getLogger(__name__)
 
 FORMAT = "gensplat-cache"
 FORMAT_VERSION = "2"
 _FIELDS = ("means", "quats", "scales", "opacities", "sh")
-#: safetensors dtype of every stored tensor, by the last part of its name (frame digits dropped)
-_DTYPES = {"means": "U16", "quats": "I8", "scales": "F16", "opacities": "U8", "sh": "F16", "K": "F64", "c2w": "F64",
-           "reference": "U8", "f": "U8"}  # fmt: skip
+#: dtype of every stored tensor, by the last part of its name (frame digits dropped)
+_DTYPES = {"means": torch.uint16, "quats": torch.int8, "scales": torch.float16, "opacities": torch.uint8,
+           "sh": torch.float16, "K": torch.float64, "c2w": torch.float64, "reference": torch.uint8, "f": torch.uint8}  # fmt: skip
 
 
 class CacheError(RuntimeError):
@@ -81,6 +81,11 @@ class StaleCacheError(CacheError):
 
 class CorruptCacheError(CacheError):
     """The file is truncated, unreadable, malformed or fails a checksum."""
+
+
+class _ReplacedError(CorruptCacheError):
+    """The file was replaced or removed since this process parsed it (a rebuild): the cache
+    parses it again once, so this only escapes when it is replaced again meanwhile."""
 
 
 @dataclass(frozen=True)
@@ -154,7 +159,7 @@ def _row_bytes(d: dict[str, torch.Tensor]) -> torch.Tensor:
 def _tensor_crc(name: str, t: torch.Tensor) -> str:
     """CRC-32 of a tensor's name, dtype, shape and bytes."""
     head = f"{name}\0{t.dtype}\0{tuple(t.shape)}\0".encode()
-    return f"{zlib.crc32(t.contiguous().view(torch.uint8).numpy().tobytes(), zlib.crc32(head)):08x}"
+    return f"{zlib.crc32(t.contiguous().view(torch.uint8).numpy(), zlib.crc32(head)):08x}"
 
 
 def _header_crc(meta: dict[str, str]) -> str:
@@ -198,8 +203,10 @@ class CacheStats:
         return self.bytes / max(self.num_frames, 1)
 
 
-#: parsed episode files that link the dataset's depth, kept per process (a few kB each)
-MAX_LINKED_KEPT = 1024
+#: episode files a process keeps parsed (their headers: a read opens the file, nothing stays open) ...
+MAX_KEPT = 1024
+#: ... and the memory their decoded parts (cameras, depth references, static Gaussians) may take
+KEEP_BYTES = 64 << 20
 #: the files found valid, with their stat (see :meth:`GaussianCache.statuses`)
 INDEX_NAME = "index.json"
 
@@ -213,9 +220,11 @@ class GaussianCache:
             the files, and a :class:`~.reconstruction.DepthReconstructor` makes this a
             ``depth`` cache (see the module docstring).
         dataset: fingerprint of the dataset (anything that changes when its content does).
-        max_open: episode files kept open (memory-mapped) per process. Episodes that link the
-            dataset's depth map nothing once parsed: up to ``MAX_LINKED_KEPT`` of them stay
-            parsed besides, so that a worker sampling at random does not reopen them.
+        keep_bytes: memory a process may spend on the episode files it keeps parsed (their
+            cameras, decoded depth references and static Gaussians, least recently read
+            dropped first; at most ``MAX_KEPT`` files), so that a worker sampling at random
+            reopens as few as it can: about 1.3 MB per stored 2x640x480 episode, 0.3 MB at
+            2x224x224, a few kB for one that links the dataset's depth.
         link_depth: link the dataset's own depth files instead of storing a copy, where the
             reconstructor only cleans given depth and the source names the files (see the
             module docstring); False stores the copy, and makes linked episodes stale.
@@ -233,7 +242,7 @@ class GaussianCache:
         >>> folder.cleanup()
     """
 
-    def __init__(self, root: str | Path, reconstructor: Reconstructor, dataset: str, max_open: int = 8,
+    def __init__(self, root: str | Path, reconstructor: Reconstructor, dataset: str, keep_bytes: int = KEEP_BYTES,
                  link_depth: bool = True) -> None:
         if not isinstance(reconstructor, Reconstructor):
             raise TypeError(f"GaussianCache: expected a Reconstructor, got {type(reconstructor).__name__}")
@@ -242,18 +251,18 @@ class GaussianCache:
         self.identity = reconstructor.identity()
         self.kind = "depth" if isinstance(reconstructor, DepthReconstructor) else "gaussians"
         self.dataset = dataset
-        self.max_open = max_open
+        self.keep_bytes = keep_bytes
         self.link_depth = link_depth and getattr(reconstructor, "given_depth", False)
-        self._open: OrderedDict[int, _EpisodeFile] = OrderedDict()  # memory-mapped
-        self._linking: OrderedDict[int, _EpisodeFile] = OrderedDict()  # parsed, nothing mapped
+        self._kept: OrderedDict[int, _EpisodeFile] = OrderedDict()  # parsed, least recently read first
+        self._kept_bytes = 0  # their nbytes
 
-    def __getstate__(self) -> dict:  # open file handles do not cross process boundaries
-        return {**self.__dict__, "_open": OrderedDict(), "_linking": OrderedDict()}
+    def __getstate__(self) -> dict:  # memory maps do not cross process boundaries
+        return {**self.__dict__, "_kept": OrderedDict(), "_kept_bytes": 0}
 
     def _forget(self, episode: int) -> None:
         """Drop the parsed file of ``episode`` (it is being rebuilt or was replaced)."""
-        self._open.pop(int(episode), None)
-        self._linking.pop(int(episode), None)
+        f = self._kept.pop(int(episode), None)
+        self._kept_bytes -= f.nbytes if f is not None else 0
 
     def path(self, episode: int) -> Path:
         return self.root / f"episode_{int(episode):06d}.safetensors"
@@ -405,11 +414,13 @@ class GaussianCache:
     def verify(self, episode: int) -> bool:
         """Whether every tensor of a readable episode file passes its checksum, and every
         depth file it links has the CRC-32 it had when linked."""
-        try:
-            f = self._file(episode)
+        def check(f: _EpisodeFile) -> bool:
             for name in f.crc:
                 f.tensor(name)
             return all(_file_crc(path) == crc for path, _, crc in f.links)
+
+        try:
+            return self._reading(episode, check)
         except (CacheError, OSError):
             return False
 
@@ -437,43 +448,53 @@ class GaussianCache:
             IndexError: ``frame`` is outside the episode.
             StaleCacheError, CorruptCacheError: see the module docstring.
         """
-        f = self._file(episode)
         if self.kind == "gaussians":
-            found = f.gaussians(frame)
-            resized = size not in (None, (f.width, f.height))
+            found, (width, height) = self._reading(episode, lambda f: (f.gaussians(frame), (f.width, f.height)))
+            resized = size not in (None, (width, height))
             return Reconstruction(found.gaussians, found.cameras.resize(*size)) if resized else found
         if images is None:
             raise ValueError(f"GaussianCache.read: a depth cache ({self.identity}) needs the views' images")
-        return self.reconstructor.assemble(f.depth_views(frame, images, size))
+        return self.reconstructor.assemble(self._reading(episode, lambda f: f.depth_views(frame, images, size)))
 
     def read_depth(self, episode: int, frame: int) -> tuple[torch.Tensor, Cameras]:
         """The stored depth (V, 1, H, W) float32 and cameras of one timestep of a ``depth``
         cache (what :meth:`read` builds the Gaussians from). Raises as :meth:`read`."""
-        return self._depth_file(episode).depth(frame), self._file(episode).cameras(frame)
+        return self._reading(episode, lambda f: (f.depth(frame), f.cameras(frame)), depth=True)
 
     def read_depth_words(self, episode: int, frame: int) -> tuple[tuple[torch.Tensor, bool], Cameras]:
         """The depth of one timestep as stored, ((V, H, W) int16 words, whether they are log
         codes), uncleaned (:func:`.depth_codec.depth_from_words` decodes them), and its cameras:
         half the bytes of :meth:`read_depth`'s float32, for a process that decodes elsewhere."""
-        return self._depth_file(episode).depth_words(frame), self._file(episode).cameras(frame)
+        return self._reading(episode, lambda f: (f.depth_words(frame), f.cameras(frame)), depth=True)
 
-    def _depth_file(self, episode: int) -> _EpisodeFile:
-        if self.kind != "depth":
+    def _reading(self, episode: int, read, depth: bool = False):
+        """``read(parsed file of episode)``; a file replaced or removed since this process
+        parsed it (rebuilt by another) is parsed again, once. ``depth``: a depth cache's read."""
+        if depth and self.kind != "depth":
             raise ValueError(f"GaussianCache: {self.identity} stores Gaussians, not depth")
-        return self._file(episode)
+        try:
+            return read(self._file(episode))
+        except _ReplacedError:
+            self._forget(episode)
+            return read(self._file(episode))
 
     def _file(self, episode: int) -> _EpisodeFile:
         episode = int(episode)
-        for kept in (self._linking, self._open):
-            if episode in kept:
-                kept.move_to_end(episode)
-                return kept[episode]
-        f = _EpisodeFile(self.path(episode), episode, self)
-        kept, most = (self._linking, MAX_LINKED_KEPT) if f.handle is None else (self._open, self.max_open)
-        kept[episode] = f
-        while len(kept) > most:
-            kept.popitem(last=False)
+        f = self._kept.get(episode)
+        if f is not None:
+            self._kept.move_to_end(episode)
+            return f
+        f = self._kept[episode] = _EpisodeFile(self.path(episode), episode, self)
+        self._grew(f, f.nbytes)
         return f
+
+    def _grew(self, f: _EpisodeFile, nbytes: int) -> None:
+        """Count ``nbytes`` more held by ``f`` (if kept) and drop the least recently read
+        files beyond the budget, never the most recent."""
+        if self._kept.get(f.episode) is f:
+            self._kept_bytes += nbytes
+        while len(self._kept) > 1 and (len(self._kept) > MAX_KEPT or self._kept_bytes > self.keep_bytes):
+            self._kept_bytes -= self._kept.popitem(last=False)[1].nbytes
 
 
 def _stat_key(path: Path) -> list[int] | None:
@@ -577,17 +598,20 @@ def _static_mask(frames: Sequence[Reconstruction], qs: list[dict]) -> list[torch
 
 
 class _EpisodeFile:
-    """An open episode file whose whole header was validated; decodes frames on demand."""
+    """An open episode file whose whole header was validated; decodes frames on demand.
+    ``nbytes`` is the memory its decoded parts take, reported to the cache as they grow."""
 
     def __init__(self, path: Path, episode: int, cache: GaussianCache) -> None:
         if not path.exists():
             raise FileNotFoundError(f"{path}: episode not cached")
-        self.path = path
+        self.path, self.episode, self._grew = path, episode, cache._grew
         try:
-            self.handle = safe_open(str(path), framework="pt")
-            meta = self.handle.metadata() or {}
-        except Exception as e:  # safetensors raises its own error types on bad files
+            self._file = TensorFile(path)
+        except FileNotFoundError:
+            raise FileNotFoundError(f"{path}: episode not cached") from None
+        except (OSError, ValueError) as e:
             raise CorruptCacheError(f"{path}: unreadable cache file ({e}); it is rebuilt on the next build") from e
+        meta = self._file.metadata
         if meta.get("format") != FORMAT:
             raise CorruptCacheError(f"{path}: not a GenSplat cache file")
         if meta.get("format_version") != FORMAT_VERSION:
@@ -605,10 +629,9 @@ class _EpisodeFile:
             raise CorruptCacheError(f"{path}: malformed header ({type(e).__name__}: {e})") from e
         self._linked = [self._open_link(p, size) for p, size, _ in self.links]
         self._clean = cache.reconstructor.clean_depth if self.links else None
-        if self.links:  # everything else it holds is parsed: map nothing (tensor() reopens)
-            self.handle = None
         self._static: Gaussians | None = None
-        self._reference: np.ndarray | None = None
+        self._reference: np.ndarray | None = None  # depth_codec.reference_rows
+        self.nbytes = self.K.nbytes + self.c2w.nbytes + self._file.header_bytes
 
     def _parse(self, meta: dict[str, str], episode: int) -> None:
         if int(meta["episode_index"]) != episode:
@@ -618,10 +641,10 @@ class _EpisodeFile:
         if min(self.num_frames, self.num_views, self.width, self.height) < 1:
             raise ValueError("num_frames, num_views and image_size must be positive")
         self.crc = dict(json.loads(meta["crc"]))
-        if set(self.crc) != set(self.handle.keys()):
+        if set(self.crc) != set(self._file.keys()):
             raise ValueError("the checksum list and the stored tensors differ")
         for name in self.crc:
-            dtype, want = self.handle.get_slice(name).get_dtype(), _DTYPES[name.rsplit(".", 1)[-1].rstrip("0123456789")]
+            dtype, want = self._file.dtype(name), _DTYPES[name.rsplit(".", 1)[-1].rstrip("0123456789")]
             if dtype != want:
                 raise ValueError(f"tensor {name!r} is labelled {dtype}, expected {want}")
         if meta["kind"] == "gaussians":
@@ -638,11 +661,10 @@ class _EpisodeFile:
         self.compression = json.loads(meta.get("depth_codec", "{}")).get("compression", "zlib")
         if self.compression not in depth_codec.COMPRESSIONS:
             raise ValueError(f"depth compression {self.compression!r}, known: {depth_codec.COMPRESSIONS}")
-        K, c2w = self.tensor("K"), self.tensor("c2w")
+        self.K, self.c2w = self.tensor("K"), self.tensor("c2w")
         want = (1 if self.links else self.num_frames, self.num_views)  # linked: the cameras once
-        if K.shape != (*want, 3, 3) or c2w.shape != (*want, 4, 4) or K.dtype != torch.float64:
-            raise ValueError(f"cameras of shape {tuple(K.shape)} / {tuple(c2w.shape)}, expected {want} views")
-        self.K, self.c2w = K.expand(self.num_frames, -1, -1, -1), c2w.expand(self.num_frames, -1, -1, -1)
+        if self.K.shape != (*want, 3, 3) or self.c2w.shape != (*want, 4, 4) or self.K.dtype != torch.float64:
+            raise ValueError(f"cameras of shape {tuple(self.K.shape)} / {tuple(self.c2w.shape)}, expected {want} views")
 
     def _open_link(self, path: Path, size: int):
         """A linked depth file (read frame by frame), after checking it is the file that was linked
@@ -666,9 +688,10 @@ class _EpisodeFile:
     def tensor(self, name: str) -> torch.Tensor:
         """One stored tensor, checksum verified."""
         try:
-            handle = self.handle if self.handle is not None else safe_open(str(self.path), framework="pt")
-            t = handle.get_tensor(name)
-        except Exception as e:
+            t = self._file.read(name)
+        except (FileChangedError, FileNotFoundError) as e:
+            raise _ReplacedError(f"{self.path}: replaced or removed since it was opened ({e})") from e
+        except (OSError, ValueError) as e:
             raise CorruptCacheError(f"{self.path}: cannot read {name!r} ({e})") from e
         if _tensor_crc(name, t) != self.crc.get(name):
             raise CorruptCacheError(f"{self.path}: checksum mismatch in {name!r}; it is rebuilt on the next build")
@@ -679,7 +702,8 @@ class _EpisodeFile:
             raise IndexError(f"{self.path}: frame {frame} outside 0..{self.num_frames - 1}")
 
     def cameras(self, frame: int) -> Cameras:
-        return Cameras(self.K[frame], self.c2w[frame], self.width, self.height)
+        t = 0 if self.links else frame  # linked: the cameras once
+        return Cameras(self.K[t], self.c2w[t], self.width, self.height)
 
     def depth_views(self, frame: int, images: torch.Tensor, size: tuple[int, int] | None = None) -> Views:
         """Views of one frame at ``size`` (width, height; default the cached size): the given
@@ -708,29 +732,44 @@ class _EpisodeFile:
         self._check_frame(frame)
         if self._linked:
             try:
-                return torch.cat([d[frame : frame + 1] for d in self._linked]).view(torch.int16), False
-            except (OSError, ValueError) as e:  # removed or cut short since the episode was opened
-                raise StaleCacheError(f"{self.path}: the dataset's depth file it links changed ({e})") from e
-        if self._reference is None:  # decoded once per process and episode, then reused
-            blob = self.tensor("depth.reference").numpy().tobytes()
+                return self._linked_words(frame), False
+            except FileChangedError:  # rewritten since opened: read on if its size and shape still match
+                self._linked = [self._open_link(p, size) for p, size, _ in self.links]
+                return self._linked_words(frame), False
+        if self._reference is None:  # decompressed once per process and episode, then reused
+            blob = self.tensor("depth.reference").numpy()
             try:
                 shape = (self.num_views, self.height, self.width)
-                self._reference = depth_codec.decode_reference(blob, shape, self.compression)
+                self._reference = depth_codec.reference_rows(blob, shape, self.compression)
             except ValueError as e:
                 raise CorruptCacheError(f"{self.path}: undecodable depth reference ({e})") from e
-        blob = self.tensor(f"depth.f{frame}").numpy().tobytes()
+            self._hold(self._reference.nbytes)
+        blob = self.tensor(f"depth.f{frame}").numpy()
         try:
             codes = depth_codec.decode_codes(self._reference, blob, self.compression)
         except ValueError as e:
             raise CorruptCacheError(f"{self.path}: undecodable depth of frame {frame} ({e})") from e
         return torch.from_numpy(codes.view(np.int16)), True
 
+    def _linked_words(self, frame: int) -> torch.Tensor:
+        try:
+            return torch.cat([d[frame : frame + 1] for d in self._linked]).view(torch.int16)
+        except FileChangedError:
+            raise
+        except (OSError, ValueError) as e:  # removed since the episode was opened
+            raise StaleCacheError(f"{self.path}: the dataset's depth file it links changed ({e})") from e
+
     def gaussians(self, frame: int) -> Reconstruction:
         self._check_frame(frame)
         if self._static is None:
             self._static = dequantize(self._group("static"), self.lo, self.hi)
+            self._hold(sum(t.nbytes for t in self._static.tensors().values()))
         g = Gaussians.cat([self._static, dequantize(self._group(f"f{frame}"), self.lo, self.hi)])
         return Reconstruction(g, self.cameras(frame))
 
     def _group(self, name: str) -> dict[str, torch.Tensor]:
         return {k: self.tensor(f"{name}.{k}") for k in _FIELDS}
+
+    def _hold(self, nbytes: int) -> None:
+        self.nbytes += nbytes
+        self._grew(self, nbytes)

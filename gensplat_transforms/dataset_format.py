@@ -23,8 +23,6 @@ image feature would be fed to the policy as an extra camera):
 from __future__ import annotations
 
 import json
-import os
-import struct
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,6 +31,7 @@ from safetensors.torch import save_file
 
 from .atomic import atomic_write
 from .cameras import Cameras
+from .tensor_file import TensorFile
 
 DEPTH_FORMAT = "gensplat-depth"
 DEPTH_FORMAT_VERSION = "1"
@@ -155,51 +154,34 @@ def open_depth(path: str | Path) -> DepthFile:
 
 
 class DepthFile:
-    """A depth sidecar's ``"depth"`` tensor, its safetensors header checked once, its frames
-    read with positioned reads when sliced. No memory map: a worker opens one per sample at
-    random, and mapping and unmapping three files costs it about 4x more than reading."""
+    """A depth sidecar's ``"depth"`` tensor, its header checked once, its frames read with
+    positioned reads when sliced (:class:`.tensor_file.TensorFile`: a worker opens one per
+    sample at random, and mapping and unmapping three files costs it about 4x more than
+    reading)."""
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         try:
-            with open(self.path, "rb") as f:
-                size = os.fstat(f.fileno()).st_size
-                (n,) = struct.unpack("<Q", f.read(8))
-                if not 0 < n <= min(size - 8, 1 << 24):
-                    raise ValueError(f"header length {n} in a file of {size} bytes")
-                header = json.loads(f.read(n))
-        except (OSError, ValueError, struct.error) as e:  # JSONDecodeError is a ValueError
-            raise ValueError(f"{path}: unreadable depth file ({e})") from e
-        if not isinstance(header, dict) or (header.get("__metadata__") or {}).get("format") != DEPTH_FORMAT:
+            self._file = TensorFile(self.path)
+        except (OSError, ValueError) as e:  # both name the file
+            raise ValueError(f"unreadable depth file: {e}") from e
+        if self._file.metadata.get("format") != DEPTH_FORMAT or "depth" not in self._file:
             raise ValueError(f"{path}: not a GenSplat depth file")
-        depth = header.get("depth") or {}
-        shape, dtype, (lo, hi) = depth.get("shape"), depth.get("dtype"), depth.get("data_offsets", (0, -1))
-        if not isinstance(shape, list) or len(shape) != 3:
-            raise ValueError(f"{path}: depth of shape {shape}, expected (T, H, W)")
-        if dtype != "F16":
-            raise ValueError(f"{path}: depth of dtype {dtype}, expected F16 (float16)")
-        self.shape = tuple(int(x) for x in shape)
-        self._start, self._frame_bytes = 8 + n + int(lo), 2 * self.shape[1] * self.shape[2]
-        if int(hi) - int(lo) != self._frame_bytes * self.shape[0] or self._start + int(hi) - int(lo) > size:
-            raise ValueError(f"{path}: unreadable depth file (its data does not hold {self.shape} float16 values)")
+        self.shape, dtype = self._file.shape("depth"), self._file.dtype("depth")
+        if len(self.shape) != 3:
+            raise ValueError(f"{path}: depth of shape {list(self.shape)}, expected (T, H, W)")
+        if dtype != torch.float16:
+            raise ValueError(f"{path}: depth of dtype {str(dtype).removeprefix('torch.')}, expected float16")
 
     def get_shape(self) -> tuple[int, int, int]:
         return self.shape
 
     def __getitem__(self, frames: slice) -> torch.Tensor:
-        """(n, H, W) float16 frames ``frames`` (a slice with step 1, clamped to the file)."""
-        start, stop, step = frames.indices(self.shape[0])
-        if step != 1:
+        """(n, H, W) float16 frames ``frames`` (a slice with step 1, clamped to the file);
+        ValueError when the file changed since it was opened."""
+        if not isinstance(frames, slice) or frames.step not in (None, 1):
             raise ValueError(f"DepthFile: frames must be a slice with step 1, got {frames}")
-        n = max(stop - start, 0)
-        if n == 0:
-            return torch.zeros(0, *self.shape[1:], dtype=torch.float16)
-        buffer = bytearray(n * self._frame_bytes)
-        fd = os.open(self.path, os.O_RDONLY)
         try:
-            got = os.preadv(fd, [buffer], self._start + start * self._frame_bytes)
-        finally:
-            os.close(fd)
-        if got != len(buffer):
-            raise ValueError(f"{self.path}: read {got} of {len(buffer)} bytes of depth (the file was truncated)")
-        return torch.frombuffer(buffer, dtype=torch.float16).reshape(n, *self.shape[1:])
+            return self._file.read("depth", frames)
+        except OSError as e:
+            raise ValueError(f"unreadable depth file: {e}") from e

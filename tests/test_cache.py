@@ -86,8 +86,8 @@ def test_depth_codec_error_is_bounded_and_invalid_stays_invalid():
     d = torch.exp(torch.empty(4, 2, 16, 16).uniform_(-13, 13, generator=g))  # 2 um .. 400 km
     d[0, 0, 0, :5] = torch.tensor([0.0, -1.0, float("nan"), float("inf"), 2e6])  # no depth / out of range
     ref, blobs = dc.encode_episode(d)
-    codes = dc.decode_reference(ref, (2, 16, 16))
-    out = torch.stack([dc.decode_frame(codes, b)[:, 0] for b in blobs])
+    rows = dc.reference_rows(ref, (2, 16, 16))
+    out = torch.stack([dc.decode_frame(rows, b)[:, 0] for b in blobs])
     ok = (d >= dc.D_MIN) & (d <= dc.D_MAX)
     assert torch.equal(out > 0, ok)
     rel = ((out - d).abs() / d)[ok]
@@ -106,8 +106,23 @@ def test_depth_codec_reference_is_the_per_pixel_median_rounded_down(frames, monk
     codes = dc.quantize_depth(d)
     assert np.array_equal(dc.decode_reference(ref, (2, 9, 17)), np.median(codes, axis=0).astype(np.uint16))
     assert dc.encode_episode(list(d)) == (ref, blobs)  # frames one by one: the same bytes
-    decoded = [dc.decode_codes(dc.decode_reference(ref, (2, 9, 17)), b) for b in blobs]
+    decoded = [dc.decode_codes(dc.reference_rows(ref, (2, 9, 17)), b) for b in blobs]
     assert np.array_equal(np.stack(decoded), codes)
+
+
+def test_depth_codec_row_sums_wrap_modulo_2_16():
+    """Codes far apart side by side (0 = no depth, 1 and the largest in range): their row
+    differences wrap, and so must the sums that undo them (frame and reference differences
+    added before one prefix sum)."""
+    top = int(dc.quantize_depth(torch.tensor(dc.D_MAX)))
+    g = np.random.default_rng(0)
+    frames = g.choice(np.array([0, 1, 2, top - 1, top, 40000], np.uint16), size=(3, 2, 5, 300))
+    depth = dc.dequantize_depth(frames)  # exactly these codes back from quantize_depth
+    ref, blobs = dc.encode_episode(depth)
+    rows = dc.reference_rows(ref, frames.shape[1:])
+    for want, blob in zip(frames, blobs):
+        assert np.array_equal(dc.decode_codes(rows, blob), want)
+    assert np.array_equal(dc.reference_rows(ref, frames.shape[1:]), rows)  # decoding left it untouched
 
 
 def test_depth_words_decode_codes_and_float16_bits_alike():
@@ -144,7 +159,7 @@ def test_a_depth_file_of_another_dtype_is_refused(tmp_path):
 
     path = tmp_path / "episode_000000.safetensors"
     save_file({"depth": torch.ones(2, 4, 4)}, str(path), metadata={"format": DEPTH_FORMAT})
-    with pytest.raises(ValueError, match="depth of dtype F32, expected F16"):
+    with pytest.raises(ValueError, match="depth of dtype float32, expected float16"):
         open_depth(path)
 
 
@@ -198,12 +213,12 @@ def test_a_depth_file_is_read_frame_by_frame_and_checked(tmp_path):
     assert torch.equal(f[1:3], depth[1:3].half()) and f[4:9].shape == (1, 6, 7) and f[9:10].shape == (0, 6, 7)
     data = path.read_bytes()
     path.write_bytes(data[:-10])
-    with pytest.raises(ValueError, match="does not hold"):
+    with pytest.raises(ValueError, match="its tensors end at byte 420 of 410 data bytes"):
         open_depth(path)
     path.write_bytes(data)
     f = open_depth(path)
     path.write_bytes(data[: len(data) // 2])
-    with pytest.raises(ValueError, match="truncated"):
+    with pytest.raises(ValueError, match="changed since it was opened"):
         f[4:5]
     path.write_bytes(b"\xff" * 8 + data[8:])
     with pytest.raises(ValueError, match="unreadable depth file"):
@@ -214,27 +229,82 @@ def test_a_linked_depth_file_cut_short_while_open_is_stale(linked):
     cache = linked[0]
     cache.read_depth(0, 0)  # the episode is open
     path = cache._file(0).links[0][0]
-    path.write_bytes(path.read_bytes()[:200])
+    data = path.read_bytes()
+    path.write_bytes(data[:200])
+    with pytest.raises(StaleCacheError, match=r"changed since it was linked \(\d+ -> 200 bytes\)"):
+        cache.read_depth(0, 2)
+    path.unlink()
     with pytest.raises(StaleCacheError, match="depth file it links changed"):
         cache.read_depth(0, 2)
 
 
-def test_linked_episodes_stay_parsed_without_a_mapping(linked, built):
-    """Episodes that link the dataset's depth keep nothing mapped, so max_open does not evict
-    them (a worker sampling at random does not reopen them); stored ones count against it.
-    A parsed linked episode still verifies (its file is reopened for the checksums)."""
-    cache, _, _ = linked
-    c = fresh(cache)
-    c.max_open = 1
-    for e in (0, 1, 0):
-        c.read_depth(e, 1)
-    assert list(c._linking) == [1, 0] and not c._open and c._file(0).handle is None
-    assert c.verify(0) and c.verify(1)
+def test_a_linked_depth_file_copied_again_while_open_reads_on(linked):
+    """A sidecar rewritten with the same size and shape (copied again: a new inode and
+    modification time) is opened again and read, not reported as a changed dataset."""
+    cache = linked[0]
+    want = cache.read_depth(0, 2)[0]
+    path = cache._file(0).links[0][0]
+    data = path.read_bytes()
+    path.unlink()
+    path.write_bytes(data)
+    assert torch.equal(cache.read_depth(0, 2)[0], want)
+
+
+def _held(cache) -> tuple[int, int]:
+    """(file descriptors, memory maps) this process holds on the cache's folder."""
+    fds = sum(str(cache.root) in os.path.realpath(f"/proc/self/fd/{fd}") for fd in os.listdir("/proc/self/fd"))
+    with open("/proc/self/maps") as f:
+        maps = sum(str(cache.root) in line for line in f)
+    return fds, maps
+
+
+def test_kept_episodes_stay_within_the_memory_budget(linked, built):
+    """Parsed episodes are kept least recently read first out, within keep_bytes (their
+    cameras, headers and decoded depth references), never dropping the one being read; a
+    linked episode takes a few kB, so many stay parsed where stored ones do not. Kept files
+    hold no file descriptor and no memory map, and a kept linked episode still verifies."""
     stored = fresh(built[0])
-    stored.max_open = 1
     for e in (0, 1):
         stored.read_depth(e, 1)
-    assert list(stored._open) == [1] and not stored._linking
+    sizes = {e: f.nbytes for e, f in stored._kept.items()}
+    assert all(n > 2 * 48 * 48 * 2 for n in sizes.values())  # the decoded reference counts
+    assert stored._kept_bytes == sum(sizes.values())
+    one = max(sizes.values()) + 1  # room for one stored episode
+    stored = GaussianCache(stored.root, stored.reconstructor, stored.dataset, keep_bytes=one)
+    for e in (0, 1, 0):
+        stored.read_depth(e, 2)
+    assert list(stored._kept) == [0] and stored._kept_bytes == stored._kept[0].nbytes
+    stored = GaussianCache(stored.root, stored.reconstructor, stored.dataset, keep_bytes=1)  # room for none:
+    stored.read_depth(1, 0)  # the file being read stays
+    assert list(stored._kept) == [1]
+    cache = linked[0]
+    linked_cache = GaussianCache(cache.root, cache.reconstructor, cache.dataset, keep_bytes=one)
+    for e in (0, 1, 0):
+        linked_cache.read_depth(e, 1)
+    assert list(linked_cache._kept) == [1, 0] and linked_cache._kept_bytes < 4000
+    assert _held(stored) == (0, 0) and _held(linked_cache) == (0, 0)
+    assert linked_cache.verify(0) and linked_cache.verify(1)
+
+
+def test_a_kept_episode_rebuilt_by_another_process_is_read_again(built, source):
+    """A file replaced since this process parsed it (another process rebuilt it, e.g. for
+    another image content) is parsed again and its new data returned, not reported corrupt;
+    one removed since is "not cached"."""
+    cache, _ = built
+    reader = fresh(cache)
+    before = reader.read_depth(0, 1)[0]
+    other = SceneEpisodes(num_episodes=2, num_frames=3, size=48, seed=5)
+    other.fingerprint = source.fingerprint  # same dataset label, other depth
+    writer = fresh(cache)
+    with writer.lock(0):
+        writer._build(0, other)
+    after = reader.read_depth(0, 1)[0]
+    want = fresh(cache).read_depth(0, 1)[0]
+    assert torch.equal(after, want) and not torch.equal(after, before)
+    assert reader.verify(0)
+    cache.path(0).unlink()
+    with pytest.raises(FileNotFoundError, match="not cached"):
+        reader.read_depth(0, 2)
 
 
 def test_depth_codec_rejects_a_blob_of_the_wrong_size():
@@ -810,3 +880,17 @@ def test_malformed_links_are_corrupt_not_a_crash(linked, edit, forged):
     assert c.status(0) == "corrupt" and not c.verify(0)
     with pytest.raises(CorruptCacheError):
         c.read_depth(0, 0)
+
+
+def test_dequantize_reads_every_integer_type_alike():
+    """uint16 and int16 (the cache's words), numpy or torch, and wider integers modulo 2^16
+    give the same metres; code 0 is no depth and every other code a finite positive depth."""
+    codes = np.arange(2**16, dtype=np.uint16)
+    want = dc.dequantize_depth(codes)
+    assert want.dtype == torch.float32 and want[0] == 0 and torch.isfinite(want).all() and (want[1:] > 0).all()
+    assert torch.all(want[2:] > want[1:-1])  # one step per code
+    for same in (codes.view(np.int16), torch.from_numpy(codes.view(np.int16)), codes.astype(np.int32),
+                 torch.from_numpy(codes.astype(np.int64) - 2**16)):  # fmt: skip
+        assert torch.equal(dc.dequantize_depth(same), want)
+    k = torch.arange(1, 2**16, dtype=torch.float64)
+    assert torch.allclose(want[1:].double(), dc.D_MIN * torch.exp((k - 1) * dc.STEP), rtol=1e-7, atol=0)
