@@ -473,10 +473,18 @@ class GaussianCache:
         if depth and self.kind != "depth":
             raise ValueError(f"GaussianCache: {self.identity} stores Gaussians, not depth")
         try:
-            return read(self._file(episode))
+            return self._counted(self._file(episode), read)
         except _ReplacedError:
             self._forget(episode)
-            return read(self._file(episode))
+            return self._counted(self._file(episode), read)
+
+    def _counted(self, f: _EpisodeFile, read):
+        """``read(f)``, counting what it decoded into ``f`` against the budget."""
+        held = f.nbytes
+        try:
+            return read(f)
+        finally:
+            self._count(f, f.nbytes - held)
 
     def _file(self, episode: int) -> _EpisodeFile:
         episode = int(episode)
@@ -485,10 +493,10 @@ class GaussianCache:
             self._kept.move_to_end(episode)
             return f
         f = self._kept[episode] = _EpisodeFile(self.path(episode), episode, self)
-        self._grew(f, f.nbytes)
+        self._count(f, f.nbytes)
         return f
 
-    def _grew(self, f: _EpisodeFile, nbytes: int) -> None:
+    def _count(self, f: _EpisodeFile, nbytes: int) -> None:
         """Count ``nbytes`` more held by ``f`` (if kept) and drop the least recently read
         files beyond the budget, never the most recent."""
         if self._kept.get(f.episode) is f:
@@ -599,12 +607,12 @@ def _static_mask(frames: Sequence[Reconstruction], qs: list[dict]) -> list[torch
 
 class _EpisodeFile:
     """An open episode file whose whole header was validated; decodes frames on demand.
-    ``nbytes`` is the memory its decoded parts take, reported to the cache as they grow."""
+    ``nbytes``: the memory it holds (cameras, header, the parts it decoded so far)."""
 
     def __init__(self, path: Path, episode: int, cache: GaussianCache) -> None:
         if not path.exists():
             raise FileNotFoundError(f"{path}: episode not cached")
-        self.path, self.episode, self._grew = path, episode, cache._grew
+        self.path, self.episode = path, episode
         try:
             self._file = TensorFile(path)
         except FileNotFoundError:
@@ -743,7 +751,7 @@ class _EpisodeFile:
                 self._reference = depth_codec.reference_rows(blob, shape, self.compression)
             except ValueError as e:
                 raise CorruptCacheError(f"{self.path}: undecodable depth reference ({e})") from e
-            self._hold(self._reference.nbytes)
+            self.nbytes += self._reference.nbytes
         blob = self.tensor(f"depth.f{frame}").numpy()
         try:
             codes = depth_codec.decode_codes(self._reference, blob, self.compression)
@@ -763,13 +771,9 @@ class _EpisodeFile:
         self._check_frame(frame)
         if self._static is None:
             self._static = dequantize(self._group("static"), self.lo, self.hi)
-            self._hold(sum(t.nbytes for t in self._static.tensors().values()))
+            self.nbytes += sum(t.nbytes for t in self._static.tensors().values())
         g = Gaussians.cat([self._static, dequantize(self._group(f"f{frame}"), self.lo, self.hi)])
         return Reconstruction(g, self.cameras(frame))
 
     def _group(self, name: str) -> dict[str, torch.Tensor]:
         return {k: self.tensor(f"{name}.{k}") for k in _FIELDS}
-
-    def _hold(self, nbytes: int) -> None:
-        self.nbytes += nbytes
-        self._grew(self, nbytes)

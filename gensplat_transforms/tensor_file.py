@@ -68,31 +68,29 @@ class TensorFile:
         if not isinstance(metadata, dict) or not all(isinstance(v, str) for v in metadata.values()):
             raise ValueError(f"{self.path}: metadata that is not str -> str")
         self.metadata: dict[str, str] = metadata
-        self._header: dict = header  # entries checked when first used (_entry): a reader uses a few
-        self._entries: dict[str, tuple[torch.dtype, tuple[int, ...], int, int]] = {}
-        try:  # safetensors' data ends where the file does: a cut or padded file is refused now
-            end = max((e["data_offsets"][1] for e in header.values()), default=0)
+        try:  # (dtype name, shape, first, end byte) per tensor: tuples the garbage collector skips
+            self._header = {name: (e["dtype"], tuple(e["shape"]), *e["data_offsets"]) for name, e in header.items()}
+            end = max((entry[3] for entry in self._header.values()), default=0)
         except (KeyError, TypeError, IndexError) as e:
             raise ValueError(f"{self.path}: malformed safetensors header ({type(e).__name__}: {e})") from e
-        if end != self._data_size:
+        if end != self._data_size:  # safetensors' data ends where the file does: a cut or padded file
             raise ValueError(f"{self.path}: its tensors end at byte {end} of {self._data_size} data bytes")
 
     def _entry(self, name: str) -> tuple[torch.dtype, tuple[int, ...], int, int]:
-        """(dtype, shape, first byte, end byte) of tensor ``name``, checked (KeyError if absent)."""
-        if name in self._entries:
-            return self._entries[name]
+        """(dtype, shape, first byte, end byte in the file) of tensor ``name``, checked when
+        used: a reader uses a few of the file's tensors (KeyError if absent)."""
         entry = self._header[name]
         try:
-            dtype, shape, (lo, hi) = DTYPES[entry["dtype"]], entry["shape"], entry["data_offsets"]
+            dtype_name, shape, lo, hi = entry
+            dtype = DTYPES[dtype_name]
             if not all(type(x) is int and x >= 0 for x in (*shape, lo, hi)):
                 raise TypeError("shape and offsets must be non-negative integers")
         except (KeyError, TypeError, ValueError) as e:
             raise ValueError(f"{self.path}: malformed header entry {name!r}: {entry!r} ({e})") from e
         if hi - lo != math.prod(shape) * dtype.itemsize or hi > self._data_size or lo > hi:
-            raise ValueError(f"{self.path}: tensor {name!r} ({entry['dtype']} {shape}) does not fit bytes "
+            raise ValueError(f"{self.path}: tensor {name!r} ({dtype_name} {list(shape)}) does not fit bytes "
                              f"{lo}..{hi} of {self._data_size}")  # fmt: skip
-        self._entries[name] = dtype, tuple(shape), self._data + lo, self._data + hi
-        return self._entries[name]
+        return dtype, shape, self._data + lo, self._data + hi
 
     def keys(self) -> list[str]:
         return list(self._header)
@@ -103,7 +101,7 @@ class TensorFile:
     def dtype(self, name: str) -> torch.dtype:
         entry = self._header[name]
         try:
-            return DTYPES[entry["dtype"]]
+            return DTYPES[entry[0]]
         except (KeyError, TypeError) as e:
             raise ValueError(f"{self.path}: tensor {name!r} of no known dtype: {entry!r}") from e
 

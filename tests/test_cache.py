@@ -894,3 +894,20 @@ def test_dequantize_reads_every_integer_type_alike():
         assert torch.equal(dc.dequantize_depth(same), want)
     k = torch.arange(1, 2**16, dtype=torch.float64)
     assert torch.allclose(want[1:].double(), dc.D_MIN * torch.exp((k - 1) * dc.STEP), rtol=1e-7, atol=0)
+
+
+def test_a_dropped_cache_frees_its_parsed_files_at_once(built):
+    """No reference cycle between a cache and its kept files: dropping the cache frees them
+    without waiting for a garbage collection (a worker's memory does not pile up)."""
+    import gc
+    import weakref
+
+    cache = fresh(built[0])
+    cache.read_depth(0, 1)
+    kept = weakref.ref(cache._kept[0])
+    gc.disable()
+    try:
+        del cache
+        assert kept() is None
+    finally:
+        gc.enable()
