@@ -45,8 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "episodes (e.g. torchrun --nproc-per-node 8 -m gensplat_transforms.cli cache ...; see "
                     "docs/cache_at_scale.md). Resumable: valid episodes are skipped.",
     )  # fmt: skip
-    cache.add_argument("--root", required=True, help="local LeRobot dataset root")
-    cache.add_argument("--repo-id", required=True, help="the dataset's repo id")
+    _dataset_arguments(cache)
     cache.add_argument("--cameras", nargs="+", default=None, help="external cameras to reconstruct (default: all)")
     cache.add_argument("--replace", nargs="+", default=None, help="cameras whose image is replaced (default: all)")
     cache.add_argument("--level", default="train", help="perturbation level (default: train)")
@@ -82,6 +81,27 @@ def build_parser() -> argparse.ArgumentParser:
     cache.add_argument("--model", default=None,
                        help="weights directory or hub id of the geometry or gensplat model, e.g. a Pi3 checkpoint "
                             "(default: the shipped small model)")
+
+    depth = sub.add_parser(
+        "import-depth", help="write a camera's recorded depth (16-bit PNG, float TIFF, .npy/.npz) as the depth "
+                             "sidecars of a LeRobot dataset",
+        description="Read one camera's depth per episode from FROM, check it against the dataset (frames per "
+                    "episode, image size, plausible distances) and write ROOT/depth/CAMERA/episode_*.safetensors, "
+                    "which the rgbd reconstructor links. FROM names the episode with {episode} (e.g. "
+                    "'raw/ep{episode:03d}/depth_left/*.png', 'raw/depth_left/episode_{episode}.npy'): a folder or "
+                    "glob of frame images (natural order) or one (T, H, W) array. The depth must be z-depth "
+                    "registered to the colour image; 0 marks no depth. The dataset's own files are not touched; "
+                    "episodes whose sidecar exists are kept (--overwrite replaces them).",
+    )  # fmt: skip
+    _dataset_arguments(depth)
+    depth.add_argument("--camera", required=True, help="the camera the depth belongs to (its image feature's name)")
+    depth.add_argument("--from", dest="source", required=True, metavar="FROM",
+                       help="each episode's depth, with {episode}: a folder, a glob or a .npy/.npz file")
+    depth.add_argument("--units", default=None,
+                       help="metres per stored value: mm, cm, m or a number (default: mm for integer data, m for "
+                            "floats, refused when the median distance is implausible)")
+    depth.add_argument("--episodes", type=int, nargs="+", default=None, help="only these episodes (default: all)")
+    depth.add_argument("--overwrite", action="store_true", help="replace existing depth sidecars")
 
     calibrate = sub.add_parser(
         "calibrate", help="store camera calibration beside a LeRobot dataset whose features carry none",
@@ -153,8 +173,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "LeRobot dataset opened as lerobot-train opens it, with the settings gensplat cache wrote and "
                     "augmentation forced on (probability 1). Nothing is written into the dataset.",
     )  # fmt: skip
-    preview.add_argument("--root", required=True, help="local LeRobot dataset root (with gensplat cache's settings)")
-    preview.add_argument("--repo-id", required=True, help="the dataset's repo id")
+    _dataset_arguments(preview, " (with gensplat cache's settings)")
     preview.add_argument("--episode", type=int, default=0, help="episode to show (default: 0)")
     preview.add_argument("--frames", type=int, nargs="+", default=None,
                          help="frames of the episode in the grid (default: 4 evenly spaced)")
@@ -171,13 +190,18 @@ def build_parser() -> argparse.ArgumentParser:
                     "(opens in splat viewers). Read from the dataset's cache; an episode missing from it is built "
                     "first with the cache's reconstructor (run gensplat cache once before).",
     )  # fmt: skip
-    export.add_argument("--root", required=True, help="local LeRobot dataset root (with gensplat cache's settings)")
-    export.add_argument("--repo-id", required=True, help="the dataset's repo id")
+    _dataset_arguments(export, " (with gensplat cache's settings)")
     export.add_argument("--episode", type=int, required=True, help="episode index")
     export.add_argument("--frame", type=int, required=True, help="frame index within the episode")
     export.add_argument("--out", required=True, help="PLY file to write (replaced when it exists)")
 
     return parser
+
+
+def _dataset_arguments(parser: argparse.ArgumentParser, root_note: str = "") -> None:
+    """--root and --repo-id of a local LeRobot dataset."""
+    parser.add_argument("--root", required=True, help=f"local LeRobot dataset root{root_note}")
+    parser.add_argument("--repo-id", required=True, help="the dataset's repo id")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -219,6 +243,8 @@ def _dispatch(args) -> int:
         cameras = calibrate(args.root, args.source, args.convention)
         print(f"calibrated {', '.join(f'{n} ({c.mount})' for n, c in cameras.items())} from {args.source}; "
               f"written to {calibration_path(args.root)} (the dataset is not modified)")  # fmt: skip
+    elif args.command == "import-depth":
+        _import_depth(args)
     elif args.command == "demo":
         from .demo import run_demo
 
@@ -337,6 +363,21 @@ def _preview(args) -> None:
         image_transforms=args.image_transforms, seed=args.seed,
     )  # fmt: skip
     print("wrote", preview.png, preview.mp4 or "(no MP4: PyAV is not installed)")
+
+
+def _import_depth(args) -> None:
+    done = _lerobot_module("depth", "import-depth").import_dataset_depth(
+        args.root, args.repo_id, args.camera, args.source, args.units, args.episodes, args.overwrite,
+    )  # fmt: skip
+    written = {e: d for e, d in done.items() if not d.skipped}
+    if written:
+        frames = sum(d.frames for d in written.values())
+        invalid = sum(d.invalid * d.frames for d in written.values()) / frames
+        medians = sorted(d.median_m for d in written.values())
+        print(f"wrote the depth of {args.camera!r} for {len(written)} episode(s), {frames} frames, to "
+              f"{Path(args.root) / 'depth' / args.camera}: {invalid:.1%} of pixels without depth, median distance "
+              f"{medians[len(medians) // 2]:.3f} m")  # fmt: skip
+    print(f"{len(done) - len(written)} episode(s) already had depth (--overwrite replaces it)")
 
 
 def _export_ply(args) -> None:

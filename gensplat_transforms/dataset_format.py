@@ -127,13 +127,15 @@ def depth_path(root: str | Path, camera: str, episode: int) -> Path:
 
 
 def save_depth(root: str | Path, camera: str, episode: int, depth: torch.Tensor) -> Path:
-    """Write a (T, H, W) metric depth sidecar atomically."""
+    """Write a (T, H, W) metric depth sidecar atomically (float16; non-finite and negative
+    values as 0, distances clamped to 60 km; float16 input is not copied to float32)."""
     if depth.ndim != 3:
         raise ValueError(f"save_depth: expected (T, H, W) depth, got {tuple(depth.shape)}")
     path = depth_path(root, camera, episode)
     meta = {"format": DEPTH_FORMAT, "format_version": DEPTH_FORMAT_VERSION, "camera": camera,
             "episode_index": str(int(episode)), "num_frames": str(depth.shape[0])}  # fmt: skip
-    d = torch.nan_to_num(depth.float(), nan=0.0, posinf=0.0, neginf=0.0).clamp(0, 6e4)
+    d = depth if depth.dtype == torch.float16 else depth.float()
+    d = torch.nan_to_num(d, nan=0.0, posinf=0.0, neginf=0.0).clamp(0, 6e4)
     return atomic_write(path, lambda tmp: save_file({"depth": d.to(torch.float16).contiguous()}, tmp, metadata=meta))
 
 

@@ -295,6 +295,40 @@ def test_rgb_only_dataset_uses_the_geometry_path(dataset_root):
     assert not torch.equal(item[LEFT], ref[LEFT])
 
 
+def test_recorded_depth_is_imported_as_the_datasets_sidecars(dataset_root, tmp_path, capsys):
+    """gensplat import-depth: millimetre PNGs of an RGB-only dataset become its depth
+    sidecars, which the rgbd cache then links; user mistakes end with a message."""
+    from PIL import Image
+
+    from gensplat_transforms.cli import main
+
+    want = {(n, e): load_depth(dataset_root, n, e)[:, 0] for n in ("left", "right") for e in (0, 1)}
+    shutil.rmtree(dataset_root / "depth")
+    for (name, episode), depth in want.items():
+        folder = tmp_path / "raw" / f"episode_{episode}" / name
+        folder.mkdir(parents=True)
+        for t, frame in enumerate(depth):
+            Image.fromarray((frame * 1000).round().numpy().astype("uint16")).save(folder / f"{t}.png")
+    for name in ("left", "right"):
+        args = ["import-depth", "--root", str(dataset_root), "--repo-id", REPO, "--camera", name,
+                "--from", str(tmp_path / "raw" / "episode_{episode}" / name)]  # fmt: skip
+        assert main(args) == 0
+    assert "wrote the depth of 'right' for 2 episode(s), 40 frames" in capsys.readouterr().out
+    for (name, episode), depth in want.items():
+        got = load_depth(dataset_root, name, episode)[:, 0]
+        assert (got - depth).abs().max() <= 0.5e-3 + 1e-3 * depth.max()  # millimetres, then float16
+    assert main(args) == 0 and "2 episode(s) already had depth" in capsys.readouterr().out
+    stats = prepare(dataset_root, REPO, GenSplatConfig(probability=1.0, level="small"), episodes=[0], progress=False)
+    assert stats[0].bytes_per_timestep < 200  # links the imported files
+    assert load_settings(dataset_root)[1]["name"] == "rgbd"
+    for extra, message in ((["--camera", "top"], "no camera 'top'; its cameras"),
+                           (["--episodes", "5"], r"episode\(s\) \[5\] are not in the dataset")):  # fmt: skip
+        args = ["import-depth", "--root", str(dataset_root), "--repo-id", REPO, "--camera", "left",
+                "--from", str(tmp_path / "raw" / "episode_{episode}" / "left"), *extra]  # fmt: skip
+        assert main(args) == 2
+        assert re.search(message, capsys.readouterr().err)
+
+
 def test_pi0_config_parses_and_its_dataset_path_runs(dataset_root):
     import draccus
     import lerobot.policies  # noqa: F401  registers the policy config classes
