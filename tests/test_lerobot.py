@@ -427,6 +427,19 @@ def test_policy_input_size_is_read_and_a_smaller_render_is_warned_of(dataset_roo
     assert lines[3] == "  views rendered at 24x24 of 48x48 frames (render scale 0.5); the policy reads 24x24"
 
 
+def test_a_killed_writers_temporary_file_is_not_dataset_content(dataset_root):
+    """A depth import or calibration killed mid-write leaves atomic_write's temporary file
+    beside the sidecars: the folder's digest (and so the cache's dataset fingerprint) ignores
+    it, where a real new file counts."""
+    from gensplat_lerobot.source import files_digest
+
+    before = files_digest(dataset_root, "depth/left")
+    (dataset_root / "depth" / "left" / ".episode_000000.safetensors.0123456789ab.tmp").write_bytes(b"partial")
+    assert files_digest(dataset_root, "depth/left") == before
+    (dataset_root / "depth" / "left" / "episode_000002.safetensors").write_bytes(b"new")
+    assert files_digest(dataset_root, "depth/left") != before
+
+
 def test_folder_digests_are_remembered_by_file_stats(dataset_root, monkeypatch):
     from pathlib import Path as P
 

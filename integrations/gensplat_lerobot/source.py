@@ -199,10 +199,14 @@ def files_digest(root: Path, folder: str, memo: Path | None = None, sample: int 
 def _regular_files(root: Path, folder: str) -> list[tuple[str, str, os.stat_result]]:
     """(path, path relative to ``root``, stat) of the files under ``root/folder`` (links to
     files followed, links to folders not), in ``pathlib`` path order; plain strings, which
-    make a folder of many thousands of files several times quicker to list than ``Path``."""
+    make a folder of many thousands of files several times quicker to list than ``Path``.
+    Temporary files of :func:`.atomic.atomic_write` (``.<name>.<hex>.tmp``, left behind by a
+    writer that was killed) are not the dataset's content."""
     base, prefix, found = str(root / folder), Path(folder).as_posix(), []
     for top, _, names in os.walk(base):
         for name in names:
+            if name.startswith(".") and name.endswith(".tmp"):
+                continue
             path = os.path.join(top, name)
             try:
                 st = os.stat(path)
