@@ -501,3 +501,20 @@ def test_plugin_without_settings_stops_training(dataset_root, tmp_path):
     assert last == (f"FileNotFoundError: GenSplat is enabled but {dataset_root / 'gensplat' / 'config.json'} does not "
                     f"exist: run `gensplat cache --root {dataset_root} --repo-id {REPO}` once to write the settings "
                     "and build the Gaussian cache")  # fmt: skip
+
+
+def test_episode_lengths_and_starts_come_from_one_metadata_read(dataset_root):
+    """LeRobotSource reads every episode's length and first index once, as LeRobot's
+    metadata has them, and refuses an episode outside the dataset (no negative indexing)."""
+    source = LeRobotSource(dataset_root, REPO)
+    meta = source.dataset.meta
+    assert [source.num_frames(e) for e in range(meta.total_episodes)] == [int(n) for n in meta.episodes["length"]]
+    start = int(meta.episodes["dataset_from_index"][1])
+    item = LeRobotDataset(REPO, root=dataset_root)[start + 3]
+    want = item[f"observation.images.{source.camera_names[0]}"]
+    got = source.views(1, 3).images[0]
+    assert torch.allclose(got, want.float() / 255 if want.dtype == torch.uint8 else want)
+    with pytest.raises(IndexError, match=r"episode -1 is not in the dataset \(episodes 0..1\)"):
+        source.num_frames(-1)
+    with pytest.raises(IndexError, match="episode 2 is not in the dataset"):
+        source.views(2, 0)

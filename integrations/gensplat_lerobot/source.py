@@ -101,8 +101,20 @@ class LeRobotSource:
         """Whether every reconstructed camera has a depth sidecar (checked on episode 0)."""
         return all(depth_path(self.root, n, 0).exists() for n in self.camera_names)
 
+    @cached_property
+    def _episodes(self) -> dict[str, list[int]]:
+        """Every episode's ``length`` and ``dataset_from_index``, read from the metadata at
+        once (3 ms for 76k episodes, where one lookup per episode took 0.1-2 ms)."""
+        return self.dataset.meta.episodes.select_columns(["length", "dataset_from_index"]).to_dict()
+
+    def _episode(self, field: str, episode: int) -> int:
+        column = self._episodes[field]
+        if not 0 <= episode < len(column):
+            raise IndexError(f"{self.root}: episode {episode} is not in the dataset (episodes 0..{len(column) - 1})")
+        return int(column[episode])
+
     def num_frames(self, episode: int) -> int:
-        return int(self.dataset.meta.episodes["length"][episode])
+        return self._episode("length", episode)
 
     def depth_files(self, episode: int) -> DepthFiles | None:
         """The episode's depth sidecars of the reconstructed cameras (None unless all exist):
@@ -111,7 +123,7 @@ class LeRobotSource:
         return DepthFiles(paths, self.cameras) if all(p.exists() for p in paths) else None
 
     def views(self, episode: int, frame: int) -> Views:
-        start = int(self.dataset.meta.episodes["dataset_from_index"][episode])
+        start = self._episode("dataset_from_index", episode)
         item = self.dataset[start + frame]
         images = torch.stack([_as_float(item[IMAGE_KEY_PREFIX + n]) for n in self.camera_names])
         if not all(depth_path(self.root, n, episode).exists() for n in self.camera_names):
