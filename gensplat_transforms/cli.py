@@ -78,6 +78,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="rgbd: the dataset's depth; geometry: depth from a Pi3-compatible model, RGB-D discs; "
                             "gensplat: the model's own Gaussian head (default: rgbd when the cameras have depth, "
                             "else geometry)")
+    cache.add_argument("--max-pixels", type=int, default=None,
+                       help="geometry and gensplat: run the model on at most this many pixels per view, aspect kept "
+                            "(e.g. 255000, Pi3's own limit; benchmarks/geometry_resolution.py; default: the frame size)")
     cache.add_argument("--model", default=None,
                        help="weights directory or hub id of the geometry or gensplat model, e.g. a Pi3 checkpoint "
                             "(default: the shipped small model)")
@@ -277,10 +280,12 @@ def _cache(args) -> None:
         render_in=args.render_in, render_scale=args.render_scale,
     )  # fmt: skip
     spec = None if args.reconstructor is None else {"name": args.reconstructor}
-    if args.model:
+    if args.model or args.max_pixels is not None:
         if args.reconstructor == "rgbd":
-            raise SystemExit("gensplat cache: --model needs --reconstructor geometry or gensplat")
+            raise SystemExit("gensplat cache: --model and --max-pixels need --reconstructor geometry or gensplat")
         spec = {"name": args.reconstructor or "geometry", "model": args.model}
+        if args.max_pixels is not None:
+            spec["options"] = {"max_pixels": args.max_pixels}
     shard = Shard.from_env()
     start, cpu = time.perf_counter(), time.process_time()
     if shard.rank == 0:

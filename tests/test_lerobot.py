@@ -295,6 +295,25 @@ def test_rgb_only_dataset_uses_the_geometry_path(dataset_root):
     assert not torch.equal(item[LEFT], ref[LEFT])
 
 
+def test_max_pixels_caches_the_geometry_path_at_the_models_smaller_size(dataset_root):
+    """gensplat cache --max-pixels: the model sees 28x28 of the 48x48 frames, the depth cache
+    holds that size, and the transform still returns frames of the dataset's size."""
+    from gensplat_transforms.cli import main
+
+    shutil.rmtree(dataset_root / "depth")
+    assert main(["cache", "--root", str(dataset_root), "--repo-id", REPO, "--max-pixels", "1000",
+                 "--episodes", "0", "--probability", "1"]) == 0  # fmt: skip
+    _, reconstructor = load_settings(dataset_root)
+    assert reconstructor["name"] == "geometry" and reconstructor["options"] == {"max_pixels": 1000}
+    ds = enable_gensplat(LeRobotDataset(REPO, root=dataset_root))
+    assert ds.gensplat.cache.image_size(0) == (28, 28)
+    item, ref = ds[3], LeRobotDataset(REPO, root=dataset_root)[3]
+    assert item[LEFT].shape == ref[LEFT].shape and torch.isfinite(item[LEFT]).all()
+    with pytest.raises(SystemExit, match="--max-pixels need --reconstructor geometry or gensplat"):
+        main(["cache", "--root", str(dataset_root), "--repo-id", REPO, "--max-pixels", "1000",
+              "--reconstructor", "rgbd"])  # fmt: skip
+
+
 def test_recorded_depth_is_imported_as_the_datasets_sidecars(dataset_root, tmp_path, capsys):
     """gensplat import-depth: millimetre PNGs of an RGB-only dataset become its depth
     sidecars, which the rgbd cache then links; user mistakes end with a message."""

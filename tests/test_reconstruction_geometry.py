@@ -89,6 +89,7 @@ def test_a_pi3_checkpoint_directory_loads_by_path_and_through_the_registry(tmp_p
     with pytest.warns(UserWarning, match="Pi3 checkpoint"):
         rec = make_reconstructor({"name": "geometry", "model": str(tmp_path), "options": {"scale": "fit"}})
     assert isinstance(rec, GeometryReconstructor) and rec.scale == "fit"
+    assert rec.model.max_pixels == rec.max_pixels == 255_000  # Pi3's own loaders' limit
     assert torch.isfinite(rec(views).gaussians.means).all()
     with pytest.warns(UserWarning, match="Pi3 checkpoint"):
         auto = GeometryReconstructor(tmp_path)  # a Pi3 checkpoint is not metric: "auto" fits the scale
@@ -136,3 +137,66 @@ def test_frames_missing_from_a_stacked_item_come_from_the_source_at_the_cache_si
     tf = GenSplatTransform(GenSplatConfig(probability=1.0, replace=("left",), level="small"), cache, source)
     out = tf(item)[left]
     assert out.shape == (2, 3, 40, 40) and torch.isfinite(out).all()
+
+
+@pytest.mark.parametrize(("height", "width", "most"), [(480, 640, 255_000), (480, 640, 12_544), (720, 1280, 100_000),
+                                                       (1, 5000, 196), (50, 64, 10**9)])  # fmt: skip
+def test_model_size_keeps_the_aspect_within_max_pixels(height, width, most):
+    from gensplat_transforms.reconstruction.model import model_size
+
+    h, w = model_size(height, width, most)
+    assert h % 14 == 0 and w % 14 == 0 and h * w <= max(most, 196)
+    if height * width > most and min(h, w) > 14:  # shrunk: the aspect kept to within a patch
+        assert abs(w / h - width / height) <= 14 / min(h, w) * (1 + width / height)
+        assert h * w > most * 0.8  # and not much smaller than the limit
+    assert model_size(height, width) == model_size(height, width, None)
+
+
+def test_max_pixels_shrinks_the_models_input_and_names_the_cache(views):
+    """With max_pixels the model sees (and the depth comes at) the largest multiples of 14 within
+    it; the identity names the limit, and without one stays what it was."""
+    model = tiny_model()
+    small = GeometryReconstructor(model, max_pixels=28 * 42)
+    out = small.predict_depth(views)
+    assert out.depths.shape == (2, 1, 28, 42) and (out.cameras.width, out.cameras.height) == (42, 28)
+    assert torch.isfinite(out.depths).all() and len(small(views).gaussians) <= 2 * 28 * 42
+    plain = GeometryReconstructor(model)
+    assert "max_pixels" not in plain.config() and small.config()["max_pixels"] == 28 * 42
+    assert small.identity() != plain.identity() == GeometryReconstructor(model, max_pixels=None).identity()
+    assert GeometryReconstructor(model, max_pixels=10**6).predict_depth(views).depths.shape == (2, 1, 56, 70)
+    from gensplat_transforms.reconstruction import GenSplatReconstructor
+
+    g = GenSplatReconstructor(model, max_pixels=28 * 42).reconstruct(views)
+    assert len(g.gaussians) == 2 * 28 * 42 and (g.cameras.width, g.cameras.height) == (64, 50)
+    for bad in (0, 195, 1.5e5, True, "255000"):
+        with pytest.raises(ValueError, match="max_pixels must be an integer >= 196"):
+            GeometryReconstructor(model, max_pixels=bad)
+        with pytest.raises(ValueError, match="max_pixels must be an integer >= 196"):
+            GenSplatReconstructor(model, max_pixels=bad)
+    spec = {"name": "geometry", "model": None, "options": {"max_pixels": 28 * 42}}
+    assert make_reconstructor(spec).max_pixels == 28 * 42
+
+
+def test_a_checkpoint_says_the_size_it_was_trained_at_and_reconstructors_keep_to_it(tmp_path, views):
+    """config.json's max_pixels: saved and loaded with the weights, the reconstructors'
+    default cap (an explicit one wins); the shipped model says 112x112; a bad value is
+    refused naming the file."""
+    from gensplat_transforms.model import GenSplatModel
+    from gensplat_transforms.reconstruction import GenSplatReconstructor
+    from gensplat_transforms.weights import DEFAULT_MODEL_DIR
+
+    assert GenSplatModel.from_pretrained(DEFAULT_MODEL_DIR).max_pixels == 112 * 112
+    model = tiny_model(seed=3)
+    model.max_pixels = 28 * 42
+    model.save_pretrained(tmp_path / "m")
+    loaded = GenSplatModel.from_pretrained(tmp_path / "m")
+    assert loaded.max_pixels == 28 * 42
+    assert GeometryReconstructor(loaded).predict_depth(views).depths.shape == (2, 1, 28, 42)
+    assert GeometryReconstructor(loaded).config()["max_pixels"] == 28 * 42
+    assert GeometryReconstructor(loaded, max_pixels=10**6).predict_depth(views).depths.shape == (2, 1, 56, 70)
+    assert GenSplatReconstructor(loaded).max_pixels == 28 * 42
+    meta = json.loads((tmp_path / "m" / "config.json").read_text())
+    for bad in (100, 1.5e4, "12544"):
+        (tmp_path / "m" / "config.json").write_text(json.dumps({**meta, "max_pixels": bad}))
+        with pytest.raises(ValueError, match="max_pixels .* is not an integer >= 196"):
+            GenSplatModel.from_pretrained(tmp_path / "m")

@@ -27,9 +27,20 @@ from .gaussian_head import GaussianHead
 from .geometry import quat_mul, sh_rotation
 from .heads import CameraHead, HeadDecoder, PixelHead
 
+#: the most pixels per view Pi3's own image loaders feed it (its ``PIXEL_LIMIT``)
+PI3_MAX_PIXELS = 255_000
+
 
 class GenSplatModel(nn.Module):
-    """Pi3 geometry (encoder, equivariant decoder, point / confidence / camera heads) + Gaussian head."""
+    """Pi3 geometry (encoder, equivariant decoder, point / confidence / camera heads) + Gaussian head.
+
+    ``max_pixels``: the most pixels per view the checkpoint was trained to see (its
+    ``config.json``'s ``max_pixels``; ``PI3_MAX_PIXELS`` for a Pi3 checkpoint), None where
+    unknown. Reconstructors shrink their input to it: the depth of a model run on many more
+    pixels than it was trained at can be far worse (``benchmarks/geometry_resolution.py``).
+    """
+
+    max_pixels: int | None = None
 
     def __init__(self, config: ModelConfig):
         super().__init__()
@@ -122,6 +133,8 @@ class GenSplatModel(nn.Module):
         """Write ``config.json`` and ``model.safetensors`` into ``directory`` (created if needed)."""
         directory = Path(directory)
         meta = {"format": FORMAT_NAME, "format_version": FORMAT_VERSION, "config": self.config.to_dict()}
+        if self.max_pixels is not None:
+            meta["max_pixels"] = self.max_pixels
         state = {k: v.detach().contiguous().cpu() for k, v in self.state_dict().items()}
         atomic_write(directory / WEIGHTS_FILE, lambda tmp: save_file(state, tmp, metadata={"format": FORMAT_NAME}))
         atomic_write_json(directory / CONFIG_FILE, meta)
@@ -143,8 +156,12 @@ class GenSplatModel(nn.Module):
                 )
             model = cls(ModelConfig.from_dict(meta["config"]))
             model.load_state_dict(load_file(str(path / WEIGHTS_FILE)))
+            model.max_pixels = meta.get("max_pixels")
+            if model.max_pixels is not None and (type(model.max_pixels) is not int or model.max_pixels < PATCH_SIZE**2):
+                raise ValueError(f"{path}: max_pixels {model.max_pixels!r} is not an integer >= {PATCH_SIZE**2}")
         elif meta.get("decoder_size", "large") == "large" and meta.get("pos_type", "rope100") == "rope100":
             model = cls(ModelConfig.full())
+            model.max_pixels = PI3_MAX_PIXELS
             report = load_pi3_weights(model, path / WEIGHTS_FILE)
             warnings.warn(f"{path}: Pi3 checkpoint, {report}", stacklevel=2)
         else:

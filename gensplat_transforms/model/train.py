@@ -329,6 +329,8 @@ class Trainer:
         """The EMA weights as a ``from_pretrained`` directory ``<out>/model``."""
         model = GenSplatModel(self.model.config)
         model.load_state_dict(self.ema.module.state_dict())
+        height, width = self.dataset[0].images.shape[-2:]
+        model.max_pixels = height * width  # the size it was trained at, which reconstructors keep to
         return model.save_pretrained(self.out / EXPORT_DIR)
 
     # ------------------------------------------------------------------ loop

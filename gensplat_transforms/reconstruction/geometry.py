@@ -18,8 +18,9 @@ Frame and scale:
 * uncalibrated views: the predicted cameras, the first view's camera frame as the world,
   focal lengths estimated from the point maps; depth as predicted.
 
-The model runs at the nearest multiple of 14 of the input size; the returned views (and so
-the cache) are at that size, with the cameras scaled to it.
+The model runs at the nearest multiple of 14 of the input size, or within ``max_pixels``
+(:func:`.model.model_size`); the returned views (and so the cache) are at that size, with the
+cameras scaled to it.
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ from ..model.checkpoints import CONFIG_FILE, FORMAT_NAME, resolve
 from ..model.geometry import align_similarity, estimate_focal, transform_poses
 from ..weights import DEFAULT_MODEL_DIR
 from .base import DepthReconstructor, Reconstruction, Views, valid_depth
-from .model import run_model, weights_hash
+from .model import check_max_pixels, run_model, weights_hash
 from .rgbd import RGBDConfig, RGBDReconstructor
 
 SCALES = ("auto", "metric", "fit")
@@ -59,6 +60,10 @@ class GeometryReconstructor(DepthReconstructor):
         min_conf: drop pixels whose sigmoid(confidence) is below this.
         scale: ``"auto"``, ``"metric"`` or ``"fit"`` (see the module docstring).
         discs: the surface-disc settings (``RGBDConfig``).
+        max_pixels: run the model on at most this many pixels per view (its input shrunk,
+            aspect kept, to :func:`.model.model_size`; the depth, and so the cache, at that size).
+            Default: the model's own (``GenSplatModel.max_pixels``, the size it was trained at:
+            12,544 for the shipped model, 255,000 for Pi3), none for a model that does not say.
         device, autocast_dtype: where the model runs, and e.g. torch.bfloat16 for autocast.
 
     Example: calibrated RGB, depth from the shipped small model
@@ -79,6 +84,7 @@ class GeometryReconstructor(DepthReconstructor):
         min_conf: float | None = None,
         scale: str = "auto",
         discs: RGBDConfig | None = None,
+        max_pixels: int | None = None,
         device: str | torch.device | None = None,
         autocast_dtype: torch.dtype | None = None,
     ) -> None:
@@ -91,6 +97,8 @@ class GeometryReconstructor(DepthReconstructor):
             self.metric = is_gensplat_checkpoint(model)
             model = GenSplatModel.from_pretrained(model)
         self.model = model.eval() if device is None else model.to(device).eval()
+        self.max_pixels = max_pixels if max_pixels is not None else model.max_pixels
+        check_max_pixels("GeometryReconstructor", self.max_pixels)
         self.min_conf, self.scale, self.autocast_dtype = min_conf, scale, autocast_dtype
         self.discs = RGBDReconstructor(discs)
         self._weights = weights_hash(self.model)  # once: build a new reconstructor after changing weights
@@ -100,11 +108,11 @@ class GeometryReconstructor(DepthReconstructor):
             "model": self.model.config.to_dict(), "weights": self._weights, "min_conf": self.min_conf,
             "scale": self.scale, "metric_model": self.metric, "discs": asdict(self.discs.cfg),
             "autocast_dtype": str(self.autocast_dtype) if self.autocast_dtype else None,
-        }  # fmt: skip
+        } | ({"max_pixels": self.max_pixels} if self.max_pixels is not None else {})  # unset: identities as before
 
     @torch.no_grad()
     def predict_depth(self, views: Views) -> Views:
-        out, images = run_model(self.model, views.images, self.autocast_dtype)
+        out, images = run_model(self.model, views.images, self.autocast_dtype, self.max_pixels)
         h, w = images.shape[-2:]
         device = images.device
         local, c2w = out["local_points"][0].float(), out["camera_poses"][0].float()

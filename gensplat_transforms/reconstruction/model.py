@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import math
 from pathlib import Path
 
 import torch
@@ -37,7 +38,8 @@ class GenSplatReconstructor(Reconstructor):
     from the point maps (principal point at the centre, focal at least 1 px), so rendering them
     reproduces the source views.
 
-    Images whose size is not a multiple of 14 are resized to the nearest one for the model; the
+    Images whose size is not a multiple of 14 are resized to the nearest one for the model (or
+    shrunk within ``max_pixels``, :func:`model_size`: one Gaussian per model pixel); the
     cameras are reported at the input size.
 
     Args:
@@ -46,6 +48,8 @@ class GenSplatReconstructor(Reconstructor):
         min_conf: drop pixels with sigmoid(conf) below this.
         placement: ``"per_view"`` or ``"similarity"``, for calibrated views (see above).
         metric: with ``per_view``, keep the model's scale (True) or use the camera spread's.
+        max_pixels: run the model on at most this many pixels per view (default: the model's
+            own, ``GenSplatModel.max_pixels``; none for a model that does not say).
         device: where the model runs (default: where its weights are).
         autocast_dtype: e.g. torch.bfloat16 to run the transformer under autocast.
 
@@ -66,12 +70,15 @@ class GenSplatReconstructor(Reconstructor):
         min_conf: float | None = None,
         placement: str = "per_view",
         metric: bool = True,
+        max_pixels: int | None = None,
         device: str | torch.device | None = None,
         autocast_dtype: torch.dtype | None = None,
     ):
         if not isinstance(model, GenSplatModel):
             model = GenSplatModel.from_pretrained(model)
         self.model = model.eval() if device is None else model.to(device).eval()
+        self.max_pixels = max_pixels if max_pixels is not None else model.max_pixels
+        check_max_pixels("GenSplatReconstructor", self.max_pixels)
         if placement not in PLACEMENTS:
             raise ValueError(f"GenSplatReconstructor: placement must be one of {PLACEMENTS}, got {placement!r}")
         self.min_conf = min_conf
@@ -95,12 +102,12 @@ class GenSplatReconstructor(Reconstructor):
             "placement": self.placement,
             "metric": self.metric,
             "autocast_dtype": str(self.autocast_dtype) if self.autocast_dtype else None,
-        }
+        } | ({"max_pixels": self.max_pixels} if self.max_pixels is not None else {})  # unset: identities as before
 
     @torch.no_grad()
     def reconstruct(self, views: Views) -> Reconstruction:
         V, _, H, W = views.images.shape
-        out, images = run_model(self.model, views.images, self.autocast_dtype)
+        out, images = run_model(self.model, views.images, self.autocast_dtype, self.max_pixels)
         h, w = images.shape[-2:]
         device = images.device
         gaussians = to_gaussians(out, 0)
@@ -134,11 +141,41 @@ class GenSplatReconstructor(Reconstructor):
         return Reconstruction(gaussians, cameras)
 
 
-def run_model(model: GenSplatModel, images: torch.Tensor, autocast_dtype: torch.dtype | None = None):
-    """One forward pass on (V, 3, H, W) images resized to the nearest multiples of 14 on the
-    model's device. Returns the model's outputs (batch of one) and the images it saw."""
+def model_size(height: int, width: int, max_pixels: int | None = None) -> tuple[int, int]:
+    """(h, w) the model sees an image of ``height x width`` at: the nearest multiples of 14
+    (its patch size), or with ``max_pixels`` below the image's pixel count, multiples of 14
+    within that many pixels at about the image's aspect ratio (shrunk, rounded, then a patch
+    taken off while over: as Pi3's own loader caps its input; the cost of a forward pass grows
+    faster than the pixel count).
+
+    Example:
+        >>> model_size(480, 640), model_size(480, 640, max_pixels=255_000)
+        ((476, 644), (434, 574))
+    """
+    if max_pixels is not None and height * width > max_pixels:
+        shrink, patches = math.sqrt(max_pixels / (height * width)), max(1, max_pixels // PATCH_SIZE**2)
+        h, w = (max(1, round(s * shrink / PATCH_SIZE)) for s in (height, width))
+        while h * w > patches:  # rounded over: a patch off the side that keeps the aspect best
+            if (w > 1 and w * height > h * width) or h == 1:
+                w -= 1
+            else:
+                h -= 1
+        return h * PATCH_SIZE, w * PATCH_SIZE
+    return tuple(max(1, round(s / PATCH_SIZE)) * PATCH_SIZE for s in (height, width))
+
+
+def check_max_pixels(owner: str, max_pixels: int | None) -> None:
+    if max_pixels is not None and (isinstance(max_pixels, bool) or not isinstance(max_pixels, int)
+                                   or max_pixels < PATCH_SIZE**2):  # fmt: skip
+        raise ValueError(f"{owner}: max_pixels must be an integer >= {PATCH_SIZE**2} (one patch), got {max_pixels!r}")
+
+
+def run_model(model: GenSplatModel, images: torch.Tensor, autocast_dtype: torch.dtype | None = None,
+              max_pixels: int | None = None):  # fmt: skip
+    """One forward pass on (V, 3, H, W) images resized to :func:`model_size` on the model's
+    device. Returns the model's outputs (batch of one) and the images it saw."""
     H, W = images.shape[-2:]
-    h, w = (max(1, round(s / PATCH_SIZE)) * PATCH_SIZE for s in (H, W))
+    h, w = model_size(H, W, max_pixels)
     device = model.image_mean.device
     images = images.to(device, torch.float32)
     if (h, w) != (H, W):
