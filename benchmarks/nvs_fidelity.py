@@ -23,7 +23,9 @@ each method's view at that pose is compared with ``GroundTruth.render`` there:
   package's ``weights/small``), reported under ``unavailable`` otherwise;
 * ``geometry_small`` / ``geometry_small_metric``: the same model through the geometry path
   (``GeometryReconstructor``: only its depth, on the calibrated rays, scale fitted to the
-  calibrated camera baseline / kept as predicted; the RGB-D discs coloured by the images);
+  calibrated camera baseline / kept as predicted; the RGB-D discs coloured by the images),
+  run and rendered at the model's input size (its ``max_pixels``: 112x112 for the shipped
+  model) and resized to the frame size, as the transform renders from such a cache;
 * ``source_image``: the unchanged left image (what a policy sees without augmentation);
 * ``homography``: the left image warped by the homography that the table plane z = 0
   induces between the source and the perturbed camera (exact for the table top, which
@@ -208,7 +210,9 @@ def compare_frame(views: Views, truth: GroundTruth, ep: int, fr: int, model, arg
                 for name, (grec, grec_ms) in geometry.items():  # calibrated cameras: move them as for rgbd
                     out_g, ms = timed(render, grec.gaussians, p.move(grec.cameras, 0), backend="fast",
                                       return_depth=False)  # fmt: skip
-                    views_of[name] = (out_g.rgb[0], grec_ms, ms)
+                    # at the model's size (max_pixels), as a cache of it renders; resized as the transform does
+                    rgb = F.interpolate(out_g.rgb, size=gt.shape[-2:], mode="bilinear", align_corners=False)
+                    views_of[name] = (rgb[0].clamp(0, 1), grec_ms, ms)
             coverage = float(seen.float().mean())
             for method, (image, rec_ms, ren_ms) in views_of.items():
                 mask = warp_mask_s[0] if method.endswith("_sensor") else warp_mask[0]

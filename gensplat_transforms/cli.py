@@ -80,7 +80,8 @@ def build_parser() -> argparse.ArgumentParser:
                             "else geometry)")
     cache.add_argument("--max-pixels", type=int, default=None,
                        help="geometry and gensplat: run the model on at most this many pixels per view, aspect kept "
-                            "(e.g. 255000, Pi3's own limit; benchmarks/geometry_resolution.py; default: the frame size)")
+                            "(benchmarks/geometry_resolution.py; default: geometry, the size the checkpoint was trained "
+                            "at, 12544 for the shipped model, 255000 for Pi3; gensplat, the frame size)")
     cache.add_argument("--model", default=None,
                        help="weights directory or hub id of the geometry or gensplat model, e.g. a Pi3 checkpoint "
                             "(default: the shipped small model)")

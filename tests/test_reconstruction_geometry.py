@@ -177,8 +177,8 @@ def test_max_pixels_shrinks_the_models_input_and_names_the_cache(views):
     assert make_reconstructor(spec).max_pixels == 28 * 42
 
 
-def test_a_checkpoint_says_the_size_it_was_trained_at_and_reconstructors_keep_to_it(tmp_path, views):
-    """config.json's max_pixels: saved and loaded with the weights, the reconstructors'
+def test_a_checkpoint_says_the_size_it_was_trained_at_and_the_geometry_path_keeps_to_it(tmp_path, views):
+    """config.json's max_pixels: saved and loaded with the weights, the geometry path's
     default cap (an explicit one wins); the shipped model says 112x112; a bad value is
     refused naming the file."""
     from gensplat_transforms.model import GenSplatModel
@@ -194,7 +194,7 @@ def test_a_checkpoint_says_the_size_it_was_trained_at_and_reconstructors_keep_to
     assert GeometryReconstructor(loaded).predict_depth(views).depths.shape == (2, 1, 28, 42)
     assert GeometryReconstructor(loaded).config()["max_pixels"] == 28 * 42
     assert GeometryReconstructor(loaded, max_pixels=10**6).predict_depth(views).depths.shape == (2, 1, 56, 70)
-    assert GenSplatReconstructor(loaded).max_pixels == 28 * 42
+    assert GenSplatReconstructor(loaded).max_pixels is None  # the head keeps every pixel unless told
     meta = json.loads((tmp_path / "m" / "config.json").read_text())
     for bad in (100, 1.5e4, "12544"):
         (tmp_path / "m" / "config.json").write_text(json.dumps({**meta, "max_pixels": bad}))

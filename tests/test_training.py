@@ -349,7 +349,7 @@ def test_cli_trains_and_exports(tmp_path):
     assert {"rgb", "points", "cam_rot", "total", "lr"} <= set(lines[0])
     model = GenSplatModel.from_pretrained(out / EXPORT_DIR)
     assert model.config == ModelConfig.small()
-    assert model.max_pixels == 28 * 28  # the size it was trained at: reconstructors keep to it
+    assert model.max_pixels == 28 * 28  # the size it was trained at: the geometry path keeps to it
 
 
 def test_cli_mixes_procedural_and_lerobot_data(tmp_path, monkeypatch):

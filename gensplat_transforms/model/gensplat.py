@@ -36,8 +36,8 @@ class GenSplatModel(nn.Module):
 
     ``max_pixels``: the most pixels per view the checkpoint was trained to see (its
     ``config.json``'s ``max_pixels``; ``PI3_MAX_PIXELS`` for a Pi3 checkpoint), None where
-    unknown. Reconstructors shrink their input to it: the depth of a model run on many more
-    pixels than it was trained at can be far worse (``benchmarks/geometry_resolution.py``).
+    unknown. The geometry reconstructor shrinks its input to it: the depth of a model run on
+    many more pixels than it was trained at can be far worse (``benchmarks/geometry_resolution.py``).
     """
 
     max_pixels: int | None = None

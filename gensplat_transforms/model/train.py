@@ -330,7 +330,7 @@ class Trainer:
         model = GenSplatModel(self.model.config)
         model.load_state_dict(self.ema.module.state_dict())
         height, width = self.dataset[0].images.shape[-2:]
-        model.max_pixels = height * width  # the size it was trained at, which reconstructors keep to
+        model.max_pixels = height * width  # the size it was trained at, which the geometry path keeps to
         return model.save_pretrained(self.out / EXPORT_DIR)
 
     # ------------------------------------------------------------------ loop
