@@ -309,6 +309,16 @@ def test_max_pixels_caches_the_geometry_path_at_the_models_smaller_size(dataset_
     assert ds.gensplat.cache.image_size(0) == (28, 28)
     item, ref = ds[3], LeRobotDataset(REPO, root=dataset_root)[3]
     assert item[LEFT].shape == ref[LEFT].shape and torch.isfinite(item[LEFT]).all()
+    from types import SimpleNamespace
+
+    from gensplat_lerobot.plugin import render_warning, start_message
+    from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
+
+    cfg = SimpleNamespace(policy=DiffusionConfig(), resume=False)  # reads the whole 48x48 frame
+    assert start_message(ds, cfg).splitlines()[3] == (
+        "  views rendered at 28x28 of 48x48 frames (render scale 1.0, cached at 28x28); the policy reads 48x48")
+    assert "The cache holds the views at 28x28, the model's input size; `gensplat cache --max-pixels N`" in (
+        render_warning(ds, cfg))
     with pytest.raises(SystemExit, match="--max-pixels need --reconstructor geometry or gensplat"):
         main(["cache", "--root", str(dataset_root), "--repo-id", REPO, "--max-pixels", "1000",
               "--reconstructor", "rgbd"])  # fmt: skip

@@ -7,6 +7,7 @@ import logging
 import math
 import sys
 
+from gensplat_transforms.cache import CacheError
 from gensplat_transforms.counters import SampleCounters
 from gensplat_transforms.transform import render_size
 
@@ -78,40 +79,51 @@ def policy_input_size(policy, width: int, height: int) -> tuple[int, int] | None
     return round(width * scale), round(height * scale)
 
 
-def render_sizes(train, cfg) -> tuple[tuple[int, int], tuple[int, int], tuple[int, int] | None]:
-    """(width, height) of the first replaced camera's frames, of its rendered views and of
-    what the policy reads (None where unknown)."""
+def render_sizes(train, cfg) -> tuple[tuple[int, int], tuple[int, int], tuple[int, int] | None, tuple[int, int]]:
+    """(width, height) of the first replaced camera's frames, of its rendered views, of what the
+    policy reads (None where unknown) and of the cached views the renders are sized by (the
+    frames', or a model's input size for a geometry or gensplat cache; read from the
+    dataset's first episode)."""
     c = train.gensplat.cfg
     height, width = train.meta.features[c.image_key.format(name=c.replace[0])]["shape"][:2]
     policy = policy_input_size(getattr(cfg, "policy", None), width, height)
-    return (width, height), render_size(width, height, c.render_scale), policy
+    try:
+        cached = train.gensplat.cache.image_size((train.episodes or [0])[0])
+    except (FileNotFoundError, CacheError):  # not cached yet: it is built at the frames' size or a model's
+        cached = (width, height)
+    return (width, height), render_size(*cached, c.render_scale), policy, cached
 
 
 def render_warning(train, cfg) -> str | None:
     """A warning when GenSplat renders its views smaller than the policy reads them (the
     augmented samples would be blurrier than the others), else None."""
-    (width, height), (w, h), policy = render_sizes(train, cfg)
+    (width, height), (w, h), policy, cached = render_sizes(train, cfg)
     if policy is None or (w >= policy[0] and h >= policy[1]):
         return None
+    blurrier = (f"GenSplat renders its views at {w}x{h} (render scale {train.gensplat.cfg.render_scale}), smaller "
+                f"than the {policy[0]}x{policy[1]} the policy reads: augmented samples are blurrier than the others")  # fmt: skip
+    if cached[0] < width and cached[1] < height:  # a model's input size
+        return (f"{blurrier}. The cache holds the views at {cached[0]}x{cached[1]}, the model's input size; "
+                "`gensplat cache --max-pixels N` builds it larger (the shipped model's depth is worse above the "
+                "12,544 pixels it was trained at: benchmarks/geometry_resolution.py)")  # fmt: skip
     need = math.ceil(100 * max(policy[0] / width, policy[1] / height)) / 100
-    return (f"GenSplat renders its views at {w}x{h} (render scale {train.gensplat.cfg.render_scale}), smaller than "
-            f"the {policy[0]}x{policy[1]} the policy reads: augmented samples are blurrier than the others; run "
-            f"`gensplat cache` with --render-scale {min(need, 1.0):g} or more")  # fmt: skip
+    return f"{blurrier}; run `gensplat cache` with --render-scale {min(need, 1.0):g} or more"
 
 
 def start_message(train, cfg) -> str:
     """The INFO block logged when training starts: what GenSplat will do to the samples."""
     tf, (cached, total) = train.gensplat, train.gensplat_cached
     c = tf.cfg
-    (width, height), (w, h), policy = render_sizes(train, cfg)
+    (width, height), (w, h), policy, cached = render_sizes(train, cfg)
     reads = "" if policy is None else f"; the policy reads {policy[0]}x{policy[1]}"
+    held = "" if cached == (width, height) else f", cached at {cached[0]}x{cached[1]}"
     resumed = "this run resumes a checkpoint with GenSplat on again; " if cfg.resume else ""
     return "\n".join([
         "GenSplat enabled on the training dataset:",
         f"  cache: {tf.cache.root} ({cached} of {total} episodes cached), reconstructor {tf.cache.identity}",
         f"  probability {c.probability}, level {c.level}, mode {c.mode}, cameras replaced: {', '.join(c.replace)} "
         + f"(reconstructed from {', '.join(c.cameras)})",
-        f"  views rendered at {w}x{h} of {width}x{height} frames (render scale {c.render_scale}){reads}",
+        f"  views rendered at {w}x{h} of {width}x{height} frames (render scale {c.render_scale}{held}){reads}",
         f"  {resumed}a run resumed with --resume=true trains without GenSplat unless {LINE} is given again",
     ])  # fmt: skip
 
