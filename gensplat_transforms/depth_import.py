@@ -68,7 +68,12 @@ def import_depth(root: str | Path, camera: str, source: str, lengths: dict[int, 
         dataset's, unreadable or non-depth files (8-bit or colour images), no valid pixel.
         FileNotFoundError: an episode's depth is not where ``source`` says.
     """
-    if "{episode" not in source:
+    try:
+        named = source.format(episode=0) != source.format(episode=1)
+    except (KeyError, IndexError, ValueError) as e:
+        raise ValueError(f"import_depth: the source {source!r} is not a pattern of {{episode}} ({type(e).__name__}: "
+                         f"{e}); e.g. 'raw/ep{{episode:03d}}/*.png'") from None  # fmt: skip
+    if not named:
         raise ValueError(f"import_depth: the source {source!r} must name the episode, e.g. 'raw/ep{{episode:03d}}/*.png'")
     scale = _scale(units)
     done = {}

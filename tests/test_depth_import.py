@@ -112,6 +112,9 @@ def test_a_mistaken_episode_is_refused_naming_it_and_nothing_is_written(tmp_path
 def test_bad_arrays_and_sources_are_refused(tmp_path, depth_m):
     with pytest.raises(ValueError, match=r"must name the episode"):
         run(tmp_path, tmp_path / "ep0.npy")
+    for bad in ("ep{episode}{camera}.npy", "ep{episode:q}.npy", "ep{0}{episode}.npy", "ep{episode.npy"):
+        with pytest.raises(ValueError, match="is not a pattern of {episode}"):
+            run(tmp_path, tmp_path / bad)
     np.savez(tmp_path / "ep0.npz", a=depth_m.numpy(), b=depth_m.numpy())
     with pytest.raises(ValueError, match=r"expected one array or one named 'depth'"):
         run(tmp_path, tmp_path / "ep{episode}.npz")
