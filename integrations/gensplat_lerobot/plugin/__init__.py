@@ -114,9 +114,9 @@ def start_message(train, cfg) -> str:
     """The INFO block logged when training starts: what GenSplat will do to the samples."""
     tf, (cached, total) = train.gensplat, train.gensplat_cached
     c = tf.cfg
-    (width, height), (w, h), policy, cached = render_sizes(train, cfg)
+    (width, height), (w, h), policy, held_size = render_sizes(train, cfg)
     reads = "" if policy is None else f"; the policy reads {policy[0]}x{policy[1]}"
-    held = "" if cached == (width, height) else f", cached at {cached[0]}x{cached[1]}"
+    held = "" if held_size == (width, height) else f", cached at {held_size[0]}x{held_size[1]}"
     resumed = "this run resumes a checkpoint with GenSplat on again; " if cfg.resume else ""
     return "\n".join([
         "GenSplat enabled on the training dataset:",
