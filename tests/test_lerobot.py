@@ -315,8 +315,9 @@ def test_max_pixels_caches_the_geometry_path_at_the_models_smaller_size(dataset_
     from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
 
     cfg = SimpleNamespace(policy=DiffusionConfig(), resume=False)  # reads the whole 48x48 frame
-    assert start_message(ds, cfg).splitlines()[3] == (
-        "  views rendered at 28x28 of 48x48 frames (render scale 1.0, cached at 28x28); the policy reads 48x48")
+    lines = start_message(ds, cfg).splitlines()
+    assert re.search(r"\(1 of 2 episodes cached\), reconstructor geometry-", lines[1])
+    assert lines[3] == "  views rendered at 28x28 of 48x48 frames (render scale 1.0, cached at 28x28); the policy reads 48x48"
     assert "The cache holds the views at 28x28, the model's input size; `gensplat cache --max-pixels N`" in (
         render_warning(ds, cfg))
     with pytest.raises(SystemExit, match="--max-pixels need --reconstructor geometry or gensplat"):
