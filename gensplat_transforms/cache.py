@@ -256,7 +256,7 @@ class GaussianCache:
         self._kept: OrderedDict[int, _EpisodeFile] = OrderedDict()  # parsed, least recently read first
         self._kept_bytes = 0  # their nbytes
 
-    def __getstate__(self) -> dict:  # memory maps do not cross process boundaries
+    def __getstate__(self) -> dict:  # each process parses the files it reads
         return {**self.__dict__, "_kept": OrderedDict(), "_kept_bytes": 0}
 
     def _forget(self, episode: int) -> None:
