@@ -548,3 +548,30 @@ def test_episode_lengths_and_starts_come_from_one_metadata_read(dataset_root):
         source.num_frames(-1)
     with pytest.raises(IndexError, match="episode 2 is not in the dataset"):
         source.views(2, 0)
+
+
+def test_lerobots_own_depth_features_are_read_and_copied_into_the_cache(tmp_path):
+    """A dataset whose cameras' depth is LeRobot's depth-map feature (observation.images.<cam>_depth,
+    uint16 mm, as LeRobot records a RealSense) and no sidecars: the RGB-D path is chosen, the
+    views carry that depth in metres, the cache stores a compressed copy (nothing to link),
+    and the transform augments the colour cameras, not the depth features."""
+    root = tmp_path / "ds"
+    source = SceneEpisodes(num_episodes=1, num_frames=4, size=32)
+    record_scene_dataset(root, source, REPO, progress=False, depth_as="feature")
+    assert not (root / "depth").exists()
+    lerobot_source = LeRobotSource(root, REPO)
+    assert lerobot_source.camera_names == ("left", "right") and lerobot_source.has_depth()
+    want = source.render(0, 2)[1][:2]
+    got = lerobot_source.views(0, 2).depths
+    assert (got - want).abs().max() <= 0.5e-3 + 1e-6  # millimetres
+    assert lerobot_source.depth_files(0) is None
+    stats = prepare(root, REPO, GenSplatConfig(probability=1.0, level="small"), progress=False)
+    assert load_settings(root)[1]["name"] == "rgbd" and stats[0].bytes_per_timestep > 200  # a stored copy
+    ds = enable_gensplat(LeRobotDataset(REPO, root=root))
+    item, ref = ds[2], LeRobotDataset(REPO, root=root)[2]
+    assert not torch.equal(item[LEFT], ref[LEFT]) and torch.isfinite(item[LEFT]).all()
+    assert torch.equal(item["observation.images.left_depth"], ref["observation.images.left_depth"])
+    (words, coded), _ = ds.gensplat.cache.read_depth_words(0, 2)
+    from gensplat_transforms.depth_codec import depth_from_words
+
+    assert (depth_from_words(words, coded) - want[:, 0]).abs().max() <= 1e-3 * want.max() + 0.5e-3

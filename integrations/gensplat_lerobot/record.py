@@ -16,13 +16,17 @@ from .source import video_backend
 
 
 def record_scene_dataset(root: str | Path, source: SceneEpisodes, repo_id: str = "local/gensplat_scene",
-                         fps: int = 10, progress: bool = True) -> LeRobotDataset:
+                         fps: int = 10, progress: bool = True, depth_as: str = "sidecars") -> LeRobotDataset:
     """Write ``source``'s episodes to ``root`` (which must not exist).
 
-    Cameras ``left`` and ``right`` are external and get depth sidecars; ``front`` is an
-    extra static camera the policy also sees. ``observation.state`` is the moving object's
-    position, ``action`` its next position.
+    Cameras ``left`` and ``right`` are external and get depth: sidecars, or with
+    ``depth_as="feature"`` LeRobot's own depth-map features ``observation.images.<camera>_depth``
+    (uint16 millimetres, as LeRobot records a RealSense); ``front`` is an extra static camera
+    the policy also sees. ``observation.state`` is the moving object's position, ``action``
+    its next position.
     """
+    if depth_as not in ("sidecars", "feature"):
+        raise ValueError(f"record_scene_dataset: depth_as must be 'sidecars' or 'feature', got {depth_as!r}")
     s = source.size
     names = ("left", "right", "front")
     features = {
@@ -32,6 +36,10 @@ def record_scene_dataset(root: str | Path, source: SceneEpisodes, repo_id: str =
         }
         for i, n in enumerate(names)
     }  # fmt: skip
+    if depth_as == "feature":
+        for n in names[:2]:
+            features[f"observation.images.{n}_depth"] = {"dtype": "image", "shape": (s, s, 1), "info": {"is_depth_map": True},
+                                                          "names": ["height", "width", "channels"]}  # fmt: skip
     features["observation.state"] = {"dtype": "float32", "shape": (3,), "names": ["x", "y", "z"]}
     features["action"] = {"dtype": "float32", "shape": (3,), "names": ["x", "y", "z"]}
     ds = LeRobotDataset.create(repo_id, fps, features, root=root, use_videos=False, video_backend=video_backend())
@@ -41,6 +49,9 @@ def record_scene_dataset(root: str | Path, source: SceneEpisodes, repo_id: str =
         for t in range(source.frames):
             rgb, depth = source.render(ep, t)
             frame = {f"observation.images.{n}": rgb[i].permute(1, 2, 0).numpy() for i, n in enumerate(names)}
+            if depth_as == "feature":
+                for i, n in enumerate(names[:2]):
+                    frame[f"observation.images.{n}_depth"] = (depth[i].permute(1, 2, 0) * 1000).round().numpy().astype("uint16")
             frame["observation.state"] = positions[t].float().numpy()
             frame["action"] = positions[t + 1].float().numpy()
             frame["task"] = "push the object along the table"
@@ -48,7 +59,7 @@ def record_scene_dataset(root: str | Path, source: SceneEpisodes, repo_id: str =
             depths.append(depth[:2, 0])
         ds.save_episode()
         depth = torch.stack(depths, 1)  # (2, T, H, W)
-        for i, n in enumerate(names[:2]):
+        for i, n in enumerate(names[:2] if depth_as == "sidecars" else ()):
             save_depth(root, n, ep, depth[i])
     ds.finalize()
     return ds

@@ -36,6 +36,11 @@ log = logging.getLogger(__name__)
 class LeRobotSource:
     """Views of the external cameras of a local LeRobot dataset, frame by frame.
 
+    A camera's depth is its sidecar (:mod:`gensplat_transforms.dataset_format`), or else
+    LeRobot's own depth-map feature of it, ``observation.images.<camera>_depth`` (``info``
+    ``is_depth_map``, as LeRobot records a RealSense's depth; read in metres): a cache then
+    stores a compressed copy, as there are no files to link.
+
     Args:
         root: dataset root (holds ``meta/info.json``).
         repo_id: the dataset's repo id (offline use: any id matching the local copy).
@@ -47,8 +52,10 @@ class LeRobotSource:
         self.root, self.repo_id = Path(root), repo_id
         info = read_info(self.root)
         self.calibration = load_calibration(info["features"], self.root)
+        self.depth_features = {n: key for n in self.calibration
+                               if _is_depth_map(info["features"].get(key := f"{IMAGE_KEY_PREFIX}{n}_depth"))}  # fmt: skip
         external = tuple(n for n, c in self.calibration.items() if c.mount == "external")
-        with_depth = tuple(n for n in external if depth_path(self.root, n, 0).exists())
+        with_depth = tuple(n for n in external if depth_path(self.root, n, 0).exists() or n in self.depth_features)
         self.camera_names = tuple(cameras) if cameras else (with_depth or external)
         if len(self.camera_names) < 2:
             images = [k[len(IMAGE_KEY_PREFIX) :] for k in info["features"] if k.startswith(IMAGE_KEY_PREFIX)]
@@ -84,7 +91,8 @@ class LeRobotSource:
     def _content_dirs(self) -> list[str]:
         """Folders (relative to the root) whose files hold this source's frames."""
         return ["data", *(f"videos/{IMAGE_KEY_PREFIX}{n}" for n in self.camera_names),
-                *(f"depth/{n}" for n in self.camera_names)]  # fmt: skip
+                *(f"depth/{n}" for n in self.camera_names),
+                *(f"videos/{self.depth_features[n]}" for n in self.camera_names if n in self.depth_features)]  # fmt: skip
 
     def __getstate__(self) -> dict:
         return {**self.__dict__, "_dataset": None}
@@ -94,12 +102,14 @@ class LeRobotSource:
         if self._dataset is None:
             from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-            self._dataset = LeRobotDataset(self.repo_id, root=self.root, video_backend=video_backend())
+            self._dataset = LeRobotDataset(self.repo_id, root=self.root, video_backend=video_backend(),
+                                           depth_output_unit="m")  # fmt: skip
         return self._dataset
 
     def has_depth(self) -> bool:
-        """Whether every reconstructed camera has a depth sidecar (checked on episode 0)."""
-        return all(depth_path(self.root, n, 0).exists() for n in self.camera_names)
+        """Whether every reconstructed camera has depth: a sidecar (checked on episode 0) or a
+        depth-map feature."""
+        return all(depth_path(self.root, n, 0).exists() or n in self.depth_features for n in self.camera_names)
 
     @cached_property
     def _episodes(self) -> dict[str, list[int]]:
@@ -126,10 +136,15 @@ class LeRobotSource:
         start = self._episode("dataset_from_index", episode)
         item = self.dataset[start + frame]
         images = torch.stack([_as_float(item[IMAGE_KEY_PREFIX + n]) for n in self.camera_names])
-        if not all(depth_path(self.root, n, episode).exists() for n in self.camera_names):
-            return Views(images, self.cameras)  # RGB only: needs a model reconstructor
-        depths = torch.stack([load_depth(self.root, n, episode, frame) for n in self.camera_names])
-        return Views(images, self.cameras, depths)
+        depths = []
+        for n in self.camera_names:
+            if depth_path(self.root, n, episode).exists():
+                depths.append(load_depth(self.root, n, episode, frame))
+            elif n in self.depth_features:  # LeRobot's own, (1, H, W) in metres
+                depths.append(item[self.depth_features[n]].float().reshape(1, *images.shape[-2:]))
+            else:
+                return Views(images, self.cameras)  # RGB only: needs a model reconstructor
+        return Views(images, self.cameras, torch.stack(depths))
 
 
 class LeRobotViews(Dataset):
@@ -166,6 +181,14 @@ def video_backend() -> str:
     except (ImportError, OSError, RuntimeError):
         return "pyav"
     return "torchcodec"
+
+
+def _is_depth_map(feature: dict | None) -> bool:
+    """Whether a LeRobot feature is a depth map (LeRobot's own test, on ``info.json``)."""
+    if not feature:
+        return False
+    info, video = feature.get("info") or {}, feature.get("video_info") or {}
+    return bool(info.get("is_depth_map") or info.get("video.is_depth_map") or video.get("video.is_depth_map"))
 
 
 def read_info(root: Path) -> dict:
