@@ -134,9 +134,14 @@ def save_depth(root: str | Path, camera: str, episode: int, depth: torch.Tensor)
     path = depth_path(root, camera, episode)
     meta = {"format": DEPTH_FORMAT, "format_version": DEPTH_FORMAT_VERSION, "camera": camera,
             "episode_index": str(int(episode)), "num_frames": str(depth.shape[0])}  # fmt: skip
-    d = depth if depth.dtype == torch.float16 else depth.float()
-    d = torch.nan_to_num(d, nan=0.0, posinf=0.0, neginf=0.0).clamp(0, 6e4)
+    d = storable_depth(depth if depth.dtype == torch.float16 else depth.float())
     return atomic_write(path, lambda tmp: save_file({"depth": d.to(torch.float16).contiguous()}, tmp, metadata=meta))
+
+
+def storable_depth(depth: torch.Tensor) -> torch.Tensor:
+    """Metres as a sidecar stores them (same shape and dtype): non-finite and negative values
+    as 0 (no depth), distances clamped to 60 km (float16 holds up to 65,504)."""
+    return torch.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0).clamp(0, 6e4)
 
 
 def load_depth(root: str | Path, camera: str, episode: int, frame: int | None = None) -> torch.Tensor:

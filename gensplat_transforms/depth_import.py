@@ -29,7 +29,7 @@ import torch
 from PIL import Image
 from tqdm.auto import tqdm
 
-from .dataset_format import depth_path, open_depth, save_depth
+from .dataset_format import depth_path, open_depth, save_depth, storable_depth
 
 #: metres per stored unit, by name (``units`` also takes a number)
 UNITS = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
@@ -150,8 +150,7 @@ def _episode_metres(where: str, length: int, size: tuple[int, int], scale: float
             raise ValueError(f"{where}: {name} holds {raw.dtype} values where the frames before hold "
                              f"{'floats' if kind == 'f' else 'integers'}: one episode, one kind of values")  # fmt: skip
         unit = scale if scale is not None else (1.0 if kind == "f" else UNITS["mm"])
-        depth = torch.from_numpy(raw.astype(np.float32)) * unit
-        out[t] = torch.where(torch.isfinite(depth) & (depth > 0), depth.clamp_max(6e4), 0.0)
+        out[t] = storable_depth(torch.from_numpy(raw.astype(np.float32)) * unit)  # before float16: no overflow
     return out, kind
 
 

@@ -7,6 +7,13 @@ from dataclasses import asdict, dataclass, fields
 PATCH_SIZE = 14  # ViT/14: input height and width must be multiples of this
 
 
+def check_max_pixels(owner: str, max_pixels: int | None) -> None:
+    """Raise ValueError naming ``owner`` unless ``max_pixels`` is None or an integer of at
+    least one patch (a cap on the pixels per view a model sees)."""
+    if max_pixels is not None and (type(max_pixels) is not int or max_pixels < PATCH_SIZE**2):
+        raise ValueError(f"{owner}: max_pixels must be an integer >= {PATCH_SIZE**2} (one patch), got {max_pixels!r}")
+
+
 @dataclass(frozen=True)
 class ModelConfig:
     """Architecture hyper-parameters. The defaults are the full (Pi3-compatible) size.

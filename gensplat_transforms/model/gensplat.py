@@ -20,7 +20,7 @@ from ..gaussians import Gaussians
 from ..rotations import rotmat_to_quat
 from ..sh import rgb_to_sh_dc
 from .checkpoints import CONFIG_FILE, FORMAT_NAME, FORMAT_VERSION, WEIGHTS_FILE, load_pi3_weights, resolve
-from .config import PATCH_SIZE, ModelConfig
+from .config import PATCH_SIZE, ModelConfig, check_max_pixels
 from .decoder import Decoder, token_positions
 from .encoder import Encoder
 from .gaussian_head import GaussianHead
@@ -156,9 +156,8 @@ class GenSplatModel(nn.Module):
                 )
             model = cls(ModelConfig.from_dict(meta["config"]))
             model.load_state_dict(load_file(str(path / WEIGHTS_FILE)))
+            check_max_pixels(str(path / CONFIG_FILE), meta.get("max_pixels"))
             model.max_pixels = meta.get("max_pixels")
-            if model.max_pixels is not None and (type(model.max_pixels) is not int or model.max_pixels < PATCH_SIZE**2):
-                raise ValueError(f"{path}: max_pixels {model.max_pixels!r} is not an integer >= {PATCH_SIZE**2}")
         elif meta.get("decoder_size", "large") == "large" and meta.get("pos_type", "rope100") == "rope100":
             model = cls(ModelConfig.full())
             model.max_pixels = PI3_MAX_PIXELS

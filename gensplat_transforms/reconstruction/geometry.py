@@ -34,10 +34,11 @@ import torch
 from ..cameras import Cameras, rigid_inverse
 from ..model import GenSplatModel
 from ..model.checkpoints import CONFIG_FILE, FORMAT_NAME, resolve
+from ..model.config import check_max_pixels
 from ..model.geometry import align_similarity, estimate_focal, transform_poses
 from ..weights import DEFAULT_MODEL_DIR
 from .base import DepthReconstructor, Reconstruction, Views, valid_depth
-from .model import check_max_pixels, run_model, weights_hash
+from .model import run_model, weights_hash
 from .rgbd import RGBDConfig, RGBDReconstructor
 
 SCALES = ("auto", "metric", "fit")

@@ -12,6 +12,7 @@ import torch.nn.functional as F
 from ..cameras import Cameras, rigid_inverse
 from ..gaussians import Gaussians
 from ..model import PATCH_SIZE, GenSplatModel, to_gaussians
+from ..model.config import check_max_pixels
 from ..model.geometry import align_similarity, estimate_focal, transform_gaussians, transform_poses
 from ..weights import DEFAULT_MODEL_DIR
 from .base import Reconstruction, Reconstructor, Views
@@ -164,12 +165,6 @@ def model_size(height: int, width: int, max_pixels: int | None = None) -> tuple[
                 h -= 1
         return h * PATCH_SIZE, w * PATCH_SIZE
     return tuple(max(1, round(s / PATCH_SIZE)) * PATCH_SIZE for s in (height, width))
-
-
-def check_max_pixels(owner: str, max_pixels: int | None) -> None:
-    if max_pixels is not None and (isinstance(max_pixels, bool) or not isinstance(max_pixels, int)
-                                   or max_pixels < PATCH_SIZE**2):  # fmt: skip
-        raise ValueError(f"{owner}: max_pixels must be an integer >= {PATCH_SIZE**2} (one patch), got {max_pixels!r}")
 
 
 def run_model(model: GenSplatModel, images: torch.Tensor, autocast_dtype: torch.dtype | None = None,

@@ -8,7 +8,7 @@ from pathlib import Path
 from gensplat_transforms.dataset_format import IMAGE_KEY_PREFIX
 from gensplat_transforms.depth_import import ImportedEpisode, import_depth
 
-from .source import read_info
+from .source import episode_table, read_info
 
 
 def import_dataset_depth(root: str | Path, repo_id: str, camera: str, source: str, units: str | float | None = None,
@@ -27,8 +27,8 @@ def import_dataset_depth(root: str | Path, repo_id: str, camera: str, source: st
         names = [k[len(IMAGE_KEY_PREFIX) :] for k in features if k.startswith(IMAGE_KEY_PREFIX)]
         raise ValueError(f"{root}: no camera {camera!r}; its cameras: {names}")
     height, width = features[key]["shape"][:2]
-    meta = LeRobotDatasetMetadata(repo_id, root=root)
-    lengths = {int(e): int(n) for e, n in zip(meta.episodes["episode_index"], meta.episodes["length"])}
+    table = episode_table(LeRobotDatasetMetadata(repo_id, root=root))
+    lengths = dict(zip(table["episode_index"], table["length"]))
     if episodes is not None:
         missing = sorted(set(episodes) - set(lengths))
         if missing:

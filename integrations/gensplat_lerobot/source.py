@@ -113,9 +113,7 @@ class LeRobotSource:
 
     @cached_property
     def _episodes(self) -> dict[str, list[int]]:
-        """Every episode's ``length`` and ``dataset_from_index``, read from the metadata at
-        once (3 ms for 76k episodes, where one lookup per episode took 0.1-2 ms)."""
-        return self.dataset.meta.episodes.select_columns(["length", "dataset_from_index"]).to_dict()
+        return episode_table(self.dataset.meta)
 
     def _episode(self, field: str, episode: int) -> int:
         column = self._episodes[field]
@@ -181,6 +179,13 @@ def video_backend() -> str:
     except (ImportError, OSError, RuntimeError):
         return "pyav"
     return "torchcodec"
+
+
+def episode_table(meta) -> dict[str, list[int]]:
+    """Every episode's ``episode_index``, ``length`` and ``dataset_from_index`` from a
+    ``LeRobotDatasetMetadata``, in one read (3 ms for 76k rows, where a lookup per episode
+    takes 0.1-2 ms and iterating a column 0.5 s)."""
+    return meta.episodes.select_columns(["episode_index", "length", "dataset_from_index"]).to_dict()
 
 
 def _is_depth_map(feature: dict | None) -> bool:
