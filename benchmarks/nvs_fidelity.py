@@ -24,8 +24,9 @@ each method's view at that pose is compared with ``GroundTruth.render`` there:
 * ``geometry_small`` / ``geometry_small_metric``: the same model through the geometry path
   (``GeometryReconstructor``: only its depth, on the calibrated rays, scale fitted to the
   calibrated camera baseline / kept as predicted; the RGB-D discs coloured by the images),
-  run and rendered at the model's input size (its ``max_pixels``: 112x112 for the shipped
-  model) and resized to the frame size, as the transform renders from such a cache;
+  the depth predicted at the model's input size (its ``max_pixels``: 112x112 for the shipped
+  model), the discs built at the frame size from the frames' colours and that depth (taken
+  at the nearest pixels), as the transform builds them from such a cache;
 * ``source_image``: the unchanged left image (what a policy sees without augmentation);
 * ``homography``: the left image warped by the homography that the table plane z = 0
   induces between the source and the perturbed camera (exact for the table top, which
@@ -72,9 +73,11 @@ from gensplat_transforms.perturbation import EVAL_LEVELS, PerturbationSampler
 from gensplat_transforms.reconstruction import (
     GenSplatReconstructor,
     GeometryReconstructor,
+    Reconstruction,
     RGBDReconstructor,
     Views,
 )
+from gensplat_transforms.reconstruction.base import nearest_pixels
 from gensplat_transforms.rendering import render
 from gensplat_transforms.sim.record import RecordConfig, record
 from gensplat_transforms.sim.sensor import SensorDepthConfig, sensor_depth
@@ -174,6 +177,14 @@ def warm_up(views: Views, model) -> None:
         GeometryReconstructor(model.model).reconstruct(Views(views.images, cams))
 
 
+def frame_size_geometry(rec: GeometryReconstructor, images: torch.Tensor, cameras: Cameras) -> Reconstruction:
+    """The geometry path's discs as the transform builds them from its cache: depth predicted
+    at the model's size, discs at the frames' size (depth at the nearest pixels)."""
+    out = rec.predict_depth(Views(images, cameras))
+    width, height = images.shape[-1], images.shape[-2]
+    return rec.assemble(Views(images, out.cameras.resize(width, height), nearest_pixels(out.depths, width, height)))
+
+
 def compare_frame(views: Views, truth: GroundTruth, ep: int, fr: int, model, args, rows: list) -> None:
     """Append one row per (method, level, draw) for one timestep: metrics and times."""
     cams = views.cameras
@@ -182,7 +193,7 @@ def compare_frame(views: Views, truth: GroundTruth, ep: int, fr: int, model, arg
     rgbd_s, rgbd_s_ms = timed(RGBDReconstructor().reconstruct, sensor)
     if not isinstance(model, str):
         mrec, model_ms = timed(model.reconstruct, Views(views.images, cams))  # RGB only
-        geometry = {name: timed(GeometryReconstructor(model.model, scale=scale).reconstruct, Views(views.images, cams))
+        geometry = {name: timed(frame_size_geometry, GeometryReconstructor(model.model, scale=scale), views.images, cams)
                     for name, scale in (("geometry_small", "fit"), ("geometry_small_metric", "metric"))}  # fmt: skip
     for level in EVAL_LEVELS:
         sampler = PerturbationSampler(level, seed=args.seed)
@@ -210,9 +221,7 @@ def compare_frame(views: Views, truth: GroundTruth, ep: int, fr: int, model, arg
                 for name, (grec, grec_ms) in geometry.items():  # calibrated cameras: move them as for rgbd
                     out_g, ms = timed(render, grec.gaussians, p.move(grec.cameras, 0), backend="fast",
                                       return_depth=False)  # fmt: skip
-                    # at the model's size (max_pixels), as a cache of it renders; resized as the transform does
-                    rgb = F.interpolate(out_g.rgb, size=gt.shape[-2:], mode="bilinear", align_corners=False)
-                    views_of[name] = (rgb[0].clamp(0, 1), grec_ms, ms)
+                    views_of[name] = (out_g.rgb[0], grec_ms, ms)
             coverage = float(seen.float().mean())
             for method, (image, rec_ms, ren_ms) in views_of.items():
                 mask = warp_mask_s[0] if method.endswith("_sensor") else warp_mask[0]

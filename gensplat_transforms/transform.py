@@ -55,12 +55,14 @@ class GenSplatConfig:
             source camera saw) and soften silhouette edges with the surrounding colours
             (``holes.fill_holes``), instead of ``background``.
         report: add ``gensplat.*`` keys describing the perturbation to the item.
-        render_scale: build and render the augmented views at this fraction of the cached
+        render_scale: build and render the augmented views at this fraction of the item's
             image size, in (0, 1], then resize them to the image size (see
             :func:`render_size`): about scale^2 of the render's time, for about 1 dB PSNR
             per halving of the side, also at the size a policy shrinks the frames to
             (``benchmarks/render_scale.py``: 640x480 frames seen at 224x168, 27.6 dB at 1,
-            26.4 at 0.5, 25.3 at 0.35). Render no smaller than the policy reads.
+            26.4 at 0.5, 25.3 at 0.35). Render no smaller than the policy reads. Cached
+            depth of another size (a geometry cache holds it at the model's input size) is
+            taken at the pixels nearest the render's, so the views keep the images' detail.
         render_in: "worker" renders in the transform; "batch" only reads the cache and draws
             the perturbation there, adding the inputs of :func:`.batched.render_batch` to the
             item, which renders a whole batch at once after collation (on the training GPU).
@@ -246,7 +248,7 @@ class GenSplatTransform:
         view = int(torch.randint(self.cfg.views_per_source, ()))
         report, moves = [], []
         batch = self.cfg.render_in == "batch"
-        if applied or batch:  # the batch keys have the cache's image size even when not augmented
+        if applied:
             self._ensure(episode)
             last = self.cache.num_frames(episode) - 1
             if not 0 <= frame <= last:
@@ -273,7 +275,8 @@ class GenSplatTransform:
     def _render_like(self, item: dict, keys: dict[str, str], episode: int, frame: int, name: str,
                      p: Perturbation, read: dict[int, Reconstruction]) -> torch.Tensor:
         """Rendered replacement of ``item[keys[name]]`` with its shape and dtype (:func:`like_images`)."""
-        image, size = item[keys[name]], self._render_size(episode)
+        image = item[keys[name]]
+        size = self._render_size(image)
         rgbs = []
         for k, (o, f) in enumerate(self._stack_frames(image, episode, frame)):
             if f not in read:
@@ -285,9 +288,10 @@ class GenSplatTransform:
         rgb = like_images(torch.stack(rgbs), image)
         return rgb if image.ndim == 4 else rgb[0]
 
-    def _render_size(self, episode: int) -> tuple[int, int]:
-        """(width, height) of the views rendered for ``episode`` (see :func:`render_size`)."""
-        return render_size(*self.cache.image_size(episode), self.cfg.render_scale)
+    def _render_size(self, image: torch.Tensor) -> tuple[int, int]:
+        """(width, height) of the views rendered to replace ``image`` (..., 3, H, W) (see
+        :func:`render_size`)."""
+        return render_size(image.shape[-1], image.shape[-2], self.cfg.render_scale)
 
     def _stack_frames(self, image: torch.Tensor, episode: int, frame: int) -> list[tuple[int, int]]:
         """(offset, frame) of each image of ``image``'s temporal stack, one for a single image;
@@ -307,27 +311,28 @@ class GenSplatTransform:
         ``gensplat.render`` () bool, augmented; ``gensplat.depth`` (T, V, h, w) int16, the
         cached depth of the V reconstructed cameras at the T frames of the stack as the cache
         stores it (two bytes a pixel, uncleaned: the batch side decodes and cleans it, see
-        :func:`.depth_codec.depth_from_words`), at the render size (:func:`render_size`: the
-        pixels nearest its pixel centres) and ``gensplat.coded`` () bool, how it is coded;
-        ``gensplat.K`` (T, V, 3, 3) and ``gensplat.c2w`` (T, V, 4, 4) float64, their cached
-        cameras (intrinsics at the render size); ``gensplat.moves`` (R, 3) float64, the move of
-        each of the R replaced cameras as (axis index, theta_deg, mu_m) (the batch side moves the cameras, all at once). Their
-        images are taken from the batch, so every reconstructed camera must be stacked alike."""
+        :func:`.depth_codec.depth_from_words`), at the render size of the first replaced
+        camera's images (:func:`render_size`; the cached pixels nearest its pixel centres) and
+        ``gensplat.coded`` () bool, how it is coded; ``gensplat.K`` (T, V, 3, 3) and
+        ``gensplat.c2w`` (T, V, 4, 4) float64, their cached cameras (intrinsics at the render
+        size); ``gensplat.moves`` (R, 3) float64, the move of each of the R replaced cameras as
+        (axis index, theta_deg, mu_m) (the batch side moves the cameras, all at once). Their
+        images are taken from the batch, so every reconstructed camera must be stacked alike.
+        Nothing is read from the cache for a sample that is not augmented."""
         stacks = {tuple(item[keys[n]].shape[:-3]) for n in self.cfg.cameras}
         if len(stacks) > 1:
             raise ValueError(f"GenSplatTransform: render_in='batch' needs the images of {self.cfg.cameras} stacked "
                              f"alike, got stacks {sorted(stacks)}: use render_in='worker'")  # fmt: skip
-        frames = self._stack_frames(item[keys[self.cfg.replace[0]]], episode, frame)
-        width, height = self._render_size(episode)
-        resized = (width, height) != self.cache.image_size(episode)
-        T, V, R = len(frames), len(self.cfg.cameras), len(self.cfg.replace)
+        image = item[keys[self.cfg.replace[0]]]
+        width, height = self._render_size(image)
+        T, V, R = 1 if image.ndim == 3 else image.shape[0], len(self.cfg.cameras), len(self.cfg.replace)
         depth = torch.zeros(T, V, height, width, dtype=torch.int16)
         K = torch.zeros(T, V, 3, 3, dtype=torch.float64)
         c2w = torch.zeros(T, V, 4, 4, dtype=torch.float64)
         coded = False
-        for k, (_, f) in enumerate(frames if applied else []):
+        for k, (_, f) in enumerate(self._stack_frames(image, episode, frame) if applied else []):
             (words, coded), cameras = self._read(episode, lambda f=f: self.cache.read_depth_words(episode, f))
-            if resized:
+            if words.shape[-2:] != (height, width):
                 words, cameras = nearest_pixels(words, width, height), cameras.resize(width, height)
             depth[k], K[k], c2w[k] = words, cameras.K, cameras.c2w
         moved = torch.tensor([[AXES.index(p.axis), p.theta_deg, p.mu_m] for p in moves], dtype=torch.float64)

@@ -98,6 +98,17 @@ def test_temporal_stacks_and_resized_images_match_the_worker(setup):
     assert_same_batch(expected, got, atol=1e-5)
 
 
+def test_a_sample_left_alone_reads_nothing_from_the_cache(setup, tmp_path):
+    """Not augmented, an item gets zero batch keys of the render size without the episode
+    being cached (an empty cache, no source: reading it would raise)."""
+    cache, ds = setup
+    empty = GaussianCache(tmp_path, cache.reconstructor, cache.dataset)
+    tf = GenSplatTransform(GenSplatConfig(probability=0.0, render_in="batch", render_scale=0.5), empty)
+    out = tf(ds[1])
+    assert not out["gensplat.render"] and out["gensplat.depth"].shape == (1, 2, 16, 16)
+    assert not out["gensplat.depth"].any() and empty.status(0) == "missing"
+
+
 def test_gaussians_caches_and_unlike_stacks_are_refused(setup, tmp_path):
     cache, ds = setup
     item = ds[1]

@@ -296,8 +296,9 @@ def test_rgb_only_dataset_uses_the_geometry_path(dataset_root):
 
 
 def test_max_pixels_caches_the_geometry_path_at_the_models_smaller_size(dataset_root):
-    """gensplat cache --max-pixels: the model sees 28x28 of the 48x48 frames, the depth cache
-    holds that size, and the transform still returns frames of the dataset's size."""
+    """gensplat cache --max-pixels: the model sees 28x28 of the 48x48 frames and the depth cache
+    holds that size; the views are still rendered at the frames' size (the images' detail kept),
+    and the policy is told when it reads less than half that."""
     from gensplat_transforms.cli import main
 
     shutil.rmtree(dataset_root / "depth")
@@ -317,9 +318,12 @@ def test_max_pixels_caches_the_geometry_path_at_the_models_smaller_size(dataset_
     cfg = SimpleNamespace(policy=DiffusionConfig(), resume=False)  # reads the whole 48x48 frame
     lines = start_message(ds, cfg).splitlines()
     assert re.search(r"\(1 of 2 episodes cached\), reconstructor geometry-", lines[1])
-    assert lines[3] == "  views rendered at 28x28 of 48x48 frames (render scale 1.0, cached at 28x28); the policy reads 48x48"
-    assert "The cache holds the views at 28x28, the model's input size; `gensplat cache --max-pixels N`" in (
-        render_warning(ds, cfg))
+    assert lines[3] == "  views rendered at 48x48 of 48x48 frames (render scale 1.0, cached at 28x28); the policy reads 48x48"
+    assert lines[4].startswith("  a run resumed") and render_warning(ds, cfg) is None
+    small = SimpleNamespace(policy=DiffusionConfig(resize_shape=(24, 24)), resume=False)
+    assert start_message(ds, small).splitlines()[4] == (
+        "  `gensplat cache` with --render-scale 0.5 renders what the policy reads, 24x24: 4.0x fewer pixels a view "
+        "(render time falls about in proportion)")
     with pytest.raises(SystemExit, match="--max-pixels need --reconstructor geometry or gensplat"):
         main(["cache", "--root", str(dataset_root), "--repo-id", REPO, "--max-pixels", "1000",
               "--reconstructor", "rgbd"])  # fmt: skip

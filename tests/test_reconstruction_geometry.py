@@ -139,6 +139,39 @@ def test_frames_missing_from_a_stacked_item_come_from_the_source_at_the_cache_si
     assert out.shape == (2, 3, 40, 40) and torch.isfinite(out).all()
 
 
+@pytest.mark.parametrize("render_in", ["worker", "batch"])
+def test_views_from_a_geometry_cache_keep_the_images_detail(tmp_path, render_in):
+    """The cache holds depth at the model's 14x14, the frames are 56x56: the views are built and
+    rendered at the frames' size from that depth, so an unmoved camera's view keeps its image's
+    detail (each pixel's disc lands near it whatever the depth), where a render at the cache's
+    size, resized, is blurred."""
+    from torch.utils.data import default_collate
+
+    from gensplat_transforms.batched import render_batch
+    from gensplat_transforms.episodes import SceneDataset
+    from gensplat_transforms.metrics import psnr, sharpness_ratio
+    from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform, render_view
+
+    source = SceneEpisodes(num_episodes=1, num_frames=1, size=56)
+    cache = GaussianCache(tmp_path, GeometryReconstructor(tiny_model(), max_pixels=196), source.fingerprint)
+    cache.ensure(0, source)
+    assert cache.image_size(0) == (14, 14)
+    item, left = SceneDataset(source)[0], "observation.images.left"
+    config = GenSplatConfig(probability=1.0, level="none", replace=("left",), render_in=render_in, backend="fast")
+    transform = GenSplatTransform(config, cache)
+    out = transform(item)
+    if render_in == "batch":
+        out = {k: v[0] for k, v in render_batch(default_collate([out]), transform).items()}
+    assert out[left].shape == item[left].shape
+    small = cache.read(0, 0, torch.nn.functional.interpolate(item[left][None].float(), size=(14, 14), mode="area")
+                       .expand(2, -1, -1, -1))
+    blurred = torch.nn.functional.interpolate(render_view(small.gaussians, small.cameras[0:1], config).rgb,
+                                              size=(56, 56), mode="bilinear")[0]
+    truth = item[left].float()
+    assert sharpness_ratio(out[left].float(), truth) > 0.6 and sharpness_ratio(blurred, truth) < 0.3
+    assert psnr(out[left].float(), truth) > psnr(blurred, truth)
+
+
 @pytest.mark.parametrize(("height", "width", "most"), [(480, 640, 255_000), (480, 640, 12_544), (720, 1280, 100_000),
                                                        (1, 5000, 196), (50, 64, 10**9)])  # fmt: skip
 def test_model_size_keeps_the_aspect_within_max_pixels(height, width, most):

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from gensplat_transforms.gaussians import Gaussians
 from gensplat_transforms.reconstruction import make_reconstructor
+from gensplat_transforms.transform import render_size
 
 from .dataset import dataset_cache, load_settings
 from .source import LeRobotSource
@@ -41,11 +42,12 @@ def timestep_gaussians(root: str | Path, repo_id: str, episode: int, frame: int)
     if cache.status(episode) != "ok":
         log.warning("episode %d is %s in the cache at %s: building it", episode, cache.status(episode), cache.root)
     cache.ensure(episode, source)
-    images = None
-    if cache.kind == "depth":  # the cache holds depth: the Gaussians are built from the frame's images
-        width, height = cache.image_size(episode)
-        images = source.views(episode, frame).resized(width, height).images
-    return cache.read(episode, frame, images).gaussians
+    if cache.kind != "depth":
+        return cache.read(episode, frame).gaussians
+    # the cache holds depth: the Gaussians are built from the frame's images at the render size
+    views = source.views(episode, frame)
+    width, height = render_size(views.images.shape[-1], views.images.shape[-2], config.render_scale)
+    return cache.read(episode, frame, views.resized(width, height).images, (width, height)).gaussians
 
 
 def export_ply(root: str | Path, repo_id: str, episode: int, frame: int, out: str | Path) -> Path:

@@ -81,9 +81,8 @@ def policy_input_size(policy, width: int, height: int) -> tuple[int, int] | None
 
 def render_sizes(train, cfg) -> tuple[tuple[int, int], tuple[int, int], tuple[int, int] | None, tuple[int, int]]:
     """(width, height) of the first replaced camera's frames, of its rendered views, of what the
-    policy reads (None where unknown) and of the cached views the renders are sized by (the
-    frames', or a model's input size for a geometry or gensplat cache; read from the
-    dataset's first episode)."""
+    policy reads (None where unknown) and of the cached views (the frames', or a model's input
+    size for a geometry or gensplat cache; read from the dataset's first episode)."""
     c = train.gensplat.cfg
     height, width = train.meta.features[c.image_key.format(name=c.replace[0])]["shape"][:2]
     policy = policy_input_size(getattr(cfg, "policy", None), width, height)
@@ -91,23 +90,19 @@ def render_sizes(train, cfg) -> tuple[tuple[int, int], tuple[int, int], tuple[in
         cached = train.gensplat.cache.image_size((train.episodes or [0])[0])
     except (FileNotFoundError, CacheError):  # not cached yet: it is built at the frames' size or a model's
         cached = (width, height)
-    return (width, height), render_size(*cached, c.render_scale), policy, cached
+    return (width, height), render_size(width, height, c.render_scale), policy, cached
 
 
 def render_warning(train, cfg) -> str | None:
     """A warning when GenSplat renders its views smaller than the policy reads them (the
     augmented samples would be blurrier than the others), else None."""
-    (width, height), (w, h), policy, cached = render_sizes(train, cfg)
+    (width, height), (w, h), policy, _ = render_sizes(train, cfg)
     if policy is None or (w >= policy[0] and h >= policy[1]):
         return None
-    blurrier = (f"GenSplat renders its views at {w}x{h} (render scale {train.gensplat.cfg.render_scale}), smaller "
-                f"than the {policy[0]}x{policy[1]} the policy reads: augmented samples are blurrier than the others")  # fmt: skip
-    if cached[0] < width and cached[1] < height:  # a model's input size
-        return (f"{blurrier}. The cache holds the views at {cached[0]}x{cached[1]}, the model's input size; "
-                "`gensplat cache --max-pixels N` builds it larger (the shipped model's depth is worse above the "
-                "12,544 pixels it was trained at: benchmarks/geometry_resolution.py)")  # fmt: skip
     need = math.ceil(100 * max(policy[0] / width, policy[1] / height)) / 100
-    return f"{blurrier}; run `gensplat cache` with --render-scale {min(need, 1.0):g} or more"
+    return (f"GenSplat renders its views at {w}x{h} (render scale {train.gensplat.cfg.render_scale}), smaller than "
+            f"the {policy[0]}x{policy[1]} the policy reads: augmented samples are blurrier than the others; run "
+            f"`gensplat cache` with --render-scale {min(need, 1.0):g} or more")  # fmt: skip
 
 
 def start_message(train, cfg) -> str:
@@ -124,8 +119,23 @@ def start_message(train, cfg) -> str:
         f"  probability {c.probability}, level {c.level}, mode {c.mode}, cameras replaced: {', '.join(c.replace)} "
         + f"(reconstructed from {', '.join(c.cameras)})",
         f"  views rendered at {w}x{h} of {width}x{height} frames (render scale {c.render_scale}{held}){reads}",
+        *smaller_render_tip((width, height), (w, h), policy),
         f"  {resumed}a run resumed with --resume=true trains without GenSplat unless {LINE} is given again",
     ])  # fmt: skip
+
+
+def smaller_render_tip(frame: tuple[int, int], rendered: tuple[int, int], policy: tuple[int, int] | None) -> list[str]:
+    """A line of the start block where the views are rendered with at least twice the pixels
+    the policy reads (render time grows with them): the render scale that renders what it
+    reads. No line otherwise."""
+    if policy is None or rendered[0] * rendered[1] < 2 * policy[0] * policy[1]:
+        return []
+    scale = math.ceil(100 * max(policy[0] / frame[0], policy[1] / frame[1])) / 100
+    smaller = render_size(*frame, scale)
+    fewer = rendered[0] * rendered[1] / (smaller[0] * smaller[1])
+    tip = (f"  `gensplat cache` with --render-scale {scale:g} renders what the policy reads, {smaller[0]}x{smaller[1]}: "
+           f"{fewer:.1f}x fewer pixels a view (render time falls about in proportion)")  # fmt: skip
+    return [tip]
 
 
 def progress_message(step: int, samples: int, augmented: int, seconds: float) -> str:
