@@ -16,7 +16,14 @@ import torch
 pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
 os.environ["HF_HUB_OFFLINE"] = "1"
 
-from gensplat_lerobot import LeRobotSource, enable_gensplat, load_settings, prepare, save_settings
+from gensplat_lerobot import (
+    LeRobotSource,
+    enable_gensplat,
+    load_settings,
+    prepare,
+    save_settings,
+    video_backend,
+)
 from gensplat_lerobot.dataset import dataset_cache, make_reconstructor
 from gensplat_lerobot.record import record_scene_dataset
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -554,28 +561,32 @@ def test_episode_lengths_and_starts_come_from_one_metadata_read(dataset_root):
         source.views(2, 0)
 
 
-def test_lerobots_own_depth_features_are_read_and_copied_into_the_cache(tmp_path):
+@pytest.mark.parametrize(("depth_as", "error_m"), [("feature", 0.5e-3), ("video", 2e-3)])
+def test_lerobots_own_depth_features_are_read_and_copied_into_the_cache(tmp_path, depth_as, error_m):
     """A dataset whose cameras' depth is LeRobot's depth-map feature (observation.images.<cam>_depth,
-    uint16 mm, as LeRobot records a RealSense) and no sidecars: the RGB-D path is chosen, the
-    views carry that depth in metres, the cache stores a compressed copy (nothing to link),
-    and the transform augments the colour cameras, not the depth features."""
+    uint16 mm, as LeRobot records a RealSense: PNG images, or its 12-bit log-quantised HEVC
+    video beside MP4 colour video) and no sidecars: the RGB-D path is chosen, the views carry
+    that depth in metres (within the millimetre rounding, plus LeRobot's 12-bit steps of about
+    1 mm at 3 m for video), the cache stores a compressed copy (nothing to link), and the
+    transform augments the colour cameras, not the depth features."""
     root = tmp_path / "ds"
     source = SceneEpisodes(num_episodes=1, num_frames=4, size=32)
-    record_scene_dataset(root, source, REPO, progress=False, depth_as="feature")
+    record_scene_dataset(root, source, REPO, progress=False, depth_as=depth_as)
     assert not (root / "depth").exists()
+    assert (root / "videos" / "observation.images.left_depth").is_dir() == (depth_as == "video")
     lerobot_source = LeRobotSource(root, REPO)
     assert lerobot_source.camera_names == ("left", "right") and lerobot_source.has_depth()
     want = source.render(0, 2)[1][:2]
     got = lerobot_source.views(0, 2).depths
-    assert (got - want).abs().max() <= 0.5e-3 + 1e-6  # millimetres
+    assert (got - want).abs().max() <= error_m + 1e-6
     assert lerobot_source.depth_files(0) is None
     stats = prepare(root, REPO, GenSplatConfig(probability=1.0, level="small"), progress=False)
     assert load_settings(root)[1]["name"] == "rgbd" and stats[0].bytes_per_timestep > 200  # a stored copy
-    ds = enable_gensplat(LeRobotDataset(REPO, root=root))
-    item, ref = ds[2], LeRobotDataset(REPO, root=root)[2]
+    ds = enable_gensplat(LeRobotDataset(REPO, root=root, video_backend=video_backend()))
+    item, ref = ds[2], LeRobotDataset(REPO, root=root, video_backend=video_backend())[2]
     assert not torch.equal(item[LEFT], ref[LEFT]) and torch.isfinite(item[LEFT]).all()
     assert torch.equal(item["observation.images.left_depth"], ref["observation.images.left_depth"])
     (words, coded), _ = ds.gensplat.cache.read_depth_words(0, 2)
     from gensplat_transforms.depth_codec import depth_from_words
 
-    assert (depth_from_words(words, coded) - want[:, 0]).abs().max() <= 1e-3 * want.max() + 0.5e-3
+    assert (depth_from_words(words, coded) - want[:, 0]).abs().max() <= 1e-3 * want.max() + error_m
