@@ -34,9 +34,11 @@ from .transform import (
     GenSplatTransform,
     as_cache_images,
     filled,
+    like_depth,
     like_images,
     render_background,
     render_view,
+    seen_depth,
 )
 
 
@@ -98,20 +100,30 @@ def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None 
     K = batch["gensplat.K"][rows][:, :, views].flatten(0, 1)  # (S*T, R, 3, 3)
     c2w = _targets(batch["gensplat.c2w"][rows], batch["gensplat.moves"][rows], views).flatten(0, 1)  # (S*T, R, 4, 4)
     opacity = discs.cfg.opacity
+    depth_keys = {} if cfg.depth_unit in (None, "keep") else {
+        r: key for r, name in enumerate(cfg.replace) if (key := cfg.image_key.format(name=name) + "_depth") in batch}  # fmt: skip
     backend = backend or ("gsplat" if depth.device.type == "cuda" else cfg.backend)
     if backend == "gsplat":
         background = torch.tensor(render_background(cfg)).to(depth)
-        rgb, alpha = render_gsplat_batch(means, quats, scales, keep * opacity, sh, c2w, K, w, h, background)
+        rgb, alpha, seen = render_gsplat_batch(means, quats, scales, keep * opacity, sh, c2w, K, w, h, background,
+                                               return_depth=bool(depth_keys))  # fmt: skip
         rgb = filled(RenderOutput(rgb.flatten(0, 1), alpha=alpha.flatten(0, 1)), cfg).rgb.unflatten(0, rgb.shape[:2])
+        seen = None if seen is None else seen_depth(seen, alpha)
     else:
         one, scenes = replace(cfg, backend=backend), zip(means, quats, scales, sh, keep, K, c2w)
-        rgb = torch.stack([_render_scene(*discs_of_scene, Cameras(k, t, w, h), opacity, one)
-                           for *discs_of_scene, k, t in scenes])  # fmt: skip
+        views = [_render_scene(*discs_of_scene, Cameras(k, t, w, h), opacity, one, bool(depth_keys))
+                 for *discs_of_scene, k, t in scenes]  # fmt: skip
+        rgb = torch.stack([v.rgb for v in views])
+        seen = torch.stack([v.depth for v in views]) if depth_keys else None
     rgb = rgb.unflatten(0, (S, T))  # (S, T, R, 3, h, w)
     for r, name in enumerate(cfg.replace):
         key = cfg.image_key.format(name=name)
         image = out[key] = batch[key].clone()
         image[rows] = like_images(rgb[:, :, r].flatten(0, 1), image).reshape(image[rows].shape)
+        if r in depth_keys:
+            like = out[depth_keys[r]] = batch[depth_keys[r]].clone()
+            rendered = seen.unflatten(0, (S, T))[:, :, r].flatten(0, 1)  # (S*T, 1, h, w) metres
+            like[rows] = like_depth(rendered, like[rows], cfg.depth_unit).reshape(like[rows].shape)
     return out
 
 
@@ -130,10 +142,11 @@ def _stacked(images: torch.Tensor, T: int, height: int, width: int) -> torch.Ten
     return as_cache_images(stack, height, width).unflatten(0, (images.shape[0], T))
 
 
-def _render_scene(means, quats, scales, sh, keep, cameras: Cameras, opacity: float,
-                  cfg: GenSplatConfig) -> torch.Tensor:
-    """(C, 3, H, W): one scene's discs (N, ...) where ``keep``, as float32 Gaussians in the
-    worker's order, rendered by :func:`.transform.render_view` with ``cfg.backend``."""
+def _render_scene(means, quats, scales, sh, keep, cameras: Cameras, opacity: float, cfg: GenSplatConfig,
+                  depth: bool) -> RenderOutput:  # fmt: skip
+    """One scene's discs (N, ...) where ``keep``, as float32 Gaussians in the worker's order,
+    rendered into C cameras by :func:`.transform.render_view` with ``cfg.backend``: rgb
+    (C, 3, H, W), with ``depth`` its depth (C, 1, H, W)."""
     means, quats, scales, sh = (t[keep].float() for t in (means, quats, scales, sh))
     g = Gaussians(means, quats, scales, means.new_full((len(means),), opacity), sh)
-    return render_view(g, cameras, cfg).rgb
+    return render_view(g, cameras, cfg, depth=depth)

@@ -67,6 +67,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="render the augmented views at this fraction of the frame size, then resize them to it: "
                             "about scale^2 of the render time, e.g. 0.5 for 640x480 frames that the policy shrinks "
                             "to 320x240 (benchmarks/render_scale.py; default: 1.0)")
+    cache.add_argument("--keep-depth-maps", dest="depth_unit", action="store_const", const="keep", default=None,
+                       help="leave the replaced cameras' depth-map features (observation.images.<camera>_depth) as "
+                            "recorded instead of rendering them at the new pose (default: rendered)")
     cache.add_argument("--episodes", type=int, nargs="+", default=None, help="only these episodes (default: all)")
     cache.add_argument("--trust-headers", dest="verify", action="store_false",
                        help="resume without reading cached data: skip every episode whose header is valid (data "
@@ -278,7 +281,7 @@ def _cache(args) -> None:
     config = GenSplatConfig(
         cameras=cameras, replace=args.replace, level=args.level, probability=args.probability, mode=args.mode,
         views_per_source=args.views_per_source, seed=args.seed, backend=args.backend, fill_holes=args.fill_holes,
-        render_in=args.render_in, render_scale=args.render_scale,
+        render_in=args.render_in, render_scale=args.render_scale, depth_unit=args.depth_unit,
     )  # fmt: skip
     spec = None if args.reconstructor is None else {"name": args.reconstructor}
     if args.model or args.max_pixels is not None:

@@ -25,6 +25,10 @@ from .rendering import BACKENDS, RenderOutput, render
 logger = logging.getLogger(__name__)
 
 RENDER_IN = ("auto", "worker", "batch")
+#: ``GenSplatConfig.depth_unit`` values: metres per unit of the item's depth maps, or None
+DEPTH_UNITS = {None: None, "keep": None, "m": 1.0, "mm": 1e-3}
+#: a view's depth counts where its alpha reaches this (elsewhere it shows nothing: depth 0)
+DEPTH_MIN_ALPHA = 0.5
 #: item keys the transform adds with ``render_in="batch"`` and ``render_batch`` removes
 BATCH_KEYS = ("gensplat.render", "gensplat.depth", "gensplat.coded", "gensplat.K", "gensplat.c2w", "gensplat.moves")
 
@@ -63,6 +67,13 @@ class GenSplatConfig:
             26.4 at 0.5, 25.3 at 0.35). Render no smaller than the policy reads. Cached
             depth of another size (a geometry cache holds it at the model's input size) is
             taken at the pixels nearest the render's, so the views keep the images' detail.
+        depth_unit: the unit of the depth maps an item carries for the replaced cameras, at
+            ``<image key>_depth`` (LeRobot's depth-map features: its ``depth_output_unit``,
+            "mm" or "m"): those are replaced by the depth of the view at the new pose, 0 where
+            it shows nothing (as a depth camera reports no return; see :func:`render_view`).
+            "keep" leaves them unchanged (then they no longer match an augmented view); None,
+            the default, raises for an item that carries one (the LeRobot plugin sets the
+            dataset's unit).
         render_in: "worker" renders in the transform; "batch" only reads the cache and draws
             the perturbation there, adding the inputs of :func:`.batched.render_batch` to the
             item, which renders a whole batch at once after collation (on the training GPU).
@@ -91,6 +102,7 @@ class GenSplatConfig:
     report: bool = False
     render_in: str = "auto"
     render_scale: float = 1.0
+    depth_unit: str | None = None
 
     def __post_init__(self) -> None:
         self.cameras = tuple(self.cameras)
@@ -111,6 +123,8 @@ class GenSplatConfig:
             raise ValueError(f"GenSplatConfig.render_scale must be in (0, 1], got {self.render_scale}")
         if self.render_in not in RENDER_IN:
             raise ValueError(f"GenSplatConfig.render_in must be one of {RENDER_IN}, got {self.render_in!r}")
+        if self.depth_unit not in DEPTH_UNITS:
+            raise ValueError(f"GenSplatConfig.depth_unit must be one of {tuple(DEPTH_UNITS)}, got {self.depth_unit!r}")
 
     def to_dict(self) -> dict:
         """The settings as plain values for JSON (a ``PerturbationRange`` level as a dict)."""
@@ -147,13 +161,23 @@ def render_size(width: int, height: int, scale: float) -> tuple[int, int]:
     return max(1, round(width * scale)), max(1, round(height * scale))
 
 
-def render_view(gaussians: Gaussians, camera: Cameras, config: GenSplatConfig) -> RenderOutput:
+def render_view(gaussians: Gaussians, camera: Cameras, config: GenSplatConfig, depth: bool = False) -> RenderOutput:
     """The augmented view of ``camera`` (B cameras) as the transform makes it, rendered with
-    ``config.backend``: rgb (B, 3, H, W), hole-filled with ``config.fill_holes``, and the
-    render's alpha (B, 1, H, W) (its coverage; no depth)."""
+    ``config.backend``: rgb (B, 3, H, W), hole-filled with ``config.fill_holes``, the render's
+    alpha (B, 1, H, W) (its coverage) and, with ``depth``, its depth (B, 1, H, W) in metres
+    (:func:`seen_depth`; else None)."""
     out = render(gaussians, camera, background=render_background(config), backend=config.backend,
-                 return_depth=False, **config.render_options)  # fmt: skip
+                 return_depth=depth, **config.render_options)  # fmt: skip
+    if depth:
+        out.depth = seen_depth(out.depth, out.alpha)
     return filled(out, config)
+
+
+def seen_depth(depth: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+    """A render's expected depth where its alpha reaches ``DEPTH_MIN_ALPHA``, else 0 (nothing
+    seen there: no depth, as a depth camera reports no return; holes are never filled with
+    made-up depth)."""
+    return torch.where(alpha >= DEPTH_MIN_ALPHA, depth, torch.zeros_like(depth))
 
 
 def render_background(config: GenSplatConfig) -> tuple[float, float, float]:
@@ -175,6 +199,19 @@ def as_cache_images(images: torch.Tensor, height: int, width: int) -> torch.Tens
     if images.shape[-2:] != (height, width):
         images = F.interpolate(images, size=(height, width), mode="bilinear", antialias=True, align_corners=False)
     return images.clamp(0, 1)
+
+
+def like_depth(depth: torch.Tensor, like: torch.Tensor, unit: str) -> torch.Tensor:
+    """(N, 1, h, w) depth in metres as depth maps like ``like`` (..., 1, H, W) in ``unit``
+    ("m" or "mm"): resized to H x W at the nearest pixels (never a mix of depths), in its
+    dtype (integers rounded and clipped to the dtype's range)."""
+    if depth.shape[-2:] != like.shape[-2:]:
+        depth = nearest_pixels(depth, like.shape[-1], like.shape[-2])
+    depth = depth / DEPTH_UNITS[unit]
+    if like.is_floating_point():
+        return depth.to(like.dtype)
+    info = torch.iinfo(like.dtype)
+    return depth.round().clamp(max(info.min, 0), info.max).to(like.dtype)
 
 
 def like_images(rgb: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
@@ -242,6 +279,7 @@ class GenSplatTransform:
             raise KeyError(f"GenSplatTransform: item lacks camera image(s) {missing}; keys: {sorted(item)}")
         for n in needed:
             _check_image(keys[n], item[keys[n]])
+        depth_keys = self._depth_keys(item, keys)
         episode, frame = int(item["episode_index"]), int(item["frame_index"])
         out = dict(item)
         applied = bool(torch.rand(()) < self.cfg.probability)
@@ -257,7 +295,10 @@ class GenSplatTransform:
         for ci, name in enumerate(self.cfg.replace):
             p = self.sampler.sample(episode, frame, view=view * len(self.cfg.replace) + ci) if applied else Perturbation()
             if applied and not batch:
-                out[keys[name]] = self._render_like(item, keys, episode, frame, name, p, read)
+                depth_key = depth_keys.get(name)
+                out[keys[name]], depth = self._render_like(item, keys, episode, frame, name, p, read, depth_key)
+                if depth_key is not None:
+                    out[depth_key] = depth
             moves.append(p)
             report.append([float(applied), float(AXES.index(p.axis)), p.theta_deg, p.mu_m])
         if self.cfg.report:
@@ -273,20 +314,42 @@ class GenSplatTransform:
         return out
 
     def _render_like(self, item: dict, keys: dict[str, str], episode: int, frame: int, name: str,
-                     p: Perturbation, read: dict[int, Reconstruction]) -> torch.Tensor:
-        """Rendered replacement of ``item[keys[name]]`` with its shape and dtype (:func:`like_images`)."""
+                     p: Perturbation, read: dict[int, Reconstruction],
+                     depth_key: str | None) -> tuple[torch.Tensor, torch.Tensor | None]:  # fmt: skip
+        """Rendered replacements of ``item[keys[name]]`` and of its depth map ``item[depth_key]``
+        (None: none) with their shapes and dtypes (:func:`like_images`, :func:`like_depth`)."""
         image = item[keys[name]]
         size = self._render_size(image)
-        rgbs = []
+        rgbs, depths = [], []
         for k, (o, f) in enumerate(self._stack_frames(image, episode, frame)):
             if f not in read:
                 depth = self.cache.kind == "depth"
                 images = self._source_images(item, keys, k, o, episode, f, size) if depth else None
                 read[f] = self._read(episode, lambda f=f, images=images: self.cache.read(episode, f, images, size))
             target = p.move(read[f].cameras, self.cfg.cameras.index(name))
-            rgbs.append(render_view(read[f].gaussians, target, self.cfg).rgb[0])
-        rgb = like_images(torch.stack(rgbs), image)
-        return rgb if image.ndim == 4 else rgb[0]
+            out = render_view(read[f].gaussians, target, self.cfg, depth=depth_key is not None)
+            rgbs.append(out.rgb[0])
+            depths.append(out.depth)
+        rgb = like_images(torch.stack(rgbs), image).reshape(image.shape)
+        if depth_key is None:
+            return rgb, None
+        like = item[depth_key]
+        return rgb, like_depth(torch.cat(depths), like, self.cfg.depth_unit).reshape(like.shape)
+
+    def _depth_keys(self, item: dict, keys: dict[str, str]) -> dict[str, str]:
+        """{camera: key} of the replaced cameras' depth maps the item carries (``<image
+        key>_depth``) that are rendered at the new pose too (none with ``depth_unit="keep"``);
+        raises without a ``depth_unit`` or for a map unlike its image."""
+        found = {n: keys[n] + "_depth" for n in self.cfg.replace if keys[n] + "_depth" in item}
+        if found and self.cfg.depth_unit is None:
+            raise ValueError(f"GenSplatTransform: the item carries depth maps {sorted(found.values())} of replaced cameras: "
+                             "set GenSplatConfig.depth_unit to their unit ('mm' or 'm', LeRobot's depth_output_unit) to "
+                             "render them at the new pose too, or to 'keep' to leave them unchanged")  # fmt: skip
+        if self.cfg.depth_unit == "keep":
+            return {}
+        for n, key in found.items():
+            _check_depth_map(key, item[key], item[keys[n]])
+        return found
 
     def _render_size(self, image: torch.Tensor) -> tuple[int, int]:
         """(width, height) of the views rendered to replace ``image`` (..., 3, H, W) (see
@@ -389,6 +452,17 @@ def _check_image(key: str, image: torch.Tensor) -> None:
         raise ValueError(f"GenSplatTransform: {key}: expected (3, H, W) or (T, 3, H, W) images, got {tuple(image.shape)}")
     if image.dtype != torch.uint8 and not image.is_floating_point():
         raise ValueError(f"GenSplatTransform: {key}: images must be uint8 in [0, 255] or float in [0, 1], got {image.dtype}")
+
+
+def _check_depth_map(key: str, depth: torch.Tensor, image: torch.Tensor) -> None:
+    """A depth map the transform can replace: (1, H, W), or (T, 1, H, W) stacked as its image."""
+    if not isinstance(depth, torch.Tensor):
+        raise TypeError(f"GenSplatTransform: {key} is a {type(depth).__name__}, expected a torch.Tensor")
+    if depth.ndim != image.ndim or depth.shape[-3] != 1 or depth.shape[:-3] != image.shape[:-3] or 0 in depth.shape:
+        raise ValueError(f"GenSplatTransform: {key}: expected a depth map (1, H, W), stacked as its image "
+                         f"{tuple(image.shape)}, got {tuple(depth.shape)}")  # fmt: skip
+    if depth.dtype == torch.bool or depth.is_complex():
+        raise ValueError(f"GenSplatTransform: {key}: depth must be float or integer, got {depth.dtype}")
 
 
 class AugmentedDataset(Dataset):

@@ -141,28 +141,39 @@ def fake_rasterization(means, quats, scales, opacities, colors, viewmats, Ks, wi
     """gsplat's batched ``rasterization`` (scenes (M, N), cameras (M, C)) stood in for by the
     fast backend, one scene at a time: checks the arguments' layout and the outputs'."""
     assert means.shape[:-1] == opacities.shape and viewmats.shape[:2] == Ks.shape[:2] == backgrounds.shape[:2]
-    assert render_mode == "RGB" and not packed and eps2d == 0.3
+    assert render_mode in ("RGB", "RGB+ED") and not packed and eps2d == 0.3
     rgbs, alphas = [], []
     for m in range(means.shape[0]):
         keep = opacities[m] > 0
         g = Gaussians(means[m][keep], quats[m][keep], scales[m][keep], opacities[m][keep], colors[m][keep])
         cameras = Cameras(Ks[m].double(), rigid_inverse(viewmats[m].double()), width, height)
         out = render(g, cameras, background=backgrounds[m, 0], near=near_plane, sh_degree=sh_degree, backend="fast")
-        rgbs.append(out.rgb.permute(0, 2, 3, 1))
+        channels = (out.rgb, out.depth) if render_mode == "RGB+ED" else (out.rgb,)  # expected depth sum(w z) / alpha
+        rgbs.append(torch.cat(channels, 1).permute(0, 2, 3, 1))
         alphas.append(out.alpha.permute(0, 2, 3, 1))
     return torch.stack(rgbs), torch.stack(alphas), {}
 
 
-@pytest.mark.parametrize("render_scale", [1.0, 0.5])
-def test_the_single_gsplat_call_lays_out_scenes_and_cameras_as_the_worker(setup, monkeypatch, render_scale):
+@pytest.mark.parametrize(("render_scale", "depth_maps"), [(1.0, False), (0.5, False), (1.0, True)])
+def test_the_single_gsplat_call_lays_out_scenes_and_cameras_as_the_worker(setup, monkeypatch, render_scale,
+                                                                            depth_maps):  # fmt: skip
     cache, ds = setup
     monkeypatch.setattr(gsplat_backend, "_rasterization", lambda: fake_rasterization)
     items = [as_uint8(ds[i]) for i in (0, 2, 5, 6)]
+    if depth_maps:  # the left camera's true depth map in millimetres, rendered at the new pose too
+        items = [{**item, LEFT + "_depth": ds.episodes.render(int(item["episode_index"]), int(item["frame_index"]))[1][0]
+                  * 1000} for item in items]  # fmt: skip
     expected, got = both_ways(cache, items, seed=0, backend="gsplat", probability=1.0, views_per_source=3,
-                              render_scale=render_scale)  # fmt: skip
+                              render_scale=render_scale, depth_unit="mm")  # fmt: skip
     for key in (LEFT, RIGHT):  # float32 poses and gsplat's conventions: a level here and there
         diff = (got[key].float() - expected[key].float()).abs()
         assert diff.max() <= 3 and diff.mean() < 0.05, key
+    if depth_maps:
+        depth, worker = got[LEFT + "_depth"], expected[LEFT + "_depth"]
+        assert not torch.equal(depth, torch.stack([item[LEFT + "_depth"] for item in items]))
+        assert ((depth > 0) != (worker > 0)).float().mean() < 0.01  # seen alike, up to a pixel at an edge
+        both = (depth > 0) & (worker > 0)
+        assert (depth - worker)[both].abs().median() < 0.5  # millimetres
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="batch rendering with gsplat needs a CUDA device")

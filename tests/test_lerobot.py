@@ -568,7 +568,8 @@ def test_lerobots_own_depth_features_are_read_and_copied_into_the_cache(tmp_path
     video beside MP4 colour video) and no sidecars: the RGB-D path is chosen, the views carry
     that depth in metres (within the millimetre rounding, plus LeRobot's 12-bit steps of about
     1 mm at 3 m for video), the cache stores a compressed copy (nothing to link), and the
-    transform augments the colour cameras, not the depth features."""
+    transform renders the depth features at the new pose too, in the dataset's unit (kept as
+    recorded with --keep-depth-maps)."""
     root = tmp_path / "ds"
     source = SceneEpisodes(num_episodes=1, num_frames=4, size=32)
     record_scene_dataset(root, source, REPO, progress=False, depth_as=depth_as)
@@ -582,10 +583,29 @@ def test_lerobots_own_depth_features_are_read_and_copied_into_the_cache(tmp_path
     assert lerobot_source.depth_files(0) is None
     stats = prepare(root, REPO, GenSplatConfig(probability=1.0, level="small"), progress=False)
     assert load_settings(root)[1]["name"] == "rgbd" and stats[0].bytes_per_timestep > 200  # a stored copy
-    ds = enable_gensplat(LeRobotDataset(REPO, root=root, video_backend=video_backend()))
-    item, ref = ds[2], LeRobotDataset(REPO, root=root, video_backend=video_backend())[2]
-    assert not torch.equal(item[LEFT], ref[LEFT]) and torch.isfinite(item[LEFT]).all()
-    assert torch.equal(item["observation.images.left_depth"], ref["observation.images.left_depth"])
+    from types import SimpleNamespace
+
+    from gensplat_lerobot.plugin import start_message
+
+    from gensplat_transforms.cli import main
+
+    for unit in ("mm", "m"):  # LeRobot's default, and metres
+        opened = {"root": root, "video_backend": video_backend(), "depth_output_unit": unit}
+        ds = enable_gensplat(LeRobotDataset(REPO, **opened))
+        item, ref = ds[2], LeRobotDataset(REPO, **opened)[2]
+        assert not torch.equal(item[LEFT], ref[LEFT]) and torch.isfinite(item[LEFT]).all()
+        depth, recorded = item[LEFT + "_depth"], ref[LEFT + "_depth"]
+        assert depth.shape == recorded.shape and depth.dtype == recorded.dtype and not torch.equal(depth, recorded)
+        both = (depth > 0) & (recorded > 0)  # a small move: the same unit, depths within 10 %
+        assert both.float().mean() > 0.7 and ((depth - recorded).abs() / recorded)[both].median() < 0.1
+        lines = start_message(ds, SimpleNamespace(policy=None, resume=False)).splitlines()
+        assert lines[4] == (f"  depth maps {LEFT}_depth, observation.images.right_depth rendered at the new poses too, "
+                            f"in {unit}")  # fmt: skip
+    assert main(["cache", "--root", str(root), "--repo-id", REPO, "--keep-depth-maps", "--probability", "1"]) == 0
+    ds = enable_gensplat(LeRobotDataset(REPO, **opened))
+    item = ds[2]
+    assert torch.equal(item[LEFT + "_depth"], ref[LEFT + "_depth"]) and not torch.equal(item[LEFT], ref[LEFT])
+    assert "kept as recorded (--keep-depth-maps)" in start_message(ds, SimpleNamespace(policy=None, resume=False))
     (words, coded), _ = ds.gensplat.cache.read_depth_words(0, 2)
     from gensplat_transforms.depth_codec import depth_from_words
 

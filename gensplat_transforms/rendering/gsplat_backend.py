@@ -104,7 +104,8 @@ def render_gsplat(
 def render_gsplat_batch(
     means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor, sh: torch.Tensor,
     c2w: torch.Tensor, K: torch.Tensor, width: int, height: int, background: torch.Tensor, near: float = 0.01,
-) -> tuple[torch.Tensor, torch.Tensor]:
+    return_depth: bool = False,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """M scenes, each into its own C cameras, in one gsplat call on the tensors' CUDA device.
 
     Args:
@@ -113,11 +114,13 @@ def render_gsplat_batch(
         c2w (M, C, 4, 4), K (M, C, 3, 3): the cameras of each scene, sharing one image size;
         background: (3,) RGB; near: as for :func:`~gensplat_transforms.rendering.render`.
     Returns:
-        rgb (M, C, 3, H, W) and alpha (M, C, 1, H, W), float32.
+        rgb (M, C, 3, H, W), alpha (M, C, 1, H, W) and, with ``return_depth``, the expected
+        depth sum(w z) / sum(w) (M, C, 1, H, W) (else None), float32.
     """
     colors, alphas = _rasterize(_rasterization(), means, quats, scales, opacities, sh, rigid_inverse(c2w), K, width,
-                                height, background, near, None, "RGB")  # fmt: skip
-    return colors.permute(0, 1, 4, 2, 3), alphas.permute(0, 1, 4, 2, 3)
+                                height, background, near, None, "RGB+ED" if return_depth else "RGB")  # fmt: skip
+    colors, alphas = colors.permute(0, 1, 4, 2, 3), alphas.permute(0, 1, 4, 2, 3)
+    return colors[:, :, :3], alphas, colors[:, :, 3:] if return_depth else None
 
 
 def _rasterize(rasterization, means, quats, scales, opacities, sh, w2c, K, width, height, background, near,

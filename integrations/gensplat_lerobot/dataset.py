@@ -133,7 +133,9 @@ def enable_gensplat(dataset: LeRobotDataset, config: GenSplatConfig | None = Non
     """Turn ``dataset`` (in place) into a :class:`GenSplatLeRobotDataset`.
 
     Settings default to ``<root>/gensplat/config.json``. Frame offsets of temporal image
-    stacks are taken from the dataset's delta timestamps. The cache is checked here, in the
+    stacks are taken from the dataset's delta timestamps, the unit of its depth-map features
+    from its ``depth_output_unit`` (they are rendered at the new pose too, unless the
+    settings' ``depth_unit`` is "keep"). The cache is checked here, in the
     calling process (:func:`check_cache`): episodes it lacks are announced and built lazily
     from the dataset; a cache built from other content stops with an error. The dataset's
     ``gensplat_cached`` is then (episodes cached, episodes used). Raises if anything needed is
@@ -152,6 +154,8 @@ def enable_gensplat(dataset: LeRobotDataset, config: GenSplatConfig | None = Non
     if deltas is not None and config.frame_offsets is None:
         offsets = tuple(round(d * dataset.meta.fps) for d in deltas)
         config = replace(config, frame_offsets=offsets)
+    if config.depth_unit is None:  # depth-map features come in the dataset's unit
+        config = replace(config, depth_unit=dataset.depth_output_unit)
     transform = GenSplatTransform(config, dataset_cache(dataset.root, rec, source), source)
     episodes = range(dataset.meta.total_episodes) if dataset.episodes is None else dataset.episodes
     cached = check_cache(transform, episodes, dataset.repo_id)

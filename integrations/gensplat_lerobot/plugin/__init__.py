@@ -120,8 +120,21 @@ def start_message(train, cfg) -> str:
         + f"(reconstructed from {', '.join(c.cameras)})",
         f"  views rendered at {w}x{h} of {width}x{height} frames (render scale {c.render_scale}{held}){reads}",
         *smaller_render_tip((width, height), (w, h), policy),
+        *depth_maps_line(train),
         f"  {resumed}a run resumed with --resume=true trains without GenSplat unless {LINE} is given again",
     ])  # fmt: skip
+
+
+def depth_maps_line(train) -> list[str]:
+    """A line of the start block naming the replaced cameras' depth-map features and what
+    becomes of them; none without such features."""
+    c = train.gensplat.cfg
+    keys = [key for n in c.replace if (key := c.image_key.format(name=n) + "_depth") in train.meta.depth_keys]
+    if not keys:
+        return []
+    if c.depth_unit == "keep":
+        return [f"  depth maps {', '.join(keys)} kept as recorded (--keep-depth-maps): they do not follow the moves"]
+    return [f"  depth maps {', '.join(keys)} rendered at the new poses too, in {c.depth_unit}"]
 
 
 def smaller_render_tip(frame: tuple[int, int], rendered: tuple[int, int], policy: tuple[int, int] | None) -> list[str]:
