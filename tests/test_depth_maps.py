@@ -117,3 +117,17 @@ def test_the_batch_path_renders_depth_maps_as_the_worker(setup):
     for key in (LEFT_DEPTH, RIGHT_DEPTH):
         torch.testing.assert_close(got[key], expected[key], atol=1e-3, rtol=1e-4)  # float32 round-off
         assert torch.equal(got[key][~applied], torch.stack([item[key] for item in items])[~applied])
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float64])
+def test_depth_maps_of_another_size_or_float_type_come_back_alike(setup, dtype):
+    """A depth map at half the image's size (a depth sensor's own resolution) and of any float
+    type: rendered at the image's size, sampled at the map's nearest pixels, in its dtype."""
+    source, cache, ds = setup
+    item = with_depth(source, ds[3])
+    item[LEFT_DEPTH] = item[LEFT_DEPTH][:, 1::2, 1::2].to(dtype)  # the pixels nearest the half-size centres
+    out = GenSplatTransform(GenSplatConfig(probability=1.0, level="none", replace=("left",), depth_unit="m"), cache)(item)
+    got = out[LEFT_DEPTH]
+    assert got.shape == (1, 24, 24) and got.dtype == dtype and torch.isfinite(got.float()).all()
+    both = (got > 0) & (item[LEFT_DEPTH] > 0)
+    assert both.float().mean() > 0.95 and (got.float() - item[LEFT_DEPTH].float())[both].abs().median() < 0.03
