@@ -27,6 +27,8 @@ each method's view at that pose is compared with ``GroundTruth.render`` there:
   the depth predicted at the model's input size (its ``max_pixels``: 112x112 for the shipped
   model), the discs built at the frame size from the frames' colours and that depth (taken
   at the nearest pixels), as the transform builds them from such a cache;
+  ``geometry_small_metric_fill``: the metric one with its holes filled, as the transform
+  shows it;
 * ``source_image``: the unchanged left image (what a policy sees without augmentation);
 * ``homography``: the left image warped by the homography that the table plane z = 0
   induces between the source and the perturbed camera (exact for the table top, which
@@ -89,7 +91,7 @@ from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 REPO = "gensplat/sim_pick_place_heldout"
 HELDOUT_SEED = 1000
 METHODS = ("rgbd", "rgbd_fill", "rgbd_sensor", "forward_warp", "forward_warp_sensor", "gensplat_small",
-           "geometry_small", "geometry_small_metric", "source_image", "homography")  # fmt: skip
+           "geometry_small", "geometry_small_metric", "geometry_small_metric_fill", "source_image", "homography")  # fmt: skip
 SENSOR = SensorDepthConfig()
 RESULTS = Path(__file__).parent / "results"
 PLOT_MAX_DB = 40.0
@@ -222,6 +224,9 @@ def compare_frame(views: Views, truth: GroundTruth, ep: int, fr: int, model, arg
                     out_g, ms = timed(render, grec.gaussians, p.move(grec.cameras, 0), backend="fast",
                                       return_depth=False)  # fmt: skip
                     views_of[name] = (out_g.rgb[0], grec_ms, ms)
+                    if name == "geometry_small_metric":  # what the transform shows: holes filled
+                        filled_g, fill_ms = timed(fill_holes, out_g.rgb, out_g.alpha)
+                        views_of[name + "_fill"] = (filled_g[0], grec_ms, ms + fill_ms)
             coverage = float(seen.float().mean())
             for method, (image, rec_ms, ren_ms) in views_of.items():
                 mask = warp_mask_s[0] if method.endswith("_sensor") else warp_mask[0]
@@ -266,7 +271,8 @@ def plot(table: dict, path: Path) -> None:
     colours = {"rgbd": (31, 119, 180), "rgbd_fill": (255, 127, 14), "rgbd_sensor": (23, 190, 207),
                "forward_warp": (140, 86, 75), "forward_warp_sensor": (227, 119, 194),
                "gensplat_small": (44, 160, 44), "geometry_small": (90, 90, 90),
-               "geometry_small_metric": (188, 189, 34), "source_image": (214, 39, 40), "homography": (148, 103, 189)}  # fmt: skip
+               "geometry_small_metric": (188, 189, 34), "geometry_small_metric_fill": (107, 110, 207),
+               "source_image": (214, 39, 40), "homography": (148, 103, 189)}  # fmt: skip
     values = [e[k] for m in table.values() for e in m.values() for k, _ in panels if e[k] is not None]
     lo, hi = np.floor(min(values) / 5) * 5, min(np.ceil(max(values) / 5) * 5, PLOT_MAX_DB)
     x_ticks = list(enumerate(EVAL_LEVELS))
