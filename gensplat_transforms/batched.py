@@ -24,6 +24,7 @@ from .depth_codec import depth_from_words
 from .gaussians import Gaussians
 from .perturbation import perturb_pose, pivot_point
 from .reconstruction import Reconstructor
+from .reconstruction.base import nearest_pixels
 from .reconstruction.rgbd import RGBDReconstructor, dense_discs
 from .rendering import RenderOutput
 from .rendering.gsplat_backend import render_gsplat_batch
@@ -37,6 +38,7 @@ from .transform import (
     like_depth,
     like_images,
     render_background,
+    render_size,
     render_view,
     seen_depth,
 )
@@ -86,8 +88,13 @@ def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None 
     if len(rows) == 0:
         return out
     coded = batch["gensplat.coded"][rows].reshape(-1, 1, 1, 1, 1)
-    depth = depth_from_words(batch["gensplat.depth"][rows], coded)  # (S, T, V, h, w)
-    S, T, _, h, w = depth.shape
+    first = batch[cfg.image_key.format(name=cfg.replace[0])]
+    w, h = render_size(first.shape[-1], first.shape[-2], cfg.render_scale)
+    words = batch["gensplat.depth"][rows]
+    if words.shape[-2:] != (h, w):  # a cache smaller than the render: its pixels nearest the render's
+        words = nearest_pixels(words, w, h)
+    depth = depth_from_words(words, coded)  # (S, T, V, h, w)
+    S, T = depth.shape[:2]
     images = torch.stack([_stacked(batch[cfg.image_key.format(name=n)][rows], T, h, w) for n in cfg.cameras], 2)
     f64 = torch.float64
     means, quats, scales, dc, keep = (t.flatten(2, 3).flatten(0, 1) for t in dense_discs(  # (S*T, V*n, ...)

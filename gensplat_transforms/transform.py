@@ -286,7 +286,7 @@ class GenSplatTransform:
         view = int(torch.randint(self.cfg.views_per_source, ()))
         report, moves = [], []
         batch = self.cfg.render_in == "batch"
-        if applied:
+        if applied or batch:  # the batch keys have the cache's image size even when not augmented
             self._ensure(episode)
             last = self.cache.num_frames(episode) - 1
             if not 0 <= frame <= last:
@@ -375,28 +375,33 @@ class GenSplatTransform:
         cached depth of the V reconstructed cameras at the T frames of the stack as the cache
         stores it (two bytes a pixel, uncleaned: the batch side decodes and cleans it, see
         :func:`.depth_codec.depth_from_words`), at the render size of the first replaced
-        camera's images (:func:`render_size`; the cached pixels nearest its pixel centres) and
-        ``gensplat.coded`` () bool, how it is coded; ``gensplat.K`` (T, V, 3, 3) and
+        camera's images (:func:`render_size`; the cached pixels nearest its pixel centres) where
+        that fits in the cached size, else at the cached size (the batch side takes the nearest
+        pixels: the same words, a fraction of the bytes) and ``gensplat.coded`` () bool, how it
+        is coded; ``gensplat.K`` (T, V, 3, 3) and
         ``gensplat.c2w`` (T, V, 4, 4) float64, their cached cameras (intrinsics at the render
         size); ``gensplat.moves`` (R, 3) float64, the move of each of the R replaced cameras as
         (axis index, theta_deg, mu_m) (the batch side moves the cameras, all at once). Their
-        images are taken from the batch, so every reconstructed camera must be stacked alike.
-        Nothing is read from the cache for a sample that is not augmented."""
+        images are taken from the batch, so every reconstructed camera must be stacked alike."""
         stacks = {tuple(item[keys[n]].shape[:-3]) for n in self.cfg.cameras}
         if len(stacks) > 1:
             raise ValueError(f"GenSplatTransform: render_in='batch' needs the images of {self.cfg.cameras} stacked "
                              f"alike, got stacks {sorted(stacks)}: use render_in='worker'")  # fmt: skip
         image = item[keys[self.cfg.replace[0]]]
         width, height = self._render_size(image)
+        cached = self.cache.image_size(episode)
+        shrink = width <= cached[0] and height <= cached[1]  # else shipped small, enlarged by the batch side
+        w, h = (width, height) if shrink else cached
         T, V, R = 1 if image.ndim == 3 else image.shape[0], len(self.cfg.cameras), len(self.cfg.replace)
-        depth = torch.zeros(T, V, height, width, dtype=torch.int16)
+        depth = torch.zeros(T, V, h, w, dtype=torch.int16)
         K = torch.zeros(T, V, 3, 3, dtype=torch.float64)
         c2w = torch.zeros(T, V, 4, 4, dtype=torch.float64)
         coded = False
         for k, (_, f) in enumerate(self._stack_frames(image, episode, frame) if applied else []):
             (words, coded), cameras = self._read(episode, lambda f=f: self.cache.read_depth_words(episode, f))
-            if words.shape[-2:] != (height, width):
-                words, cameras = nearest_pixels(words, width, height), cameras.resize(width, height)
+            if words.shape[-2:] != (h, w):
+                words = nearest_pixels(words, w, h)
+            cameras = cameras.resize(width, height)
             depth[k], K[k], c2w[k] = words, cameras.K, cameras.c2w
         moved = torch.tensor([[AXES.index(p.axis), p.theta_deg, p.mu_m] for p in moves], dtype=torch.float64)
         return dict(zip(BATCH_KEYS, (torch.tensor(applied), depth, torch.tensor(coded), K, c2w, moved.reshape(R, 3))))
