@@ -19,6 +19,15 @@ Conventions of the input file (JSON, or YAML when it ends in ``.yaml``/``.yml``)
 ``mount`` is ``external`` (default) or ``wrist`` (no c2w needed). ``width``/``height``
 (nerfstudio: ``w``/``h``), when given and not the dataset's image size, rescale K to it.
 Distortion coefficients must be zero: GenSplat renders pinhole views of undistorted images.
+
+``depth`` (``gensplat`` and ``opencv-w2c``; optional): the camera's depth maps are its depth
+sensor's own, not registered to the colour image (LeRobot 0.6 records a RealSense's depth so):
+``{"K" or "fx".., "width", "height", "to_camera": 4x4}``, the sensor's intrinsics at its
+maps' size (``opencv-w2c``: pixel centres at integers, as for the colour camera) and the
+rigid transform from the sensor's frame to the colour camera's (OpenCV axes). With
+pyrealsense2: ``depth_profile.get_intrinsics()`` and ``depth_profile.get_extrinsics_to(
+color_profile)`` (its ``rotation`` is column-major: R = reshape(3, 3).T, t = translation).
+The depth is then registered to the colour camera when read (:mod:`.registration`).
 """
 
 from __future__ import annotations
@@ -36,14 +45,16 @@ from .dataset_format import (
     CALIBRATION_FORMAT,
     IMAGE_KEY_PREFIX,
     CameraCalibration,
+    DepthSensor,
     calibration_path,
     camera_info,
 )
 
 CONVENTIONS = ("auto", "gensplat", "opencv-w2c", "nerfstudio")
 _INTRINSICS = ("K", "fx", "fy", "cx", "cy")
-_FIELDS = {"gensplat": {*_INTRINSICS, "c2w", "mount", "width", "height"},
-           "opencv-w2c": {*_INTRINSICS, "R", "rvec", "t", "mount", "width", "height"}}  # fmt: skip
+_FIELDS = {"gensplat": {*_INTRINSICS, "c2w", "mount", "width", "height", "depth"},
+           "opencv-w2c": {*_INTRINSICS, "R", "rvec", "t", "mount", "width", "height", "depth"}}  # fmt: skip
+_SENSOR_FIELDS = {*_INTRINSICS, "width", "height", "to_camera"}
 _DISTORTION = ("dist", "k1", "k2", "k3", "k4", "p1", "p2")
 
 
@@ -62,7 +73,8 @@ def calibrate(root: str | Path, source: str | Path, convention: str = "auto") ->
     sizes = {k[len(IMAGE_KEY_PREFIX) :]: (ft["shape"][1], ft["shape"][0])
              for k, ft in features.items() if k.startswith(IMAGE_KEY_PREFIX)}  # fmt: skip
     cameras = read_calibration(source, sizes, convention)
-    data = {"format": CALIBRATION_FORMAT, "cameras": {n: camera_info(c.K, c.c2w, c.mount) for n, c in cameras.items()}}
+    data = {"format": CALIBRATION_FORMAT,
+            "cameras": {n: camera_info(c.K, c.c2w, c.mount, c.depth) for n, c in cameras.items()}}  # fmt: skip
     atomic_write_json(calibration_path(root), data)
     return cameras
 
@@ -166,7 +178,29 @@ def _camera(where: str, name: str, entry: dict, convention: str, size: tuple[int
             Cameras(K[None], c2w[None], *size)
         except ValueError as e:
             raise ValueError(f"{where}, field {field}: {e}") from None
-    return CameraCalibration(name, K, c2w, mount)
+    depth = None if entry.get("depth") is None else _sensor(f"{where}, field depth", entry["depth"], convention)
+    return CameraCalibration(name, K, c2w, mount, depth)
+
+
+def _sensor(where: str, entry, convention: str) -> DepthSensor:
+    """A validated depth sensor block (see the module docstring)."""
+    if not isinstance(entry, dict):
+        raise ValueError(f"{where}: expected a mapping with K (or fx, fy, cx, cy), width, height, to_camera")  # noqa: TRY004
+    unknown = sorted(set(entry) - _SENSOR_FIELDS)
+    if unknown or "to_camera" not in entry or "width" not in entry or "height" not in entry:
+        raise ValueError(f"{where}: needs K (or fx, fy, cx, cy), width, height and to_camera (the depth "
+                         f"maps' size and the sensor-to-camera transform){f'; unknown {unknown}' if unknown else ''}")  # fmt: skip
+    width, height = (_number(where, k, entry[k]) for k in ("width", "height"))
+    if width != int(width) or height != int(height) or width < 1 or height < 1:
+        raise ValueError(f"{where}: width and height must be positive whole numbers, got {width}, {height}")
+    size = int(width), int(height)
+    K = _intrinsics(where, entry, size, shift=0.5 if convention == "opencv-w2c" else 0.0)
+    to_camera = _matrix(where, "to_camera", entry["to_camera"], (4, 4))
+    try:
+        Cameras(K[None], to_camera[None], *size)
+    except ValueError as e:
+        raise ValueError(f"{where}, field to_camera: {e}") from None
+    return DepthSensor(K, *size, to_camera)
 
 
 def _intrinsics(where: str, entry: dict, size: tuple[int, int], shift: float) -> torch.Tensor:

@@ -6,7 +6,12 @@ which LeRobot keeps in ``meta/info.json``:
 * ``"camera.intrinsics"``: 3x3 nested list, pixels (pixel centres at +0.5);
 * ``"camera.extrinsics"``: 4x4 nested list, OpenCV camera-to-world (static cameras);
 * ``"camera.mount"``: ``"external"`` or ``"wrist"`` (a wrist camera moves with the robot
-  and is never reconstructed or perturbed).
+  and is never reconstructed or perturbed);
+* ``"camera.depth"`` (optional): the camera's depth maps are its depth sensor's own, not
+  registered to the colour image: ``{"intrinsics": 3x3, "width", "height", "to_camera":
+  4x4}``, the sensor's intrinsics at its maps' size and the rigid transform from its frame to
+  the colour camera's (OpenCV axes; x_camera = to_camera @ x_sensor). Its depth is then
+  registered to the colour camera when read (:mod:`.registration`).
 
 A camera whose feature carries no calibration may take it from
 ``<root>/gensplat/calibration.json`` beside the dataset (written by ``gensplat calibrate``,
@@ -42,22 +47,44 @@ GENSPLAT_DIR = "gensplat"
 
 
 @dataclass
+class DepthSensor:
+    """A camera's depth sensor, whose maps are not registered to its colour image: K (3, 3)
+    at the maps' ``width`` x ``height``, ``to_camera`` (4, 4) from its frame to the colour
+    camera's."""
+
+    K: torch.Tensor
+    width: int
+    height: int
+    to_camera: torch.Tensor
+
+    def cameras(self, camera: Cameras) -> Cameras:
+        """The sensor as one :class:`Cameras` beside ``camera`` (one colour camera)."""
+        return Cameras(self.K[None].to(camera.c2w), camera.c2w @ torch.linalg.inv(self.to_camera.to(camera.c2w)),
+                       self.width, self.height)  # fmt: skip
+
+
+@dataclass
 class CameraCalibration:
-    """Calibration of one named camera: K (3, 3), c2w (4, 4) or None, mount."""
+    """Calibration of one named camera: K (3, 3), c2w (4, 4) or None, mount, and its depth
+    sensor where its depth maps are the sensor's own (None: registered to the colour image)."""
 
     name: str
     K: torch.Tensor
     c2w: torch.Tensor | None
     mount: str
+    depth: DepthSensor | None = None
 
 
-def camera_info(K: torch.Tensor, c2w: torch.Tensor | None, mount: str) -> dict:
+def camera_info(K: torch.Tensor, c2w: torch.Tensor | None, mount: str, depth: DepthSensor | None = None) -> dict:
     """The ``info`` entries to put in an image feature (see the module docstring)."""
     if mount not in ("external", "wrist"):
         raise ValueError(f"camera.mount must be 'external' or 'wrist', got {mount!r}")
     info = {"camera.intrinsics": torch.as_tensor(K).tolist(), "camera.mount": mount}
     if c2w is not None:
         info["camera.extrinsics"] = torch.as_tensor(c2w).tolist()
+    if depth is not None:
+        info["camera.depth"] = {"intrinsics": depth.K.tolist(), "width": depth.width, "height": depth.height,
+                                "to_camera": depth.to_camera.tolist()}  # fmt: skip
     return info
 
 
@@ -86,13 +113,16 @@ def load_calibration(features: dict, root: str | Path | None = None) -> dict[str
         info = info if "camera.intrinsics" in info else saved.get(name, {})
         if "camera.intrinsics" not in info:
             continue
-        ext = info.get("camera.extrinsics")
+        ext, sensor = info.get("camera.extrinsics"), info.get("camera.depth")
         out[name] = CameraCalibration(
             name=name,
             K=torch.tensor(info["camera.intrinsics"], dtype=torch.float64),
             c2w=None if ext is None else torch.tensor(ext, dtype=torch.float64),
             mount=info.get("camera.mount", "external"),
-        )
+            depth=None if sensor is None else DepthSensor(
+                torch.tensor(sensor["intrinsics"], dtype=torch.float64), int(sensor["width"]), int(sensor["height"]),
+                torch.tensor(sensor["to_camera"], dtype=torch.float64)),
+        )  # fmt: skip
     return out
 
 

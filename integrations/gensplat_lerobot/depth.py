@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 from pathlib import Path
 
-from gensplat_transforms.dataset_format import IMAGE_KEY_PREFIX
+from gensplat_transforms.dataset_format import IMAGE_KEY_PREFIX, load_calibration
 from gensplat_transforms.depth_import import ImportedEpisode, import_depth
 
 from .source import episode_table, read_info
@@ -16,6 +16,7 @@ def import_dataset_depth(root: str | Path, repo_id: str, camera: str, source: st
                          progress: bool = True) -> dict[int, ImportedEpisode]:  # fmt: skip
     """:func:`gensplat_transforms.depth_import.import_depth` for ``camera`` of the LeRobot
     dataset at ``root``: its episodes' lengths (default: every episode) and its images' size
+    (its depth sensor's, where the calibration has one: the depth is registered when read)
     are the dataset's. Raises ``ValueError`` naming the dataset's cameras or episodes when
     ``camera`` or an episode is not in it."""
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
@@ -27,6 +28,9 @@ def import_dataset_depth(root: str | Path, repo_id: str, camera: str, source: st
         names = [k[len(IMAGE_KEY_PREFIX) :] for k in features if k.startswith(IMAGE_KEY_PREFIX)]
         raise ValueError(f"{root}: no camera {camera!r}; its cameras: {names}")
     height, width = features[key]["shape"][:2]
+    sensor = getattr(load_calibration(features, root).get(camera), "depth", None)
+    if sensor is not None:
+        width, height = sensor.width, sensor.height
     table = episode_table(LeRobotDatasetMetadata(repo_id, root=root))
     lengths = dict(zip(table["episode_index"], table["length"]))
     if episodes is not None:

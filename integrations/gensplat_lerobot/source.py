@@ -29,6 +29,7 @@ from gensplat_transforms.dataset_format import (
 )
 from gensplat_transforms.model import PATCH_SIZE
 from gensplat_transforms.reconstruction import Views
+from gensplat_transforms.registration import register_depth
 
 log = logging.getLogger(__name__)
 
@@ -67,6 +68,9 @@ class LeRobotSource:
             )
         shape = info["features"][IMAGE_KEY_PREFIX + self.camera_names[0]]["shape"]  # (H, W, C)
         self.cameras = calibrated_cameras(self.calibration, self.camera_names, shape[1], shape[0])
+        #: cameras whose depth maps are their sensor's own: the sensor, registered on read
+        self.sensors = {n: self.calibration[n].depth.cameras(self.cameras[i]) for i, n in enumerate(self.camera_names)
+                        if self.calibration[n].depth is not None}  # fmt: skip
         self._dataset = None
 
     @cached_property
@@ -78,7 +82,7 @@ class LeRobotSource:
         Computed on first use."""
         info = read_info(self.root)
         calib = {n: self.calibration[n] for n in self.camera_names}
-        cameras = [[n, info["features"][IMAGE_KEY_PREFIX + n], camera_info(c.K, c.c2w, c.mount)]
+        cameras = [[n, info["features"][IMAGE_KEY_PREFIX + n], camera_info(c.K, c.c2w, c.mount, c.depth)]
                    for n, c in calib.items()]  # fmt: skip
         return {"episodes": info.get("total_episodes"), "frames": info.get("total_frames"), "fps": info.get("fps"),
                 "cameras": cameras, "files": {d: files_digest(self.root, d, digests_path(self.root)) for d in self._content_dirs()}}  # fmt: skip
@@ -125,23 +129,25 @@ class LeRobotSource:
         return self._episode("length", episode)
 
     def depth_files(self, episode: int) -> DepthFiles | None:
-        """The episode's depth sidecars of the reconstructed cameras (None unless all exist):
-        a depth cache links them instead of storing a copy."""
+        """The episode's depth sidecars of the reconstructed cameras (None unless all exist and
+        are registered to the colour images): a depth cache links them instead of storing a
+        copy."""
         paths = tuple(depth_path(self.root, n, episode) for n in self.camera_names)
-        return DepthFiles(paths, self.cameras) if all(p.exists() for p in paths) else None
+        return DepthFiles(paths, self.cameras) if all(p.exists() for p in paths) and not self.sensors else None
 
     def views(self, episode: int, frame: int) -> Views:
         start = self._episode("dataset_from_index", episode)
         item = self.dataset[start + frame]
         images = torch.stack([_as_float(item[IMAGE_KEY_PREFIX + n]) for n in self.camera_names])
         depths = []
-        for n in self.camera_names:
+        for i, n in enumerate(self.camera_names):
             if depth_path(self.root, n, episode).exists():
-                depths.append(load_depth(self.root, n, episode, frame))
+                depth = load_depth(self.root, n, episode, frame).float()
             elif n in self.depth_features:  # LeRobot's own, (1, H, W) in metres
-                depths.append(item[self.depth_features[n]].float().reshape(1, *images.shape[-2:]))
+                depth = item[self.depth_features[n]].float().reshape(1, *item[self.depth_features[n]].shape[-2:])
             else:
                 return Views(images, self.cameras)  # RGB only: needs a model reconstructor
+            depths.append(register_depth(depth, self.sensors[n], self.cameras[i]) if n in self.sensors else depth)
         return Views(images, self.cameras, torch.stack(depths))
 
 

@@ -1,0 +1,177 @@
+"""A depth sensor's own maps registered to the colour camera (LeRobot records a RealSense's
+depth unregistered): the function against the scene's truth, its hard cases, the
+calibration's ``depth`` block, and the LeRobot source reading registered depth."""
+
+import json
+import os
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from gensplat_transforms.calibration import calibrate
+from gensplat_transforms.cameras import Cameras
+from gensplat_transforms.dataset_format import DepthSensor, load_calibration, save_depth
+from gensplat_transforms.depth_codec import depth_from_words
+from gensplat_transforms.registration import register_depth
+from gensplat_transforms.scenes import TabletopScene, default_cameras
+
+WIDTH, HEIGHT = 160, 120
+
+
+def sensor_beside(camera: Cameras, width: int, height: int, fov: float = 0.75) -> tuple[Cameras, torch.Tensor]:
+    """A depth sensor ``fov`` x the camera's focal length (a wider view), at ``width x height``,
+    15 mm to its side and turned 1.1 degrees, as a RealSense's; and its to_camera (4, 4)."""
+    K = camera.K.clone()
+    K[:, 0] *= fov * width / camera.width
+    K[:, 1] *= fov * height / camera.height
+    K[:, 0, 2], K[:, 1, 2] = width / 2, height / 2
+    a = torch.tensor(0.02, dtype=torch.float64)
+    to_camera = torch.eye(4, dtype=torch.float64)
+    to_camera[:3, :3] = torch.tensor([[a.cos(), 0, a.sin()], [0, 1, 0], [-a.sin(), 0, a.cos()]], dtype=torch.float64)
+    to_camera[0, 3] = -0.015
+    return Cameras(K, camera.c2w @ torch.linalg.inv(to_camera), width, height), to_camera
+
+
+@pytest.mark.parametrize(("width", "height"), [(WIDTH, HEIGHT), (80, 60)])
+def test_registered_depth_is_the_colour_cameras_depth(width, height):
+    """The sensor's map moved into the colour camera matches the depth the colour camera
+    sees (to the depth change across a pixel), where the raw map is 16 cm off; a sensor of
+    half the resolution still covers the view (each pixel's footprint fills 2x2 pixels)."""
+    camera = default_cameras(WIDTH, HEIGHT)[:1]
+    sensor, _ = sensor_beside(camera, width, height)
+    scene = TabletopScene(5)
+    raw, truth = scene.render(sensor)[1][0, 0], scene.render(camera)[1][0, 0]
+    registered = register_depth(raw, sensor, camera)
+    assert registered.shape == (HEIGHT, WIDTH) and registered.dtype == raw.dtype
+    both = (registered > 0) & (truth > 0)
+    assert both.float().mean() > 0.97
+    error = (registered - truth)[both].abs()
+    assert error.median() < 0.006 and error.quantile(0.95) < 0.03  # measured 2.9 / 11 mm at 160x120
+    if (width, height) == (WIDTH, HEIGHT):
+        assert (raw - truth).abs().median() > 0.1  # what using the raw map would cost
+
+
+def test_hard_depth_values_are_skipped_and_nothing_non_finite_comes_out():
+    camera = default_cameras(WIDTH, HEIGHT)[:1]
+    sensor, _ = sensor_beside(camera, WIDTH, HEIGHT)
+    depth = torch.full((3, HEIGHT, WIDTH), 1.5)
+    depth[0, :10] = float("nan")
+    depth[0, 10:20] = float("inf")
+    depth[0, 20:30] = -1.0
+    depth[1] = 0.0  # nothing measured
+    depth[2, :, :40] = 1e-7  # closer than the sensors' baseline: behind or beside the colour camera
+    depth[2, :, 40:80] = 1e5
+    out = register_depth(depth, sensor, camera)
+    assert out.shape == (3, HEIGHT, WIDTH) and torch.isfinite(out).all() and (out >= 0).all()
+    assert (out[0] > 0).float().mean() > 0.5 and not out[1].any() and out[2].max() < 1.01e5
+    with pytest.raises(ValueError, match="depth of shape"):
+        register_depth(depth[:, :10], sensor, camera)
+    with pytest.raises(ValueError, match="one sensor and one camera"):
+        register_depth(depth, sensor, default_cameras(WIDTH, HEIGHT)[:2])
+
+
+def calibration_file(folder, cameras: Cameras, names, sensors: dict | None = None):
+    """A ``gensplat`` calibration file of ``cameras``, with depth blocks ``sensors`` (name -> (K,
+    width, height, to_camera))."""
+    data = {n: {"K": cameras.K[i].tolist(), "c2w": cameras.c2w[i].tolist()} for i, n in enumerate(names)}
+    for n, (K, w, h, to_camera) in (sensors or {}).items():
+        data[n]["depth"] = {"K": K.tolist(), "width": w, "height": h, "to_camera": to_camera.tolist()}
+    path = folder / "calibration.json"
+    path.write_text(json.dumps(data))
+    return path
+
+
+def write_info(root, names, width=WIDTH, height=HEIGHT):
+    features = {f"observation.images.{n}": {"dtype": "video", "shape": [height, width, 3], "names": None}
+                for n in names}  # fmt: skip
+    (root / "meta").mkdir(parents=True)
+    (root / "meta" / "info.json").write_text(json.dumps({"features": features}))
+    return features
+
+
+def test_the_calibrations_depth_block_is_checked_stored_and_read_back(tmp_path):
+    cameras = default_cameras(WIDTH, HEIGHT)[:2]
+    sensor, to_camera = sensor_beside(cameras[0:1], 80, 60)
+    features = write_info(tmp_path, ("left", "right"))
+    good = {"left": (sensor.K[0], 80, 60, to_camera)}
+    calibrate(tmp_path, calibration_file(tmp_path, cameras, ("left", "right"), good))
+    calib = load_calibration(features, tmp_path)
+    assert calib["right"].depth is None
+    depth = calib["left"].depth
+    assert isinstance(depth, DepthSensor) and (depth.width, depth.height) == (80, 60)
+    torch.testing.assert_close(depth.K, sensor.K[0])
+    torch.testing.assert_close(depth.to_camera, to_camera)
+    torch.testing.assert_close(depth.cameras(cameras[0:1]).c2w, sensor.c2w)
+    bent = to_camera.clone()
+    bent[0, 0] = 2.0
+    cases = {
+        "needs K \\(or fx, fy, cx, cy\\), width, height and to_camera": {"K": sensor.K[0].tolist(), "width": 80, "height": 60},
+        "unknown \\['scale'\\]": {"K": sensor.K[0].tolist(), "width": 80, "height": 60, "to_camera": to_camera.tolist(),
+                                   "scale": 1},
+        "positive whole numbers": {"K": sensor.K[0].tolist(), "width": 80.5, "height": 60,
+                                   "to_camera": to_camera.tolist()},
+        "field to_camera: .*orthonormal": {"K": sensor.K[0].tolist(), "width": 80, "height": 60,
+                                           "to_camera": bent.tolist()},
+        "expected a mapping": [1, 2],
+    }  # fmt: skip
+    for message, block in cases.items():
+        path = calibration_file(tmp_path, cameras, ("left", "right"))
+        data = json.loads(path.read_text())
+        data["left"]["depth"] = block
+        path.write_text(json.dumps(data))
+        with pytest.raises(ValueError, match=f"camera 'left', field depth.*{message}"):
+            calibrate(tmp_path, path)
+
+
+def test_lerobot_source_registers_a_sensors_own_depth(tmp_path):
+    """A dataset without calibration whose depth sidecars are the sensors' own maps (40x30 of
+    64x64 frames): calibrated with depth blocks, its views carry the colour cameras' depth,
+    the sidecars are not linked (the cache stores the registered copy), the blocks are part
+    of the cache's fingerprint, and import-depth takes maps of the sensor's size."""
+    pytest.importorskip("lerobot", reason="the LeRobot extra is not installed")
+    os.environ["HF_HUB_OFFLINE"] = "1"
+    from gensplat_lerobot import LeRobotSource, load_settings, prepare
+    from gensplat_lerobot.dataset import dataset_cache, make_reconstructor
+    from gensplat_lerobot.depth import import_dataset_depth
+    from gensplat_lerobot.record import record_scene_dataset
+
+    from gensplat_transforms.episodes import SceneEpisodes
+    from gensplat_transforms.transform import GenSplatConfig
+
+    root, repo, names = tmp_path / "ds", "local/unregistered", ("left", "right")
+    source = SceneEpisodes(num_episodes=1, num_frames=2, size=64)
+    record_scene_dataset(root, source, repo, progress=False)
+    cameras = LeRobotSource(root, repo).cameras
+    info = json.loads((root / "meta" / "info.json").read_text())
+    for n in ("left", "right", "front"):  # recorded without calibration, as LeRobot records
+        info["features"][f"observation.images.{n}"].pop("info")
+    (root / "meta" / "info.json").write_text(json.dumps(info))
+    sensors = {n: sensor_beside(cameras[i : i + 1], 40, 30) for i, n in enumerate(names)}
+    for i, n in enumerate(names):
+        frames = [source.scene(0, t).render(sensors[n][0])[1][0, 0] for t in range(2)]
+        shutil.rmtree(root / "depth" / n)
+        save_depth(root, n, 0, torch.stack(frames))
+    calibrate(root, calibration_file(tmp_path, cameras, names))
+    without_blocks = LeRobotSource(root, repo)
+    assert not without_blocks.sensors and without_blocks.depth_files(0) is not None
+    blocks = {n: (s.K[0], 40, 30, to_camera) for n, (s, to_camera) in sensors.items()}
+    calibrate(root, calibration_file(tmp_path, cameras, names, blocks))
+    lerobot_source = LeRobotSource(root, repo)
+    assert set(lerobot_source.sensors) == set(names) and lerobot_source.depth_files(0) is None
+    assert lerobot_source.fingerprint != without_blocks.fingerprint
+    views = lerobot_source.views(0, 1)
+    truth = source.render(0, 1)[1][:2]
+    assert views.depths.shape == truth.shape
+    both = (views.depths > 0) & (truth > 0)
+    assert both.float().mean() > 0.9 and (views.depths - truth)[both].abs().median() < 0.02
+    stats = prepare(root, repo, GenSplatConfig(probability=1.0), progress=False)
+    assert load_settings(root)[1]["name"] == "rgbd" and stats[0].bytes_per_timestep > 200  # a stored copy
+    (words, coded), _ = dataset_cache(root, make_reconstructor({"name": "rgbd"}), lerobot_source).read_depth_words(0, 1)
+    torch.testing.assert_close(depth_from_words(words, coded)[:, None], views.depths, rtol=5e-4, atol=0)
+    np.save(tmp_path / "ep0.npy", torch.stack([source.scene(0, t).render(sensors["left"][0])[1][0, 0]
+                                               for t in range(2)]).numpy())  # fmt: skip
+    imported = import_dataset_depth(root, repo, "left", str(tmp_path / "ep{episode}.npy"), units="m",
+                                    overwrite=True, progress=False)  # fmt: skip
+    assert list(imported) == [0]
