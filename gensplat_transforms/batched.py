@@ -129,9 +129,30 @@ def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None 
         image[rows] = like_images(rgb[:, :, r].flatten(0, 1), image).reshape(image[rows].shape)
         if r in depth_keys:
             like = out[depth_keys[r]] = batch[depth_keys[r]].clone()
-            rendered = seen.unflatten(0, (S, T))[:, :, r].flatten(0, 1)  # (S*T, 1, h, w) metres
+            sensor = transform.depth_sensors.get(name)
+            if sensor is None:
+                rendered = seen.unflatten(0, (S, T))[:, :, r].flatten(0, 1)  # (S*T, 1, h, w) metres
+            else:  # the depth sensor beside the moved camera
+                sensor_c2w = c2w[:, r] @ torch.linalg.inv(sensor.to_camera.to(c2w))  # (S*T, 4, 4)
+                sensor_K = sensor.K.to(c2w).expand(len(sensor_c2w), 3, 3)
+                rendered = _render_depth(means, quats, scales, sh, keep, opacity, sensor_K, sensor_c2w,
+                                         sensor.width, sensor.height, backend, cfg)  # fmt: skip
             like[rows] = like_depth(rendered, like[rows], cfg.depth_unit).reshape(like[rows].shape)
     return out
+
+
+def _render_depth(means, quats, scales, sh, keep, opacity: float, K: torch.Tensor, c2w: torch.Tensor, width: int,
+                  height: int, backend: str, cfg: GenSplatConfig) -> torch.Tensor:  # fmt: skip
+    """(S, 1, H, W) depth maps (:func:`.transform.seen_depth`) of the S scenes' discs, each seen
+    by one camera K (S, 3, 3), c2w (S, 4, 4) of ``width x height``."""
+    if backend == "gsplat":
+        background = torch.zeros(3).to(means)
+        _, alpha, depth = render_gsplat_batch(means, quats, scales, keep * opacity, sh, c2w[:, None], K[:, None],
+                                              width, height, background, return_depth=True)  # fmt: skip
+        return seen_depth(depth, alpha)[:, 0]
+    one = replace(cfg, backend=backend)
+    return torch.cat([_render_scene(*discs, Cameras(k[None], t[None], width, height), opacity, one, True).depth
+                      for *discs, k, t in zip(means, quats, scales, sh, keep, K, c2w)])  # fmt: skip
 
 
 def _targets(c2w: torch.Tensor, moves: torch.Tensor, views: list[int]) -> torch.Tensor:

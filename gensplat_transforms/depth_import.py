@@ -8,8 +8,10 @@ Azure Kinect and ROS tools write it; 32-bit float TIFF in metres) or as an array
 episode by episode: the dataset's own files are not touched.
 
 The depth must be z-depth along the camera's optical axis, registered to the colour image
-(the colour camera's intrinsics and size: e.g. ``rs2::align`` to colour for a RealSense);
-0, negative and non-finite values mark pixels without depth.
+(the colour camera's intrinsics and size: e.g. ``rs2::align`` to colour for a RealSense), or
+the camera's depth sensor's own at the size its calibration's ``depth`` block gives
+(:mod:`.calibration`; registered when read); 0, negative and non-finite values mark pixels
+without depth.
 
 ``source`` names each episode's depth with ``{episode}`` (a format field: ``{episode:06d}``
 zero-pads): a folder of frame images, a glob of them (``.../ep{episode}/*.png``), or one

@@ -15,6 +15,7 @@ from torch.utils.data import Dataset
 from .cache import CorruptCacheError, EpisodeSource, GaussianCache
 from .cameras import Cameras
 from .counters import SampleCounters
+from .dataset_format import DepthSensor
 from .gaussians import Gaussians
 from .holes import fill_holes
 from .perturbation import AXES, Perturbation, PerturbationRange, PerturbationSampler
@@ -173,6 +174,15 @@ def render_view(gaussians: Gaussians, camera: Cameras, config: GenSplatConfig, d
     return filled(out, config)
 
 
+def render_depth(gaussians: Gaussians, camera: Cameras, config: GenSplatConfig) -> torch.Tensor:
+    """(B, 1, H, W) depth in metres of ``camera`` (B cameras, e.g. a depth sensor beside the
+    colour camera) as the transform renders depth maps (:func:`seen_depth`), with
+    ``config.backend``."""
+    out = render(gaussians, camera, background=(0.0, 0.0, 0.0), backend=config.backend, return_depth=True,
+                 **config.render_options)  # fmt: skip
+    return seen_depth(out.depth, out.alpha)
+
+
 def seen_depth(depth: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
     """A render's expected depth where its alpha reaches ``DEPTH_MIN_ALPHA``, else 0 (nothing
     seen there: no depth, as a depth camera reports no return; holes are never filled with
@@ -234,6 +244,9 @@ class GenSplatTransform:
     so the item must carry the images of every reconstructed camera.
     Picklable (spawn workers). The ``gsplat`` backend renders on CUDA: use it with spawn
     workers (CUDA cannot be initialised in a forked worker) or in the main process.
+    ``depth_sensors`` names the replaced cameras whose depth maps are their depth sensor's own
+    (:class:`.dataset_format.DepthSensor`; LeRobot's RealSense recordings): their maps are
+    rendered from the sensor moved with the camera, at its size.
 
     Example: augment every item of the procedural dataset
         >>> import tempfile
@@ -250,10 +263,14 @@ class GenSplatTransform:
         >>> folder.cleanup()
     """
 
-    def __init__(self, config: GenSplatConfig, cache: GaussianCache, source: EpisodeSource | None = None) -> None:
+    def __init__(self, config: GenSplatConfig, cache: GaussianCache, source: EpisodeSource | None = None,
+                 depth_sensors: dict[str, DepthSensor] | None = None) -> None:  # fmt: skip
         self.cfg = config
         self.cache = cache
         self.source = source
+        #: cameras whose depth maps are their depth sensor's own (not registered to the colour
+        #: image): their maps are rendered from the sensor, moved with the camera
+        self.depth_sensors = dict(depth_sensors or {})
         if source is not None and tuple(source.camera_names) != config.cameras:
             raise ValueError(
                 f"GenSplatTransform: the source reconstructs {tuple(source.camera_names)}, "
@@ -327,9 +344,10 @@ class GenSplatTransform:
                 images = self._source_images(item, keys, k, o, episode, f, size) if depth else None
                 read[f] = self._read(episode, lambda f=f, images=images: self.cache.read(episode, f, images, size))
             target = p.move(read[f].cameras, self.cfg.cameras.index(name))
-            out = render_view(read[f].gaussians, target, self.cfg, depth=depth_key is not None)
+            sensor = self.depth_sensors.get(name) if depth_key is not None else None
+            out = render_view(read[f].gaussians, target, self.cfg, depth=depth_key is not None and sensor is None)
             rgbs.append(out.rgb[0])
-            depths.append(out.depth)
+            depths.append(out.depth if sensor is None else render_depth(read[f].gaussians, sensor.cameras(target), self.cfg))
         rgb = like_images(torch.stack(rgbs), image).reshape(image.shape)
         if depth_key is None:
             return rgb, None

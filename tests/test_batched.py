@@ -13,6 +13,7 @@ from gensplat_transforms import render
 from gensplat_transforms.batched import disc_builder, render_batch
 from gensplat_transforms.cache import GaussianCache
 from gensplat_transforms.cameras import Cameras, rigid_inverse
+from gensplat_transforms.dataset_format import DepthSensor
 from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
 from gensplat_transforms.gaussians import Gaussians
 from gensplat_transforms.reconstruction import Reconstructor, RGBDReconstructor
@@ -32,13 +33,13 @@ def setup(tmp_path_factory):
 
 
 def both_ways(cache, items: list[dict], seed: int, backend: str | None = None, device: str = "cpu",
-              **config) -> tuple[dict, dict]:  # fmt: skip
+              depth_sensors: dict | None = None, **config) -> tuple[dict, dict]:  # fmt: skip
     """The collated batch the worker path makes, and the batch path's rendering of its own
     collated batch (moved to ``device``, rendered there, back on the CPU), with torch seeded
     alike before each."""
     cfg = GenSplatConfig(**{"level": "large", "report": True, **config})
-    worker = GenSplatTransform(replace(cfg, render_in="worker"), cache)
-    batch = GenSplatTransform(replace(cfg, render_in="batch"), cache)
+    worker = GenSplatTransform(replace(cfg, render_in="worker"), cache, depth_sensors=depth_sensors)
+    batch = GenSplatTransform(replace(cfg, render_in="batch"), cache, depth_sensors=depth_sensors)
     torch.manual_seed(seed)
     expected = default_collate([worker(item) for item in items])
     torch.manual_seed(seed)
@@ -161,17 +162,24 @@ def fake_rasterization(means, quats, scales, opacities, colors, viewmats, Ks, wi
     return torch.stack(rgbs), torch.stack(alphas), {}
 
 
-@pytest.mark.parametrize(("render_scale", "depth_maps"), [(1.0, False), (0.5, False), (1.0, True)])
+@pytest.mark.parametrize(("render_scale", "depth_maps"), [(1.0, None), (0.5, None), (1.0, "camera"), (1.0, "sensor")])
 def test_the_single_gsplat_call_lays_out_scenes_and_cameras_as_the_worker(setup, monkeypatch, render_scale,
                                                                             depth_maps):  # fmt: skip
     cache, ds = setup
     monkeypatch.setattr(gsplat_backend, "_rasterization", lambda: fake_rasterization)
     items = [as_uint8(ds[i]) for i in (0, 2, 5, 6)]
+    sensors = {}
     if depth_maps:  # the left camera's true depth map in millimetres, rendered at the new pose too
         items = [{**item, LEFT + "_depth": ds.episodes.render(int(item["episode_index"]), int(item["frame_index"]))[1][0]
                   * 1000} for item in items]  # fmt: skip
-    expected, got = both_ways(cache, items, seed=0, backend="gsplat", probability=1.0, views_per_source=3,
-                              render_scale=render_scale, depth_unit="mm")  # fmt: skip
+    if depth_maps == "sensor":  # its depth sensor's own: a 40x30 map beside it (the values stand in)
+        items = [{**item, LEFT + "_depth": item[LEFT + "_depth"][:, :30, :40]} for item in items]
+        K = torch.tensor([[30.0, 0, 20], [0, 30, 15], [0, 0, 1]], dtype=torch.float64)
+        to_camera = torch.eye(4, dtype=torch.float64)
+        to_camera[0, 3] = -0.015
+        sensors = {"left": DepthSensor(K, 40, 30, to_camera)}
+    expected, got = both_ways(cache, items, seed=0, backend="gsplat", depth_sensors=sensors, probability=1.0,
+                              views_per_source=3, render_scale=render_scale, depth_unit="mm")  # fmt: skip
     for key in (LEFT, RIGHT):  # float32 poses and gsplat's conventions: a level here and there
         diff = (got[key].float() - expected[key].float()).abs()
         assert diff.max() <= 3 and diff.mean() < 0.05, key

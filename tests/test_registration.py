@@ -132,7 +132,7 @@ def test_lerobot_source_registers_a_sensors_own_depth(tmp_path):
     of the cache's fingerprint, and import-depth takes maps of the sensor's size."""
     pytest.importorskip("lerobot", reason="the LeRobot extra is not installed")
     os.environ["HF_HUB_OFFLINE"] = "1"
-    from gensplat_lerobot import LeRobotSource, load_settings, prepare
+    from gensplat_lerobot import LeRobotSource, enable_gensplat, load_settings, prepare
     from gensplat_lerobot.dataset import dataset_cache, make_reconstructor
     from gensplat_lerobot.depth import import_dataset_depth
     from gensplat_lerobot.record import record_scene_dataset
@@ -168,6 +168,11 @@ def test_lerobot_source_registers_a_sensors_own_depth(tmp_path):
     assert both.float().mean() > 0.9 and (views.depths - truth)[both].abs().median() < 0.02
     stats = prepare(root, repo, GenSplatConfig(probability=1.0), progress=False)
     assert load_settings(root)[1]["name"] == "rgbd" and stats[0].bytes_per_timestep > 200  # a stored copy
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    plugged = enable_gensplat(LeRobotDataset(repo, root=root))  # depth-map features would follow the sensors
+    assert set(plugged.gensplat.depth_sensors) == set(names)
+    assert plugged.gensplat.depth_sensors["left"].width == 40 and torch.isfinite(plugged[1]["observation.images.left"]).all()
     (words, coded), _ = dataset_cache(root, make_reconstructor({"name": "rgbd"}), lerobot_source).read_depth_words(0, 1)
     torch.testing.assert_close(depth_from_words(words, coded)[:, None], views.depths, rtol=5e-4, atol=0)
     np.save(tmp_path / "ep0.npy", torch.stack([source.scene(0, t).render(sensors["left"][0])[1][0, 0]

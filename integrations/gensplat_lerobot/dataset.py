@@ -156,7 +156,8 @@ def enable_gensplat(dataset: LeRobotDataset, config: GenSplatConfig | None = Non
         config = replace(config, frame_offsets=offsets)
     if config.depth_unit is None:  # depth-map features come in the dataset's unit
         config = replace(config, depth_unit=dataset.depth_output_unit)
-    transform = GenSplatTransform(config, dataset_cache(dataset.root, rec, source), source)
+    sensors = {n: source.calibration[n].depth for n in source.sensors}  # unregistered depth maps
+    transform = GenSplatTransform(config, dataset_cache(dataset.root, rec, source), source, sensors)
     episodes = range(dataset.meta.total_episodes) if dataset.episodes is None else dataset.episodes
     cached = check_cache(transform, episodes, dataset.repo_id)
     two_d = dataset.image_transforms
