@@ -156,6 +156,8 @@ def test_lerobot_source_registers_a_sensors_own_depth(tmp_path):
     calibrate(root, calibration_file(tmp_path, cameras, names))
     without_blocks = LeRobotSource(root, repo)
     assert not without_blocks.sensors and without_blocks.depth_files(0) is not None
+    with pytest.raises(ValueError, match=r"camera 'left', episode 0: depth maps of 40x30, expected 64x64, .*depth block"):
+        without_blocks.views(0, 1)
     blocks = {n: (s.K[0], 40, 30, to_camera) for n, (s, to_camera) in sensors.items()}
     calibrate(root, calibration_file(tmp_path, cameras, names, blocks))
     lerobot_source = LeRobotSource(root, repo)
@@ -180,3 +182,7 @@ def test_lerobot_source_registers_a_sensors_own_depth(tmp_path):
     imported = import_dataset_depth(root, repo, "left", str(tmp_path / "ep{episode}.npy"), units="m",
                                     overwrite=True, progress=False)  # fmt: skip
     assert list(imported) == [0]
+    wrong = {n: (s.K[0], 80, 60, to_camera) for n, (s, to_camera) in sensors.items()}
+    calibrate(root, calibration_file(tmp_path, cameras, names, wrong))
+    with pytest.raises(ValueError, match=r"depth maps of 40x30, expected 80x60, the size its calibration's depth block"):
+        LeRobotSource(root, repo).views(0, 0)

@@ -147,7 +147,17 @@ class LeRobotSource:
                 depth = item[self.depth_features[n]].float().reshape(1, *item[self.depth_features[n]].shape[-2:])
             else:
                 return Views(images, self.cameras)  # RGB only: needs a model reconstructor
-            depths.append(register_depth(depth, self.sensors[n], self.cameras[i]) if n in self.sensors else depth)
+            sensor = self.sensors.get(n)
+            want = tuple(images.shape[-2:]) if sensor is None else (sensor.height, sensor.width)
+            if tuple(depth.shape[-2:]) != want:
+                raise ValueError(
+                    f"{self.root}: camera {n!r}, episode {episode}: depth maps of {depth.shape[-1]}x{depth.shape[-2]}, "
+                    f"expected {want[1]}x{want[0]}, "
+                    + ("the size its calibration's depth block gives" if sensor is not None else "its images' size: "
+                       "maps of another size are a depth sensor's own; add its depth block to the calibration "
+                       "(gensplat calibrate, docs/lerobot.md)")
+                )  # fmt: skip
+            depths.append(depth if sensor is None else register_depth(depth, sensor, self.cameras[i]))
         return Views(images, self.cameras, torch.stack(depths))
 
 
