@@ -38,6 +38,7 @@ from .transform import (
     like_depth,
     like_images,
     render_background,
+    render_depth,
     render_size,
     render_view,
     seen_depth,
@@ -151,7 +152,7 @@ def _render_depth(means, quats, scales, sh, keep, opacity: float, K: torch.Tenso
                                               width, height, background, return_depth=True)  # fmt: skip
         return seen_depth(depth, alpha)[:, 0]
     one = replace(cfg, backend=backend)
-    return torch.cat([_render_scene(*discs, Cameras(k[None], t[None], width, height), opacity, one, True).depth
+    return torch.cat([render_depth(_scene_gaussians(*discs, opacity), Cameras(k[None], t[None], width, height), one)
                       for *discs, k, t in zip(means, quats, scales, sh, keep, K, c2w)])  # fmt: skip
 
 
@@ -172,9 +173,13 @@ def _stacked(images: torch.Tensor, T: int, height: int, width: int) -> torch.Ten
 
 def _render_scene(means, quats, scales, sh, keep, cameras: Cameras, opacity: float, cfg: GenSplatConfig,
                   depth: bool) -> RenderOutput:  # fmt: skip
-    """One scene's discs (N, ...) where ``keep``, as float32 Gaussians in the worker's order,
-    rendered into C cameras by :func:`.transform.render_view` with ``cfg.backend``: rgb
-    (C, 3, H, W), with ``depth`` its depth (C, 1, H, W)."""
+    """One scene's discs (:func:`_scene_gaussians`) rendered into C cameras by
+    :func:`.transform.render_view` with ``cfg.backend``: rgb (C, 3, H, W), with ``depth`` its
+    depth (C, 1, H, W)."""
+    return render_view(_scene_gaussians(means, quats, scales, sh, keep, opacity), cameras, cfg, depth=depth)
+
+
+def _scene_gaussians(means, quats, scales, sh, keep, opacity: float) -> Gaussians:
+    """One scene's discs (N, ...) where ``keep``, as float32 Gaussians in the worker's order."""
     means, quats, scales, sh = (t[keep].float() for t in (means, quats, scales, sh))
-    g = Gaussians(means, quats, scales, means.new_full((len(means),), opacity), sh)
-    return render_view(g, cameras, cfg, depth=depth)
+    return Gaussians(means, quats, scales, means.new_full((len(means),), opacity), sh)

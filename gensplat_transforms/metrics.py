@@ -65,8 +65,8 @@ def sharpness_ratio(pred: torch.Tensor, target: torch.Tensor) -> float:
     """Detail of (..., C, H, W) ``pred`` relative to ``target``: the mean absolute difference
     between neighbouring pixels (across rows and columns, channels averaged), pred's over
     target's. 1 when a view is as sharp as the true one, below 1 when blurred, above 1 when
-    noisier. PSNR and SSIM favour blur
-    over misplaced detail; this tells a blurred view from a sharp one.
+    it has edges the target lacks. PSNR and SSIM favour blur over misplaced detail; this tells
+    a blurred view from a sharp one.
 
     Example:
         >>> image = torch.rand(3, 32, 32)
