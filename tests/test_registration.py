@@ -9,6 +9,7 @@ import shutil
 import numpy as np
 import pytest
 import torch
+import yaml
 
 from gensplat_transforms.calibration import calibrate
 from gensplat_transforms.cameras import Cameras
@@ -104,6 +105,18 @@ def test_the_calibrations_depth_block_is_checked_stored_and_read_back(tmp_path):
     torch.testing.assert_close(depth.K, sensor.K[0])
     torch.testing.assert_close(depth.to_camera, to_camera)
     torch.testing.assert_close(depth.cameras(cameras[0:1]).c2w, sensor.c2w)
+    # opencv-w2c: the sensor's pixel centres at integers too (a RealSense's ppx, ppy), in YAML
+    R = cameras.c2w[:, :3, :3].transpose(1, 2)
+    t = -(R @ cameras.c2w[:, :3, 3:])[..., 0]
+    K_cv = sensor.K[0].clone()
+    K_cv[:2, 2] -= 0.5
+    entries = {n: {"K": (cameras.K[i] - torch.tensor([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])).tolist(),
+                   "R": R[i].tolist(), "t": t[i].tolist()} for i, n in enumerate(("left", "right"))}  # fmt: skip
+    entries["left"]["depth"] = {"fx": float(K_cv[0, 0]), "fy": float(K_cv[1, 1]), "cx": float(K_cv[0, 2]),
+                                "cy": float(K_cv[1, 2]), "width": 80, "height": 60, "to_camera": to_camera.tolist()}  # fmt: skip
+    (tmp_path / "opencv.yaml").write_text(yaml.safe_dump(entries))
+    calibrate(tmp_path, tmp_path / "opencv.yaml")
+    torch.testing.assert_close(load_calibration(features, tmp_path)["left"].depth.K, sensor.K[0])
     bent = to_camera.clone()
     bent[0, 0] = 2.0
     cases = {
