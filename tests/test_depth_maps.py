@@ -176,3 +176,21 @@ def test_a_sensors_own_depth_map_is_rendered_from_the_sensor_moved_with_the_came
         got = render_batch(default_collate([batch_tf(item) for item in items]), batch_tf)
         torch.testing.assert_close(got[LEFT_DEPTH], torch.stack([out[LEFT_DEPTH] for out in expected]),
                                    atol=1e-3, rtol=1e-4)  # fmt: skip
+
+
+def test_a_transform_with_depth_sensors_pickles_for_spawn_workers(setup):
+    import pickle
+
+    _, cache, ds = setup
+    sensor = DepthSensor(torch.tensor([[40.0, 0, 32], [0, 40, 24], [0, 0, 1]], dtype=torch.float64), 64, 48,
+                         torch.eye(4, dtype=torch.float64))  # fmt: skip
+    tf = GenSplatTransform(GenSplatConfig(probability=1.0, replace=("left",), depth_unit="m"), cache,
+                           depth_sensors={"left": sensor})  # fmt: skip
+    item = {**ds[1], LEFT_DEPTH: torch.ones(1, 48, 64)}
+    copy = pickle.loads(pickle.dumps(tf))
+    torch.manual_seed(0)
+    a = tf(item)
+    torch.manual_seed(0)
+    b = copy(item)
+    assert torch.equal(a[LEFT_DEPTH], b[LEFT_DEPTH]) and torch.equal(a[LEFT], b[LEFT])
+    assert a[LEFT_DEPTH].shape == (1, 48, 64) and (a[LEFT_DEPTH] > 0).any()
