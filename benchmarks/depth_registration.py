@@ -16,7 +16,8 @@ from 900000). Per scene and camera, the sensor's own map is:
 * turned into RGB-D Gaussians of both cameras, rendered (hole-filled, as the transform
   does) with the left camera moved at levels ``medium`` and ``large`` (2 draws each) and
   compared with the scene's true image there (PSNR);
-* ``register_ms``: CPU time of one 640x480 registration (torch on one thread, median).
+* ``register_ms``: CPU time of one 640x480 registration (one thread, median over the views;
+  the first call of a process also loads the compiled code).
 
 Writes benchmarks/results/depth_registration.json and prints a table.
 """

@@ -21,7 +21,9 @@ from gensplat_transforms.scenes import TabletopScene, default_cameras
 WIDTH, HEIGHT = 160, 120
 
 
-def sensor_beside(camera: Cameras, width: int, height: int, fov: float = 0.75) -> tuple[Cameras, torch.Tensor]:
+def sensor_beside(
+    camera: Cameras, width: int, height: int, fov: float = 0.75
+) -> tuple[Cameras, torch.Tensor]:
     """A depth sensor ``fov`` x the camera's focal length (a wider view), at ``width x height``,
     15 mm to its side and turned 1.1 degrees, as a RealSense's; and its to_camera (4, 4)."""
     K = camera.K.clone()
@@ -30,7 +32,9 @@ def sensor_beside(camera: Cameras, width: int, height: int, fov: float = 0.75) -
     K[:, 0, 2], K[:, 1, 2] = width / 2, height / 2
     a = torch.tensor(0.02, dtype=torch.float64)
     to_camera = torch.eye(4, dtype=torch.float64)
-    to_camera[:3, :3] = torch.tensor([[a.cos(), 0, a.sin()], [0, 1, 0], [-a.sin(), 0, a.cos()]], dtype=torch.float64)
+    to_camera[:3, :3] = torch.tensor(
+        [[a.cos(), 0, a.sin()], [0, 1, 0], [-a.sin(), 0, a.cos()]], dtype=torch.float64
+    )
     to_camera[0, 3] = -0.015
     return Cameras(K, camera.c2w @ torch.linalg.inv(to_camera), width, height), to_camera
 
@@ -71,6 +75,34 @@ def test_hard_depth_values_are_skipped_and_nothing_non_finite_comes_out():
         register_depth(depth[:, :10], sensor, camera)
     with pytest.raises(ValueError, match="one sensor and one camera"):
         register_depth(depth, sensor, default_cameras(WIDTH, HEIGHT)[:2])
+
+
+def test_each_depth_pixel_fills_the_colour_pixels_its_footprint_covers_and_the_nearest_wins():
+    """A sensor at the camera's pose with half its resolution: depth pixel (r, c) covers
+    colour pixels 2r..2r+1 x 2c..2c+1 exactly. A nearer footprint shifted over a farther one
+    wins where they overlap. Integer and half-precision maps come back as float32 and
+    float16."""
+    K = torch.tensor([[40.0, 0, 16], [0, 40, 12], [0, 0, 1]], dtype=torch.float64)
+    camera = Cameras(K[None], torch.eye(4, dtype=torch.float64)[None], 32, 24)
+    sensor = Cameras((K * torch.tensor([[0.5], [0.5], [1]], dtype=torch.float64))[None], camera.c2w, 16, 12)
+    depth = torch.rand(2, 12, 16, generator=torch.Generator().manual_seed(0)) + 0.5
+    out = register_depth(depth, sensor, camera)
+    assert torch.equal(out, depth.repeat_interleave(2, -2).repeat_interleave(2, -1))
+    assert register_depth(depth.half(), sensor, camera).dtype == torch.float16
+    as_int = register_depth((depth * 1000).to(torch.int32), sensor, camera)
+    assert as_int.dtype == torch.float32 and torch.equal(
+        as_int[:, ::2, ::2], (depth * 1000).to(torch.int32).float()
+    )
+    # the sensor 1 cm to the camera's right sees a wall at 0.5 m before one at 1 m: in the
+    # camera its footprints shift 40 px/m x 0.01 m / z, 0.8 px at 0.5 m, 0.4 px at 1 m, so the
+    # near wall ends at u = 16.8, over the far wall's start (16.4): colour pixel 16 is both's
+    moved = Cameras(sensor.K, sensor.c2w.clone(), 16, 12)
+    moved.c2w[0, 0, 3] = 0.01
+    wall = torch.ones(12, 16)
+    wall[:, :8] = 0.5
+    out = register_depth(wall, moved, camera)
+    expected = torch.tensor([0.0] + [0.5] * 16 + [1.0] * 15)  # column 0's centre (0.5) is left of 0.8
+    assert torch.equal(out, expected.expand(24, 32))
 
 
 def calibration_file(folder, cameras: Cameras, names, sensors: dict | None = None):
@@ -169,7 +201,9 @@ def test_lerobot_source_registers_a_sensors_own_depth(tmp_path):
     calibrate(root, calibration_file(tmp_path, cameras, names))
     without_blocks = LeRobotSource(root, repo)
     assert not without_blocks.sensors and without_blocks.depth_files(0) is not None
-    with pytest.raises(ValueError, match=r"camera 'left', episode 0: depth maps of 40x30, expected 64x64, .*depth block"):
+    with pytest.raises(
+        ValueError, match=r"camera 'left', episode 0: depth maps of 40x30, expected 64x64, .*depth block"
+    ):
         without_blocks.views(0, 1)
     blocks = {n: (s.K[0], 40, 30, to_camera) for n, (s, to_camera) in sensors.items()}
     calibrate(root, calibration_file(tmp_path, cameras, names, blocks))
@@ -187,8 +221,13 @@ def test_lerobot_source_registers_a_sensors_own_depth(tmp_path):
 
     plugged = enable_gensplat(LeRobotDataset(repo, root=root))  # depth-map features would follow the sensors
     assert set(plugged.gensplat.depth_sensors) == set(names)
-    assert plugged.gensplat.depth_sensors["left"].width == 40 and torch.isfinite(plugged[1]["observation.images.left"]).all()
-    (words, coded), _ = dataset_cache(root, make_reconstructor({"name": "rgbd"}), lerobot_source).read_depth_words(0, 1)
+    assert (
+        plugged.gensplat.depth_sensors["left"].width == 40
+        and torch.isfinite(plugged[1]["observation.images.left"]).all()
+    )
+    (words, coded), _ = dataset_cache(
+        root, make_reconstructor({"name": "rgbd"}), lerobot_source
+    ).read_depth_words(0, 1)
     torch.testing.assert_close(depth_from_words(words, coded)[:, None], views.depths, rtol=5e-4, atol=0)
     np.save(tmp_path / "ep0.npy", torch.stack([source.scene(0, t).render(sensors["left"][0])[1][0, 0]
                                                for t in range(2)]).numpy())  # fmt: skip
@@ -197,5 +236,7 @@ def test_lerobot_source_registers_a_sensors_own_depth(tmp_path):
     assert list(imported) == [0]
     wrong = {n: (s.K[0], 80, 60, to_camera) for n, (s, to_camera) in sensors.items()}
     calibrate(root, calibration_file(tmp_path, cameras, names, wrong))
-    with pytest.raises(ValueError, match=r"depth maps of 40x30, expected 80x60, the size its calibration's depth block"):
+    with pytest.raises(
+        ValueError, match=r"depth maps of 40x30, expected 80x60, the size its calibration's depth block"
+    ):
         LeRobotSource(root, repo).views(0, 0)
