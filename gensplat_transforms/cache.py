@@ -106,7 +106,9 @@ class EpisodeSource(Protocol):
         fingerprint: changes whenever the content changes (keys the cache).
 
     A source whose depth lives in files may also define ``depth_files(episode) ->
-    DepthFiles | None``; a depth cache then links them instead of copying the depth.
+    DepthFiles | None``; a depth cache then links them instead of copying the depth. A source
+    that reads a whole episode faster than frame by frame may define ``episode_views(episode)
+    -> Iterator[Views]`` (every frame's ``views``, in order); a build then uses it.
     """
 
     camera_names: tuple[str, ...]
@@ -307,7 +309,9 @@ class GaussianCache:
             if links is not None:
                 tensors, meta = _encode_links(links, n, self.root)
             else:
-                frames = [predict(source.views(episode, t)) for t in range(n)]
+                every_view = getattr(source, "episode_views", None)
+                views = every_view(episode) if every_view else (source.views(episode, t) for t in range(n))
+                frames = [predict(v) for v in views]
                 tensors, meta = (_encode_depth if self.kind == "depth" else _encode_gaussians)(frames)
             meta.update(format=FORMAT, format_version=FORMAT_VERSION, kind=self.kind, reconstructor=self.identity,
                         dataset=self.dataset, episode_index=str(int(episode)), num_frames=str(n))  # fmt: skip

@@ -561,6 +561,33 @@ def test_episode_lengths_and_starts_come_from_one_metadata_read(dataset_root):
         source.views(2, 0)
 
 
+def assert_episode_views_are_the_views(source: LeRobotSource, episode: int) -> None:
+    """What a cache build reads, ``episode_views``, is ``views`` of every frame, tensor for tensor."""
+    every = list(source.episode_views(episode))
+    assert len(every) == source.num_frames(episode)
+    for frame in (0, 1, len(every) // 2, len(every) - 1):
+        want, got = source.views(episode, frame), every[frame]
+        assert torch.equal(got.images, want.images) and torch.equal(got.cameras.c2w, want.cameras.c2w)
+        assert (got.depths is None and want.depths is None) or torch.equal(got.depths, want.depths)
+
+
+def test_a_build_decodes_only_the_reconstructed_cameras_videos_and_gets_the_same_views(sim_video, recorded):
+    """MP4 frames of the two external cameras (the wrist's is not decoded) in chunks of
+    DECODE_CHUNK, over an episode whose length is not a multiple of it; a dataset stored as
+    images reads item by item."""
+    from gensplat_lerobot.source import DECODE_CHUNK
+
+    source = LeRobotSource(sim_video, SIM_REPO)
+    assert source.num_frames(0) % DECODE_CHUNK and source.num_frames(0) > 2 * DECODE_CHUNK
+    assert_episode_views_are_the_views(source, 0)
+    decode, asked = source.dataset.reader._query_videos, []
+    source.dataset.reader._query_videos = lambda query, ep: asked.append(query) or decode(query, ep)
+    next(source.episode_views(0))
+    assert [sorted(q) for q in asked] == [[LEFT, "observation.images.right"]]
+    assert [len(t) for t in asked[0].values()] == [DECODE_CHUNK] * 2
+    assert_episode_views_are_the_views(LeRobotSource(recorded, REPO), 1)
+
+
 @pytest.mark.parametrize(("depth_as", "error_m"), [("feature", 0.5e-3), ("video", 2e-3)])
 def test_lerobots_own_depth_features_are_read_and_copied_into_the_cache(tmp_path, depth_as, error_m):
     """A dataset whose cameras' depth is LeRobot's depth-map feature (observation.images.<cam>_depth,
@@ -581,6 +608,7 @@ def test_lerobots_own_depth_features_are_read_and_copied_into_the_cache(tmp_path
     got = lerobot_source.views(0, 2).depths
     assert (got - want).abs().max() <= error_m + 1e-6
     assert lerobot_source.depth_files(0) is None
+    assert_episode_views_are_the_views(lerobot_source, 0)  # the depth video decoded in chunks
     stats = prepare(root, REPO, GenSplatConfig(probability=1.0, level="small"), progress=False)
     assert load_settings(root)[1]["name"] == "rgbd" and stats[0].bytes_per_timestep > 200  # a stored copy
     from types import SimpleNamespace

@@ -9,6 +9,7 @@ import json
 import logging
 import os
 import stat
+from collections.abc import Iterator
 from functools import cache, cached_property
 from pathlib import Path
 
@@ -32,6 +33,10 @@ from gensplat_transforms.reconstruction import Views
 from gensplat_transforms.registration import register_depth
 
 log = logging.getLogger(__name__)
+
+#: frames decoded per decoder call when a whole episode is read (8 frames of two 640x480
+#: cameras: 59 MB of float32 images)
+DECODE_CHUNK = 8
 
 
 class LeRobotSource:
@@ -136,8 +141,34 @@ class LeRobotSource:
         return DepthFiles(paths, self.cameras) if all(p.exists() for p in paths) and not self.sensors else None
 
     def views(self, episode: int, frame: int) -> Views:
+        return self._views(episode, frame, self.dataset[self._episode("dataset_from_index", episode) + frame])
+
+    def episode_views(self, episode: int) -> Iterator[Views]:
+        """The :meth:`views` of every frame of ``episode`` in order, the same tensors, for
+        building a cache: only the reconstructed cameras' videos (and depth-map videos) are
+        decoded, ``DECODE_CHUNK`` frames per decoder call; a LeRobot item would decode every
+        camera (the wrist's too) and seek for each frame. Features stored as images fall back
+        to :meth:`views`."""
+        n = self.num_frames(episode)
+        keys = [IMAGE_KEY_PREFIX + name for name in self.camera_names]
+        keys += [self.depth_features[name] for name in self.camera_names if name in self.depth_features]
+        if not set(keys) <= set(self.dataset.meta.video_keys):
+            yield from (self.views(episode, frame) for frame in range(n))
+            return
         start = self._episode("dataset_from_index", episode)
-        item = self.dataset[start + frame]
+        timestamps = [float(t) for t in self.dataset.hf_dataset[start : start + n]["timestamp"]]
+        for first in range(0, n, DECODE_CHUNK):
+            chunk = timestamps[first : first + DECODE_CHUNK]
+            # LeRobot's own decode of an item's videos (its backend, tolerance and depth
+            # dequantisation), for several timestamps at once (lerobot is pinned at 0.6.1)
+            decoded = self.dataset.reader._query_videos({key: chunk for key in keys}, episode)
+            decoded = {key: x.reshape(len(chunk), *x.shape[-3:]) for key, x in decoded.items()}
+            for i in range(len(chunk)):
+                yield self._views(episode, first + i, {key: x[i] for key, x in decoded.items()})
+
+    def _views(self, episode: int, frame: int, item: dict) -> Views:
+        """Views of ``frame`` from ``item``, which holds the reconstructed cameras' images and
+        depth-map features as LeRobot items hold them."""
         images = torch.stack([_as_float(item[IMAGE_KEY_PREFIX + n]) for n in self.camera_names])
         depths = []
         for i, n in enumerate(self.camera_names):
