@@ -367,6 +367,11 @@ class GenSplatTransform:
             return {}
         for n, key in found.items():
             _check_depth_map(key, item[key], item[keys[n]])
+            sensor = self.depth_sensors.get(n)
+            if sensor is not None and tuple(item[key].shape[-2:]) != (sensor.height, sensor.width):
+                raise ValueError(f"GenSplatTransform: {key}: maps of {item[key].shape[-1]}x{item[key].shape[-2]}, but "
+                                 f"camera {n!r}'s depth sensor is {sensor.width}x{sensor.height} (its K is at its maps' "
+                                 "size): fix the calibration's depth block")  # fmt: skip
         return found
 
     def _render_size(self, image: torch.Tensor) -> tuple[int, int]:

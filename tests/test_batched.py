@@ -6,6 +6,7 @@ from dataclasses import replace
 
 import pytest
 import torch
+import torch.nn.functional as F
 from safetensors import safe_open
 from torch.utils.data import DataLoader, default_collate
 
@@ -162,33 +163,47 @@ def fake_rasterization(means, quats, scales, opacities, colors, viewmats, Ks, wi
     return torch.stack(rgbs), torch.stack(alphas), {}
 
 
+def with_depth_maps(items: list[dict], ds, depth_maps: str | None) -> tuple[list[dict], dict]:
+    """``items`` carrying the left camera's true depth map in millimetres ("camera"), or its
+    depth sensor's own, a 40x30 map beside it ("sensor", the values stand in); and the
+    ``depth_sensors`` to give the transform."""
+    if not depth_maps:
+        return items, {}
+    items = [{**item, LEFT + "_depth": ds.episodes.render(int(item["episode_index"]), int(item["frame_index"]))[1][0]
+              * 1000} for item in items]  # fmt: skip
+    if depth_maps == "camera":
+        return items, {}
+    K = torch.tensor([[30.0, 0, 20], [0, 30, 15], [0, 0, 1]], dtype=torch.float64)
+    to_camera = torch.eye(4, dtype=torch.float64)
+    to_camera[0, 3] = -0.015
+    sensor_maps = [F.interpolate(item[LEFT + "_depth"][None], size=(30, 40), mode="nearest")[0] for item in items]
+    return [{**item, LEFT + "_depth": m} for item, m in zip(items, sensor_maps)], {"left": DepthSensor(K, 40, 30, to_camera)}
+
+
+def assert_depth_maps_alike(items: list[dict], got: dict, expected: dict, edges: float, median_mm: float) -> None:
+    """The rendered depth maps moved, cover the same pixels as the worker's (but for a share
+    ``edges``) and agree to ``median_mm`` where both have depth."""
+    depth, worker = got[LEFT + "_depth"], expected[LEFT + "_depth"]
+    assert depth.shape == worker.shape and depth.dtype == worker.dtype
+    assert not torch.equal(depth, torch.stack([item[LEFT + "_depth"] for item in items]))
+    assert ((depth > 0) != (worker > 0)).float().mean() < edges  # seen alike, up to a pixel at an edge
+    both = (depth > 0) & (worker > 0)
+    assert (depth - worker)[both].abs().median() < median_mm
+
+
 @pytest.mark.parametrize(("render_scale", "depth_maps"), [(1.0, None), (0.5, None), (1.0, "camera"), (1.0, "sensor")])
 def test_the_single_gsplat_call_lays_out_scenes_and_cameras_as_the_worker(setup, monkeypatch, render_scale,
                                                                             depth_maps):  # fmt: skip
     cache, ds = setup
     monkeypatch.setattr(gsplat_backend, "_rasterization", lambda: fake_rasterization)
-    items = [as_uint8(ds[i]) for i in (0, 2, 5, 6)]
-    sensors = {}
-    if depth_maps:  # the left camera's true depth map in millimetres, rendered at the new pose too
-        items = [{**item, LEFT + "_depth": ds.episodes.render(int(item["episode_index"]), int(item["frame_index"]))[1][0]
-                  * 1000} for item in items]  # fmt: skip
-    if depth_maps == "sensor":  # its depth sensor's own: a 40x30 map beside it (the values stand in)
-        items = [{**item, LEFT + "_depth": item[LEFT + "_depth"][:, :30, :40]} for item in items]
-        K = torch.tensor([[30.0, 0, 20], [0, 30, 15], [0, 0, 1]], dtype=torch.float64)
-        to_camera = torch.eye(4, dtype=torch.float64)
-        to_camera[0, 3] = -0.015
-        sensors = {"left": DepthSensor(K, 40, 30, to_camera)}
+    items, sensors = with_depth_maps([as_uint8(ds[i]) for i in (0, 2, 5, 6)], ds, depth_maps)
     expected, got = both_ways(cache, items, seed=0, backend="gsplat", depth_sensors=sensors, probability=1.0,
                               views_per_source=3, render_scale=render_scale, depth_unit="mm")  # fmt: skip
     for key in (LEFT, RIGHT):  # float32 poses and gsplat's conventions: a level here and there
         diff = (got[key].float() - expected[key].float()).abs()
         assert diff.max() <= 3 and diff.mean() < 0.05, key
     if depth_maps:
-        depth, worker = got[LEFT + "_depth"], expected[LEFT + "_depth"]
-        assert not torch.equal(depth, torch.stack([item[LEFT + "_depth"] for item in items]))
-        assert ((depth > 0) != (worker > 0)).float().mean() < 0.01  # seen alike, up to a pixel at an edge
-        both = (depth > 0) & (worker > 0)
-        assert (depth - worker)[both].abs().median() < 0.5  # millimetres
+        assert_depth_maps_alike(items, got, expected, edges=0.01, median_mm=0.5)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="batch rendering with gsplat needs a CUDA device")
@@ -201,6 +216,18 @@ def test_on_cuda_one_gsplat_call_renders_the_worker_views(setup):
         diff = (got[key].float() - expected[key].float()).abs()
         assert diff.mean() < 0.5 and (diff > 2).float().mean() < 0.01, key
     torch.testing.assert_close(got["gensplat.theta_deg"], expected["gensplat.theta_deg"])
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="batch rendering with gsplat needs a CUDA device")
+@pytest.mark.parametrize("depth_maps", ["camera", "sensor"])
+def test_on_cuda_gsplat_renders_depth_maps_as_the_worker(setup, depth_maps):
+    """gsplat's expected depth (``RGB+ED``) for a camera's depth map and a depth sensor's."""
+    pytest.importorskip("gsplat", reason="the gsplat package is not installed (optional extra)")
+    cache, ds = setup
+    items, sensors = with_depth_maps([as_uint8(ds[i]) for i in (0, 2, 5, 6)], ds, depth_maps)
+    expected, got = both_ways(cache, items, seed=0, device="cuda", depth_sensors=sensors, probability=1.0,
+                              depth_unit="mm")  # fmt: skip
+    assert_depth_maps_alike(items, got, expected, edges=0.02, median_mm=2.0)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="a CUDA batch needs a CUDA device")

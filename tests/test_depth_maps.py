@@ -194,3 +194,5 @@ def test_a_transform_with_depth_sensors_pickles_for_spawn_workers(setup):
     b = copy(item)
     assert torch.equal(a[LEFT_DEPTH], b[LEFT_DEPTH]) and torch.equal(a[LEFT], b[LEFT])
     assert a[LEFT_DEPTH].shape == (1, 48, 64) and (a[LEFT_DEPTH] > 0).any()
+    with pytest.raises(ValueError, match=r"maps of 48x48, but camera 'left''s depth sensor is 64x48 .*depth block"):
+        tf({**ds[1], LEFT_DEPTH: torch.ones(1, 48, 48)})  # the sensor's K would be read at another size
