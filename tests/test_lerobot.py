@@ -598,7 +598,7 @@ def test_lerobots_own_depth_features_are_read_and_copied_into_the_cache(tmp_path
     transform renders the depth features at the new pose too, in the dataset's unit (kept as
     recorded with --keep-depth-maps)."""
     root = tmp_path / "ds"
-    source = SceneEpisodes(num_episodes=1, num_frames=4, size=32)
+    source = SceneEpisodes(num_episodes=2, num_frames=4, size=32)
     record_scene_dataset(root, source, REPO, progress=False, depth_as=depth_as)
     assert not (root / "depth").exists()
     assert (root / "videos" / "observation.images.left_depth").is_dir() == (depth_as == "video")
@@ -608,7 +608,7 @@ def test_lerobots_own_depth_features_are_read_and_copied_into_the_cache(tmp_path
     got = lerobot_source.views(0, 2).depths
     assert (got - want).abs().max() <= error_m + 1e-6
     assert lerobot_source.depth_files(0) is None
-    assert_episode_views_are_the_views(lerobot_source, 0)  # the depth video decoded in chunks
+    assert_episode_views_are_the_views(lerobot_source, 1)  # videos decoded in chunks, from the episode's start
     stats = prepare(root, REPO, GenSplatConfig(probability=1.0, level="small"), progress=False)
     assert load_settings(root)[1]["name"] == "rgbd" and stats[0].bytes_per_timestep > 200  # a stored copy
     from types import SimpleNamespace
