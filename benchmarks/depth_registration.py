@@ -17,7 +17,10 @@ from 900000). Per scene and camera, the sensor's own map is:
   does) with the left camera moved at levels ``medium`` and ``large`` (2 draws each) and
   compared with the scene's true image there (PSNR);
 * ``register_ms``: CPU time of one 640x480 registration (one thread, median over the views;
-  the first call of a process also loads the compiled code).
+  the first call of a process also loads the compiled code);
+* ``render_ms``: CPU time of what a worker renders per replaced camera (registered depth, one
+  thread, median): the hole-filled colour view, and the depth sensor's own map at the new
+  pose (a second render, from the sensor beside the moved camera).
 
 Writes benchmarks/results/depth_registration.json and prints a table.
 """
@@ -39,7 +42,7 @@ from gensplat_transforms.perturbation import PerturbationSampler
 from gensplat_transforms.reconstruction import RGBDReconstructor, Views
 from gensplat_transforms.registration import register_depth
 from gensplat_transforms.scenes import TabletopScene, default_cameras
-from gensplat_transforms.transform import GenSplatConfig, render_view
+from gensplat_transforms.transform import GenSplatConfig, render_depth, render_view
 
 FIRST_SEED = 900_000
 WIDTH, HEIGHT = 640, 480
@@ -66,7 +69,7 @@ def run(args: argparse.Namespace) -> dict:
     ways = ("raw", "registered", "true")
     errors = {w: [] for w in ways}
     scores = {(w, level): [] for w in ways for level in LEVELS}
-    times = []
+    times, render_ms = [], {"colour": [], "sensor_depth": []}
     for i in range(args.scenes):
         scene = TabletopScene(FIRST_SEED + i)
         images, truth = scene.render(colour)
@@ -86,7 +89,14 @@ def run(args: argparse.Namespace) -> dict:
                 sampler = PerturbationSampler(level, seed=0)
                 for draw in range(2):
                     moved = sampler.sample(i, view=draw).move(colour, 0)[0]
+                    t0 = time.thread_time()
                     view = render_view(gaussians, moved, config).rgb
+                    t1 = time.thread_time()
+                    if way == "registered":  # what a worker adds for the sensor's own map at the new pose
+                        in_camera = colour.w2c()[:1] @ sensors.c2w[:1]  # the sensor's pose in its camera's frame
+                        render_depth(gaussians, Cameras(sensors.K[:1], moved.c2w @ in_camera, WIDTH, HEIGHT), config)
+                        render_ms["colour"].append(t1 - t0)
+                        render_ms["sensor_depth"].append(time.thread_time() - t1)
                     scores[(way, level)].append(psnr(view, scene.render(moved)[0]))
         print(f"  scene {i + 1}/{args.scenes}", flush=True)
     rows = {
@@ -102,6 +112,7 @@ def run(args: argparse.Namespace) -> dict:
         "quick": args.quick, "scenes": args.scenes, "draws_per_level": 2, "first_seed": FIRST_SEED,
         "frame": [WIDTH, HEIGHT], "colour_focal_px": COLOUR_FOCAL, "depth_focal_px": DEPTH_FOCAL,
         "baseline_m": BASELINE, "register_ms": round(statistics.median(times) * 1e3, 1), "torch_threads": 1,
+        "render_ms": {k: round(statistics.median(v) * 1e3, 1) for k, v in render_ms.items()},
         "rows": rows, "machine": {"cpus": os.cpu_count(), **cpu_model()}, "load_average": os.getloadavg(),
     }  # fmt: skip
 
@@ -116,6 +127,8 @@ def main() -> None:
     args.scenes = args.scenes or (1 if args.quick else 4)
     result = run(args)
     print(f"register_depth: {result['register_ms']} ms per 640x480 view (one thread)")
+    print(f"at a new pose: the colour view {result['render_ms']['colour']} ms, the sensor's depth map "
+          f"{result['render_ms']['sensor_depth']} ms more (one thread)")
     print(f"{'depth':>11} {'median err m':>13} {'p95 err m':>10} {'coverage':>9} " +
           " ".join(f"{'PSNR ' + lv:>12}" for lv in LEVELS))  # fmt: skip
     for way, row in result["rows"].items():

@@ -6,6 +6,7 @@ evaluation scripts and saved checkpoints are untouched."""
 import logging
 import math
 import sys
+from dataclasses import replace
 
 from gensplat_transforms.cache import CacheError
 from gensplat_transforms.counters import SampleCounters
@@ -35,6 +36,7 @@ def _install() -> None:
         def make_train_eval_datasets(cfg, _original=original, _run=run):
             train, evaluation = _original(cfg)
             enable_gensplat(train)
+            keep_unread_depth_maps(train, cfg)
             batched.use_render_in(train, cfg)  # "batch": the views are rendered by the loop's cycle
             train.gensplat.counters = SampleCounters(cfg.num_workers)  # shared before the workers start
             _run.update(counters=train.gensplat.counters, log_freq=cfg.log_freq)
@@ -120,21 +122,45 @@ def start_message(train, cfg) -> str:
         + f"(reconstructed from {', '.join(c.cameras)})",
         f"  views rendered at {w}x{h} of {width}x{height} frames (render scale {c.render_scale}{held}){reads}",
         *smaller_render_tip((width, height), (w, h), policy),
-        *depth_maps_line(train),
+        *depth_maps_line(train, cfg),
         f"  {resumed}a run resumed with --resume=true trains without GenSplat unless {LINE} is given again",
     ])  # fmt: skip
 
 
-def depth_maps_line(train) -> list[str]:
+def depth_map_keys(train) -> list[str]:
+    """The depth-map features of the cameras GenSplat replaces (``<image key>_depth``)."""
+    c = train.gensplat.cfg
+    return [key for n in c.replace if (key := c.image_key.format(name=n) + "_depth") in train.meta.depth_keys]
+
+
+def policy_reads(cfg, key: str) -> bool:
+    """Whether the run's policy reads feature ``key``: it does unless its ``input_features`` are
+    given (on the command line or by a pretrained config) without it; LeRobot feeds a policy
+    whose input features are not given every feature of the dataset."""
+    given = getattr(getattr(cfg, "policy", None), "input_features", None)
+    return not given or key in given
+
+
+def keep_unread_depth_maps(train, cfg) -> None:
+    """Leave the replaced cameras' depth maps as recorded when the policy reads none of them
+    (``depth_unit="keep"``): rendering them would cost a render per sample and camera where
+    they are a depth sensor's own, for maps nothing reads."""
+    keys = depth_map_keys(train)
+    if keys and not any(policy_reads(cfg, key) for key in keys):
+        train.gensplat.cfg = replace(train.gensplat.cfg, depth_unit="keep")
+
+
+def depth_maps_line(train, cfg) -> list[str]:
     """A line of the start block naming the replaced cameras' depth-map features and what
     becomes of them; none without such features."""
-    c = train.gensplat.cfg
-    keys = [key for n in c.replace if (key := c.image_key.format(name=n) + "_depth") in train.meta.depth_keys]
+    keys = depth_map_keys(train)
     if not keys:
         return []
-    if c.depth_unit == "keep":
+    if not any(policy_reads(cfg, key) for key in keys):
+        return [f"  depth maps {', '.join(keys)} kept as recorded: the policy does not read them (its input_features)"]
+    if train.gensplat.cfg.depth_unit == "keep":
         return [f"  depth maps {', '.join(keys)} kept as recorded (--keep-depth-maps): they do not follow the moves"]
-    return [f"  depth maps {', '.join(keys)} rendered at the new poses too, in {c.depth_unit}"]
+    return [f"  depth maps {', '.join(keys)} rendered at the new poses too, in {train.gensplat.cfg.depth_unit}"]
 
 
 def smaller_render_tip(frame: tuple[int, int], rendered: tuple[int, int], policy: tuple[int, int] | None) -> list[str]:
