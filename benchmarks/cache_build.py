@@ -18,7 +18,8 @@ to end (the whole command, with interpreter start and imports), and cache bytes 
 timestep. For a plan at DROID's size, each reconstructor (rgbd, geometry and gensplat, the
 models being the shipped small one) also builds a few timesteps of the procedural scene
 seen by two 320x180 cameras, in this process with one thread: cache bytes and CPU seconds
-per timestep. Writes benchmarks/results/cache_build.json.
+per timestep, and a depth build's peak memory against its episode's length (two 640x480
+cameras, 50 and 200 frames, each in a fresh process). Writes benchmarks/results/cache_build.json.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ import argparse
 import json
 import os
 import re
+import resource
 import shutil
 import subprocess
 import sys
@@ -111,7 +113,52 @@ def droid_size(frames: int) -> dict:
     return {"resolution": [320, 180], "timesteps": frames, "threads": 1, **out}
 
 
+class Streamed:
+    """An episode of ``frames`` views of two 640x480 cameras made as they are asked for (random
+    colours, a smooth depth ramp that changes each frame), as a long recording's decoder
+    gives them."""
+
+    camera_names = ("left", "right")
+    fingerprint = "streamed-640x480"
+
+    def __init__(self, frames: int) -> None:
+        self.frames, self.cameras = frames, default_cameras(640, 480)[:2]
+
+    def num_frames(self, episode: int) -> int:
+        return self.frames
+
+    def views(self, episode: int, frame: int) -> Views:
+        depth = (1.0 + 0.001 * frame + 0.3 * torch.linspace(0, 1, 640)).expand(2, 1, 480, 640).contiguous()
+        return Views(torch.rand(2, 3, 480, 640), self.cameras, depth)
+
+
+def episode_memory(frames: int) -> float:
+    """Peak RSS growth (MB) of this process while it builds a depth cache (stored copy) of a
+    :class:`Streamed` episode of ``frames`` frames."""
+    source = Streamed(frames)
+    cache = GaussianCache(tempfile.mkdtemp(), RGBDReconstructor(), source.fingerprint, link_depth=False)
+    source.views(0, 0)
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    cache.ensure(0, source)
+    return (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024
+
+
+def build_memory(counts: tuple[int, ...] = (50, 200)) -> dict:
+    """A depth build's peak memory against the episode's length, each in a fresh process: MB
+    per frame from the difference (what a long episode adds), at 640x480, two cameras."""
+    peak = {}
+    for n in counts:
+        run = subprocess.run([sys.executable, __file__, "--episode-memory", str(n)], check=True, capture_output=True,
+                             text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})  # fmt: skip
+        peak[n] = float(run.stdout.split()[-1])
+    per_frame = (peak[counts[-1]] - peak[counts[0]]) / (counts[-1] - counts[0])
+    return {"resolution": [640, 480], "cameras": 2, "peak_rss_growth_mb": peak, "mb_per_frame": round(per_frame, 2)}
+
+
 def main() -> None:
+    if sys.argv[1:2] == ["--episode-memory"]:  # the child process of build_memory
+        print(round(episode_memory(int(sys.argv[2])), 1))
+        return
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--episodes", type=int, default=6, help="episodes to record, if not reused (default: 6)")
     parser.add_argument("--size", type=int, default=224, help="image size to record, if not reused (default: 224)")
@@ -143,6 +190,7 @@ def main() -> None:
         "dataset": {"episodes": info["total_episodes"], "timesteps": info["total_frames"],
                     "resolution": info["features"]["observation.images.left"]["shape"][:2], "reconstructed_cameras": 2, "video": True},
         "reconstructor": "rgbd", "best": best, "runs": runs, "droid_size": droid_size(args.droid_frames),
+        "build_memory": build_memory(),
         "machine": {"cpus": os.cpu_count(), **cpu_model()}, "gpu": None,
     }  # fmt: skip
     print(f"best of {args.repeats} runs (fastest build)")
@@ -153,6 +201,7 @@ def main() -> None:
               f"{r['build_cpu_s']:>8}{r['timesteps_per_cpu_s']:>17}{r['end_to_end_s']:>14}"
               f"{r['bytes_per_timestep']:>12}")
     print("at 320x180:", json.dumps(result["droid_size"]))
+    print("a depth build's peak memory:", json.dumps(result["build_memory"]))
     out = Path(__file__).parent / "results" / "cache_build.json"
     out.write_text(json.dumps(result, indent=2) + "\n")
     print("wrote", out)

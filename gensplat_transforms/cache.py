@@ -311,8 +311,8 @@ class GaussianCache:
             else:
                 every_view = getattr(source, "episode_views", None)
                 views = every_view(episode) if every_view else (source.views(episode, t) for t in range(n))
-                frames = [predict(v) for v in views]
-                tensors, meta = (_encode_depth if self.kind == "depth" else _encode_gaussians)(frames)
+                frames = (predict(v) for v in views)  # a depth episode is encoded frame by frame as they come
+                tensors, meta = _encode_depth(frames, n) if self.kind == "depth" else _encode_gaussians(list(frames))
             meta.update(format=FORMAT, format_version=FORMAT_VERSION, kind=self.kind, reconstructor=self.identity,
                         dataset=self.dataset, episode_index=str(int(episode)), num_frames=str(n))  # fmt: skip
             meta["crc"] = json.dumps({k: _tensor_crc(k, v) for k, v in tensors.items()}, sort_keys=True)
@@ -538,23 +538,34 @@ def _remove_or_wait(tmp: Path) -> None:
 # ---------------------------------------------------------------------------- encodings
 
 
-def _cameras(frames) -> dict[str, torch.Tensor]:
-    return {"K": torch.stack([f.cameras.K.double() for f in frames]).contiguous(),
-            "c2w": torch.stack([f.cameras.c2w.double() for f in frames]).contiguous()}  # fmt: skip
+def _cameras(cameras: Sequence[Cameras]) -> dict[str, torch.Tensor]:
+    return {"K": torch.stack([c.K.double() for c in cameras]).contiguous(),
+            "c2w": torch.stack([c.c2w.double() for c in cameras]).contiguous()}  # fmt: skip
 
 
-def _encode_depth(frames: Sequence[Views]) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
-    """Tensors and header fields of a depth episode (frames from ``predict_depth``)."""
-    ref, blobs = depth_codec.encode_episode([f.depths[:, 0] for f in frames])  # T of (V, H, W)
+def _encode_depth(frames: Iterable[Views], num_frames: int) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+    """Tensors and header fields of a depth episode of ``num_frames`` frames from
+    ``predict_depth``, consumed one at a time: only their quantised depth (2 bytes a pixel)
+    is held until the episode's reference is known, never their images (see
+    :func:`.depth_codec.encode_episode`)."""
+    cameras, shapes = [], []
+
+    def depths():
+        for f in frames:
+            cameras.append(f.cameras)
+            shapes.append(tuple(f.depths.shape))
+            yield f.depths[:, 0]  # (V, H, W)
+
+    ref, blobs = depth_codec.encode_episode(depths(), num_frames)
     tensors = {"depth.reference": _blob(ref), **{f"depth.f{t}": _blob(b) for t, b in enumerate(blobs)}}
-    v, _, h, w = frames[0].depths.shape
-    cam = frames[0].cameras
+    v, _, h, w = shapes[0]
+    cam = cameras[0]
     meta = {"image_size": json.dumps([cam.width, cam.height]), "num_views": str(v),
             "depth_codec": json.dumps({"step": depth_codec.STEP, "d_min": depth_codec.D_MIN, "d_max": depth_codec.D_MAX,
                                        "compression": depth_codec.COMPRESSION})}  # fmt: skip
     if (h, w) != (cam.height, cam.width):
         raise ValueError(f"GaussianCache: depth maps are {w}x{h}, the cameras {cam.width}x{cam.height}")
-    return {**tensors, **_cameras(frames)}, meta
+    return {**tensors, **_cameras(cameras)}, meta
 
 
 def _encode_links(files: DepthFiles, num_frames: int, root: Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
@@ -587,7 +598,7 @@ def _encode_gaussians(frames: Sequence[Reconstruction]) -> tuple[dict[str, torch
     cam = frames[0].cameras
     meta = {"image_size": json.dumps([cam.width, cam.height]), "num_views": str(len(cam)),
             "bbox": json.dumps([lo.tolist(), hi.tolist()])}  # fmt: skip
-    return {**tensors, **_cameras(frames)}, meta
+    return {**tensors, **_cameras([f.cameras for f in frames])}, meta
 
 
 def _static_mask(frames: Sequence[Reconstruction], qs: list[dict]) -> list[torch.Tensor]:

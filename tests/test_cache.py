@@ -110,6 +110,55 @@ def test_depth_codec_reference_is_the_per_pixel_median_rounded_down(frames, monk
     assert np.array_equal(np.stack(decoded), codes)
 
 
+def test_depth_codec_takes_an_iterator_of_frames_with_their_count():
+    d = torch.rand(5, 2, 6, 7) + 0.5
+    assert dc.encode_episode(iter(d), 5) == dc.encode_episode(d)
+    with pytest.raises(TypeError, match="needs num_frames"):
+        dc.encode_episode(iter(d))
+    with pytest.raises(ValueError, match="4 frames, 5 announced"):
+        dc.encode_episode(iter(d[:4]), 5)
+    with pytest.raises(ValueError, match="more than the 4 frames announced"):
+        dc.encode_episode(iter(d), 4)
+    with pytest.raises(ValueError, match="an episode of 0 frames"):
+        dc.encode_episode(d[:0])
+
+
+def test_a_depth_build_holds_one_frames_views_at_a_time(tmp_path, source):
+    """An episode's views are encoded as they come (a 640x480 frame's images are 7 MB of
+    float32; an episode of a thousand of them would not fit in memory): when the source
+    gives a frame, at most the frame before it is still alive. A source that gives fewer
+    frames than the episode has fails the build, writing nothing."""
+    import weakref
+
+    class Streaming(CountingSource):
+        def __init__(self, source, frames=None):
+            super().__init__(source)
+            self.alive, self.frames = [], frames
+
+        def episode_views(self, episode):
+            refs = []
+            for frame in range(self.frames or self.num_frames(episode)):
+                self.alive.append(sum(r() is not None for r in refs))
+                views = self.views(episode, frame)
+                refs.append(weakref.ref(views.images))
+                yield views
+
+    streaming = Streaming(source)
+    cache = GaussianCache(tmp_path / "a", RGBDReconstructor(), source.fingerprint)
+    cache.ensure(0, streaming)
+    assert streaming.calls == source.num_frames(0) > 2 and max(streaming.alive) <= 1
+    plain = GaussianCache(tmp_path / "b", RGBDReconstructor(), source.fingerprint)
+    plain.ensure(0, source)
+    from safetensors.torch import load_file
+
+    streamed, listed = load_file(cache.path(0)), load_file(plain.path(0))
+    assert streamed.keys() == listed.keys() and all(torch.equal(streamed[k], listed[k]) for k in listed)
+    short = GaussianCache(tmp_path / "c", RGBDReconstructor(), source.fingerprint)
+    with pytest.raises(ValueError, match=f"{source.num_frames(0) - 1} frames, {source.num_frames(0)} announced"):
+        short.ensure(0, Streaming(source, frames=source.num_frames(0) - 1))
+    assert short.status(0) == "missing" and not list((tmp_path / "c").glob("*.tmp"))
+
+
 def test_depth_codec_row_sums_wrap_modulo_2_16():
     """Codes far apart side by side (0 = no depth, 1 and the largest in range): their row
     differences wrap, and so must the sums that undo them (frame and reference differences
@@ -181,8 +230,8 @@ def test_a_cache_written_with_zlib_still_reads(tmp_path, source, built, monkeypa
     def zlib_pack(codes):
         return zlib.compress(np.diff(codes, axis=-1, prepend=np.uint16(0)).tobytes(), 6)
 
-    def old_header(frames, encode=cache_module._encode_depth):
-        tensors, meta = encode(frames)
+    def old_header(frames, num_frames, encode=cache_module._encode_depth):
+        tensors, meta = encode(frames, num_frames)
         meta["depth_codec"] = json.dumps({k: v for k, v in json.loads(meta["depth_codec"]).items() if k != "compression"})
         return tensors, meta
 
