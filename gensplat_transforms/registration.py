@@ -96,16 +96,8 @@ def register_depth(depth: torch.Tensor, sensor: Cameras, camera: Cameras) -> tor
     d = depth.detach().reshape(-1, h, w).to("cpu", torch.float32).contiguous().numpy()
     out = np.full((d.shape[0], camera.height, camera.width), np.inf, dtype=np.float32)
     to_camera = camera.w2c()[0].double() @ sensor.c2w[0].double()
-    as_array = lambda x: x.detach().to("cpu", torch.float64).contiguous().numpy()
-    _register(
-        d,
-        as_array(sensor.K[0]),
-        as_array(to_camera),
-        as_array(camera.K[0]),
-        out,
-        MAX_VIEW_DEPTH,
-        MAX_FOOTPRINT,
-    )
+    geometry = [t.detach().to("cpu", torch.float64).contiguous().numpy() for t in (sensor.K[0], to_camera, camera.K[0])]
+    _register(d, *geometry, out, MAX_VIEW_DEPTH, MAX_FOOTPRINT)
     out[np.isinf(out)] = 0.0
     dtype = depth.dtype if depth.is_floating_point() else torch.float32
     return torch.from_numpy(out).reshape(*lead, camera.height, camera.width).to(depth.device, dtype)

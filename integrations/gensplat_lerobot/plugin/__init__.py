@@ -133,12 +133,12 @@ def depth_map_keys(train) -> list[str]:
     return [key for n in c.replace if (key := c.image_key.format(name=n) + "_depth") in train.meta.depth_keys]
 
 
-def policy_reads(cfg, key: str) -> bool:
-    """Whether the run's policy reads feature ``key``: it does unless its ``input_features`` are
-    given (on the command line or by a pretrained config) without it; LeRobot feeds a policy
-    whose input features are not given every feature of the dataset."""
+def policy_reads_any(cfg, keys: list[str]) -> bool:
+    """Whether the run's policy reads any of the features ``keys``: it does unless its
+    ``input_features`` are given (on the command line or by a pretrained config) without
+    them; LeRobot feeds a policy whose input features are not given every feature."""
     given = getattr(getattr(cfg, "policy", None), "input_features", None)
-    return not given or key in given
+    return not given or any(key in given for key in keys)
 
 
 def keep_unread_depth_maps(train, cfg) -> None:
@@ -146,7 +146,7 @@ def keep_unread_depth_maps(train, cfg) -> None:
     (``depth_unit="keep"``): rendering them would cost a render per sample and camera where
     they are a depth sensor's own, for maps nothing reads."""
     keys = depth_map_keys(train)
-    if keys and not any(policy_reads(cfg, key) for key in keys):
+    if keys and not policy_reads_any(cfg, keys):
         train.gensplat.cfg = replace(train.gensplat.cfg, depth_unit="keep")
 
 
@@ -156,7 +156,7 @@ def depth_maps_line(train, cfg) -> list[str]:
     keys = depth_map_keys(train)
     if not keys:
         return []
-    if not any(policy_reads(cfg, key) for key in keys):
+    if not policy_reads_any(cfg, keys):
         return [f"  depth maps {', '.join(keys)} kept as recorded: the policy does not read them (its input_features)"]
     if train.gensplat.cfg.depth_unit == "keep":
         return [f"  depth maps {', '.join(keys)} kept as recorded (--keep-depth-maps): they do not follow the moves"]
