@@ -13,7 +13,10 @@ each method's view at that pose is compared with ``GroundTruth.render`` there:
   (``holes.fill_holes``, what the training transform does by default);
 * ``rgbd_sensor``: ``rgbd`` on the depth a real RGB-D camera would give
   (``sim.sensor.sensor_depth`` with the default, RealSense D435-like ``SensorDepthConfig``,
-  seeded per timestep);
+  seeded per timestep); ``rgbd_sensor_fill``: with the uncovered pixels filled, as the
+  transform shows it; ``rgbd_sensor_depth_fill``: the same with the sensor's holes given depth
+  before the discs are built (``RGBDConfig.fill_depth_px`` = ``FILL_DEPTH_PX``, ``gensplat cache
+  --fill-depth``);
 * ``forward_warp`` / ``forward_warp_sensor``: every left + right pixel forward-projected with
   its clean / sensor depth to the perturbed camera (``warp.forward_warp``: nearest pixel,
   z-buffer, no Gaussians), the baseline the RGB-D path must beat;
@@ -90,9 +93,11 @@ from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 
 REPO = "gensplat/sim_pick_place_heldout"
 HELDOUT_SEED = 1000
-METHODS = ("rgbd", "rgbd_fill", "rgbd_sensor", "forward_warp", "forward_warp_sensor", "gensplat_small",
+METHODS = ("rgbd", "rgbd_fill", "rgbd_sensor", "rgbd_sensor_fill", "rgbd_sensor_depth_fill", "forward_warp",
+           "forward_warp_sensor", "gensplat_small",
            "geometry_small", "geometry_small_metric", "geometry_small_metric_fill", "source_image", "homography")  # fmt: skip
 SENSOR = SensorDepthConfig()
+FILL_DEPTH_PX = 8  # rgbd_sensor_depth_fill: the sensor's holes filled before the discs (gensplat cache --fill-depth 8)
 RESULTS = Path(__file__).parent / "results"
 PLOT_MAX_DB = 40.0
 
@@ -193,6 +198,7 @@ def compare_frame(views: Views, truth: GroundTruth, ep: int, fr: int, model, arg
     rgbd, rgbd_ms = timed(RGBDReconstructor().reconstruct, views)
     sensor = sensor_views(views, seed=1000 * ep + fr)
     rgbd_s, rgbd_s_ms = timed(RGBDReconstructor().reconstruct, sensor)
+    rgbd_sd, rgbd_sd_ms = timed(RGBDReconstructor(fill_depth_px=FILL_DEPTH_PX).reconstruct, sensor)
     if not isinstance(model, str):
         mrec, model_ms = timed(model.reconstruct, Views(views.images, cams))  # RGB only
         geometry = {name: timed(frame_size_geometry, GeometryReconstructor(model.model, scale=scale), views.images, cams)
@@ -212,6 +218,11 @@ def compare_frame(views: Views, truth: GroundTruth, ep: int, fr: int, model, arg
             views_of["homography"] = (warped, 0.0, ms)
             out_s, ms = timed(render, rgbd_s.gaussians, target, backend="fast", return_depth=False)
             views_of["rgbd_sensor"] = (out_s.rgb[0], rgbd_s_ms, ms)
+            filled_s, fill_ms = timed(fill_holes, out_s.rgb, out_s.alpha)
+            views_of["rgbd_sensor_fill"] = (filled_s[0], rgbd_s_ms, ms + fill_ms)
+            out_sd, ms = timed(render, rgbd_sd.gaussians, target, backend="fast", return_depth=False)
+            filled_sd, fill_ms = timed(fill_holes, out_sd.rgb, out_sd.alpha)
+            views_of["rgbd_sensor_depth_fill"] = (filled_sd[0], rgbd_sd_ms, ms + fill_ms)
             (fw, warp_mask), ms = timed(forward_warp, views.images, views.depths, cams, target)
             views_of["forward_warp"] = (fw[0], 0.0, ms)
             (fw_s, warp_mask_s), ms = timed(forward_warp, sensor.images, sensor.depths, cams, target)
@@ -229,7 +240,7 @@ def compare_frame(views: Views, truth: GroundTruth, ep: int, fr: int, model, arg
                         views_of[name + "_fill"] = (filled_g[0], grec_ms, ms + fill_ms)
             coverage = float(seen.float().mean())
             for method, (image, rec_ms, ren_ms) in views_of.items():
-                mask = warp_mask_s[0] if method.endswith("_sensor") else warp_mask[0]
+                mask = warp_mask_s[0] if "_sensor" in method else warp_mask[0]
                 rows.append({"method": method, "level": level, "episode": ep, "frame": fr, **p.as_dict(),
                              **score(image, gt, seen, mask), "coverage": coverage,
                              "reconstruct_ms": rec_ms, "render_ms": ren_ms})  # fmt: skip
@@ -269,6 +280,7 @@ def plot(table: dict, path: Path) -> None:
     panels = (("psnr", "PSNR, whole image (dB)"), ("psnr_visible", "PSNR, pixels seen by the sources (dB)"),
               ("psnr_warp_mask", "PSNR, pixels the forward warp fills (dB)"))  # fmt: skip
     colours = {"rgbd": (31, 119, 180), "rgbd_fill": (255, 127, 14), "rgbd_sensor": (23, 190, 207),
+               "rgbd_sensor_fill": (31, 60, 110), "rgbd_sensor_depth_fill": (0, 150, 120),
                "forward_warp": (140, 86, 75), "forward_warp_sensor": (227, 119, 194),
                "gensplat_small": (44, 160, 44), "geometry_small": (90, 90, 90),
                "geometry_small_metric": (188, 189, 34), "geometry_small_metric_fill": (107, 110, 207),

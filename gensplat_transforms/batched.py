@@ -99,7 +99,7 @@ def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None 
     images = torch.stack([_stacked(batch[cfg.image_key.format(name=n)][rows], T, h, w) for n in cfg.cameras], 2)
     f64 = torch.float64
     means, quats, scales, dc, keep = (t.flatten(2, 3).flatten(0, 1) for t in dense_discs(  # (S*T, V*n, ...)
-        discs.clean_depth(depth).to(f64), images.to(f64), batch["gensplat.K"][rows].to(f64),
+        discs.disc_depth(depth).to(f64), images.to(f64), batch["gensplat.K"][rows].to(f64),
         batch["gensplat.c2w"][rows].to(f64), discs.cfg))  # fmt: skip
     sh = dc[:, :, None]
     if discs.cfg.sh_degree > 0:

@@ -77,6 +77,11 @@ def build_parser() -> argparse.ArgumentParser:
     cache.add_argument("--copy-depth", dest="link_depth", action="store_false",
                        help="rgbd: store a compressed copy of the dataset's depth (4-17 kB per timestep) instead of "
                             "linking its depth files, e.g. when the dataset is on slow network storage (default: link)")
+    cache.add_argument("--fill-depth", type=int, default=0, metavar="PIXELS",
+                       help="rgbd: give pixels without depth within PIXELS of measured depth the farthest depth "
+                            "around them before the discs are built, for a depth sensor's holes: closer to the "
+                            "truth near the source pose, less so for large moves (benchmarks/nvs_fidelity.py, "
+                            "rgbd_sensor_depth_fill; default: 0, none)")
     cache.add_argument("--reconstructor", choices=["rgbd", "geometry", "gensplat"], default=None,
                        help="rgbd: the dataset's depth; geometry: depth from a Pi3-compatible model, RGB-D discs; "
                             "gensplat: the model's own Gaussian head (default: rgbd when the cameras have depth, "
@@ -284,6 +289,11 @@ def _cache(args) -> None:
         render_in=args.render_in, render_scale=args.render_scale, depth_unit=args.depth_unit,
     )  # fmt: skip
     spec = None if args.reconstructor is None else {"name": args.reconstructor}
+    if args.fill_depth:
+        if args.reconstructor not in (None, "rgbd") or not LeRobotSource(args.root, args.repo_id, cameras).has_depth():
+            raise SystemExit("gensplat cache: --fill-depth fills the holes of measured depth: it needs the rgbd "
+                             "reconstructor and cameras with depth")  # fmt: skip
+        spec = {"name": "rgbd", "config": {"fill_depth_px": args.fill_depth}}
     if args.model or args.max_pixels is not None:
         if args.reconstructor == "rgbd":
             raise SystemExit("gensplat cache: --model and --max-pixels need --reconstructor geometry or gensplat")

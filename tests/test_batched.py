@@ -17,7 +17,7 @@ from gensplat_transforms.cameras import Cameras, rigid_inverse
 from gensplat_transforms.dataset_format import DepthSensor
 from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
 from gensplat_transforms.gaussians import Gaussians
-from gensplat_transforms.reconstruction import Reconstructor, RGBDReconstructor
+from gensplat_transforms.reconstruction import Reconstructor, RGBDReconstructor, Views
 from gensplat_transforms.rendering import gsplat_backend
 from gensplat_transforms.transform import BATCH_KEYS, GenSplatConfig, GenSplatTransform
 
@@ -84,6 +84,29 @@ def test_uint8_images_and_one_replaced_camera_match_the_worker(setup):
     assert got[RIGHT].dtype == torch.uint8
     assert_same_batch(expected, got, atol=1)
     assert torch.equal(got[LEFT], torch.stack([item[LEFT] for item in items]))
+
+
+def test_depth_holes_filled_before_the_discs_match_the_worker(tmp_path):
+    """A cache of depth with sensor-like holes (a stored copy) and fill_depth_px: the batch path
+    builds its discs from the same filled depth as the worker."""
+
+    class Holed(SceneEpisodes):
+        def views(self, episode, frame):
+            views = super().views(episode, frame)
+            depth = views.depths.clone()
+            depth[..., 10:13, :] = 0  # a 3-row band without depth in every view
+            return Views(views.images, views.cameras, depth)
+
+    source = Holed(num_episodes=1, num_frames=2, size=32)
+    cache = GaussianCache(tmp_path, RGBDReconstructor(fill_depth_px=2), source.fingerprint)
+    build_cache(cache, source, range(1), progress=False)
+    assert not cache.read_depth(0, 0)[0][..., 11, :].any()  # stored as measured
+    items = [SceneDataset(source)[i] for i in range(2)]
+    expected, got = both_ways(cache, items, seed=0, probability=1.0)
+    assert_same_batch(expected, got, atol=1e-5)
+    unfilled = GaussianCache(tmp_path / "plain", RGBDReconstructor(), source.fingerprint)
+    build_cache(unfilled, source, range(1), progress=False)
+    assert not torch.equal(both_ways(unfilled, items, seed=0, probability=1.0)[1][LEFT], got[LEFT])
 
 
 def test_temporal_stacks_and_resized_images_match_the_worker(setup):

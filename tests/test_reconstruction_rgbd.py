@@ -254,3 +254,39 @@ def test_compiled_discs_scale_with_the_depth_and_stay_finite():
         extreme[1, 10, 3] = value  # a single pixel
         out = surface_discs(extreme, *args)
         assert len(out[0]) == (extreme > 0).sum() and all(torch.isfinite(t).all() for t in out[:4])
+
+
+def test_fill_depth_gives_small_holes_the_farthest_depth_around():
+    """A pixel between a near box (1 m) and the table behind (2 m) takes the table's depth; a
+    wider gap fills from both sides, a pixel a round; a hole wider than twice the steps keeps
+    its centre empty; no holes or steps 0: the map itself; negative steps are refused."""
+    from gensplat_transforms.reconstruction.depth_fill import fill_depth
+
+    assert torch.equal(fill_depth(torch.tensor([[1.0, 0.0, 2.0]]), 1), torch.tensor([[1.0, 2.0, 2.0]]))
+    row = torch.tensor([[1.0, 1.0, 0.0, 0.0, 2.0, 2.0]])
+    assert torch.equal(fill_depth(row, 2), torch.tensor([[1.0, 1.0, 1.0, 2.0, 2.0, 2.0]]))
+    wide = torch.cat([torch.ones(2), torch.zeros(7), torch.ones(2)])[None].expand(3, 11).contiguous()
+    filled = fill_depth(wide, 3)
+    assert filled[:, 2:5].eq(1).all() and filled[:, 6:9].eq(1).all() and not filled[:, 5].any()
+    assert fill_depth(wide, 0) is wide and fill_depth(torch.ones(4, 4), 5).eq(1).all()
+    with pytest.raises(ValueError, match="steps must be >= 0"):
+        fill_depth(wide, -1)
+
+
+def test_filled_sensor_holes_get_discs_and_the_source_view_back(scene_views):
+    """Depth with sensor-like holes (random pixels and a 6-pixel band): with fill_depth_px the
+    holes get discs coloured by the image, so the source view comes back closer to the
+    image; the default keeps the identity it always had, filling changes it."""
+    _, cams, images, depths = scene_views
+    holed = depths.clone()
+    holed[torch.rand(holed.shape, generator=torch.Generator().manual_seed(0)) < 0.05] = 0
+    holed[..., 20:26, :] = 0
+    views = Views(images[:1], cams[:1], holed[:1])
+    plain, filled = RGBDReconstructor().reconstruct(views), RGBDReconstructor(fill_depth_px=4).reconstruct(views)
+    assert len(filled.gaussians) == SIZE * SIZE > len(plain.gaussians)
+    back = [render(r.gaussians, cams[0], backend="fast").rgb[0] for r in (plain, filled)]
+    assert psnr(back[1], images[0]) > psnr(back[0], images[0]) + 3
+    assert RGBDReconstructor().identity() == "rgbd-b4a28c8cc49722ec"  # caches built before stay valid
+    assert RGBDReconstructor(fill_depth_px=4).identity() != RGBDReconstructor().identity()
+    with pytest.raises(ValueError, match="fill_depth_px"):
+        RGBDReconstructor(fill_depth_px=-1)

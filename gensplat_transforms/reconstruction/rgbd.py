@@ -27,6 +27,7 @@ from ..gaussians import Gaussians
 from ..rotations import rotmat_to_quat
 from ..sh import num_sh_bases, rgb_to_sh_dc
 from .base import DepthReconstructor, Reconstruction, Views, valid_depth
+from .depth_fill import fill_depth
 from .discs_fast import surface_discs
 
 
@@ -46,6 +47,10 @@ class RGBDConfig:
         max_depth: ignore pixels farther than this (metres); None keeps all.
         stride: keep every ``stride``-th pixel in u and v (density 1/stride^2); the splat
             size grows with the stride so the surface stays covered.
+        fill_depth_px: pixels without depth within this many pixels of depth get the
+            farthest depth around them before the discs are built (:mod:`.depth_fill`: a
+            depth sensor's holes, whose colours the image has); 0 fills none. Stored depth
+            stays as measured.
     """
 
     sigma_px: float = 0.4
@@ -56,12 +61,14 @@ class RGBDConfig:
     sh_degree: int = 0
     max_depth: float | None = None
     stride: int = 1
+    fill_depth_px: int = 0
 
     def __post_init__(self) -> None:
         checks = {
             "sigma_px": self.sigma_px > 0, "thickness": self.thickness >= 0,
             "max_stretch": self.max_stretch >= 1, "stride": self.stride >= 1,
             "edge_scale": 0 < self.edge_scale <= 1,
+            "fill_depth_px": isinstance(self.fill_depth_px, int) and self.fill_depth_px >= 0,
         }  # fmt: skip
         for name, ok in checks.items():
             if not ok:
@@ -94,7 +101,10 @@ class RGBDReconstructor(DepthReconstructor):
         self.fast = fast
 
     def config(self) -> dict:
-        return asdict(self.cfg)
+        config = asdict(self.cfg)
+        if not config["fill_depth_px"]:  # unset: identities as before
+            del config["fill_depth_px"]
+        return config
 
     def predict_depth(self, views: Views) -> Views:
         """The given depth, 0 where invalid (see :func:`.base.valid_depth`) or beyond
@@ -110,9 +120,14 @@ class RGBDReconstructor(DepthReconstructor):
             valid &= z <= self.cfg.max_depth
         return torch.where(valid, z, torch.zeros_like(z))
 
+    def disc_depth(self, depths: torch.Tensor) -> torch.Tensor:
+        """The depth the discs are built from: :meth:`clean_depth` with its small holes
+        filled (``fill_depth_px``)."""
+        return fill_depth(self.clean_depth(depths), self.cfg.fill_depth_px)
+
     def assemble(self, views: Views) -> Reconstruction:
         _require_depth(views)
-        depths, cfg = self.clean_depth(views.depths), self.cfg
+        depths, cfg = self.disc_depth(views.depths), self.cfg
         if self.fast:  # all views in one compiled pass, into one set of arrays
             means, quats, scales, dc, pixel_ids = surface_discs(
                 depths[:, 0], views.images, views.cameras.K, views.cameras.c2w, cfg.stride, cfg.sigma_px,
