@@ -79,9 +79,8 @@ def build_parser() -> argparse.ArgumentParser:
                             "linking its depth files, e.g. when the dataset is on slow network storage (default: link)")
     cache.add_argument("--fill-depth", type=int, default=0, metavar="PIXELS",
                        help="rgbd: give pixels without depth within PIXELS of measured depth the farthest depth "
-                            "around them before the discs are built, for a depth sensor's holes: closer to the "
-                            "truth near the source pose, less so for large moves (benchmarks/nvs_fidelity.py, "
-                            "rgbd_sensor_depth_fill; default: 0, none)")
+                            "around them before the discs are built, for a depth sensor's holes (e.g. 8; "
+                            "benchmarks/nvs_fidelity.py, rgbd_sensor_depth_fill; default: 0, none)")
     cache.add_argument("--reconstructor", choices=["rgbd", "geometry", "gensplat"], default=None,
                        help="rgbd: the dataset's depth; geometry: depth from a Pi3-compatible model, RGB-D discs; "
                             "gensplat: the model's own Gaussian head (default: rgbd when the cameras have depth, "

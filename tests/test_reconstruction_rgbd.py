@@ -257,17 +257,20 @@ def test_compiled_discs_scale_with_the_depth_and_stay_finite():
 
 
 def test_fill_depth_gives_small_holes_the_farthest_depth_around():
-    """A pixel between a near box (1 m) and the table behind (2 m) takes the table's depth; a
-    wider gap fills from both sides, a pixel a round; a hole wider than twice the steps keeps
-    its centre empty; no holes or steps 0: the map itself; negative steps are refused."""
-    from gensplat_transforms.reconstruction.depth_fill import fill_depth
+    """A pixel between a near box (1 m) and the table behind (2 m) takes the table's depth, 3 %
+    behind it; a wider gap fills from both sides, a pixel a round; a hole wider than twice the
+    steps keeps its centre empty; measured depth is kept; no holes or steps 0: the map
+    itself; negative steps are refused."""
+    from gensplat_transforms.reconstruction.depth_fill import BEHIND, fill_depth
 
-    assert torch.equal(fill_depth(torch.tensor([[1.0, 0.0, 2.0]]), 1), torch.tensor([[1.0, 2.0, 2.0]]))
+    assert BEHIND == 1.03
+    assert torch.equal(fill_depth(torch.tensor([[1.0, 0.0, 2.0]]), 1), torch.tensor([[1.0, 2.0 * BEHIND, 2.0]]))
     row = torch.tensor([[1.0, 1.0, 0.0, 0.0, 2.0, 2.0]])
-    assert torch.equal(fill_depth(row, 2), torch.tensor([[1.0, 1.0, 1.0, 2.0, 2.0, 2.0]]))
+    assert torch.equal(fill_depth(row, 2), torch.tensor([[1.0, 1.0, BEHIND, 2.0 * BEHIND, 2.0, 2.0]]))
     wide = torch.cat([torch.ones(2), torch.zeros(7), torch.ones(2)])[None].expand(3, 11).contiguous()
     filled = fill_depth(wide, 3)
-    assert filled[:, 2:5].eq(1).all() and filled[:, 6:9].eq(1).all() and not filled[:, 5].any()
+    assert filled[:, 2:5].eq(BEHIND).all() and filled[:, 6:9].eq(BEHIND).all() and not filled[:, 5].any()
+    assert torch.equal(filled[:, :2], wide[:, :2])
     assert fill_depth(wide, 0) is wide and fill_depth(torch.ones(4, 4), 5).eq(1).all()
     with pytest.raises(ValueError, match="steps must be >= 0"):
         fill_depth(wide, -1)
