@@ -293,3 +293,5 @@ def test_filled_sensor_holes_get_discs_and_the_source_view_back(scene_views):
     assert RGBDReconstructor(fill_depth_px=4).identity() != RGBDReconstructor().identity()
     with pytest.raises(ValueError, match="fill_depth_px"):
         RGBDReconstructor(fill_depth_px=-1)
+    near_limit = RGBDReconstructor(fill_depth_px=1, max_depth=2.0)  # filled 3 % behind 1.99 m: beyond it
+    assert torch.equal(near_limit.disc_depth(torch.tensor([[1.0, 0.0, 1.99]])), torch.tensor([[1.0, 0.0, 1.99]]))

@@ -122,8 +122,9 @@ class RGBDReconstructor(DepthReconstructor):
 
     def disc_depth(self, depths: torch.Tensor) -> torch.Tensor:
         """The depth the discs are built from: :meth:`clean_depth` with its small holes
-        filled (``fill_depth_px``)."""
-        return fill_depth(self.clean_depth(depths), self.cfg.fill_depth_px)
+        filled (``fill_depth_px``; a fill put behind ``max_depth`` is dropped again)."""
+        clean = self.clean_depth(depths)
+        return self.clean_depth(fill_depth(clean, self.cfg.fill_depth_px)) if self.cfg.fill_depth_px else clean
 
     def assemble(self, views: Views) -> Reconstruction:
         _require_depth(views)
