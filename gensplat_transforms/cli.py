@@ -273,7 +273,7 @@ def _dispatch(args) -> int:
 
 def _cache(args) -> None:
     try:
-        from gensplat_lerobot import LeRobotSource, prepare
+        from gensplat_lerobot import LeRobotSource, load_settings, prepare
     except ImportError as e:
         raise SystemExit(f"gensplat cache needs the LeRobot extra: pip install 'gensplat-transforms[lerobot]' ({e})")
     from .cache import size_text
@@ -320,6 +320,12 @@ def _cache(args) -> None:
     print(f"{who}cached {len(built)} episode(s) ({len(stats) - len(built)} already valid) on {len(ranks)} "
           f"process(es) in {seconds:.2f} s, {cpu_s:.2f} CPU s ({len(built) / seconds:.3f} episodes/s): "
           f"{frames} timesteps, {size_text(size)}, {size_text(size / max(frames, 1))} per timestep{per}")
+    source = LeRobotSource(args.root, args.repo_id, cameras)
+    sensed = [n for n in cameras if n in source.depth_features]
+    if sensed and not args.fill_depth and load_settings(args.root)[1]["name"] == "rgbd":
+        print(f"tip: the depth of {', '.join(sensed)} is a sensor's (LeRobot depth maps): --fill-depth 8 gives its "
+              "small holes depth before the discs are built (+1.09 dB PSNR at the source pose, +0.33 dB at large "
+              "moves on a simulated RealSense; docs/reconstruction.md)")  # fmt: skip
 
 
 def _train_model(args) -> None:

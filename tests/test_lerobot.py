@@ -596,7 +596,7 @@ def test_a_build_decodes_only_the_reconstructed_cameras_videos_and_gets_the_same
 
 
 @pytest.mark.parametrize(("depth_as", "error_m"), [("feature", 0.5e-3), ("video", 2e-3)])
-def test_lerobots_own_depth_features_are_read_and_copied_into_the_cache(tmp_path, depth_as, error_m):
+def test_lerobots_own_depth_features_are_read_and_copied_into_the_cache(tmp_path, depth_as, error_m, capsys):
     """A dataset whose cameras' depth is LeRobot's depth-map feature (observation.images.<cam>_depth,
     uint16 mm, as LeRobot records a RealSense: PNG images, or its 12-bit log-quantised HEVC
     video beside MP4 colour video) and no sidecars: the RGB-D path is chosen, the views carry
@@ -651,6 +651,10 @@ def test_lerobots_own_depth_features_are_read_and_copied_into_the_cache(tmp_path
             "(its input_features)" if right_depth not in reads
             else f"  depth maps {LEFT}_depth, {right_depth} rendered at the new poses too, in m")  # fmt: skip
     assert main(["cache", "--root", str(root), "--repo-id", REPO, "--keep-depth-maps", "--probability", "1"]) == 0
+    tip = "tip: the depth of left, right is a sensor's (LeRobot depth maps): --fill-depth 8 gives its small holes"
+    assert tip in capsys.readouterr().out
+    assert main(["cache", "--root", str(root), "--repo-id", REPO, "--keep-depth-maps", "--fill-depth", "8"]) == 0
+    assert "tip:" not in capsys.readouterr().out
     ds = enable_gensplat(LeRobotDataset(REPO, **opened))
     item = ds[2]
     assert torch.equal(item[LEFT + "_depth"], ref[LEFT + "_depth"]) and not torch.equal(item[LEFT], ref[LEFT])
