@@ -548,23 +548,22 @@ def _encode_depth(frames: Iterable[Views], num_frames: int) -> tuple[dict[str, t
     ``predict_depth``, consumed one at a time: only their quantised depth (2 bytes a pixel)
     is held until the episode's reference is known, never their images (see
     :func:`.depth_codec.encode_episode`)."""
-    cameras, shapes = [], []
+    cameras = []
 
     def depths():
-        for f in frames:
-            cameras.append(f.cameras)
-            shapes.append(tuple(f.depths.shape))
+        for f in frames:  # Views match their depth maps to their images, not to their cameras
+            (h, w), cam = f.depths.shape[-2:], f.cameras
+            if (h, w) != (cam.height, cam.width):
+                raise ValueError(f"GaussianCache: depth maps are {w}x{h}, the cameras {cam.width}x{cam.height}")
+            cameras.append(cam)
             yield f.depths[:, 0]  # (V, H, W)
 
     ref, blobs = depth_codec.encode_episode(depths(), num_frames)
     tensors = {"depth.reference": _blob(ref), **{f"depth.f{t}": _blob(b) for t, b in enumerate(blobs)}}
-    v, _, h, w = shapes[0]
     cam = cameras[0]
-    meta = {"image_size": json.dumps([cam.width, cam.height]), "num_views": str(v),
+    meta = {"image_size": json.dumps([cam.width, cam.height]), "num_views": str(len(cam)),
             "depth_codec": json.dumps({"step": depth_codec.STEP, "d_min": depth_codec.D_MIN, "d_max": depth_codec.D_MAX,
                                        "compression": depth_codec.COMPRESSION})}  # fmt: skip
-    if (h, w) != (cam.height, cam.width):
-        raise ValueError(f"GaussianCache: depth maps are {w}x{h}, the cameras {cam.width}x{cam.height}")
     return {**tensors, **_cameras(cameras)}, meta
 
 

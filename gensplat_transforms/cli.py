@@ -277,11 +277,12 @@ def _cache(args) -> None:
     except ImportError as e:
         raise SystemExit(f"gensplat cache needs the LeRobot extra: pip install 'gensplat-transforms[lerobot]' ({e})")
     from .cache import size_text
-    from .dataset_format import GENSPLAT_DIR
+    from .dataset_format import GENSPLAT_DIR, depth_path
     from .distributed import Shard, gather
     from .transform import GenSplatConfig
 
-    cameras = tuple(args.cameras or LeRobotSource(args.root, args.repo_id).camera_names)
+    source = LeRobotSource(args.root, args.repo_id, tuple(args.cameras) if args.cameras else None)
+    cameras = source.camera_names
     config = GenSplatConfig(
         cameras=cameras, replace=args.replace, level=args.level, probability=args.probability, mode=args.mode,
         views_per_source=args.views_per_source, seed=args.seed, backend=args.backend, fill_holes=args.fill_holes,
@@ -289,7 +290,7 @@ def _cache(args) -> None:
     )  # fmt: skip
     spec = None if args.reconstructor is None else {"name": args.reconstructor}
     if args.fill_depth:
-        if args.reconstructor not in (None, "rgbd") or not LeRobotSource(args.root, args.repo_id, cameras).has_depth():
+        if args.reconstructor not in (None, "rgbd") or not source.has_depth():
             raise SystemExit("gensplat cache: --fill-depth fills the holes of measured depth: it needs the rgbd "
                              "reconstructor and cameras with depth")  # fmt: skip
         spec = {"name": "rgbd", "config": {"fill_depth_px": args.fill_depth}}
@@ -320,8 +321,7 @@ def _cache(args) -> None:
     print(f"{who}cached {len(built)} episode(s) ({len(stats) - len(built)} already valid) on {len(ranks)} "
           f"process(es) in {seconds:.2f} s, {cpu_s:.2f} CPU s ({len(built) / seconds:.3f} episodes/s): "
           f"{frames} timesteps, {size_text(size)}, {size_text(size / max(frames, 1))} per timestep{per}")
-    source = LeRobotSource(args.root, args.repo_id, cameras)
-    sensed = [n for n in cameras if n in source.depth_features]
+    sensed = [n for n in cameras if n in source.depth_features and not depth_path(args.root, n, 0).exists()]
     if sensed and not args.fill_depth and load_settings(args.root)[1]["name"] == "rgbd":
         print(f"tip: the depth of {', '.join(sensed)} is a sensor's (LeRobot depth maps): --fill-depth 8 gives its "
               "small holes depth before the discs are built (+1.09 dB PSNR at the source pose, +0.33 dB at large "
