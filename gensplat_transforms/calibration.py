@@ -19,6 +19,9 @@ Conventions of the input file (JSON, or YAML when it ends in ``.yaml``/``.yml``)
 ``mount`` is ``external`` (default) or ``wrist`` (no c2w needed). ``width``/``height``
 (nerfstudio: ``w``/``h``), when given and not the dataset's image size, rescale K to it.
 Distortion coefficients must be zero: GenSplat renders pinhole views of undistorted images.
+Focal lengths must give a field of view 2 atan(size / 2f) within :data:`FOV_RANGE` (fx on
+the width, fy on the height; 1 to 179 degrees: f from 0.0044 to 57 times the size), and K
+no skew. A file is at most :data:`MAX_FILE_BYTES`, UTF-8, and a YAML file has no aliases.
 
 ``depth`` (``gensplat`` and ``opencv-w2c``; optional): the camera's depth maps are its depth
 sensor's own, not registered to the colour image (LeRobot 0.6 records a RealSense's depth so):
@@ -48,6 +51,7 @@ from .dataset_format import (
     DepthSensor,
     calibration_path,
     camera_info,
+    image_sizes,
 )
 
 CONVENTIONS = ("auto", "gensplat", "opencv-w2c", "nerfstudio")
@@ -56,6 +60,12 @@ _FIELDS = {"gensplat": {*_INTRINSICS, "c2w", "mount", "width", "height", "depth"
            "opencv-w2c": {*_INTRINSICS, "R", "rvec", "t", "mount", "width", "height", "depth"}}  # fmt: skip
 _SENSOR_FIELDS = {*_INTRINSICS, "width", "height", "to_camera"}
 _DISTORTION = ("dist", "k1", "k2", "k3", "k4", "p1", "p2")
+#: calibration.json's ``info`` keys (:func:`.dataset_format.camera_info`) as the gensplat convention's
+_STORED = {"camera.intrinsics": "K", "camera.extrinsics": "c2w", "camera.mount": "mount",
+           "camera.depth": "depth"}  # fmt: skip
+MAX_FILE_BYTES = 1_000_000
+#: degrees: a focal length outside it is a unit or typing mistake (black or degenerate views)
+FOV_RANGE = (1.0, 179.0)
 
 
 def calibrate(root: str | Path, source: str | Path, convention: str = "auto") -> dict[str, CameraCalibration]:
@@ -70,9 +80,12 @@ def calibrate(root: str | Path, source: str | Path, convention: str = "auto") ->
     if not info_path.is_file():
         raise FileNotFoundError(f"{root}: not a local LeRobot dataset ({info_path} does not exist)")
     features = json.loads(info_path.read_text())["features"]
-    sizes = {k[len(IMAGE_KEY_PREFIX) :]: (ft["shape"][1], ft["shape"][0])
-             for k, ft in features.items() if k.startswith(IMAGE_KEY_PREFIX)}  # fmt: skip
-    cameras = read_calibration(source, sizes, convention)
+    cameras = read_calibration(source, image_sizes(features), convention)
+    own = [n for n in cameras if "camera.intrinsics" in (features[IMAGE_KEY_PREFIX + n].get("info") or {})]
+    if own:
+        raise ValueError(f"{source}: camera(s) {own} already carry calibration in {info_path} "
+                         "(camera.intrinsics in their feature's info), which is used instead of "
+                         "calibration.json: leave them out")  # fmt: skip
     data = {"format": CALIBRATION_FORMAT,
             "cameras": {n: camera_info(c.K, c.c2w, c.mount, c.depth) for n, c in cameras.items()}}  # fmt: skip
     atomic_write_json(calibration_path(root), data)
@@ -94,6 +107,30 @@ def read_calibration(source: str | Path, sizes: dict[str, tuple[int, int]],
     if convention == "auto":
         convention = _detect(data)
     entries = _nerfstudio_entries(source, data) if convention == "nerfstudio" else data
+    return _cameras(source, entries, sizes, convention)
+
+
+def stored_cameras(path: Path, cameras, sizes: dict[str, tuple[int, int]]) -> dict[str, CameraCalibration]:
+    """Validated cameras of calibration.json's ``cameras`` (name -> ``info``) that are in
+    ``sizes``, by the checks of an input file in the gensplat convention."""
+    if not isinstance(cameras, dict):
+        raise ValueError(f"{path}: field cameras: expected a mapping of camera names, got {cameras!r:.80}")  # noqa: TRY004
+    entries = {n: _from_info(info) for n, info in cameras.items() if n in sizes}
+    return _cameras(path, entries, sizes, "gensplat")
+
+
+def _from_info(info):
+    """calibration.json's ``info`` of a camera with the gensplat convention's field names."""
+    if not isinstance(info, dict):
+        return info
+    entry = {_STORED.get(k, k): v for k, v in info.items()}
+    if isinstance(entry.get("depth"), dict):
+        entry["depth"] = {"K" if k == "intrinsics" else k: v for k, v in entry["depth"].items()}
+    return entry
+
+
+def _cameras(source: Path, entries: dict, sizes: dict[str, tuple[int, int]], convention: str):
+    """Validated cameras of ``entries`` (name -> parsed entry of ``convention``)."""
     out = {}
     for name, entry in entries.items():
         where = f"{source}: camera {name!r}"
@@ -114,27 +151,43 @@ def _detect(data: dict) -> str:
 
 
 def _load(path: Path):
-    text = path.read_text()
+    """The parsed file: at most MAX_FILE_BYTES of UTF-8 JSON, or YAML without aliases."""
+    size = path.stat().st_size
+    if size > MAX_FILE_BYTES:
+        raise ValueError(f"{path}: {size} bytes; a calibration file is at most {MAX_FILE_BYTES} bytes")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path}: not UTF-8 text ({e}); save it as UTF-8") from None
     if path.suffix.lower() in (".yaml", ".yml"):
         import yaml
 
-        try:
+        try:  # aliases are refused before any is expanded (nested ones grow exponentially)
+            if any(isinstance(e, yaml.AliasEvent) for e in yaml.parse(text, Loader=yaml.SafeLoader)):
+                raise ValueError(f"{path}: YAML aliases (*name) are not allowed in a calibration file; "
+                                 "write the values out")  # fmt: skip
             return yaml.safe_load(text)
-        except yaml.YAMLError as e:
+        except (yaml.YAMLError, RecursionError) as e:
             raise ValueError(f"{path}: not valid YAML ({e})") from None
     try:
         return json.loads(text)
-    except json.JSONDecodeError as e:
+    except (ValueError, RecursionError) as e:  # invalid JSON, an integer of over 4300 digits, deep nesting
         raise ValueError(f"{path}: not valid JSON ({e}); YAML files must end in .yaml or .yml") from None
 
 
 def _nerfstudio_entries(source: Path, data: dict) -> dict[str, dict]:
     """One ``gensplat``-like entry per frame, named by its file: c2w still in OpenGL axes."""
     top = {k: v for k, v in data.items() if k != "frames"}
+    frames = data.get("frames")
+    if not isinstance(frames, list) or not frames:
+        raise ValueError(f"{source}: field frames: a nerfstudio file needs a non-empty list of frames, "
+                         f"got {frames!r:.80}")  # fmt: skip
     entries = {}
-    for i, frame in enumerate(data["frames"]):
-        if "file_path" not in frame or "transform_matrix" not in frame:
-            raise ValueError(f"{source}: frames[{i}] needs file_path and transform_matrix")
+    for i, frame in enumerate(frames):
+        if not (isinstance(frame, dict) and isinstance(frame.get("file_path"), str) and "transform_matrix"
+                in frame and isinstance(frame.get("intrinsics", {}), dict)):  # fmt: skip
+            raise ValueError(f"{source}: frames[{i}] must be a mapping with file_path (a string), "
+                             "transform_matrix and optionally intrinsics (a mapping)")  # fmt: skip
         name = Path(frame["file_path"]).stem
         if name in entries:
             raise ValueError(f"{source}: camera {name!r} (from file_path) appears in several frames")
@@ -190,10 +243,7 @@ def _sensor(where: str, entry, convention: str) -> DepthSensor:
     if unknown or "to_camera" not in entry or "width" not in entry or "height" not in entry:
         raise ValueError(f"{where}: needs K (or fx, fy, cx, cy), width, height and to_camera (the depth "
                          f"maps' size and the sensor-to-camera transform){f'; unknown {unknown}' if unknown else ''}")  # fmt: skip
-    width, height = (_number(where, k, entry[k]) for k in ("width", "height"))
-    if width != int(width) or height != int(height) or width < 1 or height < 1:
-        raise ValueError(f"{where}: width and height must be positive whole numbers, got {width}, {height}")
-    size = int(width), int(height)
+    size = _size(where, entry)
     K = _intrinsics(where, entry, size, shift=0.5 if convention == "opencv-w2c" else 0.0)
     to_camera = _matrix(where, "to_camera", entry["to_camera"], (4, 4))
     try:
@@ -215,12 +265,17 @@ def _intrinsics(where: str, entry: dict, size: tuple[int, int], shift: float) ->
         K = torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=torch.float64)
     K[:2, 2] += shift
     width, height = size
-    given = entry.get("width"), entry.get("height")
-    if any(v is not None for v in given):
-        w, h = (_number(where, k, v) for k, v in zip(("width", "height"), given))
-        if (w, h) != (width, height):
-            K[0] *= width / w
-            K[1] *= height / h
+    if entry.get("width") is not None or entry.get("height") is not None:
+        w, h = _size(where, entry)
+        K[0] *= width / w
+        K[1] *= height / h
+    fov = [math.degrees(2 * math.atan2(n, 2 * float(f))) for n, f in ((width, K[0, 0]), (height, K[1, 1]))]
+    if not all(FOV_RANGE[0] <= a <= FOV_RANGE[1] for a in fov):
+        raise ValueError(f"{where}, field K: focal lengths must be > 0 and give a field of view of "
+                         f"{FOV_RANGE[0]:g} to {FOV_RANGE[1]:g} degrees: fx, fy = {float(K[0, 0]):g}, "
+                         f"{float(K[1, 1]):g} px give {fov[0]:.3g} x {fov[1]:.3g} degrees at {width}x{height}"
+                         " (focal lengths are in pixels; give width and height when the calibration is for "
+                         "another image size)")  # fmt: skip
     if not (0 <= K[0, 2] <= width and 0 <= K[1, 2] <= height):
         raise ValueError(f"{where}, field K: principal point ({float(K[0, 2]):.1f}, {float(K[1, 2]):.1f}) lies "
                          f"outside the dataset's {width}x{height} image; give width and height when the "
@@ -248,8 +303,9 @@ def _matrix(where: str, field: str, value, shape: tuple[int, ...] | None) -> tor
     """Finite float64 numbers of ``shape`` (any shape for None); raises naming ``field``."""
     try:
         m = torch.tensor(value, dtype=torch.float64)
-    except (TypeError, ValueError, RuntimeError):
-        raise ValueError(f"{where}, field {field}: expected numbers of shape {shape}, got {value!r}") from None
+    except (TypeError, ValueError, RuntimeError, OverflowError):
+        raise ValueError(f"{where}, field {field}: expected numbers of shape {shape}, "
+                         f"got {value!r:.80}") from None  # fmt: skip
     if shape is not None and m.numel() == math.prod(shape) and m.shape != shape:
         m = m.reshape(shape)  # e.g. a (3, 1) tvec or a flat 9-vector
     if shape is not None and m.shape != shape:
@@ -260,6 +316,19 @@ def _matrix(where: str, field: str, value, shape: tuple[int, ...] | None) -> tor
 
 
 def _number(where: str, field: str, value) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise ValueError(f"{where}, field {field}: expected a finite number, got {value!r}")
-    return float(value)
+    try:
+        number = math.nan if isinstance(value, bool) or not isinstance(value, (int, float)) else float(value)
+    except OverflowError:  # an int beyond float's range
+        number = math.inf
+    if not math.isfinite(number):
+        raise ValueError(f"{where}, field {field}: expected a finite number, got {value!r:.80}")
+    return number
+
+
+def _size(where: str, entry: dict) -> tuple[int, int]:
+    """``entry``'s width and height: positive whole numbers."""
+    width, height = (_number(where, k, entry.get(k)) for k in ("width", "height"))
+    if width != int(width) or height != int(height) or width < 1 or height < 1:
+        raise ValueError(f"{where}: width and height (nerfstudio: w, h) must be positive whole numbers, "
+                         f"got {width:g}, {height:g}")  # fmt: skip
+    return int(width), int(height)

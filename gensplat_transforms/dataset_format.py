@@ -16,7 +16,8 @@ which LeRobot keeps in ``meta/info.json``:
 A camera whose feature carries no calibration may take it from
 ``<root>/gensplat/calibration.json`` beside the dataset (written by ``gensplat calibrate``,
 :mod:`.calibration`): ``{"format": "gensplat-calibration", "cameras": {name: info}}`` with
-the same ``info`` entries. The feature's own ``info`` wins where both exist.
+the same ``info`` entries, checked when read as ``gensplat calibrate`` checks its input. The
+feature's own ``info`` wins where both exist.
 
 Metric depth of the external cameras is a sidecar beside the dataset (depth as a LeRobot
 image feature would be fed to the policy as an extra camera):
@@ -99,19 +100,26 @@ def calibration_path(root: str | Path) -> Path:
     return Path(root) / GENSPLAT_DIR / "calibration.json"
 
 
+def image_sizes(features: dict) -> dict[str, tuple[int, int]]:
+    """Camera name -> (width, height) of the image features of LeRobot ``meta.features``."""
+    return {k[len(IMAGE_KEY_PREFIX) :]: (ft["shape"][1], ft["shape"][0])
+            for k, ft in features.items() if k.startswith(IMAGE_KEY_PREFIX)}  # fmt: skip
+
+
 def load_calibration(features: dict, root: str | Path | None = None) -> dict[str, CameraCalibration]:
     """Calibrated cameras (name -> calibration, in feature order) from LeRobot ``meta.features``;
     a camera whose feature has no calibration takes it from :func:`calibration_path` of ``root``
     when given."""
-    saved = saved_calibration(root) if root is not None else {}
+    saved = saved_calibration(root, image_sizes(features)) if root is not None else {}
     out = {}
     for key, ft in features.items():
         if not key.startswith(IMAGE_KEY_PREFIX):
             continue
         name = key[len(IMAGE_KEY_PREFIX) :]
         info = ft.get("info") or {}
-        info = info if "camera.intrinsics" in info else saved.get(name, {})
         if "camera.intrinsics" not in info:
+            if name in saved:
+                out[name] = saved[name]
             continue
         ext, sensor = info.get("camera.extrinsics"), info.get("camera.depth")
         out[name] = CameraCalibration(
@@ -126,18 +134,26 @@ def load_calibration(features: dict, root: str | Path | None = None) -> dict[str
     return out
 
 
-def saved_calibration(root: str | Path) -> dict[str, dict]:
-    """Camera name -> ``info`` entries from :func:`calibration_path` (empty when absent)."""
+def saved_calibration(root: str | Path, sizes: dict[str, tuple[int, int]]) -> dict[str, CameraCalibration]:
+    """The cameras of :func:`calibration_path` among ``sizes`` (name -> (width, height)), checked
+    as ``gensplat calibrate`` checks its input (empty when the file is absent). Raises
+    ``ValueError`` naming the file, camera and field, and the fix."""
+    from .calibration import stored_cameras  # it imports this module
+
     path = calibration_path(root)
     if not path.is_file():
         return {}
+    fix = f"write it again with `gensplat calibrate --root {root} --from FILE`"
     try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{path}: not valid JSON ({e}); write it again with `gensplat calibrate`") from None
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (ValueError, RecursionError) as e:  # not JSON, not UTF-8
+        raise ValueError(f"{path}: not valid JSON ({e}); {fix}") from None
     if not isinstance(data, dict) or data.get("format") != CALIBRATION_FORMAT:
-        raise ValueError(f"{path}: not a GenSplat calibration file; write it with `gensplat calibrate`")
-    return data["cameras"]
+        raise ValueError(f"{path}: not a GenSplat calibration file; {fix}")
+    try:
+        return stored_cameras(path, data.get("cameras"), sizes)
+    except ValueError as e:
+        raise ValueError(f"{e}; {fix}") from None
 
 
 def calibrated_cameras(calib: dict[str, CameraCalibration], names, width: int, height: int) -> Cameras:
