@@ -124,8 +124,18 @@ def build_parser() -> argparse.ArgumentParser:
                     "the camera). JSON, or YAML for files ending in .yaml/.yml.",
     )  # fmt: skip
     calibrate.add_argument("--root", required=True, help="local LeRobot dataset root")
-    calibrate.add_argument("--from", dest="source", required=True, metavar="FILE",
-                           help="calibration file (JSON, or YAML ending in .yaml/.yml)")
+    given = calibrate.add_mutually_exclusive_group(required=True)
+    given.add_argument("--from", dest="source", metavar="FILE",
+                       help="calibration file (JSON, or YAML ending in .yaml/.yml)")
+    given.add_argument("--estimate", action="store_true",
+                       help="estimate the external cameras' intrinsics and poses from the dataset's own frames and "
+                            "depth (SIFT matches + depth, metric; docs/calibration.md)")
+    calibrate.add_argument("--repo-id", default=None, help="--estimate: the dataset's repo id (default: local/<root name>)")
+    calibrate.add_argument("--cameras", nargs="+", default=None,
+                           help="--estimate: the external cameras, the first the reference (default: every colour "
+                                "camera whose name does not contain 'wrist')")
+    calibrate.add_argument("--timesteps", type=int, default=16,
+                           help="--estimate: timesteps sampled across the episodes (default: 16)")
     calibrate.add_argument("--convention", choices=["auto", "gensplat", "opencv-w2c", "nerfstudio"], default="auto",
                            help="how FILE states the cameras; auto: nerfstudio when it has frames, opencv-w2c when "
                                 "cameras have R or rvec, else gensplat (default: auto)")
@@ -247,6 +257,8 @@ def _dispatch(args) -> int:
 
         root, repo_id = record_from_cli(args).root, f"gensplat/sim_{args.task}"
         print(f"repo id {repo_id}, dataset root {root}; next: gensplat cache --root {root} --repo-id {repo_id}")
+    elif args.command == "calibrate" and args.estimate:
+        _estimate(args)
     elif args.command == "calibrate":
         from .calibration import calibrate
         from .dataset_format import calibration_path
@@ -335,8 +347,11 @@ def _train_model(args) -> None:
     from .model.data import ProceduralViews
     from .model.losses import LossWeights
     from .model.teacher import Pi3Teacher, TrueGeometryTeacher
-    from .model.train import TrainConfig, train
+    from .model.train import LOG_FILE, TrainConfig, train
+    from .outputs import check_output
 
+    check_output(args.out, args.root, folder=True)  # against the dataset of --data lerobot
+    check_output(Path(args.out) / LOG_FILE, args.root)  # appended to; the other files are replaced atomically
     loss = LossWeights(l1=args.l1, perceptual=args.perceptual, depth=args.l_depth, points=args.l_3d,
                        camera=args.l_cam)  # fmt: skip
     if args.no_distill:
@@ -387,6 +402,17 @@ def _preview(args) -> None:
         image_transforms=args.image_transforms, seed=args.seed,
     )  # fmt: skip
     print("wrote", preview.png, preview.mp4 or "(no MP4: PyAV is not installed)")
+
+
+def _estimate(args) -> None:
+    from .dataset_format import calibration_path
+
+    estimate = _lerobot_module("estimate", "calibrate --estimate")
+    repo_id = args.repo_id or f"local/{Path(args.root).name}"
+    rig = estimate.estimate_calibration(args.root, repo_id, tuple(args.cameras) if args.cameras else None,
+                                        args.timesteps)  # fmt: skip
+    print("\n".join(estimate.report(rig)))
+    print(f"estimated {', '.join(rig.names)}; written to {calibration_path(args.root)} (the dataset is not modified)")
 
 
 def _import_depth(args) -> None:

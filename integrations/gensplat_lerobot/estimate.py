@@ -1,0 +1,137 @@
+"""Calibration of a LeRobot dataset estimated from its own frames (``gensplat calibrate --estimate``):
+frames sampled across episodes and time, :func:`gensplat_transforms.self_calibration.estimate_rig`,
+the result written to ``<root>/gensplat/calibration.json`` as a given calibration would be,
+with the estimate's spread beside it."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from gensplat_transforms.atomic import atomic_write_json
+from gensplat_transforms.dataset_format import (
+    CALIBRATION_FORMAT,
+    IMAGE_KEY_PREFIX,
+    calibration_path,
+    camera_info,
+    depth_path,
+    load_depth,
+)
+from gensplat_transforms.self_calibration import RigEstimate, estimate_rig
+
+from .source import _is_depth_map, episode_table, read_info, video_backend
+
+#: what the estimate assumes, written beside it and printed
+ASSUMPTIONS = "square pixels, principal point at the image centre, no lens distortion, static cameras"
+
+
+def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...] | None = None,
+                         timesteps: int = 16, progress: bool = True) -> RigEstimate:
+    """Estimate the external ``cameras`` (default: every colour camera whose name does not
+    contain "wrist"; the first is the reference) of the dataset at ``root`` from ``timesteps``
+    frames spread over its episodes and write ``<root>/gensplat/calibration.json``.
+
+    The cameras need metric depth registered to their images (depth sidecars, or LeRobot
+    depth-map features without a ``camera.depth`` sensor block): it gives the scale.
+    Raises ValueError naming what is missing."""
+    root = Path(root)
+    features = read_info(root)["features"]
+    colour = [k[len(IMAGE_KEY_PREFIX) :] for k, ft in features.items()
+              if k.startswith(IMAGE_KEY_PREFIX) and not _is_depth_map(ft)]  # fmt: skip
+    names = tuple(cameras) if cameras else tuple(n for n in colour if "wrist" not in n)
+    unknown = [n for n in names if n not in colour]
+    if unknown:
+        raise ValueError(f"{root}: camera(s) {unknown} are not colour image features of the dataset ({colour})")
+    if len(names) < 2:
+        raise ValueError(f"{root}: estimating calibration needs two external cameras that see the scene, got "
+                         f"{list(names)} (choose them with --cameras)")  # fmt: skip
+    if timesteps < 2:
+        raise ValueError(f"--timesteps must be at least 2, got {timesteps}")
+    calibrated = [n for n in names if "camera.intrinsics" in (features[IMAGE_KEY_PREFIX + n].get("info") or {})]
+    if calibrated:
+        raise ValueError(f"{root}: camera(s) {calibrated} carry calibration in their features, which GenSplat uses; "
+                         "nothing to estimate")  # fmt: skip
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    dataset = LeRobotDataset(repo_id, root=root, video_backend=video_backend(), depth_output_unit="m")
+    depth_keys = {n: f"{IMAGE_KEY_PREFIX}{n}_depth" for n in names}
+    missing = [n for n in names if not depth_path(root, n, 0).exists()
+               and not _is_depth_map(features.get(depth_keys[n]))]  # fmt: skip
+    if missing:
+        raise ValueError(f"{root}: camera(s) {missing} have no depth (no sidecar in depth/<camera>/, no depth-map "
+                         "feature): estimating from RGB alone is not supported yet; give the calibration with "
+                         "`gensplat calibrate --from FILE`")  # fmt: skip
+    sensors = [n for n in names if "camera.depth" in (features.get(depth_keys[n], {}).get("info") or {})]
+    if sensors:
+        raise ValueError(f"{root}: the depth of {sensors} is not registered to the colour images")
+    table = episode_table(dataset.meta)
+    samples, groups = [], []
+    for episode, frame in sample_timesteps(table["length"], timesteps):
+        item = dataset[int(table["dataset_from_index"][episode]) + frame]
+        step = {}
+        for n in names:
+            image = (item[IMAGE_KEY_PREFIX + n].permute(1, 2, 0).clamp(0, 1) * 255).round().byte().numpy()
+            if depth_path(root, n, episode).exists():
+                depth = load_depth(root, n, episode, frame)[0].numpy()
+            else:
+                depth = item[depth_keys[n]].reshape(image.shape[:2]).float().numpy()
+            step[n] = (image, np.asarray(depth, dtype=np.float32))
+        samples.append(step)
+        groups.append(episode)
+    sizes = [(features[IMAGE_KEY_PREFIX + n]["shape"][1], features[IMAGE_KEY_PREFIX + n]["shape"][0]) for n in names]
+    rig = estimate_rig(names, sizes, samples, groups, progress=progress)
+    write_estimate(root, rig)
+    return rig
+
+
+def sample_timesteps(lengths: list[int], count: int) -> list[tuple[int, int]]:
+    """(episode, frame) pairs: up to ``count`` timesteps, from as many evenly spaced episodes
+    as give at least two frames each, evenly spaced within each episode.
+
+    Example:
+        >>> sample_timesteps([10, 10, 10, 10], 4)
+        [(0, 0), (0, 9), (3, 0), (3, 9)]
+    """
+    episodes = min(len(lengths), max(1, count // 2))
+    chosen = sorted({round(i * (len(lengths) - 1) / max(episodes - 1, 1)) for i in range(episodes)})
+    per = max(1, count // len(chosen))
+    return [(e, f) for e in chosen for f in sorted({round(k * (lengths[e] - 1) / max(per - 1, 1)) for k in range(per)})]
+
+
+def write_estimate(root: Path, rig: RigEstimate) -> Path:
+    """``calibration.json`` of an estimated rig: its cameras in the stored calibration's form,
+    and ``estimate``: method, assumptions and each camera's spread."""
+    spread = {n: {"focal_spread": _finite(rig.focal_spread[i]), "rotation_spread_deg": _finite(rig.rotation_spread_deg[i]),
+                  "center_spread_m": _finite(rig.center_spread_m[i]), "matches": rig.matches[i],
+                  "timesteps": rig.timesteps[i], "rms_px": _finite(rig.rms_px[i])}
+              for i, n in enumerate(rig.names)}  # fmt: skip
+    data = {"format": CALIBRATION_FORMAT,
+            "cameras": {n: camera_info(rig.K[i], rig.c2w[i], "external") for i, n in enumerate(rig.names)},
+            "estimate": {"method": "features+depth", "scale": "metric, from the dataset's depth",
+                         "assumptions": ASSUMPTIONS, "reference": rig.names[0], "levelled": rig.levelled,
+                         "cameras": spread}}  # fmt: skip
+    return atomic_write_json(calibration_path(root), data)
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None
+
+
+def report(rig: RigEstimate) -> list[str]:
+    """Lines describing an estimate for the terminal."""
+    lines = []
+    for i, n in enumerate(rig.names):
+        f = float(rig.K[i, 0, 0])
+        fov = math.degrees(2 * math.atan(float(rig.K[i, 0, 2]) / f))
+        line = f"{n}: focal {f:.1f} px ({fov:.1f} deg wide), spread {rig.focal_spread[i]:.2%}"
+        if i:
+            ref = np.linalg.inv(rig.c2w[0].numpy()) @ rig.c2w[i].numpy()
+            angle = math.degrees(math.acos(np.clip((np.trace(ref[:3, :3]) - 1) / 2, -1, 1)))
+            line += (f"; {np.linalg.norm(ref[:3, 3]):.3f} m and {angle:.1f} deg from {rig.names[0]}, spread "
+                     f"{rig.center_spread_m[i] * 100:.1f} cm / {rig.rotation_spread_deg[i]:.2f} deg")  # fmt: skip
+        lines.append(f"{line}; {rig.matches[i]} matches in {rig.timesteps[i]} timesteps, {rig.rms_px[i]:.2f} px rms")
+    level = "levelled on the table plane" if rig.levelled else "no table plane found: world z is the cameras' image up"
+    lines.append(f"scale: metric, from the dataset's depth; world frame {level}; assumed: {ASSUMPTIONS}")
+    return lines
