@@ -297,7 +297,11 @@ def estimate_rig(names: tuple[str, ...], sizes: list[tuple[int, int]], timesteps
                              f"{len(timesteps)} sampled timesteps (need {MIN_MATCHES}): the cameras may see too "
                              "little in common, or the frames too little texture")  # fmt: skip
         first = estimate_pair(pooled, sizes[0], sizes[k])
-        final = estimate_pair(_agreeing(pooled, first, sizes[0], sizes[k]), sizes[0], sizes[k], first)
+        agreeing = _agreeing(pooled, first, sizes[0], sizes[k])
+        if len(agreeing) < MIN_MATCHES:
+            raise ValueError(f"cameras {names[0]!r} and {names[k]!r}: only {len(agreeing)} of {len(pooled)} feature "
+                             "matches agree on one calibration: the cameras may see too little in common")  # fmt: skip
+        final = estimate_pair(agreeing, sizes[0], sizes[k], first)
         parts = []
         for label in dict.fromkeys(groups):
             m = _agreeing(Matches.cat([f for f, g in zip(found, groups) if g == label]), final, sizes[0], sizes[k])

@@ -1,0 +1,197 @@
+"""Calibration estimated from a dataset's own frames and depth (``gensplat calibrate --estimate``)."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from gensplat_transforms.cameras import look_at
+from gensplat_transforms.cli import main
+from gensplat_transforms.dataset_format import calibration_path, load_calibration
+from gensplat_transforms.perturbation import pivot_point
+from gensplat_transforms.self_calibration import (
+    Matches,
+    _agreeing,
+    estimate_pair,
+    level_frame,
+    match_pair,
+    rotation_angle_deg,
+)
+
+
+def _rig(f_a: float = 300.0, f_b: float = 340.0):
+    """Two cameras 0.8 m apart looking at a table from the front, like the simulated rig."""
+    c2w = torch.stack([look_at((1.05, 0.4, 0.5), (0.45, 0.0, 0.12)), look_at((1.05, -0.4, 0.5), (0.45, 0.0, 0.12))])
+    return (f_a, f_b), c2w
+
+
+def _synthetic_matches(n: int = 600, outliers: float = 0.2, pixel_noise: float = 0.3, seed: int = 0):
+    """Matches of random table and object points seen by :func:`_rig` at 320x240, with noise
+    and a share of wrong matches; returns them with the true focal lengths and b_from_a."""
+    g = torch.Generator().manual_seed(seed)
+    (fa, fb), c2w = _rig()
+    table = torch.cat([torch.rand(n, 2, generator=g, dtype=torch.float64) * torch.tensor([0.6, 0.8]) +
+                       torch.tensor([0.15, -0.4]), torch.zeros(n, 1, dtype=torch.float64)], 1)  # fmt: skip
+    table[: n // 3, 2] = torch.rand(n // 3, generator=g, dtype=torch.float64) * 0.25  # objects above it
+    uv, z = [], []
+    for f, T in ((fa, c2w[0]), (fb, c2w[1])):
+        cam = (table - T[:3, 3]) @ T[:3, :3]
+        uv.append(f * cam[:, :2] / cam[:, 2:] + torch.tensor([160.0, 120.0], dtype=torch.float64)
+                  + pixel_noise * torch.randn(n, 2, generator=g, dtype=torch.float64))  # fmt: skip
+        z.append(cam[:, 2] * (1 + 0.002 * torch.randn(n, generator=g, dtype=torch.float64)))
+    wrong = torch.rand(n, generator=g) < outliers
+    uv[1][wrong] = torch.rand(int(wrong.sum()), 2, generator=g, dtype=torch.float64) * torch.tensor([320.0, 240.0])
+    inside = ((uv[0] > 0) & (uv[0] < torch.tensor([320.0, 240.0]))).all(1) & ((uv[1] > 0) & (uv[1] < 320)).all(1)
+    m = Matches(uv[0], z[0], uv[1], z[1]).subset(inside)
+    return m, (fa, fb), torch.linalg.inv(c2w[1]) @ c2w[0]
+
+
+def test_estimate_pair_recovers_focal_lengths_and_pose_with_outliers():
+    m, (fa, fb), b_from_a = _synthetic_matches()
+    e = estimate_pair(m, (320, 240), (320, 240))
+    e = estimate_pair(_agreeing(m, e, (320, 240), (320, 240)), (320, 240), (320, 240), e)
+    assert abs(e.focal_a / fa - 1) < 0.01 and abs(e.focal_b / fb - 1) < 0.01
+    assert float(rotation_angle_deg(e.b_from_a[:3, :3] @ b_from_a[:3, :3].T)) < 0.3
+    assert float((e.b_from_a[:3, 3] - b_from_a[:3, 3]).norm()) < 0.01
+    assert e.rms_px < 1.0
+
+
+def test_estimate_pair_refuses_too_few_matches():
+    m, _, _ = _synthetic_matches(n=20, outliers=0.0)
+    with pytest.raises(ValueError, match="depth-valid matches"):
+        estimate_pair(m, (320, 240), (320, 240))
+
+
+def test_match_pair_finds_the_homography_of_a_textured_plane():
+    """A random texture seen by two cameras related by a homography: every match obeys it and
+    carries the depth of its pixel; no match where depth is missing."""
+    cv2 = pytest.importorskip("cv2")
+    rng = np.random.default_rng(0)
+    texture = cv2.GaussianBlur((rng.random((240, 320, 3)) * 255).astype(np.uint8), (5, 5), 1.2)
+    H = np.array([[0.9, 0.08, 20.0], [-0.05, 0.95, 10.0], [1e-4, 5e-5, 1.0]])
+    warped = cv2.warpPerspective(texture, H, (320, 240))
+    depth_a = np.full((240, 320), 1.5, np.float32)
+    depth_a[:, :40] = 0  # no depth on the left: no matches there
+    depth_b = np.full((240, 320), 2.0, np.float32)
+    m = match_pair(texture, warped, depth_a, depth_b)
+    assert len(m) >= 30
+    pa = np.c_[m.uv_a.numpy() - 0.5, np.ones(len(m))] @ H.T
+    assert np.median(np.linalg.norm(pa[:, :2] / pa[:, 2:] + 0.5 - m.uv_b.numpy(), axis=1)) < 1.0
+    assert (m.uv_a[:, 0] > 40).all() and torch.allclose(m.z_a.float(), torch.tensor(1.5))
+
+
+def test_match_pair_of_blank_images_is_empty():
+    blank = np.full((120, 160, 3), 128, np.uint8)
+    depth = np.ones((120, 160), np.float32)
+    assert len(match_pair(blank, blank, depth, depth)) == 0
+
+
+def test_level_frame_puts_z_up_on_the_table_and_x_towards_the_cameras():
+    """Points of a table (z = 0) and a wall (x = 0) seen by the rig, given in camera 0's frame:
+    the levelled frame finds the table, not the wall, and reproduces the rig's world axes."""
+    _, c2w = _rig()
+    g = torch.Generator().manual_seed(0)
+    table = torch.cat([torch.rand(4000, 2, generator=g, dtype=torch.float64) * 0.8 - torch.tensor([-0.1, 0.4]),
+                       torch.zeros(4000, 1, dtype=torch.float64)], 1)  # fmt: skip
+    wall = torch.cat([torch.full((6000, 1), -0.1, dtype=torch.float64),
+                      torch.rand(6000, 2, generator=g, dtype=torch.float64) * 0.8 - torch.tensor([0.4, 0.0])], 1)  # fmt: skip
+    world = torch.cat([table, wall])
+    ref = torch.linalg.inv(c2w[0])  # the estimate's frame is camera 0's
+    points = world @ ref[:3, :3].T + ref[:3, 3]
+    world_from_ref, levelled = level_frame(points, ref @ c2w)
+    assert levelled
+    found = world_from_ref @ ref @ c2w  # the cameras in the levelled frame
+    assert float(rotation_angle_deg(found[0, :3, :3] @ c2w[0, :3, :3].T)) < 0.5
+    pivot = pivot_point(c2w[0], c2w[1])
+    assert torch.allclose(found[0, :3, 3] - c2w[0, :3, 3], -pivot * torch.tensor([1.0, 1.0, 0.0]), atol=0.01)
+
+
+def test_level_frame_without_a_plane_uses_image_up():
+    _, c2w = _rig()
+    world_from_ref, levelled = level_frame(torch.zeros(0, 3, dtype=torch.float64), c2w)
+    assert not levelled and torch.isfinite(world_from_ref).all()
+    up = (world_from_ref @ c2w)[:, :3, 1].mean(0)  # image y (down) of the levelled cameras
+    assert up[2] < 0
+
+
+# --------------------------------------------------------------------------- on a LeRobot dataset
+lerobot = pytest.importorskip("lerobot", reason="gensplat calibrate --estimate reads LeRobot datasets")
+REPO = "gensplat/sim_pick_place"
+
+
+def _strip_calibration(root) -> None:
+    path = root / "meta" / "info.json"
+    info = json.loads(path.read_text())
+    for ft in info["features"].values():
+        if ft.get("info"):
+            ft["info"] = {k: v for k, v in ft["info"].items() if not k.startswith("camera.")}
+    path.write_text(json.dumps(info, indent=4))
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory):
+    """A 320x240 MP4 recording of the simulated tabletop (with calibration and depth sidecars)."""
+    import gensplat_transforms.sim  # noqa: F401  selects MuJoCo's headless backend before mujoco loads
+
+    pytest.importorskip("mujoco", reason="the simulated world needs the 'sim' extra")
+    from gensplat_transforms.sim.record import RecordConfig, record
+    from gensplat_transforms.sim.world import WorldConfig
+
+    root = tmp_path_factory.mktemp("selfcal") / "calibrated"
+    record(RecordConfig(root, episodes=2, seed=5, max_frames=30, world=WorldConfig(height=240, width=320)),
+           progress=False)  # fmt: skip
+    return root
+
+
+def test_estimate_on_a_recording_without_calibration_matches_the_truth(simulated, tmp_path, capsys):
+    """The whole command on an uncalibrated copy: focal lengths, relative pose, world up and
+    pivot near the recorded calibration; the dataset's own files untouched; the cache builds."""
+    root = tmp_path / "uncalibrated"
+    shutil.copytree(simulated, root, ignore=shutil.ignore_patterns("gensplat"))
+    _strip_calibration(root)
+    before = {p: p.read_bytes() for p in root.rglob("*") if p.is_file()}
+    assert main(["calibrate", "--root", str(root), "--estimate", "--repo-id", REPO, "--timesteps", "8"]) == 0
+    out = capsys.readouterr().out
+    assert "metric, from the dataset's depth" in out and "written to" in out
+    assert {p: p.read_bytes() for p in before} == before  # the dataset is not modified
+    features = json.loads((simulated / "meta" / "info.json").read_text())["features"]
+    truth = load_calibration(features)
+    info = json.loads((root / "meta" / "info.json").read_text())["features"]
+    est = load_calibration(info, root)
+    assert sorted(est) == ["left", "right"]  # the wrist camera is not estimated
+    for n in est:
+        assert abs(float(est[n].K[0, 0] / truth[n].K[0, 0]) - 1) < 0.02
+    rel = lambda c: torch.linalg.inv(c["left"].c2w) @ c["right"].c2w
+    assert float(rotation_angle_deg(rel(est)[:3, :3] @ rel(truth)[:3, :3].T)) < 1.0
+    assert float((rel(est)[:3, 3] - rel(truth)[:3, 3]).norm()) < 0.02
+    up = lambda c: c["left"].c2w[2, :3]
+    assert math.degrees(math.acos(float(up(est) @ up(truth)))) < 2.0
+    pivot = lambda c: torch.linalg.inv(c["left"].c2w) @ torch.cat([pivot_point(c["left"].c2w, c["right"].c2w),
+                                                                    torch.ones(1, dtype=torch.float64)])  # fmt: skip
+    assert float((pivot(est) - pivot(truth)).norm()) < 0.03
+    stored = json.loads(calibration_path(root).read_text())
+    assert stored["estimate"]["cameras"]["right"]["rotation_spread_deg"] < 1.0
+    assert main(["cache", "--root", str(root), "--repo-id", REPO, "--episodes", "0"]) == 0
+
+
+def test_estimate_refuses_what_it_cannot_do(simulated, tmp_path, capsys):
+    """Clear error lines: calibrated features, one camera, unknown cameras, no depth."""
+    def error(root, *extra):
+        assert main(["calibrate", "--root", str(root), "--estimate", "--repo-id", REPO, *extra]) == 2
+        return capsys.readouterr().err
+
+    assert "carry calibration in their features" in error(simulated)
+    root = tmp_path / "uncalibrated"
+    shutil.copytree(simulated, root, ignore=shutil.ignore_patterns("gensplat"))
+    _strip_calibration(root)
+    assert "needs two external cameras" in error(root, "--cameras", "left")
+    assert "not colour image features" in error(root, "--cameras", "left", "nope")
+    assert "--timesteps must be at least 2" in error(root, "--timesteps", "1")
+    shutil.rmtree(root / "depth" / "right")
+    assert "have no depth" in error(root)
+    assert not calibration_path(root).exists()
