@@ -674,8 +674,9 @@ class _EpisodeFile:
             self.lo, self.hi = torch.tensor(lo, dtype=torch.float32), torch.tensor(hi, dtype=torch.float32)
             if self.lo.shape != (3,) or self.hi.shape != (3,) or not torch.isfinite(torch.cat([self.lo, self.hi])).all():
                 raise ValueError(f"bounding box {meta['bbox']} is not two finite 3-vectors")
-        #: (path, bytes, crc) of each linked depth file, in view order; empty when the depth is stored
-        self.links = [(self.path.parent / d["path"], int(d["bytes"]), str(d["crc"]))
+        #: (path, bytes, crc) of each linked depth file, in view order; empty when the depth is stored.
+        #: The relative path is joined lexically, as it was made: <root>/gensplat may link to another disk
+        self.links = [(Path(os.path.normpath(self.path.parent / d["path"])), int(d["bytes"]), str(d["crc"]))
                       for d in json.loads(meta.get("depth_links", "[]"))]  # fmt: skip
         if self.links and len(self.links) != self.num_views:
             raise ValueError(f"{len(self.links)} linked depth files for {self.num_views} views")

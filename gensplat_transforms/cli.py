@@ -214,7 +214,7 @@ def build_parser() -> argparse.ArgumentParser:
     _dataset_arguments(export, " (with gensplat cache's settings)")
     export.add_argument("--episode", type=int, required=True, help="episode index")
     export.add_argument("--frame", type=int, required=True, help="frame index within the episode")
-    export.add_argument("--out", required=True, help="PLY file to write (replaced when it exists)")
+    export.add_argument("--out", required=True, help="PLY file to write, outside the dataset (replaced when it exists)")
 
     return parser
 

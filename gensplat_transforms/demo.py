@@ -4,17 +4,18 @@ views with the simulator's truth at every perturbation level."""
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from pathlib import Path
 
 import torch
 
+from .atomic import atomic_write_json
 from .cache import size_text
 from .dataset_format import GENSPLAT_DIR
 from .images import save_grid
 from .metrics import psnr
+from .outputs import check_output
 from .perturbation import EVAL_LEVELS, PerturbationSampler
 from .preview import write_preview
 from .transform import GenSplatConfig, GenSplatTransform, render_view
@@ -26,7 +27,8 @@ REPO_ID = "gensplat/sim_pick_place"
 def run_demo(out_dir: str | Path, episodes: int = 2, size: int = 224, seed: int = 0, backend: str = "fast",
              log=print) -> dict:
     """Write ``sim_dataset/`` (unless present), ``preview.png``/``preview.mp4``,
-    ``levels.png`` and ``demo.json`` to ``out_dir``; return the summary."""
+    ``levels.png`` and ``demo.json`` to ``out_dir`` (a folder: :func:`.outputs.check_output`);
+    return the summary."""
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     from gensplat_lerobot import enable_gensplat, prepare, video_backend
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -35,7 +37,7 @@ def run_demo(out_dir: str | Path, episodes: int = 2, size: int = 224, seed: int 
     from .sim.truth import GroundTruth
     from .sim.world import WorldConfig
 
-    out_dir = Path(out_dir)
+    out_dir = check_output(out_dir, folder=True)
     root = out_dir / "sim_dataset"
     summary: dict = {"dataset": str(root)}
     if (root / "meta" / "info.json").exists():
@@ -66,7 +68,7 @@ def run_demo(out_dir: str | Path, episodes: int = 2, size: int = 224, seed: int 
     log("wrote " + " and ".join(str(p) for p in paths.values()))
 
     summary["levels"] = _levels(tf, GroundTruth(root), items[length // 2], out_dir / "levels.png", log)
-    (out_dir / "demo.json").write_text(json.dumps(summary, indent=2))
+    atomic_write_json(out_dir / "demo.json", summary)
     log(f"wrote {out_dir / 'levels.png'} and {out_dir / 'demo.json'}")
     log(f"train on it with GenSplat: bash policies/train.sh diffusion gensplat --dataset.root={root} "
         f"(policies/*.json use repo id {REPO_ID})")

@@ -8,6 +8,8 @@ import torch
 from PIL import Image, ImageDraw
 from torchvision.utils import make_grid
 
+from .atomic import atomic_write
+
 
 def to_uint8(image: torch.Tensor) -> torch.Tensor:
     """(3, H, W) float in [0, 1] -> (H, W, 3) uint8."""
@@ -26,7 +28,8 @@ def save_grid(
     pad: int = 4,
 ) -> None:
     """Save a grid of (3, H, W) images (all the same size; ``torchvision.utils.make_grid``,
-    white padding and gaps for short rows) with optional text labels above and to the left."""
+    white padding and gaps for short rows) with optional text labels above and to the left,
+    atomically (:func:`.atomic.atomic_write`) in the format the suffix of ``path`` names."""
     h, w = rows[0][0].shape[-2:]
     left = 110 if row_labels else 0
     top = 18 if col_labels else 0
@@ -42,5 +45,5 @@ def save_grid(
     for i, label in enumerate(row_labels or []):
         for k, line in enumerate(label.split("\n")):
             draw.text((4, top + pad + i * (h + pad) + 4 + 12 * k), line, fill="black")
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    canvas.save(path)
+    image_format = Image.registered_extensions()[Path(path).suffix.lower()]
+    atomic_write(path, lambda tmp: canvas.save(tmp, format=image_format))

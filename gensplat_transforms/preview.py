@@ -8,6 +8,7 @@ from pathlib import Path
 
 import torch
 
+from .atomic import atomic_write
 from .images import save_grid, to_uint8
 
 
@@ -21,7 +22,8 @@ def as_frame(image: torch.Tensor) -> torch.Tensor:
 def save_video(frames: Iterable[torch.Tensor], path: str | Path, fps: int) -> bool:
     """Write (3, H, W) float frames in [0, 1] (all the same size; an odd side loses its last
     pixel; a generator is encoded as it yields) as an MP4 with PyAV (H.264, or MPEG-4 without
-    libx264). Returns False, writing nothing, when PyAV is not installed."""
+    libx264), atomically (:func:`.atomic.atomic_write`). Returns False, writing nothing, when PyAV
+    is not installed."""
     try:
         import av
     except ImportError:
@@ -29,15 +31,19 @@ def save_video(frames: Iterable[torch.Tensor], path: str | Path, fps: int) -> bo
     frames = iter(frames)
     first = next(frames)
     h, w = first.shape[-2:]
-    with av.open(str(path), mode="w") as container:
-        stream = container.add_stream("libx264" if "libx264" in av.codecs_available else "mpeg4", rate=fps)
-        stream.width, stream.height, stream.pix_fmt = w - w % 2, h - h % 2, "yuv420p"
-        for f in itertools.chain([first], frames):
-            img = to_uint8(f)[: h - h % 2, : w - w % 2].numpy()
-            for packet in stream.encode(av.VideoFrame.from_ndarray(img, format="rgb24")):
+
+    def write(tmp: str) -> None:
+        with av.open(tmp, mode="w", format="mp4") as container:
+            stream = container.add_stream("libx264" if "libx264" in av.codecs_available else "mpeg4", rate=fps)
+            stream.width, stream.height, stream.pix_fmt = w - w % 2, h - h % 2, "yuv420p"
+            for f in itertools.chain([first], frames):
+                img = to_uint8(f)[: h - h % 2, : w - w % 2].numpy()
+                for packet in stream.encode(av.VideoFrame.from_ndarray(img, format="rgb24")):
+                    container.mux(packet)
+            for packet in stream.encode():
                 container.mux(packet)
-        for packet in stream.encode():
-            container.mux(packet)
+
+    atomic_write(path, write)
     return True
 
 

@@ -37,7 +37,7 @@ from torch.optim.swa_utils import AveragedModel
 from torch.utils.data import Dataset
 from tqdm.auto import tqdm
 
-from ..atomic import atomic_write
+from ..atomic import atomic_write, atomic_write_json
 from ..cameras import Cameras
 from ..reconstruction import Views
 from ..rendering import render
@@ -343,8 +343,7 @@ class Trainer:
         self.out.mkdir(parents=True, exist_ok=True)
         if (self.out / CHECKPOINT_FILE).is_file():
             self.load(self.out / CHECKPOINT_FILE)
-        (self.out / "train_config.json").write_text(json.dumps(
-            {"train": cfg.to_dict(), "model": self.model.config.to_dict()}, indent=2) + "\n")  # fmt: skip
+        atomic_write_json(self.out / "train_config.json", {"train": cfg.to_dict(), "model": self.model.config.to_dict()})
         sums: dict[str, float] = defaultdict(float)
         count, t0 = 0, time.perf_counter()
         bar = tqdm(total=cfg.steps, initial=self.step, desc="train", unit="step", disable=not progress,

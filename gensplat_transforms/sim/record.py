@@ -27,12 +27,19 @@ import torch
 from tqdm import tqdm
 
 from ..dataset_format import IMAGE_KEY_PREFIX, camera_info, save_depth
+from ..outputs import new_folder
 from .control import ACTION_NAMES
 from .experts import ExpertConfig, run_expert
 from .sensor import SensorDepthConfig, sensor_depth
 from .tasks import episode_seed
 from .truth import save_sim_episode, save_world
 from .world import CAMERA_NAMES, EXTERNAL_CAMERAS, STATE_NAMES, SimWorld, WorldConfig
+
+#: least image side of MP4 video: LeRobot's AV1 encoder (libsvtav1) kills the process below 25 px
+#: wide and refuses images under 4 px high; PNG images need 2 px
+MIN_VIDEO_SIDE, MIN_IMAGE_SIDE = 32, 2
+#: most frames per second: the physics rate (each control step takes at least one physics step)
+MAX_FPS = 500
 
 
 @dataclass
@@ -106,14 +113,34 @@ def dataset_features(world: SimWorld, use_videos: bool) -> dict:
     return features
 
 
+def _check_config(config: RecordConfig) -> None:
+    """Raise ``ValueError`` saying what to change when ``config`` cannot be recorded."""
+    low, kind = (MIN_VIDEO_SIDE, "MP4 video") if config.use_videos else (MIN_IMAGE_SIDE, "PNG images")
+    for name, side in (("height", config.world.height), ("width", config.world.width)):
+        if side < low:
+            note = f" (PNG images, --images, store sides down to {MIN_IMAGE_SIDE} px)" if config.use_videos else ""
+            raise ValueError(f"image {name} {side} px: at least {low} px per side for {kind}{note}")
+    if not 1 <= config.world.fps <= MAX_FPS:
+        raise ValueError(f"fps {config.world.fps}: give 1 to {MAX_FPS} frames per second (the physics rate)")
+    if config.episodes < 1:
+        raise ValueError(f"episodes {config.episodes}: give at least 1")
+
+
 def record(config: RecordConfig, progress: bool = True) -> RecordResult:
-    """Record ``config.episodes`` successful expert demonstrations; see the module docstring."""
+    """Record ``config.episodes`` successful expert demonstrations into the new folder
+    ``config.root`` (see the module docstring), which is removed again when recording fails.
+    Raises ``ValueError`` when ``config.root`` exists or a setting cannot be recorded."""
+    _check_config(config)
+    with new_folder(config.root) as root:
+        return _record(config, root, progress)
+
+
+def _record(config: RecordConfig, root: Path, progress: bool) -> RecordResult:
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     os.environ.setdefault("SVT_LOG", "1")  # AV1 encoder: errors only
     from gensplat_lerobot import video_backend
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    root = Path(config.root)
     world = SimWorld(config.task, config.world)
     dataset = LeRobotDataset.create(
         repo_id=config.repo_id or f"gensplat/sim_{world.task.name}",
@@ -179,8 +206,8 @@ def record(config: RecordConfig, progress: bool = True) -> RecordResult:
 def record_from_cli(args) -> RecordResult:
     """``gensplat record``: build the config from parsed arguments, record, print a summary."""
     world = WorldConfig(
-        height=args.height or args.size,
-        width=args.width or args.size,
+        height=args.size if args.height is None else args.height,
+        width=args.size if args.width is None else args.width,
         fps=args.fps,
         shadows=args.shadows,
         reflections=args.shadows,

@@ -18,6 +18,7 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.transforms import ImageTransforms, ImageTransformsConfig
 
 from gensplat_transforms.images import save_grid
+from gensplat_transforms.outputs import check_output
 from gensplat_transforms.perturbation import AXES
 from gensplat_transforms.preview import as_frame, save_video
 
@@ -65,7 +66,8 @@ def write_lerobot_preview(
     image_transforms: bool = False,
     seed: int = 0,
 ) -> Preview:
-    """Write ``preview.png`` and ``preview.mp4`` to ``out_dir`` (created; files replaced).
+    """Write ``preview.png`` and ``preview.mp4`` to ``out_dir`` (created; files replaced atomically;
+    :func:`~gensplat_transforms.outputs.check_output`'s rule against the dataset ``root``).
 
     The grid has ``draws`` rows per frame of ``frames`` (default: 4 evenly spaced frames of
     ``episode``), each a fresh draw of the perturbation (which of the ``views_per_source``
@@ -77,10 +79,8 @@ def write_lerobot_preview(
     """
     if draws < 1:
         raise ValueError(f"gensplat preview: draws must be at least 1, got {draws}")
-    root, out_dir = Path(root).resolve(), Path(out_dir).resolve()
-    if out_dir.is_relative_to(root):
-        raise ValueError(f"gensplat preview: the output folder {out_dir} is inside the dataset {root}; "
-                         "the dataset is never written to")  # fmt: skip
+    out_dir = check_output(out_dir, root, folder=True)
+    png, mp4 = (check_output(out_dir / name, root) for name in ("preview.png", "preview.mp4"))
     config, reconstructor = load_settings(root, repo_id)
     dataset = enable_gensplat(open_dataset(root, repo_id, image_transforms),
                               replace(config, probability=1.0, report=True, render_in="worker"),
@@ -92,8 +92,6 @@ def write_lerobot_preview(
     names = [k.removeprefix("observation.images.") for k in keys]
     replaced = [config.image_key.format(name=n) for n in config.replace]
     size = as_frame(LeRobotDataset.__getitem__(dataset, rows[0][0])[replaced[0]]).shape[-2:]
-    out_dir.mkdir(parents=True, exist_ok=True)
-    png, mp4 = out_dir / "preview.png", out_dir / "preview.mp4"
     mp4.unlink(missing_ok=True)  # not left from an earlier run when PyAV is missing
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)

@@ -11,6 +11,7 @@ from tqdm.auto import tqdm
 
 from gensplat_transforms.dataset_format import camera_info, save_depth
 from gensplat_transforms.episodes import SceneEpisodes
+from gensplat_transforms.outputs import new_folder
 
 from .source import video_backend
 
@@ -19,7 +20,7 @@ DEPTH_AS = ("sidecars", "feature", "video")
 
 def record_scene_dataset(root: str | Path, source: SceneEpisodes, repo_id: str = "local/gensplat_scene",
                          fps: int = 10, progress: bool = True, depth_as: str = "sidecars") -> LeRobotDataset:
-    """Write ``source``'s episodes to ``root`` (which must not exist).
+    """Write ``source``'s episodes to ``root`` (which must not exist; removed again when this fails).
 
     Cameras ``left`` and ``right`` are external and get depth: sidecars, or with
     ``depth_as="feature"`` LeRobot's own depth-map features ``observation.images.<camera>_depth``
@@ -47,25 +48,26 @@ def record_scene_dataset(root: str | Path, source: SceneEpisodes, repo_id: str =
                                                           "names": ["height", "width", "channels"]}  # fmt: skip
     features["observation.state"] = {"dtype": "float32", "shape": (3,), "names": ["x", "y", "z"]}
     features["action"] = {"dtype": "float32", "shape": (3,), "names": ["x", "y", "z"]}
-    ds = LeRobotDataset.create(repo_id, fps, features, root=root, use_videos=visual == "video",
-                               video_backend=video_backend())  # fmt: skip
-    for ep in tqdm(range(source.num_episodes), desc="recording", unit="episode", disable=not progress):
-        depths = []
-        positions = [torch.tensor(source.scene(ep, t).objects[0].center) for t in range(source.frames + 1)]
-        for t in range(source.frames):
-            rgb, depth = source.render(ep, t)
-            frame = {f"observation.images.{n}": rgb[i].permute(1, 2, 0).numpy() for i, n in enumerate(names)}
-            if depth_as != "sidecars":
-                for i, n in enumerate(names[:2]):
-                    frame[f"observation.images.{n}_depth"] = (depth[i].permute(1, 2, 0) * 1000).round().numpy().astype("uint16")
-            frame["observation.state"] = positions[t].float().numpy()
-            frame["action"] = positions[t + 1].float().numpy()
-            frame["task"] = "push the object along the table"
-            ds.add_frame(frame)
-            depths.append(depth[:2, 0])
-        ds.save_episode()
-        depth = torch.stack(depths, 1)  # (2, T, H, W)
-        for i, n in enumerate(names[:2] if depth_as == "sidecars" else ()):
-            save_depth(root, n, ep, depth[i])
-    ds.finalize()
+    with new_folder(root):  # removed again when recording fails
+        ds = LeRobotDataset.create(repo_id, fps, features, root=root, use_videos=visual == "video",
+                                   video_backend=video_backend())  # fmt: skip
+        for ep in tqdm(range(source.num_episodes), desc="recording", unit="episode", disable=not progress):
+            depths = []
+            positions = [torch.tensor(source.scene(ep, t).objects[0].center) for t in range(source.frames + 1)]
+            for t in range(source.frames):
+                rgb, depth = source.render(ep, t)
+                frame = {f"observation.images.{n}": rgb[i].permute(1, 2, 0).numpy() for i, n in enumerate(names)}
+                if depth_as != "sidecars":
+                    for i, n in enumerate(names[:2]):
+                        frame[f"observation.images.{n}_depth"] = (depth[i].permute(1, 2, 0) * 1000).round().numpy().astype("uint16")
+                frame["observation.state"] = positions[t].float().numpy()
+                frame["action"] = positions[t + 1].float().numpy()
+                frame["task"] = "push the object along the table"
+                ds.add_frame(frame)
+                depths.append(depth[:2, 0])
+            ds.save_episode()
+            depth = torch.stack(depths, 1)  # (2, T, H, W)
+            for i, n in enumerate(names[:2] if depth_as == "sidecars" else ()):
+                save_depth(root, n, ep, depth[i])
+        ds.finalize()
     return ds

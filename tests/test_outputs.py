@@ -1,0 +1,176 @@
+"""Nothing a user types as an output path harms the dataset: every command's ``--out`` is checked
+(gensplat_transforms.outputs), refused ones end as ``gensplat: error:`` lines, and ``gensplat
+record`` refuses bad sizes up front and leaves no partial dataset when it fails."""
+
+import hashlib
+import os
+import shutil
+
+import pytest
+
+pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
+os.environ["HF_HUB_OFFLINE"] = "1"
+
+from gensplat_lerobot.record import record_scene_dataset
+
+import gensplat_transforms.sim.record as sim_record
+from gensplat_transforms.cli import main
+from gensplat_transforms.episodes import SceneEpisodes
+from gensplat_transforms.gaussians import Gaussians
+from gensplat_transforms.sim.world import WorldConfig
+
+REPO = "local/outputs_scene"
+
+
+@pytest.fixture(scope="module")
+def cached(tmp_path_factory):
+    """One 3-frame episode at 32x32 with gensplat cache's settings and cache."""
+    root = tmp_path_factory.mktemp("outputs") / "ds"
+    record_scene_dataset(root, SceneEpisodes(num_episodes=1, num_frames=3, size=32), REPO, progress=False)
+    assert main(["cache", "--root", str(root), "--repo-id", REPO]) == 0
+    return root
+
+
+def dataset_hashes(root):
+    """sha256 of every file under ``root`` outside ``gensplat/``."""
+    return {str(f.relative_to(root)): hashlib.sha256(f.read_bytes()).hexdigest()
+            for f in root.rglob("*") if f.is_file() and f.relative_to(root).parts[0] != "gensplat"}  # fmt: skip
+
+
+def refused(capsys, args, message="") -> str:
+    """Run ``gensplat <args>``: exit status 2 and a ``gensplat: error:`` line naming ``message``."""
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("gensplat: error: ") and message in err and "Traceback" not in err
+    return err
+
+
+def into_dataset(root, tmp_path, how: str):
+    """An output path that leads into the dataset: ``inside`` it, a ``link`` (a symbolic link to a
+    dataset file) or a path ``through`` a linked parent folder."""
+    if how == "inside":
+        return root / "meta" / "info.json"
+    if how == "link":
+        (tmp_path / "link").symlink_to(root / "meta" / "info.json")
+        return tmp_path / "link"
+    (tmp_path / "parent").symlink_to(root / "meta")
+    return tmp_path / "parent" / "info.json"
+
+
+def ply_args(root, out):
+    return ["export-ply", "--root", str(root), "--repo-id", REPO, "--episode", "0", "--frame", "1", "--out", str(out)]
+
+
+@pytest.mark.parametrize("how", ["inside", "link", "through"])
+def test_export_ply_into_the_dataset_is_refused(cached, tmp_path, capsys, how):
+    before = dataset_hashes(cached)
+    out = into_dataset(cached, tmp_path, how)
+    err = refused(capsys, ply_args(cached, out), "inside the dataset")
+    assert str(cached) in err
+    assert dataset_hashes(cached) == before
+    assert how != "link" or out.is_symlink()
+
+
+@pytest.mark.parametrize("how", ["inside", "link", "through"])
+def test_preview_into_the_dataset_is_refused(cached, tmp_path, capsys, how):
+    before = dataset_hashes(cached)
+    out = tmp_path / "out"
+    if how == "inside":
+        out = cached / "preview"
+    elif how == "link":  # an earlier preview.png replaced by a link into the dataset
+        out.mkdir()
+        (out / "preview.png").symlink_to(cached / "meta" / "info.json")
+    else:
+        (tmp_path / "parent").symlink_to(cached)
+        out = tmp_path / "parent" / "preview"
+    refused(capsys, ["preview", "--root", str(cached), "--repo-id", REPO, "--draws", "1", "--out", str(out)],
+            "inside the dataset")  # fmt: skip
+    assert dataset_hashes(cached) == before
+    assert not (cached / "preview").exists()
+
+
+def test_train_model_into_the_dataset_is_refused(cached, tmp_path, capsys):
+    before = dataset_hashes(cached)
+    train = ["train-model", "--steps", "1", "--data", "lerobot", "--root", str(cached), "--repo-id", REPO]
+    refused(capsys, [*train, "--out", str(cached / "run")], "inside the dataset")
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "log.jsonl").symlink_to(cached / "meta" / "info.json")  # the log is appended to
+    refused(capsys, [*train, "--out", str(out)], "inside the dataset")
+    assert dataset_hashes(cached) == before
+    assert not (cached / "run").exists()
+
+
+def test_gensplat_folder_linked_to_another_disk_keeps_working(cached, tmp_path, capsys):
+    root, elsewhere = tmp_path / "ds", tmp_path / "other_disk"
+    shutil.copytree(cached, root)
+    shutil.move(root / "gensplat", elsewhere)
+    (root / "gensplat").symlink_to(elsewhere)
+    before = dataset_hashes(root)
+    assert main(["cache", "--root", str(root), "--repo-id", REPO]) == 0
+    assert "(1 already valid)" in capsys.readouterr().out  # its links to the dataset's depth still lead there
+    assert main(ply_args(root, root / "gensplat" / "t.ply")) == 0
+    assert len(Gaussians.from_ply(elsewhere / "t.ply")) > 0
+    assert dataset_hashes(root) == before
+    capsys.readouterr()
+    (root / "gensplat" / "escape").symlink_to(root / "meta")  # out of gensplat/ into the dataset
+    refused(capsys, ply_args(root, root / "gensplat" / "escape" / "info.json"), "inside the dataset")
+    assert dataset_hashes(root) == before
+
+
+def test_a_folder_for_a_file_or_a_file_for_a_folder_is_a_clear_error(cached, tmp_path, capsys):
+    a_file = tmp_path / "file.txt"
+    a_file.write_text("mine")
+    (tmp_path / "p").mkdir()
+    (tmp_path / "p" / "preview.png").mkdir()
+    preview = ["preview", "--root", str(cached), "--repo-id", REPO, "--draws", "1", "--out"]
+    refused(capsys, ply_args(cached, tmp_path), "is a folder")
+    refused(capsys, ply_args(cached, a_file / "t.ply"), "is a file, not a folder")
+    refused(capsys, [*preview, str(a_file)], "is a file, not a folder")
+    refused(capsys, [*preview, str(tmp_path / "p")], "is a folder")
+    refused(capsys, ["train-model", "--steps", "1", "--out", str(a_file)], "is a file, not a folder")
+    refused(capsys, ["demo", "--out", str(a_file)], "is a file, not a folder")
+    refused(capsys, ["record", "--out", str(a_file / "ds")], "is a file, not a folder")
+    assert a_file.read_text() == "mine"
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        (["--size", "24"], "at least 32 px per side for MP4 video"),  # the video encoder would crash the process
+        (["--size", "64", "--width", "16"], "image width 16 px"),
+        (["--width", "0", "--images"], "image width 0 px"),  # never silently replaced by --size
+        (["--height", "-3", "--images"], "image height -3 px"),
+        (["--size", "1", "--images"], "at least 2 px per side for PNG images"),
+        (["--fps", "0"], "fps 0"),
+        (["--fps", "1000"], "fps 1000"),
+        (["--episodes", "0"], "episodes 0"),
+    ],
+    ids=["video-24", "video-width-16", "width-0", "height-negative", "png-1", "fps-0", "fps-1000", "episodes-0"],
+)
+def test_record_refuses_bad_sizes_up_front(tmp_path, capsys, options, message):
+    refused(capsys, ["record", "--out", str(tmp_path / "ds"), *options], message)
+    assert not (tmp_path / "ds").exists()
+
+
+def test_record_refuses_an_existing_folder(tmp_path, capsys):
+    (tmp_path / "ds").mkdir()
+    (tmp_path / "ds" / "mine").write_text("kept")
+    refused(capsys, ["record", "--out", str(tmp_path / "ds")], "already exists")
+    assert (tmp_path / "ds" / "mine").read_text() == "kept"
+
+
+@pytest.mark.parametrize("failure", [KeyboardInterrupt, RuntimeError])
+def test_record_leaves_no_partial_dataset_when_it_fails(tmp_path, monkeypatch, failure):
+    written = []
+
+    def fail(root, *args):  # after the first episode's video is encoded
+        written.extend(p.name for p in root.iterdir())
+        raise failure("stopped")
+
+    monkeypatch.setattr(sim_record, "save_sim_episode", fail)
+    config = sim_record.RecordConfig(tmp_path / "ds", episodes=2, max_frames=2, world=WorldConfig(height=32, width=32))
+    with pytest.raises(failure):
+        sim_record.record(config, progress=False)
+    assert {"meta", "videos"} <= set(written)
+    assert not (tmp_path / "ds").exists()
