@@ -67,9 +67,10 @@ class LeRobotSource:
             images = [k[len(IMAGE_KEY_PREFIX) :] for k in info["features"] if k.startswith(IMAGE_KEY_PREFIX)]
             raise ValueError(
                 f"{self.root}: GenSplat needs two calibrated external cameras; calibrated external: "
-                f"{list(external)}, image features: {images}. Add the calibration with `gensplat calibrate "
-                f"--root {self.root} --from FILE` (stored in {calibration_path(self.root)}, the dataset is "
-                "not modified) or in the image features' info (gensplat_transforms.dataset_format)"
+                f"{list(external)}, image features: {images}. Estimate it from the frames and depth with "
+                f"`gensplat calibrate --root {self.root} --estimate`, or give it with `gensplat calibrate --root "
+                f"{self.root} --from FILE` (either is stored in {calibration_path(self.root)}, the dataset is not "
+                "modified), or put it in the image features' info (gensplat_transforms.dataset_format)"
             )
         shape = info["features"][IMAGE_KEY_PREFIX + self.camera_names[0]]["shape"]  # (H, W, C)
         self.cameras = calibrated_cameras(self.calibration, self.camera_names, shape[1], shape[0])
