@@ -22,7 +22,7 @@ import torch
 from .cameras import Cameras
 from .depth_codec import depth_from_words
 from .gaussians import Gaussians
-from .perturbation import perturb_pose, pivot_point
+from .perturbation import perturb_pose, rig_pivot
 from .reconstruction import Reconstructor
 from .reconstruction.base import nearest_pixels
 from .reconstruction.rgbd import RGBDReconstructor, dense_discs
@@ -106,7 +106,8 @@ def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None 
         sh = torch.cat([sh, sh.new_zeros(*sh.shape[:2], num_sh_bases(discs.cfg.sh_degree) - 1, 3)], 2)
     views = [cfg.cameras.index(name) for name in cfg.replace]
     K = batch["gensplat.K"][rows][:, :, views].flatten(0, 1)  # (S*T, R, 3, 3)
-    c2w = _targets(batch["gensplat.c2w"][rows], batch["gensplat.moves"][rows], views).flatten(0, 1)  # (S*T, R, 4, 4)
+    c2w = _targets(batch["gensplat.c2w"][rows], batch["gensplat.moves"][rows], views,  # (S*T, R, 4, 4)
+                   cfg.pivot_depth).flatten(0, 1)  # fmt: skip
     opacity = discs.cfg.opacity
     depth_keys = {} if cfg.depth_unit in (None, "keep") else {
         r: key for r, name in enumerate(cfg.replace) if (key := cfg.image_key.format(name=name) + "_depth") in batch}  # fmt: skip
@@ -156,11 +157,11 @@ def _render_depth(means, quats, scales, sh, keep, opacity: float, K: torch.Tenso
                       for *discs, k, t in zip(means, quats, scales, sh, keep, K, c2w)])  # fmt: skip
 
 
-def _targets(c2w: torch.Tensor, moves: torch.Tensor, views: list[int]) -> torch.Tensor:
+def _targets(c2w: torch.Tensor, moves: torch.Tensor, views: list[int], pivot_depth: float | None) -> torch.Tensor:
     """(S, T, R, 4, 4) perturbed poses of the replaced cameras ``views`` from the (S, T, V, 4, 4)
-    cached poses and the (S, R, 3) moves (axis index, theta_deg, mu_m), each about the pivot of
-    cameras 0 and 1 at its frame, as :meth:`.perturbation.Perturbation.move` moves one."""
-    pivot = pivot_point(c2w[:, :, 0], c2w[:, :, 1])[:, :, None]  # (S, T, 1, 3)
+    cached poses and the (S, R, 3) moves (axis index, theta_deg, mu_m), each about the rig's
+    pivot at its frame, as :meth:`.perturbation.Perturbation.move` moves one."""
+    pivot = rig_pivot(c2w, pivot_depth)[:, :, None]  # (S, T, 1, 3)
     axis, theta, mu = (moves[:, None, :, i].expand(-1, c2w.shape[1], -1) for i in range(3))  # (S, T, R)
     return perturb_pose(c2w[:, :, views], pivot, axis.long(), theta, mu)
 

@@ -58,6 +58,37 @@ def build_cache(
             for ep in tqdm(episodes, desc=desc, unit="episode", disable=not progress)}  # fmt: skip
 
 
+def scene_depth(reconstructor, source: EpisodeSource, episodes: Iterable[int], samples: int = 8) -> float:
+    """Median depth (metres) along camera 0's optical axis of the Gaussians that
+    ``reconstructor`` makes of ``source``: over ``samples`` timesteps (the first and middle
+    frames of evenly spaced ``episodes``), the median of each timestep's medians. The pivot
+    of a rig of one camera lies there (:func:`.perturbation.rig_pivot`).
+
+    Example:
+        >>> from gensplat_transforms import RGBDReconstructor
+        >>> source = SceneEpisodes(num_episodes=2, num_frames=3, size=16)
+        >>> 0.3 < scene_depth(RGBDReconstructor(), source, range(2)) < 3.0
+        True
+    """
+    episodes = list(episodes)
+    chosen = [episodes[round(i * (len(episodes) - 1) / max(samples // 2 - 1, 1))]
+              for i in range(min(len(episodes), max(samples // 2, 1)))]  # fmt: skip
+    medians = []
+    for ep in dict.fromkeys(chosen):
+        for frame in dict.fromkeys((0, source.num_frames(ep) // 2)):
+            rec = reconstructor.reconstruct(source.views(ep, frame))
+            c2w = rec.cameras.c2w[0]
+            axis = c2w[:3, 2] / c2w[:3, 2].norm()
+            z = (rec.gaussians.means.to(c2w) - c2w[:3, 3]) @ axis
+            z = z[(z > 0) & (rec.gaussians.opacities.to(c2w) > 0.5)]
+            if len(z):
+                medians.append(z.median())
+    if not medians:
+        raise ValueError(f"no reconstructed point in front of camera {source.camera_names[0]!r} in {len(chosen)} "
+                         "sampled timesteps: the pivot of a one-camera rig cannot be placed")  # fmt: skip
+    return float(torch.stack(medians).median())
+
+
 class SceneEpisodes:
     """Procedural RGB-D episodes: episode e is ``TabletopScene(seed + e)`` with its first
     object sliding ``step_m`` per frame along world x, seen by the default cameras.

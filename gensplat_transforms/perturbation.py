@@ -6,7 +6,10 @@ A novel view is made in two steps:
 2. translate it forward by ``mu`` along its own viewing axis (+z, OpenCV).
 
 The pivot is the midpoint of the shortest segment between the optical axes of the two
-external cameras (the midpoint of their centres when the axes are parallel).
+external cameras (the midpoint of their centres when the axes are parallel). A rig with one
+external camera has its pivot on that camera's optical axis, at the median depth of the scene
+it sees (``pivot_depth``; ``gensplat cache`` measures it on the cached timesteps): where a
+second camera looking at the same scene would put it.
 
 Example: the named levels
     >>> list(LEVELS)
@@ -112,12 +115,12 @@ class Perturbation:
         """Perturbed (..., 4, 4) camera-to-world; see :func:`perturb_pose`."""
         return perturb_pose(c2w, pivot, self.axis, self.theta_deg, self.mu_m)
 
-    def move(self, cameras: Cameras, index: int = 0) -> Cameras:
-        """Camera ``index`` of a rig, moved about the pivot of the rig's cameras 0 and 1
-        (the two external cameras)."""
+    def move(self, cameras: Cameras, index: int = 0, pivot_depth: float | None = None) -> Cameras:
+        """Camera ``index`` of a rig, moved about the rig's pivot (:func:`rig_pivot`: of its
+        cameras 0 and 1, or ``pivot_depth`` along the axis of a rig's one camera)."""
         if not 0 <= index < len(cameras):
             raise IndexError(f"Perturbation.move: camera index {index} outside 0..{len(cameras) - 1}")
-        pivot = pivot_point(cameras.c2w[0], cameras.c2w[1])
+        pivot = rig_pivot(cameras.c2w, pivot_depth)
         c2w = self.apply(cameras.c2w[index : index + 1], pivot)  # a rigid motion of a checked pose
         return cameras._derive(cameras.K[index : index + 1], c2w)
 
@@ -182,6 +185,23 @@ def closest_points_between_axes(
     """Closest points on the two optical axes (infinite lines), or None when parallel."""
     pa, pb, denom = _closest(c2w_a, c2w_b)
     return None if denom < parallel_tol else (pa, pb)
+
+
+def rig_pivot(c2w: torch.Tensor, pivot_depth: float | None = None) -> torch.Tensor:
+    """(..., 3) pivot of rigs of (..., V, 4, 4) camera poses: :func:`pivot_point` of cameras 0
+    and 1, or with one camera (V = 1) the point ``pivot_depth`` metres along its optical axis.
+
+    Example: one camera at the origin looking along +z
+        >>> rig_pivot(torch.eye(4, dtype=torch.float64)[None], pivot_depth=0.8)
+        tensor([0.0000, 0.0000, 0.8000], dtype=torch.float64)
+    """
+    if c2w.shape[-3] > 1:
+        return pivot_point(c2w[..., 0, :, :], c2w[..., 1, :, :])
+    if pivot_depth is None or not (math.isfinite(pivot_depth) and pivot_depth > 0):
+        raise ValueError(f"a rig of one external camera needs a positive pivot_depth (metres along its optical "
+                         f"axis), got {pivot_depth}")  # fmt: skip
+    axis = c2w[..., 0, :3, 2]
+    return c2w[..., 0, :3, 3] + pivot_depth * axis / axis.norm(dim=-1, keepdim=True)
 
 
 def pivot_point(c2w_a: torch.Tensor, c2w_b: torch.Tensor, parallel_tol: float = 1e-6) -> torch.Tensor:

@@ -5,6 +5,7 @@ prepare them in the workers for :func:`.batched.render_batch`)."""
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import asdict, dataclass, field
 
@@ -40,7 +41,8 @@ class GenSplatConfig:
 
     Attributes:
         cameras: the reconstructed (external) cameras, in the order the cache stores them.
-            The first two define the pivot. A wrist camera never belongs here.
+            The first two define the pivot; one camera alone needs ``pivot_depth``. A wrist
+            camera never belongs here.
         replace: cameras whose image is replaced (default: all of ``cameras``).
         image_key: item key of a camera's image; ``{name}`` is replaced by the camera name.
         probability: chance that a sample is augmented.
@@ -80,6 +82,9 @@ class GenSplatConfig:
             item, which renders a whole batch at once after collation (on the training GPU).
             "auto": batch where the LeRobot plugin trains on CUDA, else worker (a transform
             used on its own renders in the worker).
+        pivot_depth: with one reconstructed camera, the distance in metres along its optical
+            axis to the pivot (see :mod:`.perturbation`), needed by the transform; ``gensplat
+            cache`` measures it (:func:`.episodes.scene_depth`). None with two or more cameras.
 
     Example:
         >>> config = GenSplatConfig(cameras=("left", "right"), replace=("left",), level="small")
@@ -104,12 +109,16 @@ class GenSplatConfig:
     render_in: str = "auto"
     render_scale: float = 1.0
     depth_unit: str | None = None
+    pivot_depth: float | None = None
 
     def __post_init__(self) -> None:
         self.cameras = tuple(self.cameras)
         self.replace = tuple(self.cameras if self.replace is None else self.replace)
-        if len(self.cameras) < 2:
-            raise ValueError("GenSplatConfig.cameras: need the two external cameras that define the pivot")
+        if not self.cameras:
+            raise ValueError("GenSplatConfig.cameras: need at least one external camera")
+        if self.pivot_depth is not None and (len(self.cameras) > 1 or not 0 < self.pivot_depth < math.inf):
+            raise ValueError("GenSplatConfig.pivot_depth: a positive distance in metres for one reconstructed "
+                             f"camera (two or more define the pivot); got {self.pivot_depth} for {self.cameras}")  # fmt: skip
         unknown = [c for c in self.replace if c not in self.cameras]
         if unknown:
             raise ValueError(f"GenSplatConfig.replace: {unknown} are not reconstructed cameras {self.cameras}")
@@ -276,6 +285,10 @@ class GenSplatTransform:
                 f"GenSplatTransform: the source reconstructs {tuple(source.camera_names)}, "
                 f"the config names {config.cameras}"
             )
+        if len(config.cameras) == 1 and config.pivot_depth is None:
+            raise ValueError(f"GenSplatTransform: one reconstructed camera ({config.cameras[0]}) needs "
+                             "GenSplatConfig.pivot_depth, the distance to the pivot along its axis (gensplat cache "
+                             "measures it)")  # fmt: skip
         if config.render_in == "batch" and cache.kind != "depth":
             raise ValueError(f"GenSplatTransform: render_in='batch' needs a depth cache (RGB-D or geometry "
                              f"reconstructor); {cache.identity} stores Gaussians: use render_in='worker'")  # fmt: skip
@@ -343,7 +356,7 @@ class GenSplatTransform:
                 depth = self.cache.kind == "depth"
                 images = self._source_images(item, keys, k, o, episode, f, size) if depth else None
                 read[f] = self._read(episode, lambda f=f, images=images: self.cache.read(episode, f, images, size))
-            target = p.move(read[f].cameras, self.cfg.cameras.index(name))
+            target = p.move(read[f].cameras, self.cfg.cameras.index(name), self.cfg.pivot_depth)
             sensor = self.depth_sensors.get(name) if depth_key is not None else None
             out = render_view(read[f].gaussians, target, self.cfg, depth=depth_key is not None and sensor is None)
             rgbs.append(out.rgb[0])

@@ -181,7 +181,7 @@ def test_lerobot_source_uses_the_stored_calibration_and_the_dataset_is_untouched
         info["features"][f"observation.images.{n}"].pop("info")
     (root / "meta" / "info.json").write_text(json.dumps(info))
     shutil.rmtree(root / "depth")
-    with pytest.raises(ValueError, match=r"two calibrated external cameras; .* `gensplat calibrate --root .* --estimate`"):
+    with pytest.raises(ValueError, match=r"a calibrated external camera; .* `gensplat calibrate --root .* --estimate`"):
         LeRobotSource(root, repo)
     files = {f: f.read_bytes() for f in root.rglob("*") if f.is_file()}
 

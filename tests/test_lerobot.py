@@ -251,11 +251,12 @@ def test_cli_user_mistakes_end_with_the_message(dataset_root, tmp_path, capsys):
     assert capsys.readouterr().err == "gensplat: error: GenSplatConfig.render_scale must be in (0, 1], got 2.0\n"
     info_path = dataset_root / "meta" / "info.json"
     info = json.loads(info_path.read_text())
-    info["features"]["observation.images.right"]["info"] = {}  # one calibrated external camera left
+    for name in ("left", "right", "front"):  # no calibrated external camera left
+        info["features"][f"observation.images.{name}"]["info"] = {}
     info_path.write_text(json.dumps(info))
     assert main(["cache", "--root", str(dataset_root), "--repo-id", REPO]) == 2
     err = capsys.readouterr().err
-    assert err.startswith("gensplat: error: ") and "two calibrated external cameras" in err
+    assert err.startswith("gensplat: error: ") and "needs a calibrated external camera" in err
     assert f"gensplat calibrate --root {dataset_root}" in err and err.count("\n") == 1
 
 

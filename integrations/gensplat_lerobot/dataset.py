@@ -183,7 +183,7 @@ def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructo
     (see :class:`~gensplat_transforms.cache.GaussianCache`). Returns per-episode
     :class:`~gensplat_transforms.cache.CacheStats` of this process's episodes (None when the
     episode was already cached)."""
-    from gensplat_transforms.episodes import build_cache
+    from gensplat_transforms.episodes import build_cache, scene_depth
 
     shard = shard or Shard()
     source = LeRobotSource(root, repo_id, config.cameras)
@@ -192,9 +192,11 @@ def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructo
         rec = OnDevice(make_reconstructor(reconstructor), shard.device)
     else:  # the geometry path returns its depth on the CPU itself
         rec = make_reconstructor(reconstructor, shard.device if reconstructor["name"] == "geometry" else None)
+    total = len(source.dataset.meta.episodes["length"])
+    if len(config.cameras) == 1 and config.pivot_depth is None:  # the pivot on the one camera's axis
+        config = replace(config, pivot_depth=scene_depth(rec, source, range(total) if episodes is None else episodes))
     if shard.rank == 0:
         save_settings(root, config, reconstructor)
         atomic_write_json(content_path(root), {"fingerprint": source.fingerprint, "content": source.content})
-    total = len(source.dataset.meta.episodes["length"])
     episodes = range(total) if episodes is None else episodes
     return build_cache(dataset_cache(root, rec, source, link_depth), source, episodes, progress, shard, verify)

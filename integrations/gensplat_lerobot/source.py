@@ -63,10 +63,10 @@ class LeRobotSource:
         external = tuple(n for n, c in self.calibration.items() if c.mount == "external")
         with_depth = tuple(n for n in external if depth_path(self.root, n, 0).exists() or n in self.depth_features)
         self.camera_names = tuple(cameras) if cameras else (with_depth or external)
-        if len(self.camera_names) < 2:
+        if not self.camera_names:
             images = [k[len(IMAGE_KEY_PREFIX) :] for k in info["features"] if k.startswith(IMAGE_KEY_PREFIX)]
             raise ValueError(
-                f"{self.root}: GenSplat needs two calibrated external cameras; calibrated external: "
+                f"{self.root}: GenSplat needs a calibrated external camera; calibrated external: "
                 f"{list(external)}, image features: {images}. Estimate it from the frames and depth with "
                 f"`gensplat calibrate --root {self.root} --estimate`, or give it with `gensplat calibrate --root "
                 f"{self.root} --from FILE` (either is stored in {calibration_path(self.root)}, the dataset is not "

@@ -1,0 +1,154 @@
+"""A rig of one external camera: its pivot on the camera's axis at the scene's median depth,
+reconstruction from that view alone, the worker and batch paths alike, and the LeRobot
+commands (cache, preview, lerobot-train with the one line) on a dataset with one camera."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+
+import pytest
+import torch
+from torch.utils.data import default_collate
+
+from gensplat_transforms.batched import render_batch
+from gensplat_transforms.cache import GaussianCache
+from gensplat_transforms.cameras import look_at
+from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache, scene_depth
+from gensplat_transforms.perturbation import Perturbation, rig_pivot
+from gensplat_transforms.reconstruction import RGBDReconstructor, Views
+from gensplat_transforms.scenes import default_cameras
+from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
+
+LEFT, RIGHT = "observation.images.left", "observation.images.right"
+
+
+class LeftOnly:
+    """The procedural episodes seen by their left camera alone."""
+
+    camera_names = ("left",)
+
+    def __init__(self, source: SceneEpisodes) -> None:
+        self.source, self.fingerprint = source, source.fingerprint + "-left"
+
+    def num_frames(self, episode: int) -> int:
+        return self.source.num_frames(episode)
+
+    def views(self, episode: int, frame: int) -> Views:
+        v = self.source.views(episode, frame)
+        return Views(v.images[:1], v.cameras[:1], v.depths[:1])
+
+
+@pytest.fixture(scope="module")
+def one(tmp_path_factory):
+    source = LeftOnly(SceneEpisodes(num_episodes=2, num_frames=4, size=32))
+    cache = GaussianCache(tmp_path_factory.mktemp("one"), RGBDReconstructor(), source.fingerprint)
+    build_cache(cache, source, range(2), progress=False)
+    return source, cache, SceneDataset(source.source)
+
+
+def test_rig_pivot_of_one_camera_lies_on_its_axis_and_of_two_is_theirs():
+    c2w = look_at((1.0, 0.5, 0.5), (0.0, 0.0, 0.0))
+    pivot = rig_pivot(c2w[None], pivot_depth=1.5)
+    torch.testing.assert_close(pivot - c2w[:3, 3], 1.5 * c2w[:3, 2])
+    batch = torch.stack([c2w, c2w])[:, None]  # (2, V=1, 4, 4): one pivot per rig
+    assert rig_pivot(batch, 1.5).shape == (2, 3)
+    two = default_cameras(16, 16).c2w[:2]
+    torch.testing.assert_close(rig_pivot(two), rig_pivot(two, pivot_depth=9.0))  # ignored for two cameras
+    for bad in (None, 0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="one external camera needs a positive pivot_depth"):
+            rig_pivot(c2w[None], bad)
+
+
+def test_a_move_of_one_camera_turns_it_about_its_pivot():
+    cams = default_cameras(16, 16)[:1]
+    p = Perturbation("y", theta_deg=20.0, mu_m=0.0)
+    moved = p.move(cams, 0, pivot_depth=0.8)
+    pivot = rig_pivot(cams.c2w, 0.8)
+    # the rotation keeps the distance to the pivot and the pivot on the optical axis
+    torch.testing.assert_close((moved.c2w[0, :3, 3] - pivot).norm(), torch.tensor(0.8, dtype=torch.float64))
+    along = (pivot - moved.c2w[0, :3, 3]) @ moved.c2w[0, :3, 2]
+    torch.testing.assert_close(along, torch.tensor(0.8, dtype=torch.float64))
+    with pytest.raises(ValueError, match="pivot_depth"):
+        p.move(cams, 0)
+
+
+def test_config_and_transform_check_the_pivot_depth(one):
+    _, cache, _ = one
+    with pytest.raises(ValueError, match="GenSplatConfig.pivot_depth"):
+        GenSplatConfig(cameras=("left", "right"), pivot_depth=0.8)
+    for bad in (0.0, -2.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="GenSplatConfig.pivot_depth"):
+            GenSplatConfig(cameras=("left",), pivot_depth=bad)
+    with pytest.raises(ValueError, match="needs a calibrated|at least one external camera"):
+        GenSplatConfig(cameras=())
+    with pytest.raises(ValueError, match=r"one reconstructed camera \(left\) needs GenSplatConfig.pivot_depth"):
+        GenSplatTransform(GenSplatConfig(cameras=("left",)), cache)
+
+
+def test_scene_depth_is_the_median_depth_on_the_axis(one):
+    source, _, _ = one
+    depth = scene_depth(RGBDReconstructor(), source, range(2))
+    truth = torch.stack([source.views(e, f).depths[0, 0].flatten() for e in range(2) for f in (0, 2)])
+    # discs sit at their pixel's depth: their distance along the axis is that depth
+    assert abs(depth - float(truth.median(1).values.median())) < 0.02
+
+
+def test_one_camera_worker_and_batch_paths_render_the_same(one):
+    _, cache, ds = one
+    items = [ds[i] for i in range(6)]
+    cfg = GenSplatConfig(cameras=("left",), pivot_depth=0.9, level="large", probability=1.0, report=True)
+    worker = GenSplatTransform(cfg, cache)
+    batch = GenSplatTransform(GenSplatConfig(**{**cfg.to_dict(), "render_in": "batch"}), cache)
+    torch.manual_seed(3)
+    expected = default_collate([worker(item) for item in items])
+    torch.manual_seed(3)
+    got = render_batch(default_collate([batch(item) for item in items]), batch)
+    torch.testing.assert_close(got[LEFT], expected[LEFT], atol=1e-5, rtol=0)
+    originals = torch.stack([item[LEFT] for item in items])
+    assert (expected[LEFT] - originals).abs().amax((1, 2, 3)).min() > 0.1  # every view moved
+    assert torch.equal(expected[RIGHT], torch.stack([item[RIGHT] for item in items]))  # not reconstructed
+    assert torch.isfinite(expected[LEFT]).all()
+
+
+# --------------------------------------------------------------------------- LeRobot
+pytest.importorskip("lerobot", reason="the LeRobot commands need the lerobot extra")
+REPO = "local/one_camera"
+
+
+@pytest.fixture(scope="module")
+def one_camera_dataset(tmp_path_factory):
+    """A procedural dataset whose only calibrated external camera with depth is ``left``
+    (``right`` carries no calibration, ``front`` no depth)."""
+    os.environ["HF_HUB_OFFLINE"] = "1"
+    from gensplat_lerobot.record import record_scene_dataset
+
+    root = tmp_path_factory.mktemp("onecam") / "ds"
+    record_scene_dataset(root, SceneEpisodes(num_episodes=2, num_frames=20, size=48), REPO, progress=False)
+    info_path = root / "meta" / "info.json"
+    info = json.loads(info_path.read_text())
+    info["features"][RIGHT]["info"] = {}
+    info_path.write_text(json.dumps(info))
+    return root
+
+
+def test_cache_preview_and_lerobot_train_with_one_camera(one_camera_dataset, tmp_path, capsys):
+    from test_lerobot import train_diffusion
+
+    from gensplat_transforms.cli import main
+
+    root = one_camera_dataset
+    assert main(["cache", "--root", str(root), "--repo-id", REPO, "--probability", "1"]) == 0
+    settings = json.loads((root / "gensplat" / "config.json").read_text())["transform"]
+    assert settings["cameras"] == ["left"] and 0.5 < settings["pivot_depth"] < 1.5
+    assert main(["preview", "--root", str(root), "--repo-id", REPO, "--out", str(tmp_path / "p"), "--draws", "1"]) == 0
+    assert (tmp_path / "p" / "preview.png").stat().st_size > 0
+    capsys.readouterr()
+    run = train_diffusion(f"--dataset.repo_id={REPO}", f"--dataset.root={root}", f"--output_dir={tmp_path / 'out'}",
+                          "--steps=2", "--batch_size=2", "--num_workers=1", "--save_freq=2", "--log_freq=1")  # fmt: skip
+    assert run.returncode == 0, run.stderr[-3000:]
+    log = run.stderr + run.stdout
+    assert "cameras replaced: left (reconstructed from left)" in log
+    steps = re.findall(r"GenSplat step \d+: (\d+) of (\d+) samples augmented", log)
+    assert steps and all(int(a) == int(n) > 0 for a, n in steps)
