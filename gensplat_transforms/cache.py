@@ -92,10 +92,12 @@ class _ReplacedError(CorruptCacheError):
 class DepthFiles:
     """The depth a dataset carries for one episode: one file per reconstructed camera, in the
     depth format of :mod:`.dataset_format` (tensor ``"depth"`` (T, H, W), metres, 0 = invalid),
-    and the V cameras it was taken with."""
+    the V cameras it was taken with and their names (each file's own metadata must name the
+    same camera, episode and frame count)."""
 
     paths: tuple[Path, ...]
     cameras: Cameras
+    names: tuple[str, ...] = ()
 
 
 class EpisodeSource(Protocol):
@@ -295,8 +297,11 @@ class GaussianCache:
             raise ValueError(f"GaussianCache: episode {episode} has no frames")
         rec = self.reconstructor
         predict = rec.predict_depth if self.kind == "depth" else rec
-        depth_files = getattr(source, "depth_files", None) if self.link_depth else None
-        links = depth_files(episode) if depth_files is not None else None
+        depth_files = getattr(source, "depth_files", None) if getattr(rec, "given_depth", False) else None
+        given = depth_files(episode) if depth_files is not None else None
+        if given is not None:  # linked or copied: the files must be this episode's, of these cameras
+            _check_sidecars(given, episode, n)
+        links = given if self.link_depth else None
         tmp = self._tmp(episode)
         while True:  # normally once: lock() removed or waited for any earlier temporary file
             try:
@@ -565,6 +570,23 @@ def _encode_depth(frames: Iterable[Views], num_frames: int) -> tuple[dict[str, t
             "depth_codec": json.dumps({"step": depth_codec.STEP, "d_min": depth_codec.D_MIN, "d_max": depth_codec.D_MAX,
                                        "compression": depth_codec.COMPRESSION})}  # fmt: skip
     return {**tensors, **_cameras(cameras)}, meta
+
+
+def _check_sidecars(files: DepthFiles, episode: int, num_frames: int) -> None:
+    """ValueError naming the file when a depth file's own metadata names another camera,
+    episode or frame count than it is read as (e.g. another camera's file copied over it)."""
+    for path, name in zip(map(Path, files.paths), files.names or [None] * len(files.paths)):
+        try:
+            meta = TensorFile(path).metadata
+        except (OSError, ValueError) as e:
+            raise ValueError(f"unreadable depth file: {e}") from e
+        want = {"camera": name, "episode_index": str(int(episode)), "num_frames": str(num_frames)}
+        wrong = [(k, meta[k], v) for k, v in want.items() if v is not None and k in meta and meta[k] != v]
+        if wrong:
+            says = ", ".join(f"{k.replace('_index', '')} {got!r}" for k, got, _ in wrong)
+            expected = ", ".join(f"{k.replace('_index', '')} {v!r}" for k, _, v in wrong)
+            raise ValueError(f"{path}: this depth file says {says}, expected {expected} (copied or renamed from "
+                             "elsewhere?); import the camera's depth again (gensplat import-depth --overwrite)")
 
 
 def _encode_links(files: DepthFiles, num_frames: int, root: Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:

@@ -3,6 +3,7 @@ samples of the GenSplat model (:class:`LeRobotViews`)."""
 
 from __future__ import annotations
 
+import fnmatch
 import hashlib
 import importlib
 import json
@@ -18,6 +19,7 @@ from torch.utils.data import Dataset
 
 from gensplat_transforms.atomic import atomic_write_json, read_json_object, stat_stamp
 from gensplat_transforms.cache import DepthFiles
+from gensplat_transforms.cameras import Cameras
 from gensplat_transforms.dataset_format import (
     IMAGE_KEY_PREFIX,
     calibrated_cameras,
@@ -47,6 +49,11 @@ class LeRobotSource:
     ``is_depth_map``, as LeRobot records a RealSense's depth; read in metres): a cache then
     stores a compressed copy, as there are no files to link.
 
+    An episode's views carry the cameras at their poses in that episode
+    (:meth:`episode_cameras`: the calibration's per-episode poses where it has them);
+    :attr:`cameras` are those of episode 0, for what does not change between episodes (image
+    size, intrinsics).
+
     Args:
         root: dataset root (holds ``meta/info.json``).
         repo_id: the dataset's repo id (offline use: any id matching the local copy).
@@ -57,7 +64,7 @@ class LeRobotSource:
     def __init__(self, root: str | Path, repo_id: str, cameras: tuple[str, ...] | None = None) -> None:
         self.root, self.repo_id = Path(root), repo_id
         info = read_info(self.root)
-        self.calibration = load_calibration(info["features"], self.root)
+        self.calibration = load_calibration(info["features"], self.root, info.get("total_episodes"))
         self.depth_features = {n: key for n in self.calibration
                                if _is_depth_map(info["features"].get(key := f"{IMAGE_KEY_PREFIX}{n}_depth"))}  # fmt: skip
         external = tuple(n for n, c in self.calibration.items() if c.mount == "external")
@@ -73,22 +80,22 @@ class LeRobotSource:
                 "modified), or put it in the image features' info (gensplat_transforms.dataset_format)"
             )
         shape = info["features"][IMAGE_KEY_PREFIX + self.camera_names[0]]["shape"]  # (H, W, C)
-        self.cameras = calibrated_cameras(self.calibration, self.camera_names, shape[1], shape[0])
-        #: cameras whose depth maps are their sensor's own: the sensor, registered on read
-        self.sensors = {n: self.calibration[n].depth.cameras(self.cameras[i]) for i, n in enumerate(self.camera_names)
-                        if self.calibration[n].depth is not None}  # fmt: skip
+        self.size = shape[1], shape[0]
+        self.cameras = self.episode_cameras(0)
+        #: cameras whose depth maps are their sensor's own: the sensor (in episode 0), registered on read
+        self.sensors = self._sensors(self.cameras)
         self._dataset = None
 
     @cached_property
     def content(self) -> dict:
         """What the cache follows: episode and frame counts, fps, the reconstructed cameras in
-        order with their features and calibration (the cache stores their Gaussians and
-        cameras), and per folder holding their frames a digest of its files (so a re-recorded
+        order with their features and calibration, per-episode poses included (the cache
+        stores their Gaussians and cameras), and per folder holding their frames a digest of its files (so a re-recorded
         episode counts). Not the repo id: a cache is found by the data, whatever its name.
         Computed on first use."""
         info = read_info(self.root)
         calib = {n: self.calibration[n] for n in self.camera_names}
-        cameras = [[n, info["features"][IMAGE_KEY_PREFIX + n], camera_info(c.K, c.c2w, c.mount, c.depth)]
+        cameras = [[n, info["features"][IMAGE_KEY_PREFIX + n], camera_info(c.K, c.c2w, c.mount, c.depth, c.episodes)]
                    for n, c in calib.items()]  # fmt: skip
         return {"episodes": info.get("total_episodes"), "frames": info.get("total_frames"), "fps": info.get("fps"),
                 "cameras": cameras, "files": {d: files_digest(self.root, d, digests_path(self.root)) for d in self._content_dirs()}}  # fmt: skip
@@ -103,6 +110,15 @@ class LeRobotSource:
         return ["data", *(f"videos/{IMAGE_KEY_PREFIX}{n}" for n in self.camera_names),
                 *(f"depth/{n}" for n in self.camera_names),
                 *(f"videos/{self.depth_features[n]}" for n in self.camera_names if n in self.depth_features)]  # fmt: skip
+
+    def episode_cameras(self, episode: int) -> Cameras:
+        """The reconstructed cameras at their poses in ``episode``."""
+        return calibrated_cameras(self.calibration, self.camera_names, *self.size, episode=episode)
+
+    def _sensors(self, cameras: Cameras) -> dict[str, Cameras]:
+        """The depth sensors of the reconstructed ``cameras`` that have one, by camera name."""
+        return {n: self.calibration[n].depth.cameras(cameras[i]) for i, n in enumerate(self.camera_names)
+                if self.calibration[n].depth is not None}  # fmt: skip
 
     def __getstate__(self) -> dict:
         return {**self.__dict__, "_dataset": None}
@@ -139,7 +155,8 @@ class LeRobotSource:
         are registered to the colour images): a depth cache links them instead of storing a
         copy."""
         paths = tuple(depth_path(self.root, n, episode) for n in self.camera_names)
-        return DepthFiles(paths, self.cameras) if all(p.exists() for p in paths) and not self.sensors else None
+        found = all(p.exists() for p in paths) and not self.sensors
+        return DepthFiles(paths, self.episode_cameras(episode), self.camera_names) if found else None
 
     def views(self, episode: int, frame: int) -> Views:
         return self._views(episode, frame, self.dataset[self._episode("dataset_from_index", episode) + frame])
@@ -171,6 +188,8 @@ class LeRobotSource:
         """Views of ``frame`` from ``item``, which holds the reconstructed cameras' images and
         depth-map features as LeRobot items hold them."""
         images = torch.stack([_as_float(item[IMAGE_KEY_PREFIX + n]) for n in self.camera_names])
+        cameras = self.episode_cameras(episode)
+        sensors = self._sensors(cameras) if self.sensors else {}
         depths = []
         for i, n in enumerate(self.camera_names):
             if depth_path(self.root, n, episode).exists():
@@ -178,8 +197,8 @@ class LeRobotSource:
             elif n in self.depth_features:  # LeRobot's own, (1, H, W) in metres
                 depth = item[self.depth_features[n]].float().reshape(1, *item[self.depth_features[n]].shape[-2:])
             else:
-                return Views(images, self.cameras)  # RGB only: needs a model reconstructor
-            sensor = self.sensors.get(n)
+                return Views(images, cameras)  # RGB only: needs a model reconstructor
+            sensor = sensors.get(n)
             want = tuple(images.shape[-2:]) if sensor is None else (sensor.height, sensor.width)
             if tuple(depth.shape[-2:]) != want:
                 raise ValueError(
@@ -189,8 +208,8 @@ class LeRobotSource:
                        "maps of another size are a depth sensor's own; add its depth block to the calibration "
                        "(gensplat calibrate, docs/lerobot.md)")
                 )  # fmt: skip
-            depths.append(depth if sensor is None else register_depth(depth, sensor, self.cameras[i]))
-        return Views(images, self.cameras, torch.stack(depths))
+            depths.append(depth if sensor is None else register_depth(depth, sensor, cameras[i]))
+        return Views(images, cameras, torch.stack(depths))
 
 
 class LeRobotViews(Dataset):
@@ -255,7 +274,8 @@ def read_info(root: Path) -> dict:
 def files_digest(root: Path, folder: str, memo: Path | None = None, sample: int = 16384) -> str:
     """SHA-256 over the files under ``root/folder``: each file's relative path, size, and its
     first and last ``sample`` bytes (cheap on large video files; an edit that keeps the size
-    and both ends is not noticed). A missing folder counts as empty.
+    and both ends is not noticed). A missing folder counts as empty; in a depth folder
+    (``depth/<camera>``) only the sidecars count (``episode_*.safetensors``, not a note beside them).
 
     With ``memo`` (a JSON file, written atomically where its folder exists), a folder whose files all
     have the paths, sizes, modification times and inodes they had when its digest was last
@@ -289,9 +309,14 @@ def _regular_files(root: Path, folder: str) -> list[tuple[str, str, os.stat_resu
     files followed, links to folders not), in ``pathlib`` path order; plain strings, which
     make a folder of many thousands of files several times quicker to list than ``Path``.
     Temporary files of :func:`.atomic.atomic_write` (``.<name>.<hex>.tmp``, left behind by a
-    writer that was killed) are not the dataset's content."""
+    writer that was killed) are not the dataset's content, nor anything but the sidecars of a
+    depth folder."""
     base, prefix, found = str(root / folder), Path(folder).as_posix(), []
-    for top, _, names in os.walk(base):
+    sidecars = Path(folder).parts[:1] == ("depth",)
+    for top, folders, names in os.walk(base):
+        if sidecars:
+            folders.clear()
+            names = fnmatch.filter(names, "episode_*.safetensors")
         for name in names:
             if name.startswith(".") and name.endswith(".tmp"):
                 continue
