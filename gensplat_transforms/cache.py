@@ -282,12 +282,15 @@ class GaussianCache:
             return None
         with self.lock(episode):
             self._forget(episode)  # another process may have replaced the file
+            found = _stat_key(self.path(episode)) or []  # [] when missing
             if self.status(episode) == "ok" and (not verify or self.verify(episode)):
                 return None
-            return self._build(episode, source)
+            return self._build(episode, source, found)
 
-    def _build(self, episode: int, source: EpisodeSource) -> CacheStats:
-        """Reconstruct and write one episode (the caller holds its lock)."""
+    def _build(self, episode: int, source: EpisodeSource, found: list[int] | None = None) -> CacheStats | None:
+        """Reconstruct and write one episode (the caller holds its lock); None when the episode
+        file's :func:`_stat_key` is not ``found`` any more (given: [] for none), as another builder
+        replaced it since."""
         if source.fingerprint != self.dataset:
             raise StaleCacheError(
                 f"{self.root}: the source's fingerprint {source.fingerprint!r} is not this cache's {self.dataset!r}"
@@ -306,11 +309,16 @@ class GaussianCache:
         while True:  # normally once: lock() removed or waited for any earlier temporary file
             try:
                 fd = os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)  # the umask applies
-                break
             except FileExistsError:
                 _remove_or_wait(tmp)
-        try:
+                continue
             fcntl.flock(fd, fcntl.LOCK_EX)  # tells later builders this file is being written
+            if _stat_key(tmp) == stat_stamp(os.fstat(fd)):
+                break
+            os.close(fd)  # removed as a dead builder's before it was locked
+        try:  # the temporary file, created and locked, is what excludes other builders for sure
+            if found is not None and (_stat_key(self.path(episode)) or []) != found:
+                return None  # built meanwhile by a builder that a deleted lock file let in
             if links is not None:
                 tensors, meta = _encode_links(links, n, self.root)
             else:
@@ -345,7 +353,10 @@ class GaussianCache:
 
         Robust to the lock file being deleted: a lock taken on a file that is no longer at its
         path is retried, and temporary files still locked by a builder whose lock file was
-        removed are waited for; unlocked ones (a builder was killed) are removed."""
+        removed are waited for; unlocked ones (a builder was killed) are removed. Two builders
+        let in by a deleted lock file build once: the temporary file is created exclusively
+        before a build, and a builder that finds the episode file replaced since it looked
+        does not build (see :meth:`ensure`)."""
         self.root.mkdir(parents=True, exist_ok=True)
         path = self.root / f".episode_{int(episode):06d}.lock"
         while True:

@@ -5,6 +5,7 @@ gensplat cache's options)."""
 
 import os
 import shutil
+import threading
 
 import pytest
 
@@ -65,3 +66,51 @@ def test_a_stray_file_in_a_depth_folder_keeps_the_cache(root, recorded):
     assert LeRobotSource(root, REPO).fingerprint == before == LeRobotSource(recorded, REPO).fingerprint
     (root / "depth" / "left" / "episode_000009.safetensors").write_bytes(b"a new sidecar")
     assert files_digest(root, "depth/left") != plain
+
+
+def test_copy_depth_is_kept_for_the_episodes_training_builds(root):
+    from gensplat_lerobot import enable_gensplat
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    from safetensors import safe_open
+
+    assert cache(root, "--copy-depth", "--episodes", "0", "--probability", "1") == 0
+    ds = enable_gensplat(LeRobotDataset(REPO, root=root))
+    assert not ds.gensplat.cache.link_depth
+    ds[len(ds) - 1]  # episode 1: built by the transform
+    for episode in (0, 1):
+        with safe_open(str(ds.gensplat.cache.path(episode)), framework="pt") as f:
+            assert "depth_links" not in f.metadata() and "depth.reference" in f.keys()  # noqa: SIM118 (safe_open is no dict)
+
+
+def test_a_removed_lock_file_lets_no_second_builder_in(tmp_path):
+    """A builder holds an episode's lock; the lock file is deleted; a second builder gets a
+    new lock file and builds the episode: the first, resumed, finds it built."""
+    from gensplat_transforms import RGBDReconstructor
+    from gensplat_transforms.cache import GaussianCache
+
+    source = SceneEpisodes(num_episodes=1, num_frames=2, size=16)
+    entered, resume = threading.Event(), threading.Event()
+
+    class Paused:  # the source, its first num_frames call waiting (the first builder holds the lock there)
+        def __getattr__(self, name):
+            return getattr(source, name)
+
+        def num_frames(self, episode):
+            if not entered.is_set():
+                entered.set()
+                assert resume.wait(30)
+            return source.num_frames(episode)
+
+    def builder():
+        return GaussianCache(tmp_path, RGBDReconstructor(), source.fingerprint)
+
+    results = []
+    first = threading.Thread(target=lambda: results.append(builder().ensure(0, Paused())))
+    first.start()
+    assert entered.wait(30)
+    (tmp_path / ".episode_000000.lock").unlink()
+    second = builder().ensure(0, source)
+    resume.set()
+    first.join(30)
+    assert second is not None and results == [None]  # built once
+    assert builder().status(0) == "ok"

@@ -10,7 +10,7 @@ from pathlib import Path
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from safetensors import SafetensorError, safe_open
 
-from gensplat_transforms.atomic import atomic_write_json
+from gensplat_transforms.atomic import atomic_write_json, read_json_object
 from gensplat_transforms.cache import GaussianCache, StaleCacheError
 from gensplat_transforms.dataset_format import GENSPLAT_DIR
 from gensplat_transforms.distributed import OnDevice, Shard
@@ -35,9 +35,11 @@ def cache_command(root: str | Path, repo_id: str | None) -> str:
     return f"gensplat cache --root {root} --repo-id {repo_id or '<id>'}"
 
 
-def save_settings(root: str | Path, config: GenSplatConfig, reconstructor: dict) -> Path:
-    """Store the transform settings beside the dataset (read by :func:`enable_gensplat`)."""
-    return atomic_write_json(settings_path(root), {"transform": config.to_dict(), "reconstructor": reconstructor})
+def save_settings(root: str | Path, config: GenSplatConfig, reconstructor: dict, link_depth: bool = True) -> Path:
+    """Store the transform settings beside the dataset (read by :func:`enable_gensplat`), and
+    whether the cache links the depth sidecars or stores copies (:func:`dataset_cache`)."""
+    return atomic_write_json(settings_path(root), {"transform": config.to_dict(), "reconstructor": reconstructor,
+                                                   "link_depth": link_depth})  # fmt: skip
 
 
 def load_settings(root: str | Path, repo_id: str | None = None) -> tuple[GenSplatConfig, dict]:
@@ -59,8 +61,13 @@ def default_reconstructor(source: LeRobotSource) -> dict:
     return {"name": "rgbd"} if source.has_depth() else {"name": "geometry"}
 
 
-def dataset_cache(root: str | Path, reconstructor, source: LeRobotSource, link_depth: bool = True) -> GaussianCache:
-    """The cache of a dataset: ``<root>/gensplat/cache/<reconstructor identity>/``."""
+def dataset_cache(root: str | Path, reconstructor, source: LeRobotSource, link_depth: bool | None = None
+                  ) -> GaussianCache:  # fmt: skip
+    """The cache of a dataset: ``<root>/gensplat/cache/<reconstructor identity>/``; it links the
+    depth sidecars unless ``link_depth`` is False (None: as ``gensplat cache`` stored it, so that
+    episodes built later, e.g. by training, are stored as the others)."""
+    if link_depth is None:
+        link_depth = read_json_object(settings_path(root)).get("link_depth", True) is not False
     return GaussianCache(Path(root) / GENSPLAT_DIR / "cache" / reconstructor.identity(), reconstructor,
                          source.fingerprint, link_depth=link_depth)  # fmt: skip
 
@@ -196,7 +203,7 @@ def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructo
     if len(config.cameras) == 1 and config.pivot_depth is None:  # the pivot on the one camera's axis
         config = replace(config, pivot_depth=scene_depth(rec, source, range(total) if episodes is None else episodes))
     if shard.rank == 0:
-        save_settings(root, config, reconstructor)
+        save_settings(root, config, reconstructor, link_depth)
         atomic_write_json(content_path(root), {"fingerprint": source.fingerprint, "content": source.content})
     episodes = range(total) if episodes is None else episodes
     return build_cache(dataset_cache(root, rec, source, link_depth), source, episodes, progress, shard, verify)
