@@ -3,10 +3,12 @@
     python benchmarks/self_calibration.py [--quick] [--root DATASET]
 
 A held-out simulated pick-and-place recording (480x640 MP4 with depth sidecars; ``--root``:
-one recorded with ``gensplat record``) is copied with its calibration removed, once with its
-exact depth (``depth``) and once with the depth a RealSense D435-like sensor measures there
-(``sensor_depth``: noise, holes, 1 mm steps; ``sim.sensor``, seeded per frame). On each copy
-``gensplat calibrate --estimate`` (``estimate_calibration``) runs, and is scored against the
+one recorded with ``gensplat record``) is copied with its calibration removed: with its
+exact depth (``depth``), with the depth a RealSense D435-like sensor measures there
+(``sensor_depth``: noise, holes, 1 mm steps; ``sim.sensor``, seeded per frame), and RGB only
+with the cameras' true field of view and distance given (``rgb_given_fov``) or the field of
+view 5 % too wide (``rgb_fov_5pct_wide``). On each copy ``gensplat calibrate --estimate``
+(``estimate_calibration``) runs, and is scored against the
 recorded calibration: focal lengths (relative error), the right camera's rotation and centre
 seen from the left camera, the world's up direction and the pivot (both seen from the left
 camera), the spread it reports, and its time.
@@ -16,7 +18,8 @@ and the RGB-D render (``RGBDReconstructor``, fast renderer, holes not filled) is
 the simulator's image at the pose the move means for the real camera, once for the recorded
 calibration (``calibrated``) and once for the estimate (``estimated``; its moves are made in
 its own levelled frame, and the truth is rendered there, mapped into the simulator's world
-through the left camera). Both use the same depth and the same draws.
+through the left camera). Both use the same depth (the recording's for the RGB-only copies:
+what is measured is the calibration's effect) and the same draws.
 
 Writes ``benchmarks/results/self_calibration.json``.
 """
@@ -58,17 +61,18 @@ NAMES = ("left", "right")
 RESULTS = Path(__file__).parent / "results"
 
 
-def uncalibrated_copy(root: Path, out: Path, sensor: bool) -> Path:
+def uncalibrated_copy(root: Path, out: Path, depth: str) -> Path:
     """``root`` copied to ``out`` without the cameras' calibration (their features' ``camera.*``
-    info); with ``sensor`` its depth sidecars become the simulated sensor's (seeded per frame)."""
-    shutil.copytree(root, out, ignore=shutil.ignore_patterns("gensplat"))
+    info); ``depth``: "exact" keeps its depth sidecars, "sensor" makes them the simulated
+    sensor's (seeded per frame), "none" leaves them out."""
+    shutil.copytree(root, out, ignore=shutil.ignore_patterns("gensplat", *(("depth",) if depth == "none" else ())))
     path = out / "meta" / "info.json"
     info = json.loads(path.read_text())
     for ft in info["features"].values():
         if ft.get("info"):
             ft["info"] = {k: v for k, v in ft["info"].items() if not k.startswith("camera.")}
     path.write_text(json.dumps(info, indent=4))
-    if sensor:
+    if depth == "sensor":
         source = LeRobotSource(root, REPO, NAMES)
         for ep in range(source.dataset.meta.total_episodes):
             for i, n in enumerate(NAMES):
@@ -100,7 +104,9 @@ def novel_views(calibrated: LeRobotSource, estimated: LeRobotSource, truth: Grou
     """{level: {calibrated, estimated: mean PSNR / SSIM}} of the left camera's moved views."""
     rows = {level: {"calibrated": [], "estimated": []} for level in EVAL_LEVELS}
     for ep, fr in frames:
-        est_views = estimated.views(ep, fr)  # the copy's depth: exact or the sensor's
+        est_views = estimated.views(ep, fr)  # the copy's depth: exact or the sensor's; none: the recording's
+        if est_views.depths is None:
+            est_views = Views(est_views.images, est_views.cameras, calibrated.views(ep, fr).depths)
         cal_views = Views(est_views.images, calibrated.cameras, est_views.depths)
         recs = {"calibrated": RGBDReconstructor().reconstruct(cal_views),
                 "estimated": RGBDReconstructor().reconstruct(est_views)}
@@ -142,16 +148,24 @@ def main() -> None:
     total = calibrated.dataset.meta.total_episodes
     frames = [(ep, round(k * (calibrated.num_frames(ep) - 1) / 3)) for ep in range(total) for k in (1, 2)]
     result = {}
-    for variant, sensor in (("depth", False), ("sensor_depth", True)):
-        copy = uncalibrated_copy(root, work / variant, sensor)
+    K, c2w = calibrated.cameras.K, calibrated.cameras.c2w
+    fov = math.degrees(2 * math.atan(calibrated.cameras.width / 2 / float(K[0, 0])))
+    baseline = float((c2w[1, :3, 3] - c2w[0, :3, 3]).norm())
+    variants = {"depth": ("exact", {}), "sensor_depth": ("sensor", {}),  # focal lengths and scale estimated
+                "rgb_given_fov": ("none", {"fov_deg": fov, "baseline_m": baseline}),  # both given exactly
+                "rgb_fov_5pct_wide": ("none", {"fov_deg": fov * 1.05, "baseline_m": baseline})}  # fmt: skip
+    for variant, (depth, given) in variants.items():
+        copy = uncalibrated_copy(root, work / variant, depth)
         t0, cpu0 = time.perf_counter(), time.process_time()
-        rig = estimate_calibration(copy, REPO, NAMES, timesteps, progress=False)
+        rig = estimate_calibration(copy, REPO, NAMES, timesteps, progress=False, **given)
         seconds, cpu = time.perf_counter() - t0, time.process_time() - cpu0
         estimated = LeRobotSource(copy, REPO, NAMES)
         result[variant] = {
             **errors(calibrated.cameras, estimated.cameras), "seconds": round(seconds, 1), "cpu_seconds": round(cpu, 1),
-            "timesteps": timesteps, "matches": rig.matches[1], "rms_px": rig.rms_px[1], "levelled": rig.levelled,
-            "spread": {"focal": rig.focal_spread, "rotation_deg": rig.rotation_spread_deg[1],
+            "given": given, "timesteps": timesteps, "matches": rig.matches[1], "rms_px": rig.rms_px[1],
+            "levelled": rig.levelled, "scale": rig.scale,
+            "spread": {"focal": [None if math.isnan(f) else f for f in rig.focal_spread],
+                       "rotation_deg": rig.rotation_spread_deg[1],
                        "center_m": rig.center_spread_m[1]},
             "novel_views": novel_views(calibrated, estimated, truth, frames, draws),
         }  # fmt: skip
@@ -160,7 +174,7 @@ def main() -> None:
                           "dataset": "recorded held-out" if args.root is None else root.name,
                           "video": "MP4" if args.root is None else "as given", **cpu_model(), "torch_threads": 1}  # fmt: skip
     write_result(result, args.out / "self_calibration.json")
-    for variant in ("depth", "sensor_depth"):
+    for variant in variants:
         r = result[variant]
         print(f"{variant}: focal {max(r['focal_error']):.2%}, rotation {r['rotation_error_deg']:.2f} deg, centre "
               f"{r['center_error_m'] * 100:.2f} cm of {r['baseline_m']:.2f} m, up {r['up_error_deg']:.2f} deg, pivot "

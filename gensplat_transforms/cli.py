@@ -130,12 +130,24 @@ def build_parser() -> argparse.ArgumentParser:
     given.add_argument("--estimate", action="store_true",
                        help="estimate the external cameras' intrinsics and poses from the dataset's own frames and "
                             "depth (SIFT matches + depth, metric; docs/calibration.md)")
+    calibrate.add_argument("--fov", type=float, default=None, metavar="DEG",
+                           help="--from-features, and --estimate without depth or of one camera: every camera's "
+                                "horizontal field of view in degrees (square pixels, principal point at the image "
+                                "centre)")
+    calibrate.add_argument("--focal", type=float, default=None, metavar="PX",
+                           help="as --fov, every camera's focal length in pixels")
     calibrate.add_argument("--repo-id", default=None, help="--estimate: the dataset's repo id (default: local/<root name>)")
     calibrate.add_argument("--cameras", nargs="+", default=None,
                            help="--estimate: the external cameras, the first the reference (default: every colour "
                                 "camera whose name does not contain 'wrist')")
     calibrate.add_argument("--timesteps", type=int, default=16,
                            help="--estimate: timesteps sampled across the episodes (default: 16)")
+    calibrate.add_argument("--baseline", type=float, default=None,
+                           help="--estimate without depth: the distance between the first two cameras, metres "
+                                "(sets the scale)")
+    calibrate.add_argument("--table-distance", type=float, default=None,
+                           help="--estimate without depth: the distance from the first camera down to the table, "
+                                "metres (sets the scale)")
     calibrate.add_argument("--convention", choices=["auto", "gensplat", "opencv-w2c", "nerfstudio"], default="auto",
                            help="how FILE states the cameras; auto: nerfstudio when it has frames, opencv-w2c when "
                                 "cameras have R or rvec, else gensplat (default: auto)")
@@ -410,7 +422,8 @@ def _estimate(args) -> None:
     estimate = _lerobot_module("estimate", "calibrate --estimate")
     repo_id = args.repo_id or f"local/{Path(args.root).name}"
     rig = estimate.estimate_calibration(args.root, repo_id, tuple(args.cameras) if args.cameras else None,
-                                        args.timesteps)  # fmt: skip
+                                        args.timesteps, fov_deg=args.fov, focal_px=args.focal,
+                                        baseline_m=args.baseline, table_m=args.table_distance)  # fmt: skip
     print("\n".join(estimate.report(rig)))
     print(f"estimated {', '.join(rig.names)}; written to {calibration_path(args.root)} (the dataset is not modified)")
 

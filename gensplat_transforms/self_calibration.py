@@ -1,17 +1,18 @@
 """Camera calibration estimated from a dataset's own frames (``gensplat calibrate --estimate``).
 
-For static external cameras with metric depth registered to their colour images:
+For static external cameras (:func:`estimate_rig`; docs/calibration.md):
 
-1. each sampled timestep, every other camera is matched to the first (the reference): SIFT
-   features (OpenCV), Lowe's ratio test both ways, a fundamental-matrix RANSAC (needs no
-   intrinsics), and only pixels whose depth is valid and smooth around them;
-2. per timestep and camera pair, the focal lengths of both cameras and their relative pose:
-   a grid over the focal lengths scored by a rigid 3D fit of the back-projected matches
-   (a wrong focal length bends the points, so no rotation fits them), then Levenberg-Marquardt
-   on the reprojection errors in both images (Huber-weighted);
-3. the per-timestep estimates are aggregated by their median (rotations: the one nearest all
-   others), refined once on the pooled matches that agree with it, and their spread is kept
-   as the confidence of each camera;
+1. at each sampled timestep every other camera is matched to the first (the reference): affine
+   SIFT features (OpenCV), Lowe's ratio test both ways, a fundamental-matrix RANSAC (needs no
+   intrinsics), and with depth only pixels whose depth is valid and smooth around them;
+2. the cameras are static, so the matches of all timesteps are pooled. With depth, the focal
+   lengths of both cameras and their metric pose: a grid over the focal lengths scored by
+   3-point rigid fits of the back-projected matches (a wrong focal length bends the points, so
+   no rigid motion fits them), then Levenberg-Marquardt on the reprojection errors in both
+   images (Huber-weighted). Without depth, given focal lengths: the essential matrix (RANSAC),
+   its inliers triangulated, and the scale from one distance the user gives;
+3. groups of timesteps (episodes) are estimated apart; their deviation from the pooled
+   estimate is the spread, kept as the confidence of each camera;
 4. the world frame is levelled on the table: the dominant plane seen from below the cameras'
    image-up direction gives world +z, world +x points from the scene towards the cameras
    (horizontally), and the origin is the table point below the pivot, so the perturbation
@@ -25,6 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -75,9 +77,10 @@ class PairEstimate:
 @dataclass
 class RigEstimate:
     """Estimated cameras in the levelled world frame: ``K`` (V, 3, 3), ``c2w`` (V, 4, 4)
-    (OpenCV axes), per camera the spread of the per-timestep estimates around the final one
+    (OpenCV axes), per camera the spread of the per-episode estimates around the pooled one
     (``focal_spread``: relative; ``rotation_spread_deg``; ``center_spread_m``: of its centre
-    seen from the reference camera), and how many timesteps and matches it rests on."""
+    seen from the reference camera; NaN where given, not estimated), how many timesteps and
+    matches it rests on, and what makes it metric (``scale``)."""
 
     names: tuple[str, ...]
     K: torch.Tensor
@@ -89,14 +92,17 @@ class RigEstimate:
     matches: list[int]
     rms_px: list[float]
     levelled: bool = True
+    scale: str = "metric, from the dataset's depth"
 
 
-def match_pair(image_a: np.ndarray, image_b: np.ndarray, depth_a: np.ndarray, depth_b: np.ndarray) -> Matches:
-    """Depth-valid feature matches between two images of one timestep.
+def match_pair(image_a: np.ndarray, image_b: np.ndarray, depth_a: np.ndarray | None = None,
+               depth_b: np.ndarray | None = None) -> Matches:
+    """Feature matches between two images of one timestep; with depth, only depth-valid ones.
 
     Args:
         image_a, image_b: (H, W, 3) uint8 RGB (sizes may differ).
-        depth_a, depth_b: (H, W) metric depth of each, 0 (or non-finite) where unknown.
+        depth_a, depth_b: (H, W) metric depth of each, 0 (or non-finite) where unknown; None
+            for none (the matches' depths are then NaN).
     """
     import cv2
 
@@ -118,8 +124,11 @@ def match_pair(image_a: np.ndarray, image_b: np.ndarray, depth_a: np.ndarray, de
     if inlier is None:
         return _no_matches()
     keep = inlier.ravel().astype(bool)
-    za, zb = _smooth_depth(depth_a, pa), _smooth_depth(depth_b, pb)
-    keep &= (za > 0) & (zb > 0)
+    if depth_a is None or depth_b is None:
+        za = zb = np.full(len(pa), np.nan)
+    else:
+        za, zb = _smooth_depth(depth_a, pa), _smooth_depth(depth_b, pb)
+        keep &= (za > 0) & (zb > 0)
     t = lambda x: torch.from_numpy(np.ascontiguousarray(x[keep]))
     return Matches(t(pa), t(za), t(pb), t(zb))
 
@@ -228,10 +237,22 @@ def _refine(m: Matches, ca, cb, fa: float, fb: float, R: torch.Tensor, t: torch.
         ua = fa * xa[:, :2] / xa[:, 2:].clamp_min(1e-6) + ca - m.uv_a
         return torch.cat([ub, ua], 0)  # (2M, 2)
 
+    p = _least_squares(residuals, p, iterations)
+    r = residuals(p).norm(dim=-1)
+    inlier = r <= 3.0
+    b_from_a = torch.eye(4, dtype=torch.float64)
+    b_from_a[:3, :3], b_from_a[:3, 3] = axis_angle_to_rotation_matrix(p[None, 2:5])[0], p[5:8]
+    rms = float(r[inlier].square().mean().sqrt()) if inlier.any() else float("inf")
+    return PairEstimate(float(torch.exp(p[0])), float(torch.exp(p[1])), b_from_a, rms, int(inlier.sum()) // 2)
+
+
+def _least_squares(residuals, p: torch.Tensor, iterations: int = 30, huber: float = 1.5) -> torch.Tensor:
+    """Levenberg-Marquardt: the parameters (P,) near ``p`` minimising the Huber-weighted
+    (``huber`` pixels, per row) squares of ``residuals(p)`` (M, k)."""
     damping = 1e-3
     for _ in range(iterations):
         r = residuals(p)
-        w = (1.5 / r.norm(dim=-1).clamp_min(1.5)).repeat_interleave(2)  # Huber weights per match, per coordinate
+        w = (huber / r.norm(dim=-1).clamp_min(huber)).repeat_interleave(r.shape[-1])  # per row, per coordinate
         J = torch.func.jacfwd(lambda q: residuals(q).reshape(-1))(p)
         rf = r.reshape(-1)
         A, g = J.T @ (J * w[:, None]), J.T @ (w * rf)
@@ -246,12 +267,7 @@ def _refine(m: Matches, ca, cb, fa: float, fb: float, R: torch.Tensor, t: torch.
         p, damping = p + step, max(damping / 10, 1e-9)
         if step.abs().max() < 1e-10:
             break
-    r = residuals(p).norm(dim=-1)
-    inlier = r <= 3.0
-    b_from_a = torch.eye(4, dtype=torch.float64)
-    b_from_a[:3, :3], b_from_a[:3, 3] = axis_angle_to_rotation_matrix(p[None, 2:5])[0], p[5:8]
-    rms = float(r[inlier].square().mean().sqrt()) if inlier.any() else float("inf")
-    return PairEstimate(float(torch.exp(p[0])), float(torch.exp(p[1])), b_from_a, rms, int(inlier.sum()) // 2)
+    return p
 
 
 def rotation_angle_deg(R: torch.Tensor) -> torch.Tensor:
@@ -274,54 +290,182 @@ def spread(estimates: list[PairEstimate], final: PairEstimate) -> tuple[float, f
 
 
 def estimate_rig(names: tuple[str, ...], sizes: list[tuple[int, int]], timesteps: list[dict],
-                 groups: list | None = None, progress: bool = False) -> RigEstimate:
+                 groups: list | None = None, progress: bool = False, focals: list[float] | None = None,
+                 scale: tuple[str, float] | None = None) -> RigEstimate:
     """Estimate static cameras ``names`` (the first is the reference) from ``timesteps``, each
-    ``{name: (image (H, W, 3) uint8, depth (H, W) metres)}``; ``sizes``: (width, height) per camera.
+    ``{name: (image (H, W, 3) uint8, depth (H, W) metres or None)}``; ``sizes``: (width, height)
+    per camera. What is estimated depends on what is given:
+
+    * every camera with depth, two or more cameras: focal lengths and poses, metric
+      (``focals`` and ``scale`` must be None);
+    * no depth: poses from the essential matrix of the given ``focals`` (pixels per camera),
+      metric by ``scale``: ``("baseline", metres)`` between cameras 0 and 1, or ``("table",
+      metres)`` from camera 0's centre down to the table plane;
+    * one camera with depth and its focal length in ``focals``: its pose levelled on the table.
 
     The cameras are static, so the matches of all timesteps are pooled into one estimate per
     camera pair; ``groups`` (a label per timestep, e.g. its episode; default: four interleaved
     groups) are estimated apart from it too, and their deviation from it is the spread.
-    Raises ValueError when a camera cannot be estimated (too few depth-valid matches)."""
+    Raises ValueError naming what is missing or why a camera cannot be estimated."""
     from tqdm.auto import tqdm
 
-    if len(names) < 2:
-        raise ValueError("estimating calibration from the frames needs two external cameras that see the scene")
+    depth = all(step[n][1] is not None for step in timesteps for n in names)
+    if len(names) == 1 and not (depth and focals):
+        raise ValueError("one external camera: its focal length is not observable from its own frames; give it "
+                         "(--fov or --focal), and the camera needs depth to find the table")  # fmt: skip
+    if depth and len(names) > 1 and (focals or scale):
+        raise ValueError("with depth the focal lengths and the scale are estimated: --fov, --focal and the scale "
+                         "options are for cameras without depth (or one camera)")  # fmt: skip
+    if not depth and (not focals or scale is None):
+        raise ValueError("without depth the calibration needs the cameras' focal length (--fov or --focal) and "
+                         "one distance for the scale (--baseline or --table-distance)")  # fmt: skip
     groups = list(groups) if groups is not None else [i % 4 for i in range(len(timesteps))]
-    finals, spreads, used = [], [], []
+    pairs = []
     for k in range(1, len(names)):
         steps = tqdm(timesteps, desc=f"matching {names[0]}-{names[k]}", unit="timestep", disable=not progress)
         found = [match_pair(s[names[0]][0], s[names[k]][0], s[names[0]][1], s[names[k]][1]) for s in steps]
-        pooled = Matches.cat(found)
-        if len(pooled) < MIN_MATCHES:
-            raise ValueError(f"cameras {names[0]!r} and {names[k]!r}: {len(pooled)} depth-valid feature matches in "
-                             f"{len(timesteps)} sampled timesteps (need {MIN_MATCHES}): the cameras may see too "
-                             "little in common, or the frames too little texture")  # fmt: skip
-        first = estimate_pair(pooled, sizes[0], sizes[k])
-        agreeing = _agreeing(pooled, first, sizes[0], sizes[k])
-        if len(agreeing) < MIN_MATCHES:
-            raise ValueError(f"cameras {names[0]!r} and {names[k]!r}: only {len(agreeing)} of {len(pooled)} feature "
-                             "matches agree on one calibration: the cameras may see too little in common")  # fmt: skip
-        final = estimate_pair(agreeing, sizes[0], sizes[k], first)
-        parts = []
-        for label in dict.fromkeys(groups):
-            m = _agreeing(Matches.cat([f for f, g in zip(found, groups) if g == label]), final, sizes[0], sizes[k])
-            if len(m) >= MIN_MATCHES:
-                parts.append(estimate_pair(m, sizes[0], sizes[k], final))
-        finals.append(final)
-        spreads.append(spread(parts, final))
-        used.append(sum(len(f) > 0 for f in found))
-    focals = [float(torch.tensor([f.focal_a for f in finals]).median())] + [f.focal_b for f in finals]
+        if len(Matches.cat(found)) < MIN_MATCHES:
+            raise ValueError(f"cameras {names[0]!r} and {names[k]!r}: {len(Matches.cat(found))} feature matches "
+                             f"{'with depth ' if depth else ''}in {len(timesteps)} sampled timesteps (need "
+                             f"{MIN_MATCHES}): the cameras may see too little in common, or the frames too little "
+                             "texture")  # fmt: skip
+        if depth:
+            pairs.append(_depth_pair(found, groups, sizes[0], sizes[k], names[0], names[k]))
+        else:
+            pairs.append(_rgb_pair(found, groups, _K(focals[0], sizes[0]), _K(focals[k], sizes[k])))
+    if depth and len(names) > 1:
+        focals = [float(torch.tensor([p.final.focal_a for p in pairs]).median())] + [p.final.focal_b for p in pairs]
     K = torch.stack([_K(f, s) for f, s in zip(focals, sizes)])
-    c2w_ref = torch.stack([torch.eye(4, dtype=torch.float64)] + [torch.linalg.inv(f.b_from_a) for f in finals])
-    points = _scene_points(timesteps[: min(len(timesteps), 4)], names, K, c2w_ref)
-    world_from_ref, levelled = level_frame(points, c2w_ref)
+    c2w = torch.stack([torch.eye(4, dtype=torch.float64)] + [torch.linalg.inv(p.final.b_from_a) for p in pairs])
+    if depth:
+        points = _scene_points(timesteps[: min(len(timesteps), 4)], names, K, c2w)
+    else:
+        points = torch.cat([p.points for p in pairs])
+        s = scale[1] / _unit_distance(scale[0], points, c2w)
+        c2w[:, :3, 3] *= s
+        points = points * s
+        pairs = [p._replace(center_spread=p.center_spread * s) for p in pairs]
+    world_from_ref, levelled = level_frame(points, c2w)
+    nan = math.nan if not depth or len(names) == 1 else None
+    given = "between the first two cameras" if scale and scale[0] == "baseline" else "from the first camera to the table"
     return RigEstimate(
-        names=names, K=K, c2w=world_from_ref @ c2w_ref,
-        focal_spread=[max(s[0] for s in spreads)] + [s[1] for s in spreads],
-        rotation_spread_deg=[0.0] + [s[2] for s in spreads], center_spread_m=[0.0] + [s[3] for s in spreads],
-        timesteps=[max(used)] + used, matches=[max(f.matches for f in finals)] + [f.matches for f in finals],
-        rms_px=[finals[0].rms_px] + [f.rms_px for f in finals], levelled=levelled,
+        names=names, K=K, c2w=world_from_ref @ c2w,
+        focal_spread=[nan] * len(names) if nan is not None else
+                     [max(p.focal_spread[0] for p in pairs)] + [p.focal_spread[1] for p in pairs],
+        rotation_spread_deg=[0.0] + [p.rotation_spread for p in pairs],
+        center_spread_m=[0.0] + [p.center_spread for p in pairs],
+        timesteps=[max([p.used for p in pairs], default=len(timesteps))] + [p.used for p in pairs],
+        matches=[max([p.final.matches for p in pairs], default=0)] + [p.final.matches for p in pairs],
+        rms_px=[pairs[0].final.rms_px if pairs else math.nan] + [p.final.rms_px for p in pairs], levelled=levelled,
+        scale="metric, from the dataset's depth" if depth else f"metric, from the {scale[1]} m given {given}",
     )  # fmt: skip
+
+
+class _Pair(NamedTuple):
+    """One camera pair's estimate, its spread over the groups, how many timesteps gave matches,
+    and (without depth) its triangulated points in camera a's frame, (N, 3)."""
+
+    final: PairEstimate
+    focal_spread: tuple[float, float]
+    rotation_spread: float
+    center_spread: float
+    used: int
+    points: torch.Tensor | None = None
+
+
+def _depth_pair(found: list[Matches], groups: list, size_a, size_b, name_a: str, name_b: str) -> _Pair:
+    """Focal lengths and metric pose of a camera pair from their depth-valid ``found`` matches."""
+    pooled = Matches.cat(found)
+    first = estimate_pair(pooled, size_a, size_b)
+    agreeing = _agreeing(pooled, first, size_a, size_b)
+    if len(agreeing) < MIN_MATCHES:
+        raise ValueError(f"cameras {name_a!r} and {name_b!r}: only {len(agreeing)} of {len(pooled)} feature matches "
+                         "agree on one calibration: the cameras may see too little in common")  # fmt: skip
+    final = estimate_pair(agreeing, size_a, size_b, first)
+    parts = []
+    for label in dict.fromkeys(groups):
+        m = _agreeing(Matches.cat([f for f, g in zip(found, groups) if g == label]), final, size_a, size_b)
+        if len(m) >= MIN_MATCHES:
+            parts.append(estimate_pair(m, size_a, size_b, final))
+    fa, fb, rot, centre = spread(parts, final)
+    return _Pair(final, (fa, fb), rot, centre, sum(len(f) > 0 for f in found))
+
+
+def _rgb_pair(found: list[Matches], groups: list, K_a: torch.Tensor, K_b: torch.Tensor) -> _Pair:
+    """Rotation and unit-length translation of a camera pair of known intrinsics from the
+    essential matrix of their pooled matches (RANSAC), its inliers triangulated; the spread
+    is that of per-group essential matrices."""
+    final, inliers = _essential(Matches.cat(found), K_a, K_b)
+    parts = []
+    for label in dict.fromkeys(groups):
+        m = Matches.cat([f for f, g in zip(found, groups) if g == label])
+        if len(m) >= MIN_MATCHES:
+            parts.append(_essential(m, K_a, K_b)[0])
+    _, _, rot, centre = spread(parts, final)
+    return _Pair(final, (math.nan, math.nan), rot, centre, sum(len(f) > 0 for f in found),
+                 _triangulate(inliers, K_a, K_b, final.b_from_a))  # fmt: skip
+
+
+def _essential(m: Matches, K_a: torch.Tensor, K_b: torch.Tensor) -> tuple[PairEstimate, Matches]:
+    """The pose (unit translation) of cameras with intrinsics ``K_a``, ``K_b`` from matches
+    ``m``: OpenCV's essential-matrix RANSAC (1 px) and cheirality check, then
+    Levenberg-Marquardt on the inliers' Sampson distances; with their RMS in pixels, and the
+    inliers."""
+    import cv2
+
+    xa = ((m.uv_a - K_a[:2, 2]) / K_a[0, 0]).numpy()
+    xb = ((m.uv_b - K_b[:2, 2]) / K_b[0, 0]).numpy()
+    threshold = 2.0 / float(K_a[0, 0] + K_b[0, 0])  # one pixel in normalised coordinates
+    E, mask = cv2.findEssentialMat(xa, xb, np.eye(3), method=cv2.RANSAC, prob=0.9999, threshold=threshold)
+    if E is None or E.shape != (3, 3):
+        raise ValueError(f"no essential matrix fits the {len(m)} feature matches: the cameras may see too little "
+                         "in common, or their focal lengths are wrong")  # fmt: skip
+    _, R, t, mask = cv2.recoverPose(E, xa, xb, np.eye(3), mask=mask)
+    keep = torch.from_numpy(mask.ravel() > 0)
+    ha, hb = (torch.cat([torch.from_numpy(x)[keep], torch.ones(int(keep.sum()), 1, dtype=torch.float64)], 1)
+              for x in (xa, xb))  # fmt: skip
+    f = (float(K_a[0, 0]) + float(K_b[0, 0])) / 2
+
+    def sampson(p):  # (M, 1) Sampson distances in pixels of the inliers under rotation vector p[:3], t p[3:]
+        Rm, tv = axis_angle_to_rotation_matrix(p[None, :3])[0], p[3:] / p[3:].norm()
+        tx = torch.stack([torch.stack([tv[0] * 0, -tv[2], tv[1]]), torch.stack([tv[2], tv[0] * 0, -tv[0]]),
+                          torch.stack([-tv[1], tv[0], tv[0] * 0])])  # fmt: skip
+        Em = tx @ Rm
+        Ea, Eb = ha @ Em.T, hb @ Em
+        num = (hb * Ea).sum(1)
+        return (f * num / (Ea[:, :2].square().sum(1) + Eb[:, :2].square().sum(1)).sqrt().clamp_min(1e-12))[:, None]
+
+    p = torch.cat([rotation_matrix_to_axis_angle(torch.from_numpy(R)[None])[0], torch.from_numpy(t.ravel())])
+    p = _least_squares(sampson, p, huber=1.0)
+    b_from_a = torch.eye(4, dtype=torch.float64)
+    b_from_a[:3, :3], b_from_a[:3, 3] = axis_angle_to_rotation_matrix(p[None, :3])[0], p[3:] / p[3:].norm()
+    rms = float(sampson(p).square().mean().sqrt()) if len(ha) else math.inf
+    return PairEstimate(float(K_a[0, 0]), float(K_b[0, 0]), b_from_a, rms, int(keep.sum())), m.subset(keep)
+
+
+def _triangulate(m: Matches, K_a: torch.Tensor, K_b: torch.Tensor, b_from_a: torch.Tensor) -> torch.Tensor:
+    """(N, 3) points in camera a's frame of matches ``m``, those in front of both cameras."""
+    import cv2
+
+    xa = ((m.uv_a - K_a[:2, 2]) / K_a[0, 0]).numpy().T
+    xb = ((m.uv_b - K_b[:2, 2]) / K_b[0, 0]).numpy().T
+    X = cv2.triangulatePoints(np.eye(3, 4), b_from_a[:3].numpy(), xa, xb)
+    points = torch.from_numpy((X[:3] / X[3:]).T.copy())
+    in_b = points @ b_from_a[:3, :3].T + b_from_a[:3, 3]
+    return points[(points[:, 2] > 0) & (in_b[:, 2] > 0)]
+
+
+def _unit_distance(kind: str, points: torch.Tensor, c2w: torch.Tensor) -> float:
+    """The distance that ``scale`` gives in metres, in the units of an unscaled estimate:
+    between cameras 0 and 1 (``"baseline"``) or from camera 0 down to the table (``"table"``)."""
+    if kind == "baseline":
+        if len(c2w) < 2:
+            raise ValueError("--baseline is the distance between the first two cameras: give two cameras")
+        return float((c2w[1, :3, 3] - c2w[0, :3, 3]).norm())
+    world_from_ref, levelled = level_frame(points, c2w)
+    if not levelled:
+        raise ValueError("--table-distance: no table plane found among the matched points; give --baseline")
+    return abs(float((world_from_ref @ c2w[0])[2, 3]))
 
 
 def _agreeing(m: Matches, e: PairEstimate, size_a, size_b, max_px: float = 4.0) -> Matches:

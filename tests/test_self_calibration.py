@@ -18,6 +18,7 @@ from gensplat_transforms.self_calibration import (
     Matches,
     _agreeing,
     estimate_pair,
+    estimate_rig,
     level_frame,
     match_pair,
     rotation_angle_deg,
@@ -59,6 +60,33 @@ def test_estimate_pair_recovers_focal_lengths_and_pose_with_outliers():
     assert float(rotation_angle_deg(e.b_from_a[:3, :3] @ b_from_a[:3, :3].T)) < 0.3
     assert float((e.b_from_a[:3, 3] - b_from_a[:3, 3]).norm()) < 0.01
     assert e.rms_px < 1.0
+
+
+def test_essential_pose_of_known_focal_lengths_recovers_rotation_and_direction():
+    from gensplat_transforms.self_calibration import _K, _essential, _triangulate
+
+    m, (fa, fb), b_from_a = _synthetic_matches()
+    m = Matches(m.uv_a, torch.full_like(m.z_a, float("nan")), m.uv_b, torch.full_like(m.z_b, float("nan")))
+    e, inliers = _essential(m, _K(fa, (320, 240)), _K(fb, (320, 240)))
+    assert float(rotation_angle_deg(e.b_from_a[:3, :3] @ b_from_a[:3, :3].T)) < 0.3
+    direction = b_from_a[:3, 3] / b_from_a[:3, 3].norm()
+    assert float(e.b_from_a[:3, 3] @ direction) > 0.9995  # unit translation, within 2 deg
+    assert 0.6 * len(m) < len(inliers) < len(m) and e.rms_px < 1.0  # the 20 % wrong matches left out
+    points = _triangulate(inliers, _K(fa, (320, 240)), _K(fb, (320, 240)), e.b_from_a)
+    assert len(points) > 0.9 * len(inliers) and (points[:, 2] > 0).all()
+
+
+def test_estimate_rig_says_what_it_needs():
+    blank = {"a": (np.zeros((8, 8, 3), np.uint8), None), "b": (np.zeros((8, 8, 3), np.uint8), None)}
+    depth = {k: (v[0], np.ones((8, 8), np.float32)) for k, v in blank.items()}
+    with pytest.raises(ValueError, match="one external camera: its focal length is not observable"):
+        estimate_rig(("a",), [(8, 8)], [depth])
+    with pytest.raises(ValueError, match="needs the cameras' focal length .* and one distance"):
+        estimate_rig(("a", "b"), [(8, 8)] * 2, [blank], focals=[10.0, 10.0])
+    with pytest.raises(ValueError, match="with depth the focal lengths and the scale are estimated"):
+        estimate_rig(("a", "b"), [(8, 8)] * 2, [depth], focals=[10.0, 10.0])
+    with pytest.raises(ValueError, match="feature matches in 1 sampled timesteps"):
+        estimate_rig(("a", "b"), [(8, 8)] * 2, [blank], focals=[10.0, 10.0], scale=("baseline", 1.0))
 
 
 def test_estimate_pair_refuses_too_few_matches():
@@ -179,6 +207,52 @@ def test_estimate_on_a_recording_without_calibration_matches_the_truth(simulated
     assert main(["cache", "--root", str(root), "--repo-id", REPO, "--episodes", "0"]) == 0
 
 
+def _relative(cameras):
+    """The right camera's pose seen from the left one, the left camera's world up, and the
+    pivot seen from the left camera."""
+    left, right = cameras["left"].c2w, cameras["right"].c2w
+    pivot = torch.linalg.inv(left) @ torch.cat([pivot_point(left, right), torch.ones(1, dtype=torch.float64)])
+    return torch.linalg.inv(left) @ right, left[2, :3], pivot[:3]
+
+
+@pytest.mark.parametrize("scale", [("--baseline", "0.8"), ("--table-distance", "0.5")])
+def test_estimate_from_rgb_alone_with_the_field_of_view_and_a_distance(simulated, tmp_path, capsys, scale):
+    """No depth: the field of view and one distance given (the simulated cameras stand 0.8 m
+    apart and 0.5 m above the table); rotation within 2 deg, the other camera within 5 % of
+    their distance, the pivot within 3 cm; the dataset untouched."""
+    root = tmp_path / "rgb"
+    shutil.copytree(simulated, root, ignore=shutil.ignore_patterns("gensplat", "depth"))
+    _strip_calibration(root)
+    features = json.loads((simulated / "meta" / "info.json").read_text())["features"]
+    truth = load_calibration(features)
+    fov = math.degrees(2 * math.atan(160 / float(truth["left"].K[0, 0])))
+    args = ["calibrate", "--root", str(root), "--estimate", "--repo-id", REPO, "--timesteps", "6", "--fov", f"{fov}"]
+    assert main([*args, *scale]) == 0
+    assert "metric, from the" in capsys.readouterr().out
+    est = load_calibration(json.loads((root / "meta" / "info.json").read_text())["features"], root)
+    (rel_e, up_e, pivot_e), (rel_t, up_t, pivot_t) = _relative(est), _relative(truth)
+    assert float(rotation_angle_deg(rel_e[:3, :3] @ rel_t[:3, :3].T)) < 2.0
+    assert float((rel_e[:3, 3] - rel_t[:3, 3]).norm()) < 0.05 * 0.8
+    assert float((pivot_e - pivot_t).norm()) < 0.03 and math.degrees(math.acos(float(up_e @ up_t))) < 2.0
+
+
+def test_estimate_of_one_camera_with_depth_and_its_field_of_view(simulated, tmp_path, capsys):
+    """One camera: the given focal length, and a pose levelled on the table from its depth
+    (the simulated left camera stands 0.5 m above the table)."""
+    root = tmp_path / "one"
+    shutil.copytree(simulated, root, ignore=shutil.ignore_patterns("gensplat"))
+    _strip_calibration(root)
+    args = ["calibrate", "--root", str(root), "--estimate", "--repo-id", REPO, "--timesteps", "2", "--cameras", "left"]
+    assert main(args) == 2
+    assert "its focal length is not observable" in capsys.readouterr().err
+    assert main([*args, "--focal", "230.5"]) == 0
+    est = load_calibration(json.loads((root / "meta" / "info.json").read_text())["features"], root)
+    truth = load_calibration(json.loads((simulated / "meta" / "info.json").read_text())["features"])
+    assert sorted(est) == ["left"] and float(est["left"].K[0, 0]) == 230.5
+    up = math.degrees(math.acos(float(est["left"].c2w[2, :3] @ truth["left"].c2w[2, :3])))
+    assert up < 1.0 and abs(float(est["left"].c2w[2, 3]) - 0.5) < 0.01
+
+
 def test_estimate_refuses_what_it_cannot_do(simulated, tmp_path, capsys):
     """Clear error lines: calibrated features, one camera, unknown cameras, no depth."""
     def error(root, *extra):
@@ -189,9 +263,12 @@ def test_estimate_refuses_what_it_cannot_do(simulated, tmp_path, capsys):
     root = tmp_path / "uncalibrated"
     shutil.copytree(simulated, root, ignore=shutil.ignore_patterns("gensplat"))
     _strip_calibration(root)
-    assert "needs two external cameras" in error(root, "--cameras", "left")
+    assert "its focal length is not observable" in error(root, "--cameras", "left")
     assert "not colour image features" in error(root, "--cameras", "left", "nope")
     assert "--timesteps must be at least 2" in error(root, "--timesteps", "1")
-    shutil.rmtree(root / "depth" / "right")
-    assert "have no depth" in error(root)
+    assert "leave out --fov" in error(root, "--fov", "60")
+    for option, value in (("--baseline", "0"), ("--baseline", "-1"), ("--table-distance", "nan"), ("--fov", "180")):
+        assert f"{option} must be a positive number" in error(root, option, value)
+    shutil.rmtree(root / "depth" / "right")  # one camera without depth: RGB only, which needs more
+    assert "needs the cameras' focal length (--fov or --focal) and one distance" in error(root)
     assert not calibration_path(root).exists()

@@ -28,14 +28,20 @@ ASSUMPTIONS = "square pixels, principal point at the image centre, no lens disto
 
 
 def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...] | None = None,
-                         timesteps: int = 16, progress: bool = True) -> RigEstimate:
+                         timesteps: int = 16, progress: bool = True, fov_deg: float | None = None,
+                         focal_px: float | None = None, baseline_m: float | None = None,
+                         table_m: float | None = None) -> RigEstimate:
     """Estimate the external ``cameras`` (default: every colour camera whose name does not
     contain "wrist"; the first is the reference) of the dataset at ``root`` from ``timesteps``
     frames spread over its episodes and write ``<root>/gensplat/calibration.json``.
 
-    The cameras need metric depth registered to their images (depth sidecars, or LeRobot
-    depth-map features without a ``camera.depth`` sensor block): it gives the scale.
-    Raises ValueError naming what is missing."""
+    With metric depth registered to every camera's images (depth sidecars, or LeRobot
+    depth-map features without a ``camera.depth`` sensor block), two or more cameras get their
+    focal lengths and metric poses from it. Otherwise the focal length is given (``fov_deg``,
+    the horizontal field of view, or ``focal_px``) and so is one distance for the scale
+    (``baseline_m`` between the first two cameras, or ``table_m`` from the first camera down
+    to the table). One camera needs depth and its focal length. Raises ValueError naming what
+    is missing or wrong (see :func:`~gensplat_transforms.self_calibration.estimate_rig`)."""
     root = Path(root)
     features = read_info(root)["features"]
     colour = [k[len(IMAGE_KEY_PREFIX) :] for k, ft in features.items()
@@ -44,11 +50,17 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
     unknown = [n for n in names if n not in colour]
     if unknown:
         raise ValueError(f"{root}: camera(s) {unknown} are not colour image features of the dataset ({colour})")
-    if len(names) < 2:
-        raise ValueError(f"{root}: estimating calibration needs two external cameras that see the scene, got "
-                         f"{list(names)} (choose them with --cameras)")  # fmt: skip
+    if not names:
+        raise ValueError(f"{root}: no external camera to estimate among {colour} (choose them with --cameras)")
     if timesteps < 2:
         raise ValueError(f"--timesteps must be at least 2, got {timesteps}")
+    for option, value in (("--fov", fov_deg), ("--focal", focal_px), ("--baseline", baseline_m),
+                          ("--table-distance", table_m)):  # fmt: skip
+        if value is not None and not (0 < value < math.inf and (option != "--fov" or value < 180)):
+            raise ValueError(f"{option} must be a positive number{' below 180 degrees' if option == '--fov' else ''}, "
+                             f"got {value}")  # fmt: skip
+    if fov_deg is not None and focal_px is not None or baseline_m is not None and table_m is not None:
+        raise ValueError("give one of --fov and --focal, and one of --baseline and --table-distance")
     calibrated = [n for n in names if "camera.intrinsics" in (features[IMAGE_KEY_PREFIX + n].get("info") or {})]
     if calibrated:
         raise ValueError(f"{root}: camera(s) {calibrated} carry calibration in their features, which GenSplat uses; "
@@ -57,15 +69,17 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
 
     dataset = LeRobotDataset(repo_id, root=root, video_backend=video_backend(), depth_output_unit="m")
     depth_keys = {n: f"{IMAGE_KEY_PREFIX}{n}_depth" for n in names}
-    missing = [n for n in names if not depth_path(root, n, 0).exists()
-               and not _is_depth_map(features.get(depth_keys[n]))]  # fmt: skip
-    if missing:
-        raise ValueError(f"{root}: camera(s) {missing} have no depth (no sidecar in depth/<camera>/, no depth-map "
-                         "feature): estimating from RGB alone is not supported yet; give the calibration with "
-                         "`gensplat calibrate --from FILE`")  # fmt: skip
-    sensors = [n for n in names if "camera.depth" in (features.get(depth_keys[n], {}).get("info") or {})]
-    if sensors:
-        raise ValueError(f"{root}: the depth of {sensors} is not registered to the colour images")
+    registered = {n: depth_path(root, n, 0).exists() or (_is_depth_map(features.get(depth_keys[n])) and
+                     "camera.depth" not in (features[depth_keys[n]].get("info") or {})) for n in names}  # fmt: skip
+    use_depth = all(registered.values())
+    sizes = [(features[IMAGE_KEY_PREFIX + n]["shape"][1], features[IMAGE_KEY_PREFIX + n]["shape"][0]) for n in names]
+    focals = None
+    if fov_deg is not None or focal_px is not None:
+        focals = [focal_px or w / 2 / math.tan(math.radians(fov_deg) / 2) for w, _ in sizes]
+    scale = ("baseline", baseline_m) if baseline_m is not None else ("table", table_m) if table_m is not None else None
+    if use_depth and len(names) > 1 and (focals or scale):
+        raise ValueError(f"{root}: the cameras have depth, from which their focal lengths and the scale are "
+                         "estimated: leave out --fov, --focal, --baseline and --table-distance")  # fmt: skip
     table = episode_table(dataset.meta)
     samples, groups = [], []
     for episode, frame in sample_timesteps(table["length"], timesteps):
@@ -73,15 +87,15 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
         step = {}
         for n in names:
             image = (item[IMAGE_KEY_PREFIX + n].permute(1, 2, 0).clamp(0, 1) * 255).round().byte().numpy()
-            if depth_path(root, n, episode).exists():
+            depth = None
+            if use_depth and depth_path(root, n, episode).exists():
                 depth = load_depth(root, n, episode, frame)[0].numpy()
-            else:
+            elif use_depth:
                 depth = item[depth_keys[n]].reshape(image.shape[:2]).float().numpy()
-            step[n] = (image, np.asarray(depth, dtype=np.float32))
+            step[n] = (image, None if depth is None else np.asarray(depth, dtype=np.float32))
         samples.append(step)
         groups.append(episode)
-    sizes = [(features[IMAGE_KEY_PREFIX + n]["shape"][1], features[IMAGE_KEY_PREFIX + n]["shape"][0]) for n in names]
-    rig = estimate_rig(names, sizes, samples, groups, progress=progress)
+    rig = estimate_rig(names, sizes, samples, groups, progress=progress, focals=focals, scale=scale)
     write_estimate(root, rig)
     return rig
 
@@ -102,14 +116,15 @@ def sample_timesteps(lengths: list[int], count: int) -> list[tuple[int, int]]:
 
 def write_estimate(root: Path, rig: RigEstimate) -> Path:
     """``calibration.json`` of an estimated rig: its cameras in the stored calibration's form,
-    and ``estimate``: method, assumptions and each camera's spread."""
+    and ``estimate``: method, scale (how it is metric), assumptions and each camera's spread."""
     spread = {n: {"focal_spread": _finite(rig.focal_spread[i]), "rotation_spread_deg": _finite(rig.rotation_spread_deg[i]),
                   "center_spread_m": _finite(rig.center_spread_m[i]), "matches": rig.matches[i],
                   "timesteps": rig.timesteps[i], "rms_px": _finite(rig.rms_px[i])}
               for i, n in enumerate(rig.names)}  # fmt: skip
     data = {"format": CALIBRATION_FORMAT,
             "cameras": {n: camera_info(rig.K[i], rig.c2w[i], "external") for i, n in enumerate(rig.names)},
-            "estimate": {"method": "features+depth", "scale": "metric, from the dataset's depth",
+            "estimate": {"method": "features+depth" if "depth" in rig.scale else "features+essential matrix",
+                         "scale": rig.scale,
                          "assumptions": ASSUMPTIONS, "reference": rig.names[0], "levelled": rig.levelled,
                          "cameras": spread}}  # fmt: skip
     return atomic_write_json(calibration_path(root), data)
@@ -125,13 +140,17 @@ def report(rig: RigEstimate) -> list[str]:
     for i, n in enumerate(rig.names):
         f = float(rig.K[i, 0, 0])
         fov = math.degrees(2 * math.atan(float(rig.K[i, 0, 2]) / f))
-        line = f"{n}: focal {f:.1f} px ({fov:.1f} deg wide), spread {rig.focal_spread[i]:.2%}"
+        given = math.isnan(rig.focal_spread[i])
+        line = f"{n}: focal {f:.1f} px ({fov:.1f} deg wide), " + ("given" if given else
+                                                                   f"spread {rig.focal_spread[i]:.2%}")  # fmt: skip
         if i:
             ref = np.linalg.inv(rig.c2w[0].numpy()) @ rig.c2w[i].numpy()
             angle = math.degrees(math.acos(np.clip((np.trace(ref[:3, :3]) - 1) / 2, -1, 1)))
             line += (f"; {np.linalg.norm(ref[:3, 3]):.3f} m and {angle:.1f} deg from {rig.names[0]}, spread "
                      f"{rig.center_spread_m[i] * 100:.1f} cm / {rig.rotation_spread_deg[i]:.2f} deg")  # fmt: skip
-        lines.append(f"{line}; {rig.matches[i]} matches in {rig.timesteps[i]} timesteps, {rig.rms_px[i]:.2f} px rms")
+        if len(rig.names) > 1:
+            line += f"; {rig.matches[i]} matches in {rig.timesteps[i]} timesteps, {rig.rms_px[i]:.2f} px rms"
+        lines.append(line)
     level = "levelled on the table plane" if rig.levelled else "no table plane found: world z is the cameras' image up"
-    lines.append(f"scale: metric, from the dataset's depth; world frame {level}; assumed: {ASSUMPTIONS}")
+    lines.append(f"scale: {rig.scale}; world frame {level}; assumed: {ASSUMPTIONS}")
     return lines
