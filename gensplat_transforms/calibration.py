@@ -31,6 +31,16 @@ rigid transform from the sensor's frame to the colour camera's (OpenCV axes). Wi
 pyrealsense2: ``depth_profile.get_intrinsics()`` and ``depth_profile.get_extrinsics_to(
 color_profile)`` (its ``rotation`` is column-major: R = reshape(3, 3).T, t = translation).
 The depth is then registered to the colour camera when read (:mod:`.registration`).
+
+``episodes`` (``gensplat`` and ``opencv-w2c``; optional, external cameras): the camera's pose
+per episode, for cameras placed anew between episodes: ``{index: {"c2w": 4x4}}``, or
+``{index: {"R" or "rvec", "t"}}`` in ``opencv-w2c``, indices as in the dataset's
+``episode_index``. The camera's own pose (``c2w``; ``R``, ``t``) is then the pose of the
+episodes not listed, and may be left out when every episode of the dataset is listed.
+
+:func:`calibrate_from_features` reads the per-episode poses from the dataset's own
+``camera_extrinsics.<camera>`` features instead, as DROID's LeRobot port stores them
+(:func:`xyz_rpy_pose`).
 """
 
 from __future__ import annotations
@@ -39,6 +49,7 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
@@ -56,16 +67,21 @@ from .dataset_format import (
 
 CONVENTIONS = ("auto", "gensplat", "opencv-w2c", "nerfstudio")
 _INTRINSICS = ("K", "fx", "fy", "cx", "cy")
-_FIELDS = {"gensplat": {*_INTRINSICS, "c2w", "mount", "width", "height", "depth"},
-           "opencv-w2c": {*_INTRINSICS, "R", "rvec", "t", "mount", "width", "height", "depth"}}  # fmt: skip
+_FIELDS = {"gensplat": {*_INTRINSICS, "c2w", "mount", "width", "height", "depth", "episodes"},
+           "opencv-w2c": {*_INTRINSICS, "R", "rvec", "t", "mount", "width", "height", "depth", "episodes"}}  # fmt: skip
+_POSE_FIELDS = {"gensplat": {"c2w"}, "opencv-w2c": {"R", "rvec", "t"}}
 _SENSOR_FIELDS = {*_INTRINSICS, "width", "height", "to_camera"}
 _DISTORTION = ("dist", "k1", "k2", "k3", "k4", "p1", "p2")
 #: calibration.json's ``info`` keys (:func:`.dataset_format.camera_info`) as the gensplat convention's
 _STORED = {"camera.intrinsics": "K", "camera.extrinsics": "c2w", "camera.mount": "mount",
-           "camera.depth": "depth"}  # fmt: skip
+           "camera.depth": "depth", "camera.episodes": "episodes"}  # fmt: skip
 MAX_FILE_BYTES = 1_000_000
 #: degrees: a focal length outside it is a unit or typing mistake (black or degenerate views)
 FOV_RANGE = (1.0, 179.0)
+#: ``<POSE_FEATURE><camera>``: a float feature (6,) x, y, z, roll, pitch, yaw (DROID's LeRobot port)
+POSE_FEATURE = "camera_extrinsics."
+#: metres and radians: how far a pose feature may vary within one episode
+POSE_TOLERANCE = 1e-4
 
 
 def calibrate(root: str | Path, source: str | Path, convention: str = "auto") -> dict[str, CameraCalibration]:
@@ -75,28 +91,143 @@ def calibrate(root: str | Path, source: str | Path, convention: str = "auto") ->
     Raises ``ValueError`` naming the camera and field of anything invalid, and
     ``FileNotFoundError`` when ``root`` is not a LeRobot dataset or ``source`` is missing.
     """
-    root, source = Path(root), Path(source)
-    info_path = root / "meta" / "info.json"
+    info = _info(root)
+    cameras = read_calibration(source, image_sizes(info["features"]), convention, info.get("total_episodes"))
+    return _write(root, source, info["features"], cameras)
+
+
+def calibrate_from_features(root: str | Path, intrinsics: str | Path | None = None, fov: float | None = None,
+                            focal: float | None = None, cameras=None) -> dict[str, CameraCalibration]:
+    """Write ``<root>/gensplat/calibration.json`` with each external camera's pose per episode
+    from the dataset's ``camera_extrinsics.<camera>`` features (:func:`xyz_rpy_pose`, the
+    first frame of each episode) and intrinsics from exactly one of ``intrinsics`` (a
+    calibration file in a convention of the module docstring; only K is read), ``fov`` (the
+    horizontal field of view in degrees) or ``focal`` (pixels; both square pixels, principal
+    point at the image centre). ``cameras``: those to calibrate (default: every camera with
+    such a feature whose name does not contain "wrist"). Returns the cameras written.
+
+    Raises ``ValueError`` when a pose changes within an episode (by more than
+    :data:`POSE_TOLERANCE`), and as :func:`calibrate` does for anything invalid."""
+    root = Path(root)
+    info = _info(root)
+    features, sizes = info["features"], image_sizes(info["features"])
+    posed = [n for n in sizes if POSE_FEATURE + n in features]
+    names = list(cameras or [n for n in posed if "wrist" not in n])
+    if not names or any(n not in posed for n in names):
+        raise ValueError(f"{root}: camera(s) {[n for n in names if n not in posed] or names} have no "
+                         f"{POSE_FEATURE}<camera> feature of x, y, z, roll, pitch, yaw (cameras with one: {posed})")  # fmt: skip
+    shapes = {n: features[POSE_FEATURE + n].get("shape") for n in names}
+    if any(list(shape or ()) != [6] for shape in shapes.values()):
+        raise ValueError(f"{root}: {POSE_FEATURE}<camera> features must have shape (6,): {shapes}")
+    given = _given_intrinsics(names, sizes, intrinsics, fov, focal)
+    poses = _feature_poses(root, [POSE_FEATURE + n for n in names])
+    entries = {n: {**given[n], "episodes": {e: {"c2w": xyz_rpy_pose(v).tolist()} for e, v in poses[POSE_FEATURE + n].items()}}
+               for n in names}  # fmt: skip
+    found = _cameras(root / "data", entries, sizes, "gensplat", info.get("total_episodes"))
+    return _write(root, root / "data", features, found)
+
+
+def xyz_rpy_pose(xyz_rpy) -> torch.Tensor:
+    """(4, 4) camera-to-world of a (6,) pose feature x, y, z, roll, pitch, yaw (metres, radians):
+    R = Rz(yaw) Ry(pitch) Rx(roll) (extrinsic x-y-z Euler angles, as ``scipy``'s
+    ``Rotation.from_euler("xyz", ...)``), OpenCV camera axes (x right, y down, looking along
+    +z), in the robot base frame: DROID's ``camera_extrinsics``."""
+    x, y, z, roll, pitch, yaw = (float(v) for v in xyz_rpy)
+    (cr, sr), (cp, sp), (cy, sy) = ((math.cos(a), math.sin(a)) for a in (roll, pitch, yaw))
+    return torch.tensor([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr, x],
+                         [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr, y],
+                         [-sp, cp * sr, cp * cr, z],
+                         [0.0, 0.0, 0.0, 1.0]], dtype=torch.float64)  # fmt: skip
+
+
+def _info(root: Path) -> dict:
+    """``meta/info.json`` of the dataset at ``root``."""
+    info_path = Path(root) / "meta" / "info.json"
     if not info_path.is_file():
         raise FileNotFoundError(f"{root}: not a local LeRobot dataset ({info_path} does not exist)")
-    features = json.loads(info_path.read_text())["features"]
-    cameras = read_calibration(source, image_sizes(features), convention)
+    return json.loads(info_path.read_text())
+
+
+def _write(root: str | Path, source: Path, features: dict, cameras: dict[str, CameraCalibration]):
+    """Write ``cameras`` (read from ``source``) to calibration.json; returns them."""
     own = [n for n in cameras if "camera.intrinsics" in (features[IMAGE_KEY_PREFIX + n].get("info") or {})]
     if own:
-        raise ValueError(f"{source}: camera(s) {own} already carry calibration in {info_path} "
+        raise ValueError(f"{source}: camera(s) {own} already carry calibration in {Path(root) / 'meta' / 'info.json'} "
                          "(camera.intrinsics in their feature's info), which is used instead of "
                          "calibration.json: leave them out")  # fmt: skip
     data = {"format": CALIBRATION_FORMAT,
-            "cameras": {n: camera_info(c.K, c.c2w, c.mount, c.depth) for n, c in cameras.items()}}  # fmt: skip
+            "cameras": {n: camera_info(c.K, c.c2w, c.mount, c.depth, c.episodes) for n, c in cameras.items()}}  # fmt: skip
     atomic_write_json(calibration_path(root), data)
     return cameras
 
 
-def read_calibration(source: str | Path, sizes: dict[str, tuple[int, int]],
-                     convention: str = "auto") -> dict[str, CameraCalibration]:
+def _given_intrinsics(names, sizes: dict[str, tuple[int, int]], path, fov: float | None,
+                      focal: float | None) -> dict[str, dict]:
+    """{camera: {"K": 3x3} or {"fx", "fy", "cx", "cy"}} of ``path``, ``fov`` or ``focal``."""
+    if sum(v is not None for v in (path, fov, focal)) != 1:
+        raise ValueError("give the cameras' intrinsics with one of --intrinsics FILE, --fov or --focal")
+    if path is None:
+        if fov is not None and not 0 < fov < 180:
+            raise ValueError(f"--fov: a field of view in degrees between 0 and 180, got {fov:g}")
+        out = {}
+        for n in names:
+            w, h = sizes[n]
+            f = focal if focal is not None else w / (2 * math.tan(math.radians(fov) / 2))
+            out[n] = {"fx": f, "fy": f, "cx": w / 2, "cy": h / 2}
+        return out
+    entries, convention = _parsed(Path(path), "auto")
+    missing = [n for n in names if not isinstance(entries.get(n), dict)]
+    if missing:
+        raise ValueError(f"{path}: no intrinsics of camera(s) {missing} (its cameras: {sorted(entries)})")
+    for n in names:
+        _no_distortion(f"{path}: camera {n!r}", entries[n])
+    return {n: {"K": _intrinsics(f"{path}: camera {n!r}", entries[n], sizes[n],
+                                 0.5 if convention == "opencv-w2c" else 0.0).tolist()} for n in names}  # fmt: skip
+
+
+def _feature_poses(root: Path, keys: list[str]) -> dict[str, dict[int, np.ndarray]]:
+    """Per feature key, each episode's (6,) value at its first frame, from the dataset's
+    ``data/**/*.parquet``; raises when a value changes within an episode."""
+    import pyarrow.parquet as pq
+
+    files = sorted((root / "data").rglob("*.parquet"))
+    if not files:
+        raise FileNotFoundError(f"{root}: no data files (data/**/*.parquet)")
+    first, low, high = ({k: {} for k in keys} for _ in range(3))  # key -> episode -> (frame, value) / bounds
+    for file in files:
+        table = pq.read_table(file, columns=["episode_index", "frame_index", *keys])
+        episode, frame = (table[c].to_numpy() for c in ("episode_index", "frame_index"))
+        order = np.lexsort((frame, episode))  # by episode, then frame
+        episodes, starts = np.unique(episode[order], return_index=True)
+        for k in keys:
+            values = table[k].combine_chunks().flatten().to_numpy().astype(np.float64).reshape(-1, 6)[order]
+            lows, highs = np.minimum.reduceat(values, starts), np.maximum.reduceat(values, starts)
+            for e, start, lo, hi in zip(episodes.tolist(), starts, lows, highs):
+                if e not in first[k] or frame[order[start]] < first[k][e][0]:
+                    first[k][e] = (frame[order[start]], values[start])
+                low[k][e], high[k][e] = np.minimum(low[k].get(e, lo), lo), np.maximum(high[k].get(e, hi), hi)
+    for k in keys:
+        for e in first[k]:
+            spread = float((high[k][e] - low[k][e]).max())
+            if spread > POSE_TOLERANCE:
+                raise ValueError(f"{root}: {k} changes within episode {e} by up to {spread:.3g} (more than "
+                                 f"{POSE_TOLERANCE:g}): a camera that moves during an episode cannot be "
+                                 "reconstructed; leave it out with --cameras")  # fmt: skip
+    return {k: {e: v for e, (_, v) in sorted(first[k].items())} for k in keys}
+
+
+def read_calibration(source: str | Path, sizes: dict[str, tuple[int, int]], convention: str = "auto",
+                     episodes: int | None = None) -> dict[str, CameraCalibration]:
     """Validated cameras of ``source``; ``sizes`` maps the dataset's camera names to their
-    (width, height) (K is rescaled to it where the file gives another size)."""
+    (width, height) (K is rescaled to it where the file gives another size), ``episodes`` is
+    the dataset's episode count (None: per-episode poses not checked against it)."""
     source = Path(source)
+    entries, convention = _parsed(source, convention)
+    return _cameras(source, entries, sizes, convention, episodes)
+
+
+def _parsed(source: Path, convention: str) -> tuple[dict, str]:
+    """The entries (camera -> fields) of the calibration file ``source`` and its convention."""
     if not source.is_file():
         raise FileNotFoundError(f"calibration file {source} does not exist")
     data = _load(source)
@@ -106,17 +237,17 @@ def read_calibration(source: str | Path, sizes: dict[str, tuple[int, int]],
         raise ValueError(f"{source}: expected a mapping of camera names (or a nerfstudio transforms.json)")
     if convention == "auto":
         convention = _detect(data)
-    entries = _nerfstudio_entries(source, data) if convention == "nerfstudio" else data
-    return _cameras(source, entries, sizes, convention)
+    return _nerfstudio_entries(source, data) if convention == "nerfstudio" else data, convention
 
 
-def stored_cameras(path: Path, cameras, sizes: dict[str, tuple[int, int]]) -> dict[str, CameraCalibration]:
+def stored_cameras(path: Path, cameras, sizes: dict[str, tuple[int, int]],
+                   episodes: int | None = None) -> dict[str, CameraCalibration]:
     """Validated cameras of calibration.json's ``cameras`` (name -> ``info``) that are in
     ``sizes``, by the checks of an input file in the gensplat convention."""
     if not isinstance(cameras, dict):
         raise ValueError(f"{path}: field cameras: expected a mapping of camera names, got {cameras!r:.80}")  # noqa: TRY004
     entries = {n: _from_info(info) for n, info in cameras.items() if n in sizes}
-    return _cameras(path, entries, sizes, "gensplat")
+    return _cameras(path, entries, sizes, "gensplat", episodes)
 
 
 def _from_info(info):
@@ -126,11 +257,15 @@ def _from_info(info):
     entry = {_STORED.get(k, k): v for k, v in info.items()}
     if isinstance(entry.get("depth"), dict):
         entry["depth"] = {"K" if k == "intrinsics" else k: v for k, v in entry["depth"].items()}
+    if isinstance(entry.get("episodes"), dict):
+        entry["episodes"] = {e: {"c2w": c2w} for e, c2w in entry["episodes"].items()}
     return entry
 
 
-def _cameras(source: Path, entries: dict, sizes: dict[str, tuple[int, int]], convention: str):
-    """Validated cameras of ``entries`` (name -> parsed entry of ``convention``)."""
+def _cameras(source: Path, entries: dict, sizes: dict[str, tuple[int, int]], convention: str,
+             episodes: int | None = None):
+    """Validated cameras of ``entries`` (name -> parsed entry of ``convention``), per-episode
+    poses checked against ``episodes`` (the dataset's episode count) when given."""
     out = {}
     for name, entry in entries.items():
         where = f"{source}: camera {name!r}"
@@ -138,16 +273,18 @@ def _cameras(source: Path, entries: dict, sizes: dict[str, tuple[int, int]], con
             raise ValueError(f"{where} is not an image feature of the dataset (its cameras: {sorted(sizes)})")
         if not isinstance(entry, dict):  # a malformed file: a ValueError like any other
             raise ValueError(f"{where}: expected a mapping of fields, not {type(entry).__name__}")  # noqa: TRY004
-        out[name] = _camera(where, name, entry, convention, sizes[name])
+        out[name] = _camera(where, name, entry, convention, sizes[name], episodes)
     return out
 
 
 def _detect(data: dict) -> str:
-    """The convention of a parsed file: nerfstudio with ``frames``, opencv-w2c with R or rvec."""
+    """The convention of a parsed file: nerfstudio with ``frames``, opencv-w2c with R or rvec
+    (a camera's or an episode's)."""
     if "frames" in data:
         return "nerfstudio"
-    w2c = any(isinstance(v, dict) and ("R" in v or "rvec" in v) for v in data.values())
-    return "opencv-w2c" if w2c else "gensplat"
+    entries = [v for v in data.values() if isinstance(v, dict)]
+    poses = [*entries, *(p for v in entries if isinstance(v.get("episodes"), dict) for p in v["episodes"].values())]
+    return "opencv-w2c" if any(isinstance(p, dict) and ("R" in p or "rvec" in p) for p in poses) else "gensplat"
 
 
 def _load(path: Path):
@@ -199,12 +336,10 @@ def _nerfstudio_entries(source: Path, data: dict) -> dict[str, dict]:
     return entries
 
 
-def _camera(where: str, name: str, entry: dict, convention: str, size: tuple[int, int]) -> CameraCalibration:
+def _camera(where: str, name: str, entry: dict, convention: str, size: tuple[int, int],
+            episodes: int | None = None) -> CameraCalibration:
     """One validated camera of a parsed entry (see the module docstring)."""
-    distortion = {k: entry[k] for k in _DISTORTION if k in entry}
-    if any(_matrix(where, k, v, None).abs().sum() > 0 for k, v in distortion.items()):
-        raise ValueError(f"{where}: non-zero distortion {distortion}: undistort the images (e.g. cv2.undistort) "
-                         "and give the new camera matrix")  # fmt: skip
+    _no_distortion(where, entry)
     unknown = sorted(set(entry) - _FIELDS.get(convention, set(entry)) - set(_DISTORTION))
     if unknown:
         raise ValueError(f"{where}: unknown field(s) {unknown} for convention {convention} "
@@ -213,26 +348,78 @@ def _camera(where: str, name: str, entry: dict, convention: str, size: tuple[int
     if mount not in ("external", "wrist"):
         raise ValueError(f"{where}: field 'mount' must be 'external' or 'wrist', got {mount!r}")
     K = _intrinsics(where, entry, size, shift=0.5 if convention == "opencv-w2c" else 0.0)
-    if convention == "opencv-w2c":
-        c2w, field = _w2c_to_c2w(where, entry), "R, t"
-    else:
-        c2w, field = entry.get("c2w"), "c2w" if convention == "gensplat" else "transform_matrix"
-        c2w = None if c2w is None else _matrix(where, field, c2w, (4, 4))
-        if c2w is not None and convention == "nerfstudio":
-            c2w = opengl_to_opencv(c2w)
-    if c2w is None and mount == "external":
-        raise ValueError(f"{where}: an external camera needs its pose ({field})")
-    try:
-        Cameras(K[None], torch.eye(4, dtype=torch.float64)[None], *size)
-    except ValueError as e:
-        raise ValueError(f"{where}, field K: {e}") from None
+    _posed(where, "K", K, torch.eye(4, dtype=torch.float64), size)
+    c2w, field = _pose(where, entry, convention)
     if c2w is not None:
-        try:
-            Cameras(K[None], c2w[None], *size)
-        except ValueError as e:
-            raise ValueError(f"{where}, field {field}: {e}") from None
+        _posed(where, field, K, c2w, size)
+    poses = {} if entry.get("episodes") is None else _episode_poses(where, entry["episodes"], convention, K, size, episodes)
+    if poses and mount != "external":
+        raise ValueError(f"{where}: per-episode poses (field episodes) are for external cameras, not {mount} ones")
+    if c2w is None and not poses and mount == "external":
+        raise ValueError(f"{where}: an external camera needs its pose ({field})")
+    missing = [] if c2w is not None or episodes is None else [e for e in range(episodes) if e not in poses]
+    if missing:
+        raise ValueError(f"{where}: episode(s) {_listed(missing)} of the dataset's {episodes} have no pose: give each "
+                         f"its pose in field episodes, or a default pose ({field}) for those not listed")  # fmt: skip
     depth = None if entry.get("depth") is None else _sensor(f"{where}, field depth", entry["depth"], convention)
-    return CameraCalibration(name, K, c2w, mount, depth)
+    return CameraCalibration(name, K, c2w, mount, depth, poses)
+
+
+def _no_distortion(where: str, entry: dict) -> None:
+    distortion = {k: entry[k] for k in _DISTORTION if k in entry}
+    if any(_matrix(where, k, v, None).abs().sum() > 0 for k, v in distortion.items()):
+        raise ValueError(f"{where}: non-zero distortion {distortion}: undistort the images (e.g. cv2.undistort) "
+                         "and give the new camera matrix")  # fmt: skip
+
+
+def _pose(where: str, entry: dict, convention: str) -> tuple[torch.Tensor | None, str]:
+    """(4, 4) OpenCV camera-to-world of an entry (None: none given) and the field(s) naming it."""
+    if convention == "opencv-w2c":
+        return _w2c_to_c2w(where, entry), "R, t"
+    field = "c2w" if convention == "gensplat" else "transform_matrix"  # nerfstudio's, as "c2w" in its entry
+    if entry.get("c2w") is None:
+        return None, field
+    c2w = _matrix(where, field, entry["c2w"], (4, 4))
+    return (opengl_to_opencv(c2w) if convention == "nerfstudio" else c2w), field
+
+
+def _posed(where: str, field: str, K: torch.Tensor, c2w: torch.Tensor, size: tuple[int, int]) -> None:
+    """Raise naming ``field`` unless K and c2w make a camera (c2w rigid)."""
+    try:
+        Cameras(K[None], c2w[None], *size)
+    except ValueError as e:
+        raise ValueError(f"{where}, field {field}: {e}") from None
+
+
+def _episode_poses(where: str, value, convention: str, K: torch.Tensor, size: tuple[int, int],
+                   episodes: int | None) -> dict[int, torch.Tensor]:
+    """{episode index: (4, 4) c2w} of an ``episodes`` field, indices below ``episodes`` when given."""
+    if not isinstance(value, dict) or not value:
+        raise ValueError(f"{where}, field episodes: expected a mapping of episode indices to poses, got {value!r:.80}")
+    poses = {}
+    for key, pose in value.items():
+        digits = isinstance(key, str) and key.isascii() and key.isdigit()
+        if not (digits or (isinstance(key, int) and not isinstance(key, bool) and key >= 0)):
+            raise ValueError(f"{where}, field episodes: {key!r} is not an episode index (a whole number >= 0)")
+        index, at = int(key), f"{where}, episode {key}"
+        if episodes is not None and index >= episodes:
+            raise ValueError(f"{at}: the dataset has no episode {index} (its episodes: 0..{episodes - 1})")
+        if index in poses:
+            raise ValueError(f"{where}, field episodes: episode {index} is given twice")
+        fields = _POSE_FIELDS[convention]
+        if not isinstance(pose, dict) or not set(pose) <= fields:
+            raise ValueError(f"{at}: expected a mapping with {' or '.join(sorted(fields))}, got {pose!r:.80}")
+        c2w, field = _pose(at, pose, convention)
+        if c2w is None:
+            raise ValueError(f"{at}: needs its pose ({field})")
+        _posed(at, field, K, c2w, size)
+        poses[index] = c2w
+    return poses
+
+
+def _listed(items: list) -> str:
+    """``items`` for a message: at most 10, then how many more."""
+    return str(items[:10])[:-1] + (f", ... ({len(items) - 10} more)]" if len(items) > 10 else "]")
 
 
 def _sensor(where: str, entry, convention: str) -> DepthSensor:

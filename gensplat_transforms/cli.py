@@ -130,6 +130,12 @@ def build_parser() -> argparse.ArgumentParser:
     given.add_argument("--estimate", action="store_true",
                        help="estimate the external cameras' intrinsics and poses from the dataset's own frames and "
                             "depth (SIFT matches + depth, metric; docs/calibration.md)")
+    given.add_argument("--from-features", action="store_true",
+                       help="each external camera's pose per episode from the dataset's camera_extrinsics.<camera> "
+                            "features (x, y, z, roll, pitch, yaw, as in DROID's LeRobot port; docs/lerobot.md), "
+                            "intrinsics from --intrinsics, --fov or --focal")
+    calibrate.add_argument("--intrinsics", metavar="FILE", default=None,
+                           help="--from-features: a calibration file giving each camera's K (no poses needed)")
     calibrate.add_argument("--fov", type=float, default=None, metavar="DEG",
                            help="--from-features, and --estimate without depth or of one camera: every camera's "
                                 "horizontal field of view in degrees (square pixels, principal point at the image "
@@ -138,8 +144,9 @@ def build_parser() -> argparse.ArgumentParser:
                            help="as --fov, every camera's focal length in pixels")
     calibrate.add_argument("--repo-id", default=None, help="--estimate: the dataset's repo id (default: local/<root name>)")
     calibrate.add_argument("--cameras", nargs="+", default=None,
-                           help="--estimate: the external cameras, the first the reference (default: every colour "
-                                "camera whose name does not contain 'wrist')")
+                           help="--estimate, --from-features: the external cameras (--estimate: the first the "
+                                "reference; default: every colour camera whose name does not contain 'wrist', with "
+                                "--from-features one with a camera_extrinsics.<camera> feature)")
     calibrate.add_argument("--timesteps", type=int, default=16,
                            help="--estimate: timesteps sampled across the episodes (default: 16)")
     calibrate.add_argument("--baseline", type=float, default=None,
@@ -271,6 +278,13 @@ def _dispatch(args) -> int:
         print(f"repo id {repo_id}, dataset root {root}; next: gensplat cache --root {root} --repo-id {repo_id}")
     elif args.command == "calibrate" and args.estimate:
         _estimate(args)
+    elif args.command == "calibrate" and args.from_features:
+        from .calibration import calibrate_from_features
+        from .dataset_format import calibration_path
+
+        cameras = calibrate_from_features(args.root, args.intrinsics, args.fov, args.focal, args.cameras)
+        print(f"calibrated {', '.join(f'{n} ({len(c.episodes)} episodes)' for n, c in cameras.items())} from the "
+              f"camera_extrinsics features; written to {calibration_path(args.root)} (the dataset is not modified)")  # fmt: skip
     elif args.command == "calibrate":
         from .calibration import calibrate
         from .dataset_format import calibration_path

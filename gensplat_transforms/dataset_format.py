@@ -5,6 +5,10 @@ which LeRobot keeps in ``meta/info.json``:
 
 * ``"camera.intrinsics"``: 3x3 nested list, pixels (pixel centres at +0.5);
 * ``"camera.extrinsics"``: 4x4 nested list, OpenCV camera-to-world (static cameras);
+* ``"camera.episodes"`` (optional, external cameras): ``{"<episode index>": 4x4}``, the
+  camera-to-world of the episodes in which the camera stood elsewhere (e.g. DROID, whose
+  cameras are placed anew for every episode); ``camera.extrinsics`` is then the pose of the
+  other episodes, and may be absent when every episode has its own;
 * ``"camera.mount"``: ``"external"`` or ``"wrist"`` (a wrist camera moves with the robot
   and is never reconstructed or perturbed);
 * ``"camera.depth"`` (optional): the camera's depth maps are its depth sensor's own, not
@@ -29,7 +33,7 @@ image feature would be fed to the policy as an extra camera):
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -66,18 +70,25 @@ class DepthSensor:
 
 @dataclass
 class CameraCalibration:
-    """Calibration of one named camera: K (3, 3), c2w (4, 4) or None, mount, and its depth
-    sensor where its depth maps are the sensor's own (None: registered to the colour image)."""
+    """Calibration of one named camera: K (3, 3), c2w (4, 4) or None, mount, its depth sensor
+    where its depth maps are the sensor's own (None: registered to the colour image), and
+    per-episode c2w (4, 4) by episode index, which replace ``c2w`` in their episodes."""
 
     name: str
     K: torch.Tensor
     c2w: torch.Tensor | None
     mount: str
     depth: DepthSensor | None = None
+    episodes: dict[int, torch.Tensor] = field(default_factory=dict)
+
+    def pose(self, episode: int | None = None) -> torch.Tensor | None:
+        """(4, 4) camera-to-world in ``episode`` (None: the default pose ``c2w``)."""
+        return self.episodes.get(episode, self.c2w)
 
 
-def camera_info(K: torch.Tensor, c2w: torch.Tensor | None, mount: str, depth: DepthSensor | None = None) -> dict:
-    """The ``info`` entries to put in an image feature (see the module docstring)."""
+def camera_info(K: torch.Tensor, c2w: torch.Tensor | None, mount: str, depth: DepthSensor | None = None,
+                episodes: dict[int, torch.Tensor] | None = None) -> dict:
+    """The ``info`` entries to put in an image feature or calibration.json (see the module docstring)."""
     if mount not in ("external", "wrist"):
         raise ValueError(f"camera.mount must be 'external' or 'wrist', got {mount!r}")
     info = {"camera.intrinsics": torch.as_tensor(K).tolist(), "camera.mount": mount}
@@ -86,6 +97,8 @@ def camera_info(K: torch.Tensor, c2w: torch.Tensor | None, mount: str, depth: De
     if depth is not None:
         info["camera.depth"] = {"intrinsics": depth.K.tolist(), "width": depth.width, "height": depth.height,
                                 "to_camera": depth.to_camera.tolist()}  # fmt: skip
+    if episodes:
+        info["camera.episodes"] = {str(e): torch.as_tensor(episodes[e]).tolist() for e in sorted(episodes)}
     return info
 
 
@@ -106,11 +119,13 @@ def image_sizes(features: dict) -> dict[str, tuple[int, int]]:
             for k, ft in features.items() if k.startswith(IMAGE_KEY_PREFIX)}  # fmt: skip
 
 
-def load_calibration(features: dict, root: str | Path | None = None) -> dict[str, CameraCalibration]:
+def load_calibration(features: dict, root: str | Path | None = None,
+                     episodes: int | None = None) -> dict[str, CameraCalibration]:
     """Calibrated cameras (name -> calibration, in feature order) from LeRobot ``meta.features``;
     a camera whose feature has no calibration takes it from :func:`calibration_path` of ``root``
-    when given."""
-    saved = saved_calibration(root, image_sizes(features)) if root is not None else {}
+    when given (its per-episode poses checked against ``episodes``, the dataset's episode count,
+    when given)."""
+    saved = saved_calibration(root, image_sizes(features), episodes) if root is not None else {}
     out = {}
     for key, ft in features.items():
         if not key.startswith(IMAGE_KEY_PREFIX):
@@ -130,14 +145,17 @@ def load_calibration(features: dict, root: str | Path | None = None) -> dict[str
             depth=None if sensor is None else DepthSensor(
                 torch.tensor(sensor["intrinsics"], dtype=torch.float64), int(sensor["width"]), int(sensor["height"]),
                 torch.tensor(sensor["to_camera"], dtype=torch.float64)),
+            episodes={int(e): torch.tensor(m, dtype=torch.float64) for e, m in info.get("camera.episodes", {}).items()},
         )  # fmt: skip
     return out
 
 
-def saved_calibration(root: str | Path, sizes: dict[str, tuple[int, int]]) -> dict[str, CameraCalibration]:
+def saved_calibration(root: str | Path, sizes: dict[str, tuple[int, int]],
+                      episodes: int | None = None) -> dict[str, CameraCalibration]:
     """The cameras of :func:`calibration_path` among ``sizes`` (name -> (width, height)), checked
-    as ``gensplat calibrate`` checks its input (empty when the file is absent). Raises
-    ``ValueError`` naming the file, camera and field, and the fix."""
+    as ``gensplat calibrate`` checks its input, per-episode poses against ``episodes`` (the
+    dataset's episode count) when given (empty when the file is absent). Raises ``ValueError``
+    naming the file, camera and field, and the fix."""
     from .calibration import stored_cameras  # it imports this module
 
     path = calibration_path(root)
@@ -151,20 +169,26 @@ def saved_calibration(root: str | Path, sizes: dict[str, tuple[int, int]]) -> di
     if not isinstance(data, dict) or data.get("format") != CALIBRATION_FORMAT:
         raise ValueError(f"{path}: not a GenSplat calibration file; {fix}")
     try:
-        return stored_cameras(path, data.get("cameras"), sizes)
+        return stored_cameras(path, data.get("cameras"), sizes, episodes)
     except ValueError as e:
         raise ValueError(f"{e}; {fix}") from None
 
 
-def calibrated_cameras(calib: dict[str, CameraCalibration], names, width: int, height: int) -> Cameras:
-    """Stack the named external cameras into one :class:`Cameras` batch."""
+def calibrated_cameras(calib: dict[str, CameraCalibration], names, width: int, height: int,
+                       episode: int | None = None) -> Cameras:
+    """Stack the named external cameras, at their poses in ``episode`` (None: their default
+    poses), into one :class:`Cameras` batch."""
     missing = [n for n in names if n not in calib]
     if missing:
         raise ValueError(f"no calibration for camera(s) {missing}; calibrated: {sorted(calib)}")
-    moving = [n for n in names if calib[n].c2w is None or calib[n].mount != "external"]
-    if moving:
-        raise ValueError(f"camera(s) {moving} are not static external cameras and cannot be reconstructed")
-    return Cameras(torch.stack([calib[n].K for n in names]), torch.stack([calib[n].c2w for n in names]),
+    if any(calib[n].mount != "external" for n in names):
+        raise ValueError(f"camera(s) {[n for n in names if calib[n].mount != 'external']} are not static external "
+                         "cameras and cannot be reconstructed")  # fmt: skip
+    unposed = [n for n in names if calib[n].pose(episode) is None]
+    if unposed:
+        raise ValueError(f"camera(s) {unposed} have no pose {'' if episode is None else f'in episode {episode} '}"
+                         "(camera.extrinsics or camera.episodes of their calibration)")  # fmt: skip
+    return Cameras(torch.stack([calib[n].K for n in names]), torch.stack([calib[n].pose(episode) for n in names]),
                    width, height)  # fmt: skip
 
 
