@@ -149,7 +149,7 @@ def main() -> None:
     frames = [(ep, round(k * (calibrated.num_frames(ep) - 1) / 3)) for ep in range(total) for k in (1, 2)]
     result = {}
     K, c2w = calibrated.cameras.K, calibrated.cameras.c2w
-    fov = math.degrees(2 * math.atan(calibrated.cameras.width / 2 / float(K[0, 0])))
+    fov = math.degrees(2 * math.atan(calibrated.cameras.width / 2 / float(K[0, 0, 0])))
     baseline = float((c2w[1, :3, 3] - c2w[0, :3, 3]).norm())
     variants = {"depth": ("exact", {}), "sensor_depth": ("sensor", {}),  # focal lengths and scale estimated
                 "rgb_given_fov": ("none", {"fov_deg": fov, "baseline_m": baseline}),  # both given exactly
