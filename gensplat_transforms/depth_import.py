@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import glob
 import re
+import zipfile
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -78,6 +80,10 @@ def import_depth(root: str | Path, camera: str, source: str, lengths: dict[int, 
     if not named:
         raise ValueError(f"import_depth: the source {source!r} must name the episode, e.g. 'raw/ep{{episode:03d}}/*.png'")
     scale = _scale(units)
+    folder = depth_path(root, camera, 0).parent
+    for p in (folder, folder.parent):
+        if p.exists() and not p.is_dir():
+            raise ValueError(f"{p} is a file where the folder of depth sidecars goes: move it away")
     done = {}
     for episode, length in tqdm(sorted(lengths.items()), desc=f"depth of {camera}", unit="episode",
                                 disable=not progress):  # fmt: skip
@@ -127,9 +133,7 @@ def _episode_metres(where: str, length: int, size: tuple[int, int], scale: float
     if path.suffix in EPISODE_SUFFIXES and not glob.has_magic(where):
         if not path.is_file():
             raise FileNotFoundError(f"{where}: no such depth file")
-        array = _read_array(path)
-        if array.ndim != 3:
-            raise ValueError(f"{where}: an episode's depth array must be (T, H, W), got shape {array.shape}")
+        array = _read_array(path, (length, size[1], size[0]))
         names, frames = [f"frame {t}" for t in range(len(array))], list(array)
     else:
         frames, others = _frame_files(where)
@@ -142,12 +146,15 @@ def _episode_metres(where: str, length: int, size: tuple[int, int], scale: float
     width, height = size
     out, kind = torch.empty(length, height, width, dtype=torch.float16), ""
     for t, (name, frame) in enumerate(zip(names, frames)):
-        raw = _read_frame(frame) if isinstance(frame, Path) else frame
+        raw = _read_frame(frame, size) if isinstance(frame, Path) else frame
         if raw.shape != (height, width):
             raise ValueError(f"{where}: {name} holds depth of shape {raw.shape}, the camera's images are {width}x"
                              f"{height}: register the depth to the colour camera first (its intrinsics and size, e.g. "
                              "rs2::align to colour for a RealSense)")  # fmt: skip
         kind = kind or raw.dtype.kind
+        if scale is None and kind in "ui" and raw.dtype.itemsize == 1:
+            raise ValueError(f"{where}: 8-bit values (0-255) are too coarse for millimetres, the units guessed for "
+                             "integers; give the units if they are depth (--units cm, or metres per unit)")  # fmt: skip
         if raw.dtype.kind != kind:
             raise ValueError(f"{where}: {name} holds {raw.dtype} values where the frames before hold "
                              f"{'floats' if kind == 'f' else 'integers'}: one episode, one kind of values")  # fmt: skip
@@ -171,16 +178,16 @@ def _frame_files(where: str) -> tuple[list[Path], list[str]]:
     return sorted(frames, key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)]), others
 
 
-def _read_frame(path: Path) -> np.ndarray:
+def _read_frame(path: Path, size: tuple[int, int]) -> np.ndarray:
     """(H, W) raw values of one depth frame: a 16/32-bit integer or float image, or .npy."""
     if path.suffix.lower() == ".npy":
-        frame = _read_array(path)
+        frame = _read_array(path, (size[1], size[0]))
     else:
         try:
             with Image.open(path) as image:
                 mode = image.mode
                 frame = np.array(image)
-        except (OSError, ValueError) as e:
+        except (OSError, ValueError, Image.DecompressionBombError) as e:
             raise ValueError(f"{path}: unreadable image ({e})") from e
         if mode not in ("I;16", "I;16B", "I;16L", "I", "F"):
             raise ValueError(f"{path}: a {mode} image is not depth (depth images are 16-bit or 32-bit, one channel)")
@@ -189,18 +196,39 @@ def _read_frame(path: Path) -> np.ndarray:
     return frame
 
 
-def _read_array(path: Path) -> np.ndarray:
-    """A .npy array, or the one array (or ``depth``) of a .npz, as numbers."""
+def _read_array(path: Path, shape: tuple[int, ...]) -> np.ndarray:
+    """A .npy array, or the one array (or ``depth``) of a .npz, as numbers, of ``shape``
+    ((T, H, W) or (H, W)): its npy header is checked before any data is read (a small .npz may
+    decompress to gigabytes, a header may claim any shape)."""
+    want = "(T, H, W)" if len(shape) == 3 else "(H, W)"
     try:
-        data = np.load(path, allow_pickle=False)
-        if isinstance(data, np.lib.npyio.NpzFile):
-            with data:
-                names = data.files
-                if "depth" not in names and len(names) != 1:
-                    raise ValueError(f"holds {names}; expected one array or one named 'depth'")
-                data = data["depth" if "depth" in names else names[0]]
-    except (OSError, ValueError, EOFError) as e:
+        with _npy_member(path) as f:
+            version = np.lib.format.read_magic(f)
+            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            found, _, dtype = read_header(f)
+            if dtype.kind not in "uif":
+                raise ValueError(f"depth of dtype {dtype}, expected integers or floats (pickled objects are not read)")
+            if len(found) != len(shape):
+                raise ValueError(f"depth must be {want}, got shape {found}")
+            if found != shape:
+                raise ValueError(f"depth of shape {found}, expected {shape}: {want} with the dataset's frames and "
+                                 "the camera's image size (register the depth to the colour camera first)")  # fmt: skip
+            f.seek(0)
+            return np.lib.format.read_array(f, allow_pickle=False)
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
         raise ValueError(f"{path}: unreadable depth array ({e})") from e
-    if data.dtype.kind not in "uif":
-        raise ValueError(f"{path}: depth of dtype {data.dtype}, expected integers or floats")
-    return data
+
+
+@contextmanager
+def _npy_member(path: Path):
+    """The open .npy file, or the .npz's one member (or ``depth``)."""
+    if path.suffix.lower() != ".npz":
+        with open(path, "rb") as f:
+            yield f
+        return
+    with zipfile.ZipFile(path) as z:
+        names = [n.removesuffix(".npy") for n in z.namelist()]
+        if "depth" not in names and len(names) != 1:
+            raise ValueError(f"holds {names}; expected one array or one named 'depth'")
+        with z.open(("depth" if "depth" in names else names[0]) + ".npy") as f:
+            yield f

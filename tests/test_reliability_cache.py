@@ -114,3 +114,115 @@ def test_a_removed_lock_file_lets_no_second_builder_in(tmp_path):
     first.join(30)
     assert second is not None and results == [None]  # built once
     assert builder().status(0) == "ok"
+
+
+def test_every_bit_flip_of_compressed_depth_is_refused_or_harmless():
+    """The depth codec's blobs carry a checksum: a flipped bit never decodes to other depth
+    (ValueError, which the cache reports as a corrupt file to rebuild); old blobs still decode."""
+    import numpy as np
+    import torch
+
+    from gensplat_transforms import depth_codec as dc
+
+    depth = 0.5 + torch.rand(3, 2, 12, 16, generator=torch.Generator().manual_seed(0))
+    ref, blobs = dc.encode_episode(depth)
+    rows = dc.reference_rows(ref, (2, 12, 16))
+    want = dc.decode_codes(rows, blobs[1])
+    changed = 0
+    for bit in range(8 * len(blobs[1])):
+        flipped = bytearray(blobs[1])
+        flipped[bit // 8] ^= 1 << bit % 8
+        try:
+            changed += not np.array_equal(dc.decode_codes(rows, bytes(flipped)), want)
+        except ValueError:
+            pass
+    assert changed == 0
+    unchecked = dc.zstandard.ZstdCompressor(level=6).compress(np.diff(want, axis=-1, prepend=np.uint16(0)).tobytes())
+    assert np.array_equal(dc.decode_codes(rows * 0, unchecked, "zstd"), want)  # written before the checksum
+
+
+T, H, W = 6, 32, 32  # the recorded dataset's episodes and images
+
+
+def import_depth(root, source, *options: str) -> int:
+    return main(["import-depth", "--root", str(root), "--repo-id", REPO, "--camera", "left", "--from", str(source),
+                 "--episodes", "0", "--overwrite", *options])  # fmt: skip
+
+
+def test_8_bit_depth_needs_its_units(root, tmp_path, capsys):
+    import numpy as np
+
+    from gensplat_transforms.dataset_format import load_depth
+
+    np.save(tmp_path / "ep0.npy", np.full((T, H, W), 92, np.uint8))  # centimetres
+    assert import_depth(root, tmp_path / "ep{episode}.npy") == 2
+    line = error_line(capsys)
+    assert "8-bit values" in line and "--units cm" in line
+    assert import_depth(root, tmp_path / "ep{episode}.npy", "--units", "cm") == 0
+    assert abs(float(load_depth(root, "left", 0).median()) - 0.92) < 1e-3
+
+
+def test_an_npz_is_checked_before_it_is_decompressed(root, tmp_path, capsys):
+    import tracemalloc
+
+    import numpy as np
+
+    np.savez_compressed(tmp_path / "ep0.npz", depth=np.zeros((200, 500, 500), np.uint16))  # 100 MB, 100 kB packed
+    assert (tmp_path / "ep0.npz").stat().st_size < 1e6
+    tracemalloc.start()
+    try:
+        assert import_depth(root, tmp_path / "ep{episode}.npz") == 2
+        assert tracemalloc.get_traced_memory()[1] < 20e6
+    finally:
+        tracemalloc.stop()
+    assert f"depth of shape (200, 500, 500), expected ({T}, {H}, {W})" in error_line(capsys)
+
+
+def test_a_pickled_npz_member_is_refused(root, tmp_path, capsys):
+    import numpy as np
+
+    np.savez(tmp_path / "ep0.npz", depth=np.array([{"depth": 1}] * T, dtype=object))
+    assert import_depth(root, tmp_path / "ep{episode}.npz") == 2
+    assert "expected integers or floats (pickled objects are not read)" in error_line(capsys)
+
+
+def test_an_npy_header_claiming_a_huge_shape_is_refused(root, tmp_path, capsys):
+    import numpy as np
+
+    with open(tmp_path / "ep0.npy", "wb") as f:
+        np.lib.format.write_array_header_1_0(f, {"descr": "<f4", "fortran_order": False, "shape": (10**6,) * 3})
+        f.write(bytes(64))
+    assert import_depth(root, tmp_path / "ep{episode}.npy") == 2
+    assert "depth of shape (1000000, 1000000, 1000000), expected" in error_line(capsys)
+
+
+def test_a_truncated_npz_is_refused(root, tmp_path, capsys):
+    import numpy as np
+
+    np.savez(tmp_path / "ep0.npz", depth=np.ones((T, H, W), np.float32))
+    data = (tmp_path / "ep0.npz").read_bytes()
+    (tmp_path / "ep0.npz").write_bytes(data[: len(data) // 2])
+    assert import_depth(root, tmp_path / "ep{episode}.npz") == 2
+    assert f"{tmp_path / 'ep0.npz'}: unreadable depth array" in error_line(capsys)
+
+
+def test_a_png_over_pillows_pixel_limit_is_refused(root, tmp_path, capsys, monkeypatch):
+    import numpy as np
+    from PIL import Image
+
+    (tmp_path / "ep0").mkdir()
+    for t in range(T):
+        Image.fromarray(np.full((H, W), 900, np.uint16)).save(tmp_path / "ep0" / f"{t}.png")
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 400)  # a 32x32 image counts as a bomb
+    assert import_depth(root, tmp_path / "ep{episode}") == 2
+    assert "0.png: unreadable image (Image size (1024 pixels) exceeds limit" in error_line(capsys)
+
+
+def test_a_file_where_the_depth_folder_goes_is_refused(root, tmp_path, capsys):
+    import numpy as np
+
+    np.save(tmp_path / "ep0.npy", np.full((T, H, W), 0.9, np.float32))
+    shutil.rmtree(root / "depth" / "left")
+    (root / "depth" / "left").write_text("not a folder")
+    assert import_depth(root, tmp_path / "ep{episode}.npy") == 2
+    assert f"{root / 'depth' / 'left'} is a file where the folder of depth sidecars goes" in error_line(capsys)
