@@ -312,6 +312,7 @@ def _dispatch(args) -> int:
 def _cache(args) -> None:
     try:
         from gensplat_lerobot import LeRobotSource, load_settings, prepare
+        from gensplat_lerobot.dataset import check_cameras
     except ImportError as e:
         raise SystemExit(f"gensplat cache needs the LeRobot extra: pip install 'gensplat-transforms[lerobot]' ({e})")
     from .cache import size_text
@@ -319,6 +320,7 @@ def _cache(args) -> None:
     from .distributed import Shard, gather
     from .transform import GenSplatConfig
 
+    check_cameras(args.root, args.cameras or ())
     source = LeRobotSource(args.root, args.repo_id, tuple(args.cameras) if args.cameras else None)
     cameras = source.camera_names
     config = GenSplatConfig(

@@ -226,3 +226,45 @@ def test_a_file_where_the_depth_folder_goes_is_refused(root, tmp_path, capsys):
     (root / "depth" / "left").write_text("not a folder")
     assert import_depth(root, tmp_path / "ep{episode}.npy") == 2
     assert f"{root / 'depth' / 'left'} is a file where the folder of depth sidecars goes" in error_line(capsys)
+
+
+@pytest.mark.parametrize("options, message", [
+    (["--episodes", "0", "99"], "episode(s) [99] are not in the dataset (episodes 0..1)"),
+    (["--cameras", "nope", "right"], "no camera(s) ['nope']; its cameras: ['left', 'right', 'front']"),
+    (["--level", "bogus"], "unknown perturbation level 'bogus'"),
+    (["--probability", "1.5"], "probability must be in [0, 1], got 1.5"),
+])  # fmt: skip
+def test_cache_options_are_checked_before_anything_is_written(root, capsys, options, message):
+    assert cache(root, *options) == 2
+    assert message in error_line(capsys)
+    assert not (root / "gensplat").exists()
+
+
+def test_the_gsplat_backend_without_cuda_is_refused_up_front(root, capsys, monkeypatch):
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert cache(root, "--backend", "gsplat") == 2
+    assert "gsplat backend needs CUDA" in error_line(capsys) and not (root / "gensplat").exists()
+
+
+def test_an_empty_dataset_is_refused(root, capsys, monkeypatch):
+    from gensplat_lerobot import dataset
+
+    monkeypatch.setattr(dataset, "episode_table", lambda meta: {"episode_index": [], "length": []})
+    assert cache(root) == 2
+    assert "has no episodes" in error_line(capsys) and not (root / "gensplat").exists()
+
+
+def test_a_garbled_dataset_record_gives_the_stale_cache_message(root):
+    from gensplat_lerobot import enable_gensplat
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from gensplat_transforms.cache import StaleCacheError
+    from gensplat_transforms.dataset_format import load_depth, save_depth
+
+    assert cache(root) == 0
+    save_depth(root, "left", 1, load_depth(root, "left", 1)[:, 0] + 0.01)
+    (root / "gensplat" / "dataset.json").write_text("{garbled")
+    with pytest.raises(StaleCacheError, match="changed since its GenSplat cache was built"):
+        enable_gensplat(LeRobotDataset(REPO, root=root))

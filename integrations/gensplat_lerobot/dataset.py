@@ -12,12 +12,14 @@ from safetensors import SafetensorError, safe_open
 
 from gensplat_transforms.atomic import atomic_write_json, read_json_object
 from gensplat_transforms.cache import GaussianCache, StaleCacheError
-from gensplat_transforms.dataset_format import GENSPLAT_DIR
+from gensplat_transforms.dataset_format import GENSPLAT_DIR, IMAGE_KEY_PREFIX
 from gensplat_transforms.distributed import OnDevice, Shard
+from gensplat_transforms.perturbation import get_range
 from gensplat_transforms.reconstruction import make_reconstructor
+from gensplat_transforms.rendering.gsplat_backend import _rasterization
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 
-from .source import LeRobotSource
+from .source import LeRobotSource, episode_table, read_info
 
 log = logging.getLogger(__name__)
 
@@ -107,10 +109,10 @@ def _built_for(path: Path) -> str | None:
 
 def what_differs(source: LeRobotSource) -> str:
     """What changed in ``source``'s content since ``gensplat cache`` recorded it."""
-    path = content_path(source.root)
-    if not path.is_file():
+    then = read_json_object(content_path(source.root)).get("content")
+    if not isinstance(then, dict):  # missing or unreadable
         return f"its content fingerprint is now {source.fingerprint}"
-    then, now = json.loads(path.read_text())["content"], json.loads(json.dumps(source.content))
+    now = json.loads(json.dumps(source.content))
     parts = [f"{key} {then.get(key)} -> {now[key]}" for key in ("episodes", "frames", "fps") if then.get(key) != now[key]]
     if then.get("cameras") != now["cameras"]:
         parts.append("the reconstructed cameras, their features or calibration")
@@ -176,6 +178,31 @@ def enable_gensplat(dataset: LeRobotDataset, config: GenSplatConfig | None = Non
     return dataset
 
 
+def check_cameras(root: str | Path, cameras) -> None:
+    """ValueError naming the dataset's cameras when one of ``cameras`` is not among them."""
+    features = read_info(Path(root))["features"]
+    names = [k[len(IMAGE_KEY_PREFIX) :] for k in features if k.startswith(IMAGE_KEY_PREFIX)]
+    unknown = [c for c in cameras if c not in names]
+    if unknown:
+        raise ValueError(f"{root}: no camera(s) {unknown}; its cameras: {names}")
+
+
+def check_options(source: LeRobotSource, config: GenSplatConfig, total: int, episodes) -> None:
+    """ValueError for settings that would fail at first use (before :func:`prepare` writes anything):
+    no episodes, episodes not in the dataset, an unknown level, a render backend this machine lacks."""
+    if total == 0:
+        raise ValueError(f"{source.root}: the dataset has no episodes to cache")
+    missing = sorted(set(episodes) - set(range(total)))
+    if missing:
+        raise ValueError(f"{source.root}: episode(s) {missing} are not in the dataset (episodes 0..{total - 1})")
+    get_range(config.level)
+    if config.backend == "gsplat":
+        try:
+            _rasterization()
+        except RuntimeError as e:
+            raise ValueError(f"{e}; or use --backend fast") from None
+
+
 def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructor: dict | None = None,
             episodes=None, progress: bool = True, shard: Shard | None = None, verify: bool = True,
             link_depth: bool = True) -> dict:
@@ -194,16 +221,17 @@ def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructo
 
     shard = shard or Shard()
     source = LeRobotSource(root, repo_id, config.cameras)
+    total = len(episode_table(source.dataset.meta)["length"])
+    episodes = range(total) if episodes is None else episodes
+    check_options(source, config, total, episodes)
     reconstructor = reconstructor or default_reconstructor(source)
     if reconstructor["name"] == "gensplat" and shard.device.type == "cuda":
         rec = OnDevice(make_reconstructor(reconstructor), shard.device)
     else:  # the geometry path returns its depth on the CPU itself
         rec = make_reconstructor(reconstructor, shard.device if reconstructor["name"] == "geometry" else None)
-    total = len(source.dataset.meta.episodes["length"])
     if len(config.cameras) == 1 and config.pivot_depth is None:  # the pivot on the one camera's axis
-        config = replace(config, pivot_depth=scene_depth(rec, source, range(total) if episodes is None else episodes))
+        config = replace(config, pivot_depth=scene_depth(rec, source, episodes))
     if shard.rank == 0:
         save_settings(root, config, reconstructor, link_depth)
         atomic_write_json(content_path(root), {"fingerprint": source.fingerprint, "content": source.content})
-    episodes = range(total) if episodes is None else episodes
     return build_cache(dataset_cache(root, rec, source, link_depth), source, episodes, progress, shard, verify)
