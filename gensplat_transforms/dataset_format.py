@@ -98,7 +98,8 @@ def camera_info(K: torch.Tensor, c2w: torch.Tensor | None, mount: str, depth: De
         info["camera.depth"] = {"intrinsics": depth.K.tolist(), "width": depth.width, "height": depth.height,
                                 "to_camera": depth.to_camera.tolist()}  # fmt: skip
     if episodes:
-        info["camera.episodes"] = {str(e): torch.as_tensor(episodes[e]).tolist() for e in sorted(episodes)}
+        order = sorted(episodes)
+        info["camera.episodes"] = dict(zip(map(str, order), torch.stack([torch.as_tensor(episodes[e]) for e in order]).tolist()))
     return info
 
 
