@@ -72,8 +72,28 @@ def test_essential_pose_of_known_focal_lengths_recovers_rotation_and_direction()
     direction = b_from_a[:3, 3] / b_from_a[:3, 3].norm()
     assert float(e.b_from_a[:3, 3] @ direction) > 0.9995  # unit translation, within 2 deg
     assert 0.6 * len(m) < len(inliers) < len(m) and e.rms_px < 1.0  # the 20 % wrong matches left out
-    points = _triangulate(inliers, _K(fa, (320, 240)), _K(fb, (320, 240)), e.b_from_a)
-    assert len(points) > 0.9 * len(inliers) and (points[:, 2] > 0).all()
+    points, front = _triangulate(inliers, _K(fa, (320, 240)), _K(fb, (320, 240)), e.b_from_a)
+    assert len(points) == int(front.sum()) > 0.9 * len(inliers) and (points[:, 2] > 0).all()
+
+
+def test_parallel_cameras_that_only_translate_leave_the_focal_length_unobservable():
+    """Two cameras looking the same way, side by side (a rectified stereo pair): depth tells
+    only focal length x distance, and the fit says so; the converging rig's does not."""
+    from gensplat_transforms.self_calibration import FOCAL_SD_MAX, _depth_pair
+
+    g = torch.Generator().manual_seed(1)
+    points = torch.rand(500, 3, generator=g, dtype=torch.float64) * torch.tensor([1.0, 0.8, 1.0]) + \
+        torch.tensor([-0.5, -0.4, 1.0])  # fmt: skip
+    f, c = 300.0, torch.tensor([160.0, 120.0], dtype=torch.float64)
+    shifted = points - torch.tensor([0.2, 0.0, 0.0], dtype=torch.float64)  # camera b 20 cm to the right
+    uv = [f * p[:, :2] / p[:, 2:] + c + 0.2 * torch.randn(500, 2, generator=g, dtype=torch.float64)
+          for p in (points, shifted)]  # fmt: skip
+    parallel = Matches(uv[0], points[:, 2], uv[1], shifted[:, 2])
+    with pytest.raises(ValueError, match="do not tell their focal lengths from their distance"):
+        _depth_pair([parallel], [0], (320, 240), (320, 240), "a", "b")
+    m, _, _ = _synthetic_matches(outliers=0.0)
+    e = estimate_pair(m, (320, 240), (320, 240))
+    assert e.focal_sd < FOCAL_SD_MAX / 5
 
 
 def test_estimate_rig_says_what_it_needs():
@@ -83,8 +103,11 @@ def test_estimate_rig_says_what_it_needs():
         estimate_rig(("a",), [(8, 8)], [depth])
     with pytest.raises(ValueError, match="needs the cameras' focal length .* and one distance"):
         estimate_rig(("a", "b"), [(8, 8)] * 2, [blank], focals=[10.0, 10.0])
-    with pytest.raises(ValueError, match="with depth the focal lengths and the scale are estimated"):
-        estimate_rig(("a", "b"), [(8, 8)] * 2, [depth], focals=[10.0, 10.0])
+    with pytest.raises(ValueError, match="depth gives the scale: leave out --baseline"):
+        estimate_rig(("a", "b"), [(8, 8)] * 2, [depth], focals=[10.0, 10.0], scale=("baseline", 1.0))
+    with pytest.raises(ValueError, match="without depth, one distance scales one camera pair"):
+        estimate_rig(("a", "b", "c"), [(8, 8)] * 3, [{**blank, "c": blank["a"]}], focals=[10.0] * 3,
+                     scale=("baseline", 1.0))  # fmt: skip
     with pytest.raises(ValueError, match="feature matches in 1 sampled timesteps"):
         estimate_rig(("a", "b"), [(8, 8)] * 2, [blank], focals=[10.0, 10.0], scale=("baseline", 1.0))
 
@@ -215,13 +238,13 @@ def _relative(cameras):
     return torch.linalg.inv(left) @ right, left[2, :3], pivot[:3]
 
 
-@pytest.mark.parametrize("scale", [("--baseline", "0.8"), ("--table-distance", "0.5")])
-def test_estimate_from_rgb_alone_with_the_field_of_view_and_a_distance(simulated, tmp_path, capsys, scale):
-    """No depth: the field of view and one distance given (the simulated cameras stand 0.8 m
-    apart and 0.5 m above the table); rotation within 2 deg, the other camera within 5 % of
-    their distance, the pivot within 3 cm; the dataset untouched."""
+@pytest.mark.parametrize("scale", [("--baseline", "0.8"), ("--table-distance", "0.5"), ()])
+def test_estimate_with_the_field_of_view_given(simulated, tmp_path, capsys, scale):
+    """The field of view given, and without depth one distance (the simulated cameras stand
+    0.8 m apart and 0.5 m above the table), with depth none (``()``): rotation within 2 deg, the
+    other camera within 5 % of their distance, the pivot within 3 cm."""
     root = tmp_path / "rgb"
-    shutil.copytree(simulated, root, ignore=shutil.ignore_patterns("gensplat", "depth"))
+    shutil.copytree(simulated, root, ignore=shutil.ignore_patterns("gensplat", *(("depth",) if scale else ())))
     _strip_calibration(root)
     features = json.loads((simulated / "meta" / "info.json").read_text())["features"]
     truth = load_calibration(features)
@@ -266,7 +289,7 @@ def test_estimate_refuses_what_it_cannot_do(simulated, tmp_path, capsys):
     assert "its focal length is not observable" in error(root, "--cameras", "left")
     assert "not colour image features" in error(root, "--cameras", "left", "nope")
     assert "--timesteps must be at least 2" in error(root, "--timesteps", "1")
-    assert "leave out --fov" in error(root, "--fov", "60")
+    assert "depth gives the scale: leave out --baseline" in error(root, "--baseline", "0.8")
     for option, value in (("--baseline", "0"), ("--baseline", "-1"), ("--table-distance", "nan"), ("--fov", "180")):
         assert f"{option} must be a positive number" in error(root, option, value)
     shutil.rmtree(root / "depth" / "right")  # one camera without depth: RGB only, which needs more

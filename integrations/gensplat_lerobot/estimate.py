@@ -37,10 +37,10 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
 
     With metric depth registered to every camera's images (depth sidecars, or LeRobot
     depth-map features without a ``camera.depth`` sensor block), two or more cameras get their
-    focal lengths and metric poses from it. Otherwise the focal length is given (``fov_deg``,
-    the horizontal field of view, or ``focal_px``) and so is one distance for the scale
-    (``baseline_m`` between the first two cameras, or ``table_m`` from the first camera down
-    to the table). One camera needs depth and its focal length. Raises ValueError naming what
+    focal lengths (unless given) and metric poses from it. Otherwise the focal length is given
+    (``fov_deg``, the horizontal field of view, or ``focal_px``) and so is one distance for the
+    scale (``baseline_m`` between the first two cameras, or ``table_m`` from the first camera
+    down to the table). One camera needs depth and its focal length. Raises ValueError naming what
     is missing or wrong (see :func:`~gensplat_transforms.self_calibration.estimate_rig`)."""
     root = Path(root)
     features = read_info(root)["features"]
@@ -77,9 +77,6 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
     if fov_deg is not None or focal_px is not None:
         focals = [focal_px or w / 2 / math.tan(math.radians(fov_deg) / 2) for w, _ in sizes]
     scale = ("baseline", baseline_m) if baseline_m is not None else ("table", table_m) if table_m is not None else None
-    if use_depth and len(names) > 1 and (focals or scale):
-        raise ValueError(f"{root}: the cameras have depth, from which their focal lengths and the scale are "
-                         "estimated: leave out --fov, --focal, --baseline and --table-distance")  # fmt: skip
     table = episode_table(dataset.meta)
     samples, groups = [], []
     for episode, frame in sample_timesteps(table["length"], timesteps):
