@@ -203,3 +203,27 @@ def test_config_names_only_the_apache_models():
     assert DA3Config("da3-base").to_dict()["licence"] == "Apache-2.0"
     with pytest.raises(ValueError, match="da3-giant"):
         DA3Config("da3-giant")
+
+
+def test_geometry_reconstructor_takes_a_da3_checkpoint(small, tmp_path):
+    """``gensplat cache --reconstructor geometry --model DIR`` builds this through make_reconstructor:
+    the checkpoint kind comes from its config, the weights' licence goes into the identity."""
+    from gensplat_transforms.reconstruction.base import Views
+    from gensplat_transforms.reconstruction.registry import make_reconstructor
+    from gensplat_transforms.scenes import TabletopScene, default_cameras
+
+    small.save_pretrained(tmp_path)
+    rec = make_reconstructor({"name": "geometry", "model": str(tmp_path)})
+    assert isinstance(rec.model, DepthAnything3) and not rec.metric  # depth up to scale: "auto" fits it
+    assert rec.config()["model"] == {"architecture": "depth-anything-3", "name": "da3-small", "licence": "Apache-2.0"}
+    assert rec.max_pixels == 504 * 504
+
+    cameras = default_cameras(28, 28)[:2]
+    images, _ = TabletopScene(seed=0).render(cameras)
+    calibrated = rec.predict_depth(Views(images, cameras))
+    assert calibrated.depths.shape == (2, 1, 28, 28) and torch.isfinite(calibrated.depths).all()
+    uncalibrated = rec.predict_depth(Views(images, None))
+    with torch.no_grad():
+        K = small(images[None])["intrinsics"][0]
+    assert torch.allclose(uncalibrated.cameras.K[:, :2, :2], K[:, :2, :2])  # DA3's own focal lengths
+    assert rec.reconstruct(Views(images, cameras)).gaussians.means.shape[1] == 3

@@ -5,6 +5,8 @@ GenSplat model) predicts per-view depth (the z of its camera-frame point maps), 
 and camera poses in one forward pass; only the geometry is used. The Gaussians are then the
 RGB-D path's surface discs (:mod:`.rgbd`), coloured by the images, so a model whose Gaussian
 head was never trained (Pi3's) still gives good Gaussians, and the cache stores only depth.
+Depth Anything 3 (DA3-Small / DA3-Base, :mod:`..model.da3`: Apache-2.0 weights, unlike Pi3's
+CC BY-NC) can take the model's place: depth up to scale like Pi3's, and its own focal lengths.
 
 Frame and scale:
 
@@ -14,9 +16,9 @@ Frame and scale:
   to the predicted camera-centre spread (what Pi3 needs: its geometry is up to scale; it
   relies on the predicted poses, which the small model gets wrong on wide real rigs). A
   single view has no spread: ``"fit"`` raises. ``"auto"`` is ``"fit"`` for a Pi3 checkpoint
-  given by path or hub id with two or more views, ``"metric"`` otherwise.
+  given by path or hub id, or a DA3 model, with two or more views, ``"metric"`` otherwise.
 * uncalibrated views: the predicted cameras, the first view's camera frame as the world,
-  focal lengths estimated from the point maps; depth as predicted.
+  focal lengths estimated from the point maps (DA3's predicted ones); depth as predicted.
 
 The model runs at the nearest multiple of 14 of the input size, or within ``max_pixels``
 (:func:`.model.model_size`); the returned views (and so the cache) are at that size, with the
@@ -35,6 +37,7 @@ from ..cameras import Cameras, rigid_inverse
 from ..model import GenSplatModel
 from ..model.checkpoints import CONFIG_FILE, FORMAT_NAME, resolve
 from ..model.config import check_max_pixels
+from ..model.da3 import DepthAnything3, is_da3_checkpoint
 from ..model.geometry import align_similarity, estimate_focal, transform_poses
 from ..weights import DEFAULT_MODEL_DIR
 from .base import DepthReconstructor, Reconstruction, Views, valid_depth
@@ -57,7 +60,8 @@ class GeometryReconstructor(DepthReconstructor):
     Args:
         model: a :class:`GenSplatModel`, or a checkpoint directory / hub id for
             ``GenSplatModel.from_pretrained`` (a Pi3 directory loads the full configuration;
-            default: the shipped small model).
+            default: the shipped small model); or a :class:`DepthAnything3` (DA3-Small / DA3-Base,
+            Apache-2.0 weights, depth up to scale), or its checkpoint, recognised by its config.
         min_conf: drop pixels whose sigmoid(confidence) is below this.
         scale: ``"auto"``, ``"metric"`` or ``"fit"`` (see the module docstring).
         discs: the surface-disc settings (``RGBDConfig``).
@@ -80,7 +84,7 @@ class GeometryReconstructor(DepthReconstructor):
 
     def __init__(
         self,
-        model: GenSplatModel | str | Path = DEFAULT_MODEL_DIR,
+        model: GenSplatModel | DepthAnything3 | str | Path = DEFAULT_MODEL_DIR,
         *,
         min_conf: float | None = None,
         scale: str = "auto",
@@ -93,10 +97,10 @@ class GeometryReconstructor(DepthReconstructor):
             raise ValueError(f"GeometryReconstructor: scale must be one of {SCALES}, got {scale!r}")
         if min_conf is not None and not 0 <= min_conf <= 1:
             raise ValueError(f"GeometryReconstructor: min_conf must be in [0, 1], got {min_conf}")
-        self.metric = True  # the model's depth is metric: this project's checkpoints are
-        if not isinstance(model, GenSplatModel):
+        self.metric = not isinstance(model, DepthAnything3)  # this project's checkpoints are metric
+        if not isinstance(model, GenSplatModel | DepthAnything3):
             self.metric = is_gensplat_checkpoint(model)
-            model = GenSplatModel.from_pretrained(model)
+            model = (DepthAnything3 if is_da3_checkpoint(model) else GenSplatModel).from_pretrained(model)
         self.model = model.eval() if device is None else model.to(device).eval()
         self.max_pixels = max_pixels if max_pixels is not None else model.max_pixels
         check_max_pixels("GeometryReconstructor", self.max_pixels)
@@ -124,8 +128,11 @@ class GeometryReconstructor(DepthReconstructor):
         else:
             first = rigid_inverse(c2w[0])
             poses = transform_poses(c2w, torch.ones((), device=device), first[:3, :3], first[:3, 3])
-            focal = estimate_focal(local, torch.sigmoid(out["conf"][0])).clamp_min(1.0)
-            cameras = Cameras.from_intrinsics(focal, focal, w / 2, h / 2, poses, w, h)
+            if "intrinsics" in out:  # a model that predicts its focal lengths (DA3)
+                fx, fy = out["intrinsics"][0, :, 0, 0].float(), out["intrinsics"][0, :, 1, 1].float()
+            else:
+                fx = fy = estimate_focal(local, torch.sigmoid(out["conf"][0])).clamp_min(1.0)
+            cameras = Cameras.from_intrinsics(fx, fy, w / 2, h / 2, poses, w, h)
         keep = valid_depth(depth)
         if self.min_conf is not None:
             keep &= torch.sigmoid(out["conf"][0].float()) >= self.min_conf
