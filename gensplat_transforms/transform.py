@@ -310,7 +310,7 @@ class GenSplatTransform:
         for n in needed:
             _check_image(keys[n], item[keys[n]])
         depth_keys = self._depth_keys(item, keys)
-        episode, frame = int(item["episode_index"]), int(item["frame_index"])
+        episode, frame = _index(item, "episode_index"), _index(item, "frame_index")
         out = dict(item)
         applied = bool(torch.rand(()) < self.cfg.probability)
         view = int(torch.randint(self.cfg.views_per_source, ()))
@@ -493,6 +493,21 @@ def _check_image(key: str, image: torch.Tensor) -> None:
         raise ValueError(f"GenSplatTransform: {key}: expected (3, H, W) or (T, 3, H, W) images, got {tuple(image.shape)}")
     if image.dtype != torch.uint8 and not image.is_floating_point():
         raise ValueError(f"GenSplatTransform: {key}: images must be uint8 in [0, 255] or float in [0, 1], got {image.dtype}")
+    if image.is_floating_point():
+        lo, hi = (float(v) for v in torch.aminmax(image.float()))
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            raise ValueError(f"GenSplatTransform: {key}: images must be finite, got NaN or Inf values")
+        if lo < -1e-3 or hi > 1 + 1e-3:
+            raise ValueError(f"GenSplatTransform: {key}: float images must be in [0, 1] (or uint8 in [0, 255]), "
+                             f"got values in [{lo:g}, {hi:g}]")  # fmt: skip
+
+
+def _index(item: dict, key: str) -> int:
+    """``item[key]`` as an int: a Python or tensor integer, or a float without a fractional part."""
+    value = float(item[key])
+    if not value.is_integer():
+        raise ValueError(f"GenSplatTransform: {key} must be an integer, got {value}")
+    return int(value)
 
 
 def _check_depth_map(key: str, depth: torch.Tensor, image: torch.Tensor) -> None:
