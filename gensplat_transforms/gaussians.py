@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -258,6 +259,7 @@ class Gaussians:
 
         A malformed file raises ``ValueError`` naming the file and the problem."""
         try:
+            _check_ply_rows(path, longer=False)
             ply = PlyData.read(str(path), mmap=False)
         except (PlyParseError, ValueError) as e:  # numpy's ValueError: e.g. a repeated property
             raise ValueError(f"{path}: not a readable PLY file ({e})") from None
@@ -289,6 +291,10 @@ class Gaussians:
                 raise ValueError(f"f_rest properties are not numbered 0..{n_rest - 1}: missing {missing}")
         except ValueError as e:
             raise ValueError(f"{path}: bad 3DGS SH layout: {e}") from None
+        try:
+            _check_ply_rows(path, longer=True)
+        except ValueError as e:
+            raise ValueError(f"{path}: {e}") from None
         dc = col("f_dc_0", "f_dc_1", "f_dc_2")[:, None]
         if n_rest:
             rest = col(*[f"f_rest_{i}" for i in range(n_rest)]).reshape(n, 3, k - 1).transpose(1, 2)
@@ -305,3 +311,25 @@ class Gaussians:
             )
         except ValueError as e:  # e.g. NaN values, or log-scales whose exp overflows
             raise ValueError(f"{path}: {e}") from None
+
+
+def _check_ply_rows(path: str | Path, longer: bool) -> None:
+    """Raise ValueError when the body of a PLY file holds fewer rows than its header declares
+    (checked before reading: a count of 1e11 would not fit in memory) or, with ``longer``, more
+    (plyfile would drop them)."""
+    with open(path, "rb") as f:
+        header = PlyData._parse_header(f)
+        if header.text:
+            found, unit = sum(1 for line in f if line.strip()), "rows"
+        else:
+            found, unit = os.fstat(f.fileno()).st_size - f.tell(), "bytes"
+
+    def row(element) -> int:  # bytes of a binary row; the least when it has lists (their lengths alone)
+        props = element.properties
+        return sum(np.dtype(p.len_dtype if isinstance(p, PlyListProperty) else p.val_dtype).itemsize for p in props)
+
+    claimed = sum(e.count * (1 if header.text else row(e)) for e in header.elements)
+    exact = header.text or not any(isinstance(p, PlyListProperty) for e in header.elements for p in e.properties)
+    if found < claimed or (longer and found > claimed and exact):
+        counts = ", ".join(f"{e.count} {e.name}" for e in header.elements)
+        raise ValueError(f"the header declares {counts} ({claimed} {unit}) but the body has {found} {unit}")

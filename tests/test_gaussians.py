@@ -395,7 +395,7 @@ def test_bad_ply_files_raise_value_error_naming_the_file(tmp_path, case):
     huge_scale = read_ply(good)[1].copy()
     huge_scale["scale_0"][1] = 100.0  # a log-scale whose exp overflows float32
     cases = {
-        "truncated": (data[:-5], "early end-of-file"),
+        "truncated": (data[:-5], r"the header declares 4 vertex \(416 bytes\) but the body has 411 bytes"),
         "garbage": (b"\x00\x01 not a ply at all", "expected 'ply'"),
         "ascii": (data.replace(b"binary_little_endian", b"ascii", 1), "not a readable PLY file"),
         "no_end": (data[:header_end], "early end-of-file"),

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
 
+import torch
+from safetensors import SafetensorError
 from safetensors.torch import load_file
 from torch import nn
 
@@ -55,7 +58,7 @@ def load_pi3_weights(model: nn.Module, path: str | Path) -> LoadReport:
         path = path / WEIGHTS_FILE
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such checkpoint file")
-    state = load_file(str(path))
+    state = read_weights(path)
     own = model.state_dict()
     shared = [k for k in state if k in own]
     if not shared:
@@ -71,6 +74,44 @@ def load_pi3_weights(model: nn.Module, path: str | Path) -> LoadReport:
         )
     result = model.load_state_dict(state, strict=False)
     return LoadReport(len(shared), list(result.missing_keys), list(result.unexpected_keys))
+
+
+def read_config(path: Path) -> dict:
+    """A checkpoint's config.json as a dict; ``ValueError`` naming the file when it is not a JSON object."""
+    try:
+        meta = json.loads(path.read_bytes())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{path}: not JSON ({e})") from None
+    if not isinstance(meta, dict):
+        raise ValueError(f"{path}: expected a JSON object, got {type(meta).__name__}")  # noqa: TRY004 (the file)
+    return meta
+
+
+def read_weights(path: Path, shapes: dict[str, torch.Size] | None = None) -> dict[str, torch.Tensor]:
+    """The tensors of a safetensors file; ``ValueError`` naming the file when it is not one, when it
+    holds NaN or Inf, or (given the model's ``shapes``) lacks, adds or mis-shapes a key."""
+
+    def short(items):
+        return ", ".join(items[:5]) + (f", ... ({len(items)} in all)" if len(items) > 5 else "")
+
+    try:
+        state = load_file(str(path))
+    except SafetensorError as e:
+        raise ValueError(f"{path}: not a readable safetensors file ({e})") from None
+    if shapes is not None:
+        problems = {
+            "missing": [k for k in shapes if k not in state],
+            "unexpected": [k for k in state if k not in shapes],
+            "shape mismatches": [f"{k}: file {tuple(v.shape)} vs model {tuple(shapes[k])}"
+                                 for k, v in state.items() if k in shapes and v.shape != shapes[k]],
+        }  # fmt: skip
+        if any(problems.values()):
+            raise ValueError(f"{path}: does not fit the model (another model size?): "
+                             + "; ".join(f"{name}: {short(keys)}" for name, keys in problems.items() if keys))
+    bad = [k for k, v in state.items() if v.is_floating_point() and not torch.isfinite(v).all()]
+    if bad:
+        raise ValueError(f"{path}: NaN or Inf weights in {short(bad)}")
+    return state
 
 
 def resolve(source: str | Path) -> Path:

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, fields
 
 PATCH_SIZE = 14  # ViT/14: input height and width must be multiples of this
+MAX_DEPTH, MAX_WIDTH = 256, 1 << 14  # beyond any real model: a config.json asking for more is refused
 
 
 def check_max_pixels(owner: str, max_pixels: int | None) -> None:
@@ -65,11 +67,16 @@ class ModelConfig:
         object.__setattr__(self, "gs_taps", tuple(int(t) for t in self.gs_taps))
         sizes = ("dim", "enc_depth", "enc_heads", "enc_pos_grid", "dec_heads", "head_dim", "head_depth",
                  "head_heads", "head_out_dim", "camera_dim", "gs_features", "gs_rgb_features")  # fmt: skip
-        bad = [n for n in sizes if getattr(self, n) <= 0] + [
+        bad = [n for n in (*sizes, "mlp_ratio") if getattr(self, n) <= 0] + [
             n for n in ("enc_registers", "dec_registers") if getattr(self, n) < 0
         ]
         if bad:
             raise ValueError(f"ModelConfig: {bad} must be positive (registers: >= 0)")
+        huge = [f"{n}={getattr(self, n)}" for n in (*sizes, "dec_depth", "enc_registers", "dec_registers", "mlp_ratio")
+                if getattr(self, n) > (MAX_DEPTH if n.endswith("depth") else MAX_WIDTH)]  # fmt: skip
+        if huge:
+            raise ValueError(f"ModelConfig: sizes beyond any real model: {huge} (depths at most {MAX_DEPTH}, "
+                             f"others at most {MAX_WIDTH})")  # fmt: skip
         taps = self.gs_taps
         checks = {
             "dim divisible by the heads": self.dim % self.enc_heads == self.dim % self.dec_heads == 0,
@@ -106,8 +113,23 @@ class ModelConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> ModelConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
+        """The config of :meth:`to_dict`'s ``d``; ``ValueError`` names unknown fields and values of the wrong type."""
+        if not isinstance(d, dict):
+            raise ValueError(f"ModelConfig: expected an object of fields, got {type(d).__name__}")  # noqa: TRY004
+        types = {f.name: f.type for f in fields(cls)}
+        unknown = sorted(set(d) - set(types))
         if unknown:
             raise ValueError(f"ModelConfig: unknown fields {unknown}")
+        wrong = [f"{k}={v!r} (expected {types[k]})" for k, v in d.items() if not _is(v, types[k])]
+        if wrong:
+            raise ValueError(f"ModelConfig: wrong field types: {', '.join(wrong)}")
         return cls(**d)
+
+
+def _is(value, kind: str) -> bool:
+    """Whether a JSON ``value`` fits a field annotated ``kind`` (int, float or tuple[int, ...])."""
+    if kind == "int":
+        return type(value) is int
+    if kind == "float":
+        return type(value) in (int, float) and math.isfinite(value)
+    return isinstance(value, (list, tuple)) and all(type(t) is int for t in value)

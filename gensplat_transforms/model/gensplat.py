@@ -7,19 +7,27 @@ their order: there is no reference view, and permuting the input views permutes 
 
 from __future__ import annotations
 
-import json
 import warnings
 from pathlib import Path
 
 import torch
-from safetensors.torch import load_file, save_file
+from safetensors.torch import save_file
 from torch import nn
 
 from ..atomic import atomic_write, atomic_write_json
 from ..gaussians import Gaussians
 from ..rotations import rotmat_to_quat
 from ..sh import rgb_to_sh_dc
-from .checkpoints import CONFIG_FILE, FORMAT_NAME, FORMAT_VERSION, WEIGHTS_FILE, load_pi3_weights, resolve
+from .checkpoints import (
+    CONFIG_FILE,
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    WEIGHTS_FILE,
+    load_pi3_weights,
+    read_config,
+    read_weights,
+    resolve,
+)
 from .config import PATCH_SIZE, ModelConfig, check_max_pixels
 from .decoder import Decoder, token_positions
 from .encoder import Encoder
@@ -148,14 +156,21 @@ class GenSplatModel(nn.Module):
         path = resolve(source)
         if not (path / CONFIG_FILE).is_file() or not (path / WEIGHTS_FILE).is_file():
             raise FileNotFoundError(f"{path}: needs {CONFIG_FILE} and {WEIGHTS_FILE}")
-        meta = json.loads((path / CONFIG_FILE).read_text())
+        meta = read_config(path / CONFIG_FILE)
         if meta.get("format") == FORMAT_NAME:
             if meta.get("format_version") != FORMAT_VERSION:
                 raise ValueError(
                     f"{path}: format version {meta.get('format_version')} is not {FORMAT_VERSION}"
                 )
-            model = cls(ModelConfig.from_dict(meta["config"]))
-            model.load_state_dict(load_file(str(path / WEIGHTS_FILE)))
+            try:
+                config = ModelConfig.from_dict(meta.get("config"))
+            except ValueError as e:
+                raise ValueError(f"{path / CONFIG_FILE}: {e}") from None
+            with torch.device("meta"):  # the shapes, checked against the file before anything is allocated
+                shapes = {k: v.shape for k, v in cls(config).state_dict().items()}
+            state = read_weights(path / WEIGHTS_FILE, shapes)
+            model = cls(config)
+            model.load_state_dict(state)
             check_max_pixels(str(path / CONFIG_FILE), meta.get("max_pixels"))
             model.max_pixels = meta.get("max_pixels")
         elif meta.get("decoder_size", "large") == "large" and meta.get("pos_type", "rope100") == "rope100":

@@ -79,6 +79,8 @@ def write_lerobot_preview(
     """
     if draws < 1:
         raise ValueError(f"gensplat preview: draws must be at least 1, got {draws}")
+    if not 0 <= seed < 2**64:
+        raise ValueError(f"gensplat preview: seed must be in [0, 2**64) (a torch seed), got {seed}")
     out_dir = check_output(out_dir, root, folder=True)
     png, mp4 = (check_output(out_dir / name, root) for name in ("preview.png", "preview.mp4"))
     config, reconstructor = load_settings(root, repo_id)
