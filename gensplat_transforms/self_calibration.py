@@ -113,8 +113,8 @@ def match_pair(image_a: np.ndarray, image_b: np.ndarray, depth_a: np.ndarray | N
     """
     import cv2
 
-    detector = cv2.AffineFeature_create(cv2.SIFT_create(contrastThreshold=0.01), maxTilt=3, minTilt=0, tiltStep=2,
-                                        rotateStepBase=90)
+    detector = cv2.AffineFeature_create(cv2.SIFT_create(nfeatures=1500, contrastThreshold=0.01), maxTilt=3,
+                                        minTilt=0, tiltStep=2, rotateStepBase=90)  # at most 1500 per simulated view
     found = [detector.detectAndCompute(cv2.cvtColor(im, cv2.COLOR_RGB2GRAY), None) for im in (image_a, image_b)]
     (kp_a, des_a), (kp_b, des_b) = found
     if des_a is None or des_b is None or len(kp_a) < 8 or len(kp_b) < 8:
@@ -201,31 +201,44 @@ def _kabsch(x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tenso
     return R, (my - mx @ R.transpose(-1, -2))[..., 0, :]
 
 
-def _focal_grid(matches: Matches, ca, cb, width_a: int, width_b: int, steps: int = 48, hypotheses: int = 96,
-                max_points: int = 2000, tolerance: float = 0.02):
-    """Focal lengths and a rigid transform from a log grid over :data:`FOV_RANGE_DEG`: for every
+def _focal_grid(matches: Matches, ca, cb, width_a: int, width_b: int, steps: int = 16, hypotheses: int = 96,
+                max_points: int = 1000, tolerance: float = 0.02):
+    """Focal lengths and a rigid transform from log grids over :data:`FOV_RANGE_DEG`: for every
     pair of focal lengths, 3-point rigid fits of the back-projected matches (the same random
     triples for every pair) are scored by how many matches they bring within ``tolerance`` of
-    their depth; the pair and fit with most such matches win (RANSAC over the grid)."""
+    their depth; the pair and fit with most such matches win (RANSAC over the grid). A
+    ``steps`` x ``steps`` grid over the whole range, then one as fine around its winner."""
     g = torch.Generator().manual_seed(0)
     m = matches.subset(torch.randperm(len(matches), generator=g)[:max_points])
-    tan = torch.tan(torch.deg2rad(torch.tensor(FOV_RANGE_DEG, dtype=torch.float64)) / 2)
-    grid = torch.exp(torch.linspace(0, 1, steps, dtype=torch.float64) * torch.log(tan[1] / tan[0]))
-    fa, fb = width_a / 2 / tan[1] * grid, width_b / 2 / tan[1] * grid  # widest view first
-    xa, xb = _lift(m.uv_a, m.z_a, fa, ca).float(), _lift(m.uv_b, m.z_b, fb, cb).float()  # (G, M, 3)
     triples = torch.randint(len(m), (hypotheses, 3), generator=g)
+    tan = torch.tan(torch.deg2rad(torch.tensor(FOV_RANGE_DEG, dtype=torch.float64)) / 2)
+    log_a, log_b = (torch.log(w / 2 / tan[1]) for w in (width_a, width_b))  # widest view first
+    span = float(torch.log(tan[1] / tan[0]))
+    ranges = ((log_a, log_a + span), (log_b, log_b + span))
+    for _ in range(2):
+        fa, fb = (torch.exp(torch.linspace(lo, hi, steps, dtype=torch.float64)) for lo, hi in ranges)
+        i, j, R, t = _best_fit(m, triples, fa, fb, ca, cb, tolerance)
+        half = span / (steps - 1)  # the next grid spans one step either side of the winner
+        ranges = ((torch.log(fa[i]) - half, torch.log(fa[i]) + half), (torch.log(fb[j]) - half, torch.log(fb[j]) + half))
+        span = 2 * half
+    return float(fa[i]), float(fb[j]), R, t
+
+
+def _best_fit(m: Matches, triples: torch.Tensor, fa: torch.Tensor, fb: torch.Tensor, ca, cb, tolerance: float):
+    """Indices into ``fa`` (G,) and ``fb`` (G,) and the rigid fit (R (3, 3), t (3,)) of the best
+    3-point hypothesis over all pairs of focal lengths (see :func:`_focal_grid`)."""
+    xa, xb = _lift(m.uv_a, m.z_a, fa, ca).float(), _lift(m.uv_b, m.z_b, fb, cb).float()  # (G, M, 3)
     best = (-1, None)
-    for i in range(steps):  # one focal of a at a time: (G, H, M) scores stay small
-        sa, sb = xa[i][triples][None].expand(steps, -1, -1, -1), xb[:, triples]  # (G, H, 3, 3)
+    for i in range(len(fa)):  # one focal of a at a time: (G, H, M) scores stay small
+        sa, sb = xa[i][triples][None].expand(len(fb), -1, -1, -1), xb[:, triples]  # (G, H, 3, 3)
         R, t = _kabsch(sa, sb)
         moved = torch.einsum("ghij,mj->ghmi", R, xa[i]) + t[:, :, None]
         count = ((moved - xb[:, None]).norm(dim=-1) <= tolerance * m.z_b.float()).sum(-1)  # (G, H)
         k = int(count.argmax())
         if int(count.view(-1)[k]) > best[0]:
-            j, h = divmod(k, hypotheses)
+            j, h = divmod(k, triples.shape[0])
             best = (int(count.view(-1)[k]), (i, j, R[j, h].double(), t[j, h].double()))
-    i, j, R, t = best[1]
-    return float(fa[i]), float(fb[j]), R, t
+    return best[1]
 
 
 def _refine(m: Matches, ca, cb, fa: float, fb: float, R: torch.Tensor, t: torch.Tensor,
