@@ -109,11 +109,19 @@ def test_uint8_and_temporal_stacks_keep_shape_dtype_and_range(setup):
 
 
 def test_output_resized_to_the_item_image_size(setup):
-    *_, cache, ds = setup
+    source, rec, cache, ds = setup
     item = ds[0]
     big = {**item, LEFT: torch.nn.functional.interpolate(item[LEFT][None], size=(64, 80))[0]}
-    out = make(cache, level="none", replace=("left",))(big)
+    tf = make(cache, level="none", replace=("left",))
+    out = tf(big)
     assert out[LEFT].shape == (3, 64, 80)
+    # the content: the scene rendered at 80x64 from the same camera, and like the item's image
+    direct = rec(source.views(0, 0))
+    expected = render(direct.gaussians, direct.cameras[:1].resize(80, 64)).rgb[0]
+    # 31 and 27.6 dB (the cache reconstructs at 80x64, not at the source's 48x48); a mirrored
+    # output gets 20 dB
+    assert psnr(out[LEFT], expected) > 28.0
+    assert psnr(out[LEFT], big[LEFT]) > 25.0
 
 
 def test_bad_inputs_raise_clear_errors(setup, tmp_path):
