@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 
 import numpy as np
@@ -257,6 +258,31 @@ def test_estimate_with_the_field_of_view_given(simulated, tmp_path, capsys, scal
     assert float(rotation_angle_deg(rel_e[:3, :3] @ rel_t[:3, :3].T)) < 2.0
     assert float((rel_e[:3, 3] - rel_t[:3, 3]).norm()) < 0.05 * 0.8
     assert float((pivot_e - pivot_t).norm()) < 0.03 and math.degrees(math.acos(float(up_e @ up_t))) < 2.0
+
+
+def test_a_dataset_without_calibration_or_depth_from_the_estimate_to_lerobot_train(simulated, tmp_path, capsys):
+    """RGB only, no calibration: gensplat calibrate --estimate (field of view and distance
+    given), then gensplat cache (the geometry path), preview and lerobot-train with the one line."""
+    from test_lerobot import train_diffusion
+
+    root = tmp_path / "rgb"
+    shutil.copytree(simulated, root, ignore=shutil.ignore_patterns("gensplat", "depth"))
+    _strip_calibration(root)
+    fov = math.degrees(2 * math.atan(160 / float(load_calibration(json.loads(
+        (simulated / "meta" / "info.json").read_text())["features"])["left"].K[0, 0])))  # fmt: skip
+    assert main(["calibrate", "--root", str(root), "--estimate", "--repo-id", REPO, "--timesteps", "4",
+                 "--fov", f"{fov}", "--baseline", "0.8"]) == 0  # fmt: skip
+    assert main(["cache", "--root", str(root), "--repo-id", REPO, "--probability", "1", "--episodes", "0"]) == 0
+    settings = json.loads((root / "gensplat" / "config.json").read_text())
+    assert settings["reconstructor"]["name"] == "geometry" and settings["transform"]["cameras"] == ["left", "right"]
+    assert main(["preview", "--root", str(root), "--repo-id", REPO, "--out", str(tmp_path / "p"), "--draws", "1",
+                 "--frames", "0"]) == 0  # fmt: skip
+    capsys.readouterr()
+    run = train_diffusion(f"--dataset.repo_id={REPO}", f"--dataset.root={root}", f"--output_dir={tmp_path / 'out'}",
+                          "--steps=1", "--batch_size=2", "--num_workers=1", "--save_freq=1", "--log_freq=1")  # fmt: skip
+    assert run.returncode == 0, run.stderr[-3000:]
+    steps = re.findall(r"GenSplat step \d+: (\d+) of (\d+) samples augmented", run.stderr + run.stdout)
+    assert steps and all(int(a) == int(n) > 0 for a, n in steps)
 
 
 def test_estimate_of_one_camera_with_depth_and_its_field_of_view(simulated, tmp_path, capsys):
