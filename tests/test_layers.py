@@ -64,6 +64,15 @@ def test_the_core_imports_neither_the_bench_nor_lerobot():
     assert not {m: i for m, i in bad.items() if i}, "core modules import the bench or LeRobot"
 
 
+def test_the_model_does_not_import_the_reconstructors():
+    """``model/`` sits below ``reconstruction/`` (which wraps the models): the types both use
+    (views, reconstructions) live in ``views``, below both."""
+    model = f"{PACKAGE}.model"
+    bad = {m: sorted(i for i in imports(m, p, MODULES) if _under(i, (f"{PACKAGE}.reconstruction",)))
+           for m, p in MODULES.items() if _under(m, (model,))}  # fmt: skip
+    assert not {m: i for m, i in bad.items() if i}, "model/ imports reconstruction/"
+
+
 def test_the_lerobot_integration_imports_only_the_core():
     bad = {m: sorted(i for i in imports(m, p, INTEGRATION_MODULES) if _under(i, BENCH))
            for m, p in INTEGRATION_MODULES.items()}  # fmt: skip

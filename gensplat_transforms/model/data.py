@@ -16,8 +16,8 @@ import torch
 from torch.utils.data import Dataset
 
 from ..cameras import Cameras, focal_from_fov, look_at
-from ..reconstruction import Views
 from ..scenes import WORKSPACE_CENTER, TabletopScene
+from ..views import Views
 from .config import PATCH_SIZE
 
 

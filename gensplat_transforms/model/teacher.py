@@ -12,8 +12,7 @@ from typing import Protocol
 
 import torch
 
-from ..reconstruction import Views
-from ..reconstruction.base import valid_depth
+from ..views import Views, valid_depth
 from .checkpoints import load_pi3_weights
 from .config import ModelConfig
 from .gensplat import GenSplatModel

@@ -39,8 +39,8 @@ from tqdm.auto import tqdm
 
 from ..atomic import atomic_write, atomic_write_json
 from ..cameras import Cameras
-from ..reconstruction import Views
 from ..rendering import render
+from ..views import Views
 from .checkpoints import GAUSSIAN_PREFIX, load_pi3_weights
 from .config import ModelConfig
 from .gensplat import GenSplatModel, to_gaussians

@@ -4,121 +4,12 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
 
-import torch
-import torch.nn.functional as F
+from ..views import MAX_VIEW_DEPTH, Reconstruction, Views, nearest_pixels, valid_depth
 
-from ..cameras import Cameras
-from ..gaussians import Gaussians
-
-#: Depths beyond this (metres) mark pixels without depth, like zero, negative and non-finite
-#: ones: no sensor measures that far (such values are sentinels), and Gaussians built from
-#: them would overflow float32.
-MAX_VIEW_DEPTH = 1e6
-
-
-def valid_depth(depth: torch.Tensor) -> torch.Tensor:
-    """Bool mask, same shape as ``depth``, of the values that are depths: > 0 and
-    <= ``MAX_VIEW_DEPTH`` (so NaN and +-Inf are not)."""
-    return (depth > 0) & (depth <= MAX_VIEW_DEPTH)
-
-
-def nearest_pixels(x: torch.Tensor, width: int, height: int) -> torch.Tensor:
-    """(..., H, W) values of any dtype at ``width x height``: each new pixel takes the value of
-    the source pixel nearest its centre (PyTorch's "nearest-exact"), so depths are never mixed."""
-    H, W = x.shape[-2:]
-    rows = ((torch.arange(height, device=x.device) + 0.5) * (H / height)).long().clamp_(max=H - 1)
-    cols = ((torch.arange(width, device=x.device) + 0.5) * (W / width)).long().clamp_(max=W - 1)
-    return x[..., rows[:, None], cols]
-
-
-@dataclass
-class Views:
-    """The camera images of one timestep.
-
-    Attributes:
-        images: (V, 3, H, W) float in [0, 1].
-        cameras: V calibrated cameras, or None for uncalibrated input.
-        depths: (V, 1, H, W) metric camera-z depth, or None. Any values are accepted; zero,
-            negative, non-finite and values beyond ``MAX_VIEW_DEPTH`` (1e6 m) mark pixels
-            without depth (see :func:`valid_depth`), so a sensor's sentinel for "no return"
-            (e.g. 1e10 or float32's largest value) yields no Gaussian.
-
-    Example:
-        >>> from gensplat_transforms.scenes import TabletopScene, default_cameras
-        >>> cameras = default_cameras(16, 16)[:2]
-        >>> images, depths = TabletopScene(seed=0).render(cameras)
-        >>> len(Views(images, cameras, depths)), len(Views(images))  # calibrated RGB-D; RGB only
-        (2, 2)
-    """
-
-    images: torch.Tensor
-    cameras: Cameras | None = None
-    depths: torch.Tensor | None = None
-
-    def __post_init__(self) -> None:
-        if self.images.ndim != 4 or self.images.shape[1] != 3:
-            raise ValueError(f"Views.images: expected (V, 3, H, W), got {tuple(self.images.shape)}")
-        if not self.images.is_floating_point():
-            raise ValueError(f"Views.images: expected float images in [0, 1], got {self.images.dtype}")
-        # min and max propagate NaN and expose Inf: one pass, ~15x faster than isfinite().all()
-        if self.images.numel() and not all(math.isfinite(x) for x in torch.aminmax(self.images.detach())):
-            raise ValueError("Views.images: contains NaN or Inf")
-        v, _, h, w = self.images.shape
-        if self.cameras is not None and (
-            len(self.cameras) != v or (self.cameras.height, self.cameras.width) != (h, w)
-        ):
-            raise ValueError(
-                f"Views.cameras: need {v} cameras of size {w}x{h}, got {len(self.cameras)} of "
-                f"{self.cameras.width}x{self.cameras.height}"
-            )
-        if self.depths is not None and tuple(self.depths.shape) != (v, 1, h, w):
-            raise ValueError(f"Views.depths: expected shape {(v, 1, h, w)}, got {tuple(self.depths.shape)}")
-
-    def __len__(self) -> int:
-        return self.images.shape[0]
-
-    def resized(self, width: int, height: int) -> Views:
-        """The views at ``width x height``: images resized with area antialiasing, depth
-        sampled at the source pixel nearest each new pixel centre (never a mix of depths across
-        an edge), intrinsics scaled; ``self`` when the size is unchanged."""
-        if self.images.shape[-2:] == (height, width):
-            return self
-        images = F.interpolate(self.images, size=(height, width), mode="bilinear", antialias=True,
-                               align_corners=False)  # fmt: skip
-        depths = None if self.depths is None else nearest_pixels(self.depths, width, height)
-        cameras = None if self.cameras is None else self.cameras.resize(width, height)
-        return Views(images.clamp(0, 1), cameras, depths)
-
-
-@dataclass
-class Reconstruction:
-    """Gaussians of one timestep and the source cameras expressed in their frame (the given
-    calibration, or the poses a feed-forward model predicted).
-
-    ``pixel_ids`` (N,) int64 tells pixel-aligned Gaussians' source pixel, ``v * H * W + row *
-    W + col``; caches use it to store the static part of a scene once.
-    """
-
-    gaussians: Gaussians
-    cameras: Cameras
-    pixel_ids: torch.Tensor | None = None
-
-    def __post_init__(self) -> None:
-        ids = self.pixel_ids
-        if ids is None:
-            return
-        if ids.dtype != torch.int64 or ids.shape != (len(self.gaussians),):
-            raise ValueError(
-                f"Reconstruction.pixel_ids: expected int64 of shape ({len(self.gaussians)},), "
-                f"got {ids.dtype} of shape {tuple(ids.shape)}"
-            )
-        if len(ids) and int(ids.min()) < 0:
-            raise ValueError(f"Reconstruction.pixel_ids: must be >= 0, got {int(ids.min())}")
-
+__all__ = ["MAX_VIEW_DEPTH", "DepthReconstructor", "Reconstruction", "Reconstructor", "Views", "nearest_pixels",
+           "valid_depth"]  # fmt: skip
 
 class Reconstructor(ABC):
     """Turns the views of one timestep into Gaussians.
