@@ -168,3 +168,14 @@ def test_preview_seeds_out_of_torch_range_are_gensplat_errors(tmp_path, capsys, 
     assert capsys.readouterr().err == (
         f"gensplat: error: gensplat preview: seed must be in [0, 2**64) (a torch seed), got {seed}\n"
     )
+
+
+def test_a_hub_id_that_cannot_be_fetched_is_a_clear_error(monkeypatch):
+    """Offline (or no such repository): a ValueError naming the id and the fix, not the hub
+    library's own exception."""
+    pytest.importorskip("huggingface_hub")
+    from gensplat_transforms.model.checkpoints import resolve
+
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    with pytest.raises(ValueError, match=r"'someone/no-such-model' is not a local directory and could not be fetched"):
+        resolve("someone/no-such-model")

@@ -132,4 +132,9 @@ def resolve(source: str | Path) -> Path:
             "huggingface_hub package (pip install huggingface_hub), or download it yourself and pass "
             "the directory"
         ) from None
-    return Path(snapshot_download(str(source), allow_patterns=[CONFIG_FILE, WEIGHTS_FILE]))
+    try:
+        return Path(snapshot_download(str(source), allow_patterns=[CONFIG_FILE, WEIGHTS_FILE]))
+    except Exception as e:  # offline, no such repo, no access, network: huggingface_hub's many errors
+        raise ValueError(f"{source!r} is not a local directory and could not be fetched from the Hugging Face "
+                         f"hub ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}); download it where "
+                         "the hub is reachable and pass the directory") from e
