@@ -250,12 +250,8 @@ def _refine(m: Matches, ca, cb, fa: float, fb: float, R: torch.Tensor, t: torch.
                    rotation_matrix_to_axis_angle(R[None].double())[0], t.double()])  # fmt: skip
 
     def residuals(p):
-        fa, fb, Rm, tv = torch.exp(p[0]), torch.exp(p[1]), axis_angle_to_rotation_matrix(p[None, 2:5])[0], p[5:8]
-        xb = _lift(m.uv_a, m.z_a, fa, ca) @ Rm.T + tv
-        xa = (_lift(m.uv_b, m.z_b, fb, cb) - tv) @ Rm
-        ub = fb * xb[:, :2] / xb[:, 2:].clamp_min(1e-6) + cb - m.uv_b
-        ua = fa * xa[:, :2] / xa[:, 2:].clamp_min(1e-6) + ca - m.uv_a
-        return torch.cat([ub, ua], 0)  # (2M, 2)
+        R = axis_angle_to_rotation_matrix(p[None, 2:5])[0]
+        return _reprojection(m, ca, cb, torch.exp(p[0]), torch.exp(p[1]), R, p[5:8])
 
     p = _least_squares(residuals, p, iterations)
     r = residuals(p).norm(dim=-1)
@@ -263,7 +259,7 @@ def _refine(m: Matches, ca, cb, fa: float, fb: float, R: torch.Tensor, t: torch.
     b_from_a = torch.eye(4, dtype=torch.float64)
     b_from_a[:3, :3], b_from_a[:3, 3] = axis_angle_to_rotation_matrix(p[None, 2:5])[0], p[5:8]
     rms = float(r[inlier].square().mean().sqrt()) if inlier.any() else float("inf")
-    J = torch.func.jacfwd(lambda q: residuals(q)[inlier.repeat(1)].reshape(-1))(p)
+    J = torch.func.jacfwd(lambda q: residuals(q)[inlier].reshape(-1))(p)
     cov = torch.linalg.pinv(J.T @ J) * rms**2  # Gauss-Newton covariance of the parameters
     sd = float(cov.diagonal()[:2].clamp_min(0).sqrt().max())
     return PairEstimate(float(torch.exp(p[0])), float(torch.exp(p[1])), b_from_a, rms, int(inlier.sum()) // 2, sd)
@@ -515,15 +511,21 @@ def _unit_distance(kind: str, points: torch.Tensor, c2w: torch.Tensor) -> float:
     return abs(float((world_from_ref @ c2w[0])[2, 3]))
 
 
+def _reprojection(m: Matches, ca, cb, fa, fb, R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """(2M, 2) pixel errors of a's matched points seen by b, then of b's seen by a, for focal
+    lengths ``fa``, ``fb`` and x_b = R x_a + t."""
+    xb = _lift(m.uv_a, m.z_a, fa, ca) @ R.T + t
+    xa = (_lift(m.uv_b, m.z_b, fb, cb) - t) @ R
+    ub = fb * xb[:, :2] / xb[:, 2:].clamp_min(1e-6) + cb - m.uv_b
+    ua = fa * xa[:, :2] / xa[:, 2:].clamp_min(1e-6) + ca - m.uv_a
+    return torch.cat([ub, ua], 0)
+
+
 def _agreeing(m: Matches, e: PairEstimate, size_a, size_b, max_px: float = 4.0) -> Matches:
     """The matches whose reprojection error under ``e`` is within ``max_px`` both ways."""
-    ca, cb = _centre(size_a), _centre(size_b)
-    R, t = e.b_from_a[:3, :3], e.b_from_a[:3, 3]
-    xb = _lift(m.uv_a, m.z_a, e.focal_a, ca) @ R.T + t
-    xa = (_lift(m.uv_b, m.z_b, e.focal_b, cb) - t) @ R
-    ub = e.focal_b * xb[:, :2] / xb[:, 2:].clamp_min(1e-6) + cb - m.uv_b
-    ua = e.focal_a * xa[:, :2] / xa[:, 2:].clamp_min(1e-6) + ca - m.uv_a
-    return m.subset((ub.norm(dim=-1) <= max_px) & (ua.norm(dim=-1) <= max_px))
+    r = _reprojection(m, _centre(size_a), _centre(size_b), e.focal_a, e.focal_b, e.b_from_a[:3, :3],
+                      e.b_from_a[:3, 3]).norm(dim=-1)  # fmt: skip
+    return m.subset((r[: len(m)] <= max_px) & (r[len(m) :] <= max_px))
 
 
 def _K(f: float, size: tuple[int, int]) -> torch.Tensor:
