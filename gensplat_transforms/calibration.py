@@ -64,6 +64,7 @@ from .dataset_format import (
     camera_info,
     image_sizes,
 )
+from .outputs import gensplat_folder
 
 CONVENTIONS = ("auto", "gensplat", "opencv-w2c", "nerfstudio")
 _INTRINSICS = ("K", "fx", "fy", "cx", "cy")
@@ -157,6 +158,7 @@ def _write(root: str | Path, source: Path, features: dict, cameras: dict[str, Ca
                          "calibration.json: leave them out")  # fmt: skip
     data = {"format": CALIBRATION_FORMAT,
             "cameras": {n: camera_info(c.K, c.c2w, c.mount, c.depth, c.episodes) for n, c in cameras.items()}}  # fmt: skip
+    gensplat_folder(root)
     atomic_write_json(calibration_path(root), data)
     return cameras
 

@@ -38,6 +38,12 @@ def check_output(path: str | Path, dataset: str | Path | None = None, folder: bo
     return path
 
 
+def gensplat_folder(dataset: str | Path) -> Path:
+    """``<dataset>/gensplat``, where GenSplat writes beside a dataset, once it is not (through a
+    symbolic link) one of the dataset's own folders; a link to another disk is fine."""
+    return check_output(Path(dataset) / GENSPLAT_DIR, dataset, folder=True)
+
+
 @contextmanager
 def new_folder(path: str | Path) -> Iterator[Path]:
     """``path`` made absolute, for a new folder to be written in the body: refused with

@@ -118,6 +118,25 @@ def test_gensplat_folder_linked_to_another_disk_keeps_working(cached, tmp_path, 
     assert dataset_hashes(root) == before
 
 
+def test_gensplat_folder_linked_into_the_dataset_is_refused(cached, tmp_path, capsys):
+    """``<root>/gensplat`` a link to one of the dataset's own folders: cache, calibrate and the
+    estimate write nothing there."""
+    root = tmp_path / "ds"
+    shutil.copytree(cached, root, ignore=shutil.ignore_patterns("gensplat"))
+    (root / "gensplat").symlink_to(root / "meta")
+    before = {p.name for p in (root / "meta").iterdir()}, dataset_hashes(root)
+    refused(capsys, ["cache", "--root", str(root), "--repo-id", REPO], "inside the dataset")
+    assert ({p.name for p in (root / "meta").iterdir()}, dataset_hashes(root)) == before
+    calibration = tmp_path / "calibration.json"
+    calibration.write_text('{"left": {"fx": 30, "fy": 30, "cx": 16, "cy": 16, "c2w": '
+                           '[[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}}')
+    info = root / "meta" / "info.json"
+    info.write_text(info.read_text().replace('"camera.intrinsics"', '"was.intrinsics"'))  # left uncalibrated
+    before = {p.name for p in (root / "meta").iterdir()}, dataset_hashes(root)
+    refused(capsys, ["calibrate", "--root", str(root), "--from", str(calibration)], "inside the dataset")
+    assert ({p.name for p in (root / "meta").iterdir()}, dataset_hashes(root)) == before
+
+
 def test_a_folder_for_a_file_or_a_file_for_a_folder_is_a_clear_error(cached, tmp_path, capsys):
     a_file = tmp_path / "file.txt"
     a_file.write_text("mine")

@@ -14,6 +14,7 @@ from gensplat_transforms.atomic import atomic_write_json, read_json_object
 from gensplat_transforms.cache import GaussianCache, StaleCacheError
 from gensplat_transforms.dataset_format import GENSPLAT_DIR, IMAGE_KEY_PREFIX
 from gensplat_transforms.distributed import OnDevice, Shard
+from gensplat_transforms.outputs import gensplat_folder
 from gensplat_transforms.perturbation import get_range
 from gensplat_transforms.reconstruction import make_reconstructor
 from gensplat_transforms.rendering.gsplat_backend import _rasterization
@@ -231,6 +232,7 @@ def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructo
         rec = make_reconstructor(reconstructor, shard.device if reconstructor["name"] == "geometry" else None)
     if len(config.cameras) == 1 and config.pivot_depth is None:  # the pivot on the one camera's axis
         config = replace(config, pivot_depth=scene_depth(rec, source, episodes))
+    gensplat_folder(root)
     if shard.rank == 0:
         save_settings(root, config, reconstructor, link_depth)
         atomic_write_json(content_path(root), {"fingerprint": source.fingerprint, "content": source.content})

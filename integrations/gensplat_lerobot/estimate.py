@@ -19,6 +19,7 @@ from gensplat_transforms.dataset_format import (
     depth_path,
     load_depth,
 )
+from gensplat_transforms.outputs import gensplat_folder
 from gensplat_transforms.self_calibration import RigEstimate, estimate_rig
 
 from .source import _is_depth_map, episode_table, read_info, video_backend
@@ -124,6 +125,7 @@ def write_estimate(root: Path, rig: RigEstimate) -> Path:
                          "scale": rig.scale,
                          "assumptions": ASSUMPTIONS, "reference": rig.names[0], "levelled": rig.levelled,
                          "cameras": spread}}  # fmt: skip
+    gensplat_folder(root)
     return atomic_write_json(calibration_path(root), data)
 
 
