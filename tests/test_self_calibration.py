@@ -321,3 +321,12 @@ def test_estimate_refuses_what_it_cannot_do(simulated, tmp_path, capsys):
     shutil.rmtree(root / "depth" / "right")  # one camera without depth: RGB only, which needs more
     assert "needs the cameras' focal length (--fov or --focal) and one distance" in error(root)
     assert not calibration_path(root).exists()
+
+
+def test_estimate_names_an_episode_without_depth(simulated, tmp_path, capsys):
+    root = tmp_path / "holes"
+    shutil.copytree(simulated, root, ignore=shutil.ignore_patterns("gensplat"))
+    _strip_calibration(root)
+    (root / "depth" / "right" / "episode_000001.safetensors").unlink()  # episode 0 has it, episode 1 not
+    assert main(["calibrate", "--root", str(root), "--estimate", "--repo-id", REPO, "--timesteps", "4"]) == 2
+    assert "camera 'right' has no depth for episode 1" in capsys.readouterr().err

@@ -62,6 +62,7 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
                              f"got {value}")  # fmt: skip
     if fov_deg is not None and focal_px is not None or baseline_m is not None and table_m is not None:
         raise ValueError("give one of --fov and --focal, and one of --baseline and --table-distance")
+    gensplat_folder(root)  # before minutes of matching, not after
     calibrated = [n for n in names if "camera.intrinsics" in (features[IMAGE_KEY_PREFIX + n].get("info") or {})]
     if calibrated:
         raise ValueError(f"{root}: camera(s) {calibrated} carry calibration in their features, which GenSplat uses; "
@@ -88,8 +89,11 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
             depth = None
             if use_depth and depth_path(root, n, episode).exists():
                 depth = load_depth(root, n, episode, frame)[0].numpy()
-            elif use_depth:
+            elif use_depth and depth_keys[n] in item:
                 depth = item[depth_keys[n]].reshape(image.shape[:2]).float().numpy()
+            elif use_depth:
+                raise ValueError(f"{root}: camera {n!r} has no depth for episode {episode} "
+                                 f"({depth_path(root, n, episode)} is missing)")  # fmt: skip
             step[n] = (image, None if depth is None else np.asarray(depth, dtype=np.float32))
         samples.append(step)
         groups.append(episode)
