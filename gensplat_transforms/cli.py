@@ -361,8 +361,15 @@ def _cache(args) -> None:
     print(f"{who}cached {len(built)} episode(s) ({len(stats) - len(built)} already valid) on {len(ranks)} "
           f"process(es) in {seconds:.2f} s, {cpu_s:.2f} CPU s ({len(built) / seconds:.3f} episodes/s): "
           f"{frames} timesteps, {size_text(size)}, {size_text(size / max(frames, 1))} per timestep{per}")
+    spec = load_settings(args.root)[1]
+    if spec["name"] != "rgbd":
+        from .reconstruction.geometry import weights_licence
+        from .weights import DEFAULT_MODEL_DIR
+
+        model = spec.get("model") or DEFAULT_MODEL_DIR
+        print(f"model weights {model}: licence {weights_licence(model)}")
     sensed = [n for n in cameras if n in source.depth_features and not depth_path(args.root, n, 0).exists()]
-    if sensed and not args.fill_depth and load_settings(args.root)[1]["name"] == "rgbd":
+    if sensed and not args.fill_depth and spec["name"] == "rgbd":
         print(f"tip: the depth of {', '.join(sensed)} is a sensor's (LeRobot depth maps): --fill-depth 8 gives its "
               "small holes depth before the discs are built (+1.09 dB PSNR at the source pose, +0.33 dB at large "
               "moves on a simulated RealSense; docs/reconstruction.md)")  # fmt: skip

@@ -273,6 +273,7 @@ def test_a_dataset_without_calibration_or_depth_from_the_estimate_to_lerobot_tra
     assert main(["calibrate", "--root", str(root), "--estimate", "--repo-id", REPO, "--timesteps", "4",
                  "--fov", f"{fov}", "--baseline", "0.8"]) == 0  # fmt: skip
     assert main(["cache", "--root", str(root), "--repo-id", REPO, "--probability", "1", "--episodes", "0"]) == 0
+    assert "licence Apache-2.0 (the small model shipped with gensplat-transforms)" in capsys.readouterr().out
     settings = json.loads((root / "gensplat" / "config.json").read_text())
     assert settings["reconstructor"]["name"] == "geometry" and settings["transform"]["cameras"] == ["left", "right"]
     assert main(["preview", "--root", str(root), "--repo-id", REPO, "--out", str(tmp_path / "p"), "--draws", "1",
@@ -330,3 +331,14 @@ def test_estimate_names_an_episode_without_depth(simulated, tmp_path, capsys):
     (root / "depth" / "right" / "episode_000001.safetensors").unlink()  # episode 0 has it, episode 1 not
     assert main(["calibrate", "--root", str(root), "--estimate", "--repo-id", REPO, "--timesteps", "4"]) == 2
     assert "camera 'right' has no depth for episode 1" in capsys.readouterr().err
+
+
+def test_weights_licence_is_read_from_the_checkpoint(tmp_path):
+    from gensplat_transforms.reconstruction.geometry import weights_licence
+
+    for name, config, licence in (("da3", {"model_name": "da3-small"}, "Apache-2.0 (Depth Anything 3)"),
+                                  ("pi3", {"encoder": "dinov2"}, "CC BY-NC 4.0 (Pi3's weights")):  # fmt: skip
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "config.json").write_text(json.dumps(config))
+        assert weights_licence(tmp_path / name).startswith(licence)
+    assert weights_licence().startswith("Apache-2.0 (the small model shipped")

@@ -54,6 +54,19 @@ def is_gensplat_checkpoint(source: str | Path) -> bool:
     return meta.get("format") == FORMAT_NAME
 
 
+def weights_licence(source: str | Path = DEFAULT_MODEL_DIR) -> str:
+    """The licence of a checkpoint's weights, read from its config (nothing loaded): Depth
+    Anything 3 Small/Base and the shipped model are Apache-2.0, Pi3's are CC BY-NC 4.0; a
+    checkpoint trained with ``gensplat train-model`` carries its trainer's."""
+    if is_da3_checkpoint(source):
+        return "Apache-2.0 (Depth Anything 3)"
+    if not is_gensplat_checkpoint(source):
+        return "CC BY-NC 4.0 (Pi3's weights: non-commercial use only)"
+    if resolve(source).resolve() == Path(DEFAULT_MODEL_DIR).resolve():
+        return "Apache-2.0 (the small model shipped with gensplat-transforms)"
+    return "as its trainer set it (a gensplat train-model checkpoint)"
+
+
 class GeometryReconstructor(DepthReconstructor):
     """Images (calibrated or not) -> model depth -> RGB-D surface discs (module docstring).
 
