@@ -54,7 +54,7 @@ import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
 from .atomic import atomic_write_json
-from .cameras import Cameras, opengl_to_opencv
+from .cameras import Cameras, focal_from_fov, opengl_to_opencv
 from .dataset_format import (
     CALIBRATION_FORMAT,
     IMAGE_KEY_PREFIX,
@@ -174,7 +174,7 @@ def _given_intrinsics(names, sizes: dict[str, tuple[int, int]], path, fov: float
         out = {}
         for n in names:
             w, h = sizes[n]
-            f = focal if focal is not None else w / (2 * math.tan(math.radians(fov) / 2))
+            f = focal if focal is not None else focal_from_fov(fov, w)
             out[n] = {"fx": f, "fy": f, "cx": w / 2, "cy": h / 2}
         return out
     entries, convention = _parsed(Path(path), "auto")

@@ -16,10 +16,6 @@ def to_uint8(image: torch.Tensor) -> torch.Tensor:
     return (image.detach().float().clamp(0, 1) * 255 + 0.5).to(torch.uint8).permute(1, 2, 0).cpu()
 
 
-def save_image(image: torch.Tensor, path: str | Path) -> None:
-    Image.fromarray(to_uint8(image).numpy()).save(path)
-
-
 def save_grid(
     rows: list[list[torch.Tensor]],
     path: str | Path,

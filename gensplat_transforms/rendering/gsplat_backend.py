@@ -60,6 +60,11 @@ def _rasterization():
     return rasterization
 
 
+def check_gsplat() -> None:
+    """RuntimeError naming what is missing when the gsplat backend cannot run on this machine."""
+    _rasterization()
+
+
 def _just_above(near: float) -> float:
     """gsplat culls z < near_plane in float32; ours culls z <= near: the next float32 above."""
     return float(np.nextafter(np.float32(near), np.float32(np.inf)))

@@ -17,7 +17,7 @@ from gensplat_transforms.distributed import OnDevice, Shard
 from gensplat_transforms.outputs import gensplat_folder
 from gensplat_transforms.perturbation import get_range
 from gensplat_transforms.reconstruction import make_reconstructor
-from gensplat_transforms.rendering.gsplat_backend import _rasterization
+from gensplat_transforms.rendering.gsplat_backend import check_gsplat
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 
 from .source import LeRobotSource, episode_table, read_info
@@ -199,7 +199,7 @@ def check_options(source: LeRobotSource, config: GenSplatConfig, total: int, epi
     get_range(config.level)
     if config.backend == "gsplat":
         try:
-            _rasterization()
+            check_gsplat()
         except RuntimeError as e:
             raise ValueError(f"{e}; or use --backend fast") from None
 

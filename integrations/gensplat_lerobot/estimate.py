@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from gensplat_transforms.atomic import atomic_write_json
+from gensplat_transforms.cameras import focal_from_fov
 from gensplat_transforms.dataset_format import (
     CALIBRATION_FORMAT,
     IMAGE_KEY_PREFIX,
@@ -77,7 +78,7 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
     sizes = [(features[IMAGE_KEY_PREFIX + n]["shape"][1], features[IMAGE_KEY_PREFIX + n]["shape"][0]) for n in names]
     focals = None
     if fov_deg is not None or focal_px is not None:
-        focals = [focal_px or w / 2 / math.tan(math.radians(fov_deg) / 2) for w, _ in sizes]
+        focals = [focal_px or focal_from_fov(fov_deg, w) for w, _ in sizes]
     scale = ("baseline", baseline_m) if baseline_m is not None else ("table", table_m) if table_m is not None else None
     table = episode_table(dataset.meta)
     samples, groups = [], []
