@@ -6,7 +6,7 @@ same RNG calls, in the same order) and adds the moves, the cached cameras and th
 depth as stored (two bytes a pixel) to the item (``transform.BATCH_KEYS``). :func:`render_batch`
 decodes the depth and moves the cameras of the whole batch at once, rebuilds the Gaussians
 of every augmented sample from that depth and the batch's own images with the PyTorch disc
-rule (:func:`.reconstruction.rgbd.dense_discs`, in float64), renders all target cameras,
+rule (:func:`.reconstruction.rgbd.dense_discs`, in float32, compiled on CUDA), renders all target cameras,
 fills the holes and writes the images back, in the images' dtype, range and size. On CUDA
 all scenes go through one gsplat call; elsewhere (tests) each scene is rendered with
 ``config.backend``, through the same :func:`.transform.render_view` as the worker, so the
@@ -15,6 +15,7 @@ images match the worker path's up to the disc rule's round-off.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import replace
 
 import torch
@@ -57,13 +58,16 @@ def disc_builder(reconstructor: Reconstructor) -> RGBDReconstructor:
 
 
 @torch.no_grad()
-def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None = None) -> dict:
+def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None = None,
+                 compiled: bool | None = None) -> dict:  # fmt: skip
     """The collated ``batch`` of items from ``transform`` (``render_in="batch"``) with the
     augmented samples' replaced camera images rendered, and without ``BATCH_KEYS``.
 
     Renders where the batch's tensors are (move the batch to the GPU first) with ``backend``:
     by default "gsplat" (all scenes in one call) on CUDA, else ``transform.cfg.backend`` (one
-    scene at a time). The input is not modified.
+    scene at a time). ``compiled``: build the discs with the rule compiled by ``torch.compile``
+    (fused kernels; the first batch waits for the compilation; where it fails, a warning and
+    the plain rule); default: on CUDA. The input is not modified.
 
     Example: a DataLoader whose workers only prepare the items, then one render per batch
         >>> import tempfile
@@ -97,10 +101,11 @@ def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None 
     depth = depth_from_words(words, coded)  # (S, T, V, h, w)
     S, T = depth.shape[:2]
     images = torch.stack([_stacked(batch[cfg.image_key.format(name=n)][rows], T, h, w) for n in cfg.cameras], 2)
-    f64 = torch.float64
-    means, quats, scales, dc, keep = (t.flatten(2, 3).flatten(0, 1) for t in dense_discs(  # (S*T, V*n, ...)
-        discs.disc_depth(depth).to(f64), images.to(f64), batch["gensplat.K"][rows].to(f64),
-        batch["gensplat.c2w"][rows].to(f64), discs.cfg))  # fmt: skip
+    rule = _compiled_discs if (compiled if compiled is not None else depth.device.type == "cuda") else dense_discs
+    f32 = torch.float32
+    means, quats, scales, dc, keep = (t.flatten(2, 3).flatten(0, 1) for t in rule(  # (S*T, V*n, ...)
+        discs.disc_depth(depth), images, batch["gensplat.K"][rows].to(f32), batch["gensplat.c2w"][rows].to(f32),
+        discs.cfg))  # fmt: skip
     sh = dc[:, :, None]
     if discs.cfg.sh_degree > 0:
         sh = torch.cat([sh, sh.new_zeros(*sh.shape[:2], num_sh_bases(discs.cfg.sh_degree) - 1, 3)], 2)
@@ -155,6 +160,25 @@ def _render_depth(means, quats, scales, sh, keep, opacity: float, K: torch.Tenso
     one = replace(cfg, backend=backend)
     return torch.cat([render_depth(_scene_gaussians(*discs, opacity), Cameras(k[None], t[None], width, height), one)
                       for *discs, k, t in zip(means, quats, scales, sh, keep, K, c2w)])  # fmt: skip
+
+
+_COMPILED: dict = {}  # the disc rule compiled by torch.compile, made once per process
+
+
+def _compiled_discs(*args):
+    """:func:`.reconstruction.rgbd.dense_discs` compiled by ``torch.compile`` (dynamic shapes:
+    one compilation for any number of augmented samples); where compiling fails (no compiler,
+    an unsupported device), a warning and the plain rule from then on."""
+    if "rule" not in _COMPILED:
+        _COMPILED["rule"] = torch.compile(dense_discs, dynamic=True)
+    if _COMPILED["rule"] is not dense_discs:
+        try:
+            return _COMPILED["rule"](*args)
+        except Exception as e:  # noqa: BLE001 - any compiler failure: the plain rule still works
+            warnings.warn(f"render_batch: torch.compile of the disc rule failed ({type(e).__name__}: {e}); "
+                          "using the plain rule", RuntimeWarning, stacklevel=3)  # fmt: skip
+            _COMPILED["rule"] = dense_discs
+    return dense_discs(*args)
 
 
 def _targets(c2w: torch.Tensor, moves: torch.Tensor, views: list[int], pivot_depth: float | None) -> torch.Tensor:

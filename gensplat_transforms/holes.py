@@ -36,9 +36,10 @@ def fill_holes(
             f"fill_holes: alpha must be {(color.shape[0], 1, *color.shape[2:])}, got {tuple(alpha.shape)}"
         )
     dtype = torch.float64 if color.dtype == torch.float64 else torch.float32
-    empty_rgb = torch.as_tensor(empty, dtype=dtype, device=color.device).reshape(1, 3, 1, 1)
-    if not torch.isfinite(empty_rgb).all():
+    empty_rgb = torch.as_tensor(empty, dtype=dtype).reshape(1, 3, 1, 1)
+    if not torch.isfinite(empty_rgb).all():  # checked on the CPU: no wait for the device
         raise ValueError(f"fill_holes: empty must be a finite RGB, got {empty}")
+    empty_rgb = empty_rgb.to(color.device)
     # colour and alpha side by side in one (B, 4, H, W) tensor: one pooling per level
     level = torch.empty((color.shape[0], 4, *color.shape[2:]), dtype=dtype, device=color.device)
     torch.nan_to_num(color.to(dtype), nan=0.0, posinf=0.0, neginf=0.0, out=level[:, :3])

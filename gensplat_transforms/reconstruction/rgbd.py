@@ -176,7 +176,7 @@ def dense_discs(z: torch.Tensor, images: torch.Tensor, K: torch.Tensor, c2w: tor
                           torch.arange(W, dtype=z.dtype, device=z.device) + 0.5, indexing="ij")  # fmt: skip
     cam = torch.stack([(u - K[..., 0, 2]) / K[..., 0, 0] * z, (v - K[..., 1, 2]) / K[..., 1, 1] * z, z], -1)
     R = c2w[..., :3, :3]
-    pts = (cam[..., None, :] @ R.transpose(-1, -2))[..., 0, :] + c2w[..., :3, 3]  # (M, H, W, 3)
+    pts = (cam[..., None, :] * R).sum(-1) + c2w[..., :3, 3]  # (M, H, W, 3): R cam + t, no batched matmul
     a = _surface_step(pts, valid, z / K[..., 0, 0], R[..., :, 0], cfg.max_stretch, cfg.edge_scale, dim=2)
     b = _surface_step(pts, valid, z / K[..., 1, 1], R[..., :, 1], cfg.max_stretch, cfg.edge_scale, dim=1)
 

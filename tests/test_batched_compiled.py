@@ -1,0 +1,68 @@
+"""render_batch's compiled disc rule: the plain rule's images, and a warning and the plain
+rule where torch.compile fails (on CUDA the compiled rule is the default)."""
+
+import pytest
+import torch
+from torch.utils.data import default_collate
+
+from gensplat_transforms import batched
+from gensplat_transforms.batched import render_batch
+from gensplat_transforms.cache import GaussianCache
+from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
+from gensplat_transforms.reconstruction import RGBDReconstructor
+from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
+
+LEFT = "observation.images.left"
+
+
+@pytest.fixture(scope="module")
+def prepared(tmp_path_factory):
+    source = SceneEpisodes(num_episodes=1, num_frames=3, size=24)
+    cache = GaussianCache(tmp_path_factory.mktemp("cache"), RGBDReconstructor(), source.fingerprint)
+    build_cache(cache, source, range(1), progress=False)
+    transform = GenSplatTransform(GenSplatConfig(probability=1.0, render_in="batch", level="large"), cache)
+    ds = SceneDataset(source)
+    torch.manual_seed(0)
+    return default_collate([transform(ds[i]) for i in range(3)]), transform
+
+
+def test_a_failing_compiler_warns_and_renders_with_the_plain_rule(prepared, monkeypatch):
+    batch, transform = prepared
+    calls = []
+
+    def broken_compile(fn, **kwargs):
+        def compiled(*args):
+            calls.append(1)
+            raise RuntimeError("no compiler here")
+        return compiled
+
+    monkeypatch.setattr(batched.torch, "compile", broken_compile)
+    monkeypatch.setattr(batched, "_COMPILED", {})
+    plain = render_batch(batch, transform, compiled=False)
+    assert not calls
+    with pytest.warns(RuntimeWarning, match="torch.compile of the disc rule failed.*no compiler here"):
+        got = render_batch(batch, transform, compiled=True)
+    assert torch.equal(got[LEFT], plain[LEFT])
+    again = render_batch(batch, transform, compiled=True)  # no second try, no second warning
+    assert len(calls) == 1 and torch.equal(again[LEFT], plain[LEFT])
+
+
+def test_the_compiled_rule_is_called_when_asked_for(prepared, monkeypatch):
+    batch, transform = prepared
+    seen = []
+
+    def tracing_compile(fn, **kwargs):
+        assert kwargs == {"dynamic": True}
+
+        def compiled(*args):
+            seen.append(args[0].shape)
+            return fn(*args)
+        return compiled
+
+    monkeypatch.setattr(batched.torch, "compile", tracing_compile)
+    monkeypatch.setattr(batched, "_COMPILED", {})
+    plain = render_batch(batch, transform)  # on the CPU: the plain rule by default
+    assert not seen
+    got = render_batch(batch, transform, compiled=True)
+    assert seen == [torch.Size([3, 1, 2, 24, 24])]  # (S, T, V, h, w) depth of the augmented samples
+    assert torch.equal(got[LEFT], plain[LEFT])
