@@ -1,6 +1,8 @@
 """render_batch's compiled disc rule: the plain rule's images, and a warning and the plain
 rule where torch.compile fails (on CUDA the compiled rule is the default)."""
 
+import warnings
+
 import pytest
 import torch
 from torch.utils.data import default_collate
@@ -8,6 +10,7 @@ from torch.utils.data import default_collate
 from gensplat_transforms import batched
 from gensplat_transforms.batched import render_batch
 from gensplat_transforms.cache import GaussianCache
+from gensplat_transforms.depth_codec import depth_from_words
 from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
 from gensplat_transforms.reconstruction import RGBDReconstructor
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
@@ -66,3 +69,22 @@ def test_the_compiled_rule_is_called_when_asked_for(prepared, monkeypatch):
     got = render_batch(batch, transform, compiled=True)
     assert seen == [torch.Size([3, 1, 2, 24, 24])]  # (S, T, V, h, w) depth of the augmented samples
     assert torch.equal(got[LEFT], plain[LEFT])
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="the compiled rule is the default on CUDA only")
+def test_on_cuda_the_compiled_rule_builds_the_plain_rules_discs(prepared, monkeypatch):
+    batch, transform = prepared
+    rgbd = transform.cache.reconstructor
+    depth = rgbd.disc_depth(depth_from_words(batch["gensplat.depth"], batch["gensplat.coded"].reshape(-1, 1, 1, 1, 1)))
+    images = torch.rand(*depth.shape[:3], 3, *depth.shape[-2:])
+    args = [t.cuda() for t in (depth, images, batch["gensplat.K"].float(), batch["gensplat.c2w"].float())]
+    monkeypatch.setattr(batched, "_COMPILED", {})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a fallback to the plain rule would hide a failed compilation
+        compiled = batched._compiled_discs(*args, rgbd.cfg)
+    assert batched._COMPILED["rule"] is not batched.dense_discs
+    for plain, fused in zip(batched.dense_discs(*args, rgbd.cfg), compiled):
+        if plain.dtype == torch.bool:
+            assert torch.equal(fused, plain)
+        else:
+            torch.testing.assert_close(fused, plain, rtol=1e-5, atol=1e-6)
