@@ -1,14 +1,13 @@
 """Batch rendering (render_in="batch"): the same images as the worker path for the same draws,
-on the CPU; the gsplat call's plumbing with a stand-in rasterizer; the LeRobot wiring."""
+on the CPU; the gsplat call's plumbing with a stand-in rasterizer. The LeRobot wiring is in
+test_batched_lerobot.py (skipped without the LeRobot extra, which these tests do not need)."""
 
-import json
 from dataclasses import replace
 
 import pytest
 import torch
 import torch.nn.functional as F
-from safetensors import safe_open
-from torch.utils.data import DataLoader, default_collate
+from torch.utils.data import default_collate
 
 from gensplat_transforms import render
 from gensplat_transforms.batched import disc_builder, render_batch
@@ -207,15 +206,23 @@ def with_depth_maps(items: list[dict], ds, depth_maps: str | None) -> tuple[list
     return [{**item, LEFT + "_depth": m} for item, m in zip(items, sensor_maps)], {"left": DepthSensor(K, 40, 30, to_camera)}
 
 
-def assert_depth_maps_alike(items: list[dict], got: dict, expected: dict, edges: float, median_mm: float) -> None:
-    """The rendered depth maps moved, cover the same pixels as the worker's (but for a share
-    ``edges``) and agree to ``median_mm`` where both have depth."""
+def assert_depth_maps_alike(items: list[dict], got: dict, expected: dict, edges: float = 0.0,
+                            median_mm: float | None = None, max_mm: float | None = None) -> None:  # fmt: skip
+    """The rendered depth maps moved, cover the same pixels as the worker's (all of them, or but
+    for a share under ``edges``) and agree where both have depth: in the median to under
+    ``median_mm``, at every pixel to under ``max_mm``."""
     depth, worker = got[LEFT + "_depth"], expected[LEFT + "_depth"]
     assert depth.shape == worker.shape and depth.dtype == worker.dtype
     assert not torch.equal(depth, torch.stack([item[LEFT + "_depth"] for item in items]))
-    assert ((depth > 0) != (worker > 0)).float().mean() < edges  # seen alike, up to a pixel at an edge
+    apart = ((depth > 0) != (worker > 0)).float().mean()  # seen by one only: a pixel at an edge
+    assert apart < edges if edges else apart == 0, f"{apart:.2%} of the pixels seen by one only"
     both = (depth > 0) & (worker > 0)
-    assert (depth - worker)[both].abs().median() < median_mm
+    error = (depth - worker)[both].abs()
+    assert error.numel() > 0
+    if median_mm is not None:
+        assert error.median() < median_mm, f"median {error.median():.4f} mm"
+    if max_mm is not None:
+        assert error.max() < max_mm, f"max {error.max():.4f} mm"
 
 
 @pytest.mark.parametrize(("render_scale", "depth_maps"), [(1.0, None), (0.5, None), (1.0, "camera"), (1.0, "sensor")])
@@ -226,11 +233,13 @@ def test_the_single_gsplat_call_lays_out_scenes_and_cameras_as_the_worker(setup,
     items, sensors = with_depth_maps([as_uint8(ds[i]) for i in (0, 2, 5, 6)], ds, depth_maps)
     expected, got = both_ways(cache, items, seed=0, backend="gsplat", depth_sensors=sensors, probability=1.0,
                               views_per_source=3, render_scale=render_scale, depth_unit="mm")  # fmt: skip
-    for key in (LEFT, RIGHT):  # float32 poses and gsplat's conventions: a level here and there
-        diff = (got[key].float() - expected[key].float()).abs()
-        assert diff.max() <= 3 and diff.mean() < 0.05, key
-    if depth_maps:
-        assert_depth_maps_alike(items, got, expected, edges=0.01, median_mm=0.5)
+    # the worker's images through gsplat's layout and float32 cameras, but for the disc rule's
+    # round-off tipping a level (measured, float32 rule: one pixel of 12288 at render_scale 0.5)
+    for key in (LEFT, RIGHT):
+        diff = (got[key].float() - expected[key].float()).abs().amax(-3)  # (S, H, W): a pixel's channels
+        assert diff.max() <= 1 and (diff > 0).float().mean() <= 1e-3, (key, diff.max(), (diff > 0).sum())
+    if depth_maps:  # measured, float32 rule: 0.0021 mm (camera), 0.0032 mm (sensor) at most
+        assert_depth_maps_alike(items, got, expected, edges=0.0, max_mm=0.01)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="batch rendering with gsplat needs a CUDA device")
@@ -264,78 +273,3 @@ def test_on_cuda_a_named_backend_renders_scene_by_scene_on_the_batch_device(setu
     items = [ds[i] for i in (0, 5)]
     expected, got = both_ways(cache, items, seed=3, backend="reference", device="cuda", probability=1.0)
     assert_same_batch(expected, got, atol=1e-4)
-
-
-# ---------------------------------------------------------------------------- LeRobot
-
-lerobot = pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
-from gensplat_lerobot import enable_gensplat, save_settings
-from gensplat_lerobot.batched import use_render_in
-from lerobot.datasets.lerobot_dataset import LeRobotDataset
-from test_lerobot import REPO, dataset_root, recorded, train_diffusion  # noqa: F401  (test_lerobot's fixtures)
-
-
-@pytest.fixture
-def root(dataset_root):  # noqa: F811
-    """A fresh copy of test_lerobot's recorded dataset (2 episodes of 20 frames, 48x48, RGB-D)."""
-    return dataset_root
-
-
-class RunConfig:
-    """What :func:`use_render_in` reads of a lerobot-train config."""
-
-    def __init__(self, device: str) -> None:
-        self.trainable_config = type("Policy", (), {"device": device})()
-
-
-def flip(image: torch.Tensor) -> torch.Tensor:
-    """A 2D image transform that must see the rendered view, not the source (module level: picklable)."""
-    return image.flip(-1)
-
-
-def test_lerobot_batch_mode_matches_the_worker_with_2d_transforms_after_rendering(root):
-    save_settings(root, GenSplatConfig(probability=0.5, level="large", report=True), {"name": "rgbd"})
-    datasets = {}
-    for mode in ("worker", "batch"):
-        ds = LeRobotDataset(REPO, root=root, image_transforms=flip)
-        enable_gensplat(ds)
-        ds.gensplat.cfg = replace(ds.gensplat.cfg, render_in=mode)
-        assert use_render_in(ds, RunConfig("cpu")) == mode
-        datasets[mode] = ds
-    assert datasets["batch"].gensplat_image_transforms is None  # moved to the batch side
-    batches = {}
-    for mode, ds in datasets.items():
-        torch.manual_seed(3)
-        batches[mode] = next(iter(DataLoader(ds, batch_size=6, shuffle=True)))
-    got = datasets["batch"].gensplat_batch(batches["batch"])
-    expected = batches["worker"]
-    applied = expected["gensplat.applied"][:, 0]
-    assert applied.any() and not applied.all()
-    assert_same_batch(expected, got, atol=1e-5)
-
-
-def test_render_in_auto_renders_in_the_workers_without_cuda(root):
-    save_settings(root, GenSplatConfig(), {"name": "rgbd"})
-    ds = enable_gensplat(LeRobotDataset(REPO, root=root))
-    expected = "batch" if torch.cuda.is_available() else "worker"
-    assert use_render_in(ds, RunConfig("cuda")) == expected == ds.gensplat.cfg.render_in
-    cpu = enable_gensplat(LeRobotDataset(REPO, root=root))
-    assert use_render_in(cpu, RunConfig("cpu")) == "worker" and not hasattr(cpu, "gensplat_batch")
-
-
-def test_lerobot_train_diffusion_policy_renders_batches_after_collation(root, tmp_path):
-    """Three lerobot-train steps with the one line, batch mode forced on the CPU, one spawn worker."""
-    save_settings(root, GenSplatConfig(probability=1.0, render_in="batch"), {"name": "rgbd"})
-    out = tmp_path / "out"
-    run = train_diffusion(f"--dataset.repo_id={REPO}", f"--dataset.root={root}", f"--output_dir={out}",
-                          "--steps=3", "--batch_size=2", "--num_workers=1", "--save_freq=3", "--log_freq=1")  # fmt: skip
-    assert run.returncode == 0, run.stderr[-3000:]
-    assert "GenSplat rendered its first batch on cpu: 2 of 2 samples augmented" in run.stderr + run.stdout
-    assert list((root / "gensplat" / "cache").rglob("episode_*.safetensors"))  # built by the worker
-    model = next(out.rglob("pretrained_model"))
-    with safe_open(str(model / "model.safetensors"), framework="pt") as f:
-        assert f.keys() and not [k for k in f.keys() if "gensplat" in k]  # noqa: SIM118
-    for path in [*model.glob("*.json"), next(out.rglob("train_config.json"))]:  # the repo id says gensplat_scene
-        text = path.read_text()
-        assert not [s for s in ("gensplat.", "gensplat_lerobot", "render_in", "discover_packages") if s in text]
-    assert json.loads((model / "config.json").read_text())["type"] == "diffusion"
