@@ -299,7 +299,6 @@ class GaussianCache:
         if n < 1:
             raise ValueError(f"GaussianCache: episode {episode} has no frames")
         rec = self.reconstructor
-        predict = rec.predict_depth if self.kind == "depth" else rec
         depth_files = getattr(source, "depth_files", None) if getattr(rec, "given_depth", False) else None
         given = depth_files(episode) if depth_files is not None else None
         if given is not None:  # linked or copied: the files must be this episode's, of these cameras
@@ -324,7 +323,8 @@ class GaussianCache:
             else:
                 every_view = getattr(source, "episode_views", None)
                 views = every_view(episode) if every_view else (source.views(episode, t) for t in range(n))
-                frames = (predict(v) for v in views)  # a depth episode is encoded frame by frame as they come
+                # a depth episode is encoded frame by frame as they come (a model batches a few timesteps)
+                frames = rec.predict_depths(views) if self.kind == "depth" else (rec(v) for v in views)
                 tensors, meta = _encode_depth(frames, n) if self.kind == "depth" else _encode_gaussians(list(frames))
             meta.update(format=FORMAT, format_version=FORMAT_VERSION, kind=self.kind, reconstructor=self.identity,
                         dataset=self.dataset, episode_index=str(int(episode)), num_frames=str(n))  # fmt: skip

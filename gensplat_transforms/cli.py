@@ -92,6 +92,10 @@ def build_parser() -> argparse.ArgumentParser:
     cache.add_argument("--model", default=None,
                        help="weights directory or hub id of the geometry or gensplat model, e.g. a Pi3 checkpoint "
                             "(default: the shipped small model)")
+    cache.add_argument("--batch-timesteps", type=int, default=None, metavar="N",
+                       help="geometry: timesteps the model runs on at once (the same depth either way; capped so "
+                            "that no tensor reaches 2**31 elements; default: on CUDA as many as that allows, up to "
+                            "32, on the CPU 1)")
 
     depth = sub.add_parser(
         "import-depth", help="write a camera's recorded depth (16-bit PNG, float TIFF, .npy/.npz) as the depth "
@@ -340,13 +344,15 @@ def _cache(args) -> None:
         spec = {"name": args.reconstructor or "geometry", "model": args.model}
         if args.max_pixels is not None:
             spec["options"] = {"max_pixels": args.max_pixels}
+    if args.batch_timesteps is not None and args.reconstructor in ("rgbd", "gensplat"):
+        raise SystemExit("gensplat cache: --batch-timesteps batches the geometry reconstructor's model")
     shard = Shard.from_env()
     start, cpu = time.perf_counter(), time.process_time()
     if shard.rank == 0:
         print(f"repo id {args.repo_id}, dataset root {args.root}; settings and cache in "
               f"{Path(args.root) / GENSPLAT_DIR} (found by the dataset's content, whatever repo id training uses)")
     stats = prepare(args.root, args.repo_id, config, spec, args.episodes, shard=shard, verify=args.verify,
-                    link_depth=args.link_depth)
+                    link_depth=args.link_depth, batch_timesteps=args.batch_timesteps)
     ranks = gather(shard, (stats, time.perf_counter() - start, time.process_time() - cpu))
     if ranks is None:
         return

@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 from abc import ABC, abstractmethod
+from collections.abc import Iterable, Iterator
 
 from ..views import MAX_VIEW_DEPTH, Reconstruction, Views, nearest_pixels, valid_depth
 
@@ -40,6 +41,8 @@ class DepthReconstructor(Reconstructor):
 
     * :meth:`predict_depth` (expensive: a model's forward pass, or reading sensor depth):
       views -> the same views with ``cameras`` and ``depths`` set (0 where no Gaussian);
+      :meth:`predict_depths` does it for many timesteps (a cache build), which a model may
+      batch;
     * :meth:`assemble` (cheap, runs in dataloader workers): such views -> Gaussians.
 
     ``given_depth``: :meth:`predict_depth` returns the views' own depth cleaned by the
@@ -51,6 +54,14 @@ class DepthReconstructor(Reconstructor):
 
     @abstractmethod
     def predict_depth(self, views: Views) -> Views: ...
+
+    def predict_depths(self, views: Iterable[Views]) -> Iterator[Views]:
+        """:meth:`predict_depth` of each of ``views`` (timesteps, in order), yielded as they come:
+        the views are read lazily, so that a caller consuming the results one at a time holds
+        one timestep (a batching subclass: one batch). Subclasses may run several timesteps at
+        once; what they yield must be what :meth:`predict_depth` returns."""
+        for v in views:
+            yield self.predict_depth(v)
 
     @abstractmethod
     def assemble(self, views: Views) -> Reconstruction: ...

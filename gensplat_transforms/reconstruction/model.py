@@ -13,6 +13,8 @@ from ..cameras import Cameras, rigid_inverse
 from ..gaussians import Gaussians
 from ..model import PATCH_SIZE, GenSplatModel, to_gaussians
 from ..model.config import check_max_pixels
+from ..model.da3 import PRESETS as DA3_PRESETS
+from ..model.da3 import DepthAnything3
 from ..model.geometry import align_similarity, estimate_focal, transform_gaussians, transform_poses
 from ..weights import DEFAULT_MODEL_DIR
 from .base import Reconstruction, Reconstructor, Views
@@ -167,18 +169,85 @@ def model_size(height: int, width: int, max_pixels: int | None = None) -> tuple[
     return tuple(max(1, round(s / PATCH_SIZE)) * PATCH_SIZE for s in (height, width))
 
 
-def run_model(model: GenSplatModel, images: torch.Tensor, autocast_dtype: torch.dtype | None = None,
+def run_model(model: GenSplatModel | DepthAnything3, images: torch.Tensor, autocast_dtype: torch.dtype | None = None,
               max_pixels: int | None = None):  # fmt: skip
-    """One forward pass on (V, 3, H, W) images resized to :func:`model_size` on the model's
-    device. Returns the model's outputs (batch of one) and the images it saw."""
-    H, W = images.shape[-2:]
+    """One forward pass on images resized to :func:`model_size` on the model's device.
+
+    ``images``: (V, 3, H, W), the views of one timestep, or (B, V, 3, H, W), B timesteps of the
+    same size run as one batch. Returns the model's outputs (a batch of one, or of B: each
+    output's first axis is the timestep) and the images it saw, (V, 3, h, w) or (B, V, 3, h, w).
+    """
+    *lead, V, _, H, W = images.shape
     h, w = model_size(H, W, max_pixels)
     device = model.image_mean.device
-    images = images.to(device, torch.float32)
+    images = images.to(device, torch.float32).reshape(-1, V, 3, H, W)
     if (h, w) != (H, W):
-        images = F.interpolate(images, size=(h, w), mode="bilinear", antialias=True, align_corners=False)
+        flat = F.interpolate(images.flatten(0, 1), size=(h, w), mode="bilinear", antialias=True, align_corners=False)
+        images = flat.reshape(-1, V, 3, h, w)
     with torch.autocast(device.type, dtype=autocast_dtype, enabled=autocast_dtype is not None):
-        return model(images[None]), images
+        out = model(images)
+    return out, (images if lead else images[0])
+
+
+#: the most timesteps an automatic batch holds (:func:`timesteps_per_pass`): the full model
+#: at DROID's 182x322, two views, on an H200 took 65.8 ms a timestep one at a time, 9.35 ms
+#: in batches of 8 and 7.55 ms in batches of 32
+MAX_BATCH_TIMESTEPS = 32
+#: a tensor must hold fewer elements than this: CUDA kernels that index with 32-bit integers
+#: refuse more (``upsample_bilinear2d_nhwc only supports output tensors with less than INT_MAX
+#: elements`` from the Gaussian head, 32 timesteps of 2 x 294 x 518)
+INT_MAX = 2**31 - 1
+
+
+def pixel_channels(model: GenSplatModel | DepthAnything3) -> int:
+    """The most values per model-input pixel (per view) that any intermediate tensor of
+    ``model``'s forward pass holds, so that timesteps x views x h x w x this bounds every
+    tensor's element count.
+
+    * GenSplatModel: its Gaussian head's full-resolution tensors, the upsampled DPT features
+      concatenated with the RGB features (N, gs_features + gs_rgb_features, H, W): 288 in the
+      full configuration, 64 in the shipped small one;
+    * DepthAnything3: its DPT head's, features / 2 channels upsampled to (H, W), 32 after the
+      next convolution, ``features`` at 8/14 of the resolution (64 in all for DA3-Base);
+    * the transformer tokens: (patches + extra tokens) x the widest activation (the MLP's
+      hidden width) per 14 x 14 patch, at most (1 + extra tokens) x width / 196 a pixel.
+
+    Attention scores are not counted: the fused attention kernels do not materialise them.
+    """
+    if isinstance(model, DepthAnything3):
+        dim, _, features, stages = DA3_PRESETS[model.config.name]
+        head = max(features // 2, 32, features * 64 // PATCH_SIZE**2 + 1, stages[0] * 16 // PATCH_SIZE**2 + 1)
+        extra, width = 1, 4 * dim  # the [cls] / camera token
+    else:
+        cfg = model.config
+        head = cfg.gs_features + cfg.gs_rgb_features
+        extra = max(1 + cfg.enc_registers, cfg.dec_registers)
+        width = max(int(cfg.dim * cfg.mlp_ratio), int(cfg.head_dim * cfg.mlp_ratio), 3 * cfg.dim, 3 * cfg.head_dim)
+    return max(head, -(-(1 + extra) * width // PATCH_SIZE**2))
+
+
+def timesteps_per_pass(views: int, height: int, width: int, channels: int, device: str | torch.device,
+                       requested: int | None = None) -> int:  # fmt: skip
+    """How many timesteps of ``views`` images of ``height x width`` model pixels one forward
+    pass takes: ``requested``, or by default :data:`MAX_BATCH_TIMESTEPS` on CUDA and 1 on
+    the CPU (where batching gains nothing); either way at most as many as keep every tensor
+    below :data:`INT_MAX` elements (B x views x height x width x ``channels`` < INT_MAX, with
+    :func:`pixel_channels`' ``channels``), and at least 1.
+
+    Example: the full configuration (288 channels), two views, at 294x518 and at 182x322
+        >>> timesteps_per_pass(2, 294, 518, 288, "cuda"), timesteps_per_pass(2, 182, 322, 288, "cuda")
+        (24, 32)
+    """
+    fit = max(1, (INT_MAX - 1) // (views * height * width * channels))
+    if requested is None:
+        requested = MAX_BATCH_TIMESTEPS if torch.device(device).type == "cuda" else 1
+    return min(requested, fit)
+
+
+def check_batch_timesteps(owner: str, value: int | None) -> None:
+    """Raise ValueError naming ``owner`` unless ``value`` is None (automatic) or an integer >= 1."""
+    if value is not None and (type(value) is not int or value < 1):
+        raise ValueError(f"{owner}: batch_timesteps must be an integer >= 1 or None (automatic), got {value!r}")
 
 
 def weights_hash(model: torch.nn.Module) -> str:

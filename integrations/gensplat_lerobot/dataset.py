@@ -206,7 +206,7 @@ def check_options(source: LeRobotSource, config: GenSplatConfig, total: int, epi
 
 def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructor: dict | None = None,
             episodes=None, progress: bool = True, shard: Shard | None = None, verify: bool = True,
-            link_depth: bool = True) -> dict:
+            link_depth: bool = True, batch_timesteps: int | None = None) -> dict:
     """Write the settings beside the dataset and build its Gaussian cache (resumable).
 
     ``shard`` is this process's place among several (see :mod:`gensplat_transforms.distributed`;
@@ -215,7 +215,9 @@ def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructo
     rank>`` when CUDA is available). ``verify=False`` skips episodes whose header is valid
     without reading their data (see :func:`~gensplat_transforms.episodes.build_cache`).
     ``link_depth=False`` stores a compressed copy of the depth sidecars instead of linking them
-    (see :class:`~gensplat_transforms.cache.GaussianCache`). Returns per-episode
+    (see :class:`~gensplat_transforms.cache.GaussianCache`). ``batch_timesteps``: the geometry
+    reconstructor's timesteps per forward pass (default: automatic; not stored in the settings,
+    it does not change the cache). Returns per-episode
     :class:`~gensplat_transforms.cache.CacheStats` of this process's episodes (None when the
     episode was already cached)."""
     from gensplat_transforms.episodes import build_cache, scene_depth
@@ -228,8 +230,11 @@ def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructo
     reconstructor = reconstructor or default_reconstructor(source)
     if reconstructor["name"] == "gensplat" and shard.device.type == "cuda":
         rec = OnDevice(make_reconstructor(reconstructor), shard.device)
-    else:  # the geometry path returns its depth on the CPU itself
-        rec = make_reconstructor(reconstructor, shard.device if reconstructor["name"] == "geometry" else None)
+    elif reconstructor["name"] == "geometry":  # it returns its depth on the CPU itself
+        options = {**reconstructor.get("options", {}), "batch_timesteps": batch_timesteps}
+        rec = make_reconstructor({**reconstructor, "options": options}, shard.device)
+    else:
+        rec = make_reconstructor(reconstructor)
     if len(config.cameras) == 1 and config.pivot_depth is None:  # the pivot on the one camera's axis
         config = replace(config, pivot_depth=scene_depth(rec, source, episodes))
     gensplat_folder(root)
