@@ -113,6 +113,9 @@ def test_automatic_batch_keeps_every_tensor_below_int_max():
     assert pixel_channels(full) == cfg.gs_features + cfg.gs_rgb_features == 288  # the Gaussian head at (H, W)
     assert pixel_channels(base) == 64  # DA3-Base's DPT head: 128 / 2 channels upsampled to (H, W)
     assert pixel_channels(tiny_model()) >= 8 + 8
+    # the geometry path runs without the Gaussian head: the transformer's tokens are the widest
+    assert pixel_channels(full, gaussians=False) == 126
+    assert timesteps_per_pass(2, 294, 518, 126, "cuda") == 32
 
     b = timesteps_per_pass(2, 294, 518, 288, "cuda")  # 32 of these crashed the Gaussian head's upsampling
     assert b * 2 * 294 * 518 * 288 < INT_MAX <= (b + 1) * 2 * 294 * 518 * 288 and b == 24
@@ -127,7 +130,7 @@ def test_automatic_batch_keeps_every_tensor_below_int_max():
     rec = GeometryReconstructor(tiny_model())
     assert rec.timesteps_per_pass(2, 50, 64) == 1  # on the CPU
     huge = GeometryReconstructor(tiny_model(), batch_timesteps=10**9)
-    fit = (INT_MAX - 1) // (2 * 56 * 70 * pixel_channels(huge.model))  # at the model's 70x56
+    fit = (INT_MAX - 1) // (2 * 56 * 70 * pixel_channels(huge.model, gaussians=False))  # at the model's 70x56
     assert huge.timesteps_per_pass(2, 50, 64) == fit > 1000
 
 
@@ -135,3 +138,24 @@ def test_automatic_batch_keeps_every_tensor_below_int_max():
 def test_bad_batch_timesteps_are_refused(bad):
     with pytest.raises(ValueError, match="batch_timesteps"):
         GeometryReconstructor(tiny_model(), batch_timesteps=bad)
+
+
+def test_the_geometry_path_runs_the_model_without_its_gaussian_head(monkeypatch):
+    model = tiny_model()
+    images = TabletopScene(seed=0).render(default_cameras(28, 28)[:2])[0]
+    with torch.no_grad():
+        full, geometry = model(images[None]), model(images[None], gaussians=False)
+    assert set(geometry) == {"camera_poses", "local_points", "points", "conf"} < set(full)
+    for key, value in geometry.items():
+        assert torch.equal(value, full[key]), key
+
+    def no_head(*args, **kwargs):
+        raise AssertionError("the Gaussian head ran")
+
+    monkeypatch.setattr(model.gaussian_head, "forward", no_head)
+    rec = GeometryReconstructor(model)
+    one = rec.predict_depth(Views(images))
+    (batched,) = rec.predict_depths([Views(images)])
+    assert torch.equal(one.depths, batched.depths) and (one.depths > 0).any()
+    with pytest.raises(AssertionError, match="the Gaussian head ran"):
+        model(images[None])

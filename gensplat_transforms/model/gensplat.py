@@ -83,10 +83,12 @@ class GenSplatModel(nn.Module):
             if isinstance(m, Encoder | Decoder | HeadDecoder):
                 m.checkpointing = enabled
 
-    def forward(self, images: torch.Tensor) -> dict[str, torch.Tensor]:
+    def forward(self, images: torch.Tensor, gaussians: bool = True) -> dict[str, torch.Tensor]:
         """
         Args:
             images: (B, V, 3, H, W) in [0, 1]; H and W multiples of 14.
+            gaussians: run the Gaussian head; False returns the geometry alone (camera_poses,
+                local_points, points, conf: what a depth cache keeps) without its cost.
         Returns:
             camera_poses: (B, V, 4, 4) camera-to-world, OpenCV axes.
             local_points: (B, V, H, W, 3) camera-frame points, z > 0.
@@ -103,7 +105,7 @@ class GenSplatModel(nn.Module):
         tokens = torch.cat([self.register_token.expand(B, V, -1, -1).to(tokens.dtype), tokens], dim=2)
         pos = token_positions(h, w, r, device=images.device)
         depth, taps = self.config.dec_depth, self.config.gs_taps
-        outs = self.decoder(tokens, pos, keep={depth - 2, depth - 1, *taps})
+        outs = self.decoder(tokens, pos, keep={depth - 2, depth - 1, *(taps if gaussians else ())})
         hidden = torch.cat([outs[depth - 2], outs[depth - 1]], dim=-1).reshape(B * V, h * w + r, -1)
         point_tokens = self.point_decoder(hidden, pos)[:, r:]
         conf_tokens = self.conf_decoder(hidden, pos)[:, r:]
@@ -116,6 +118,15 @@ class GenSplatModel(nn.Module):
             conf = self.conf_head(conf_tokens.float(), h, w)[..., 0]
             poses = self.camera_head(camera_tokens.float())
             points = torch.einsum("nij,nhwj->nhwi", poses[:, :3, :3], local) + poses[:, None, None, :3, 3]
+
+        def per_view(t):
+            return t.reshape(B, V, *t.shape[1:])
+
+        geometry = {"camera_poses": per_view(poses), "local_points": per_view(local), "points": per_view(points),
+                    "conf": per_view(conf)}  # fmt: skip
+        if not gaussians:
+            return geometry
+        with torch.autocast(images.device.type, enabled=False):
             gs = self.gaussian_head(
                 [outs[i][:, :, r:].reshape(B * V, h * w, -1).float() for i in taps], x.float(), h, w
             )
@@ -126,15 +137,8 @@ class GenSplatModel(nn.Module):
                 sh = torch.einsum("nkj,nhwjc->nhwkc", sh_rotation(poses[:, :3, :3], sh.shape[-2]), sh)
             rgb = images.reshape(B * V, 3, H, W).float().permute(0, 2, 3, 1)
             sh = torch.cat([sh[..., :1, :] + rgb_to_sh_dc(rgb)[..., None, :], sh[..., 1:, :]], dim=-2)
-
-        def per_view(t):
-            return t.reshape(B, V, *t.shape[1:])
-
-        return {
-            "camera_poses": per_view(poses), "local_points": per_view(local), "points": per_view(points),
-            "conf": per_view(conf), "opacity": per_view(gs["opacity"]), "quats": per_view(quats),
-            "scales": per_view(gs["scales"]), "sh": per_view(sh),
-        }  # fmt: skip
+        return geometry | {"opacity": per_view(gs["opacity"]), "quats": per_view(quats),
+                           "scales": per_view(gs["scales"]), "sh": per_view(sh)}  # fmt: skip
 
     # ------------------------------------------------------------------ checkpoints
     def save_pretrained(self, directory: str | Path) -> Path:

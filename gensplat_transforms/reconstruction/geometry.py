@@ -101,8 +101,8 @@ class GeometryReconstructor(DepthReconstructor):
             below 2**31 elements, at most 32, on CUDA (a 32-timestep batch of the full model at
             182x322 takes 7.55 ms a timestep on an H200, one at a time 65.8 ms); 1 on the CPU,
             where batching gains nothing. A given number is capped by the same 2**31 rule, so
-            no value can overflow the 32-bit indexing of CUDA kernels (the Gaussian head's
-            upsampling refuses 32 timesteps of 2 x 294 x 518); see :func:`.model.timesteps_per_pass`.
+            no value can overflow the 32-bit indexing of CUDA kernels; see
+            :func:`.model.timesteps_per_pass`. The model runs without its Gaussian head.
             It does not change the results, nor the identity.
 
     Example: calibrated RGB, depth from the shipped small model
@@ -142,7 +142,7 @@ class GeometryReconstructor(DepthReconstructor):
         check_max_pixels("GeometryReconstructor", self.max_pixels)
         self.min_conf, self.scale, self.autocast_dtype = min_conf, scale, autocast_dtype
         self.batch_timesteps = batch_timesteps  # not in config(): batching does not change the results
-        self._channels = pixel_channels(self.model)
+        self._channels = pixel_channels(self.model, gaussians=False)
         self.discs = RGBDReconstructor(discs)
         self._weights = weights_hash(self.model)  # once: build a new reconstructor after changing weights
 
@@ -158,7 +158,7 @@ class GeometryReconstructor(DepthReconstructor):
         """The views (V, 3, H, W) at the model's size (V, 3, h, w), with their depth (V, 1, h, w)
         (0 where invalid or below ``min_conf``) and cameras (the given ones at (h, w), or the
         predicted ones: see the module docstring), on the CPU."""
-        out, images = run_model(self.model, views.images, self.autocast_dtype, self.max_pixels)
+        out, images = run_model(self.model, views.images, self.autocast_dtype, self.max_pixels, gaussians=False)
         return self._depth_views(views, out, 0, images)
 
     @torch.no_grad()
@@ -170,7 +170,7 @@ class GeometryReconstructor(DepthReconstructor):
         the first view's frame and focal lengths (uncalibrated) are each timestep's own."""
         for chunk in self._chunks(views):
             out, images = run_model(self.model, torch.stack([v.images for v in chunk]), self.autocast_dtype,
-                                    self.max_pixels)  # fmt: skip
+                                    self.max_pixels, gaussians=False)  # fmt: skip
             for b, v in enumerate(chunk):
                 yield self._depth_views(v, out, b, images[b])
 

@@ -170,8 +170,9 @@ def model_size(height: int, width: int, max_pixels: int | None = None) -> tuple[
 
 
 def run_model(model: GenSplatModel | DepthAnything3, images: torch.Tensor, autocast_dtype: torch.dtype | None = None,
-              max_pixels: int | None = None):  # fmt: skip
-    """One forward pass on images resized to :func:`model_size` on the model's device.
+              max_pixels: int | None = None, gaussians: bool = True):  # fmt: skip
+    """One forward pass on images resized to :func:`model_size` on the model's device
+    (``gaussians=False``: a GenSplatModel's geometry alone, without its Gaussian head).
 
     ``images``: (V, 3, H, W), the views of one timestep, or (B, V, 3, H, W), B timesteps of the
     same size run as one batch. Returns the model's outputs (a batch of one, or of B: each
@@ -185,7 +186,7 @@ def run_model(model: GenSplatModel | DepthAnything3, images: torch.Tensor, autoc
         flat = F.interpolate(images.flatten(0, 1), size=(h, w), mode="bilinear", antialias=True, align_corners=False)
         images = flat.reshape(-1, V, 3, h, w)
     with torch.autocast(device.type, dtype=autocast_dtype, enabled=autocast_dtype is not None):
-        out = model(images)
+        out = model(images) if gaussians or not isinstance(model, GenSplatModel) else model(images, gaussians=False)
     return out, (images if lead else images[0])
 
 
@@ -199,14 +200,14 @@ MAX_BATCH_TIMESTEPS = 32
 INT_MAX = 2**31 - 1
 
 
-def pixel_channels(model: GenSplatModel | DepthAnything3) -> int:
+def pixel_channels(model: GenSplatModel | DepthAnything3, gaussians: bool = True) -> int:
     """The most values per model-input pixel (per view) that any intermediate tensor of
-    ``model``'s forward pass holds, so that timesteps x views x h x w x this bounds every
-    tensor's element count.
+    ``model``'s forward pass holds (with ``gaussians``: its Gaussian head included), so that
+    timesteps x views x h x w x this bounds every tensor's element count.
 
     * GenSplatModel: its Gaussian head's full-resolution tensors, the upsampled DPT features
       concatenated with the RGB features (N, gs_features + gs_rgb_features, H, W): 288 in the
-      full configuration, 64 in the shipped small one;
+      full configuration, 64 in the shipped small one; without the head, the point map's 3;
     * DepthAnything3: its DPT head's, features / 2 channels upsampled to (H, W), 32 after the
       next convolution, ``features`` at 8/14 of the resolution (64 in all for DA3-Base);
     * the transformer tokens: (patches + extra tokens) x the widest activation (the MLP's
@@ -220,7 +221,7 @@ def pixel_channels(model: GenSplatModel | DepthAnything3) -> int:
         extra, width = 1, 4 * dim  # the [cls] / camera token
     else:
         cfg = model.config
-        head = cfg.gs_features + cfg.gs_rgb_features
+        head = cfg.gs_features + cfg.gs_rgb_features if gaussians else 3
         extra = max(1 + cfg.enc_registers, cfg.dec_registers)
         width = max(int(cfg.dim * cfg.mlp_ratio), int(cfg.head_dim * cfg.mlp_ratio), 3 * cfg.dim, 3 * cfg.head_dim)
     return max(head, -(-(1 + extra) * width // PATCH_SIZE**2))
