@@ -452,6 +452,10 @@ class GaussianCache:
         f = self._file(episode)
         return f.width, f.height
 
+    def num_views(self, episode: int) -> int:
+        """The number of cameras each timestep of ``episode`` holds."""
+        return self._file(episode).num_views
+
     def read(self, episode: int, frame: int, images: torch.Tensor | None = None,
              size: tuple[int, int] | None = None) -> Reconstruction:  # fmt: skip
         """Gaussians (float32) and source cameras of one timestep.

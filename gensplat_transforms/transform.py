@@ -4,7 +4,7 @@ prepare them in the workers for :func:`.batched.render_batch`)."""
 
 from __future__ import annotations
 
-import logging
+import functools
 import math
 import time
 from dataclasses import asdict, dataclass, field
@@ -13,7 +13,8 @@ import torch
 import torch.nn.functional as F
 from torch.utils.data import Dataset
 
-from .cache import CorruptCacheError, EpisodeSource, GaussianCache
+from .cache import EpisodeSource, GaussianCache
+from .cache_reader import CacheReader
 from .cameras import Cameras
 from .counters import SampleCounters
 from .dataset_format import DepthSensor
@@ -23,8 +24,6 @@ from .perturbation import AXES, Perturbation, PerturbationRange, PerturbationSam
 from .reconstruction import Reconstruction
 from .reconstruction.base import nearest_pixels
 from .rendering import BACKENDS, RenderOutput, render
-
-logger = logging.getLogger(__name__)
 
 RENDER_IN = ("auto", "worker", "batch")
 #: ``GenSplatConfig.depth_unit`` values: metres per unit of the item's depth maps, or None
@@ -277,6 +276,8 @@ class GenSplatTransform:
         self.cfg = config
         self.cache = cache
         self.source = source
+        #: what the transform reads from the cache (episodes built or rebuilt there)
+        self.reader = CacheReader(cache, source)
         #: cameras whose depth maps are their depth sensor's own (not registered to the colour
         #: image): their maps are rendered from the sensor, moved with the camera
         self.depth_sensors = dict(depth_sensors or {})
@@ -289,9 +290,9 @@ class GenSplatTransform:
             raise ValueError(f"GenSplatTransform: one reconstructed camera ({config.cameras[0]}) needs "
                              "GenSplatConfig.pivot_depth, the distance to the pivot along its axis (gensplat cache "
                              "measures it)")  # fmt: skip
-        if config.render_in == "batch" and cache.kind != "depth":
+        if config.render_in == "batch" and not self.reader.batchable:
             raise ValueError(f"GenSplatTransform: render_in='batch' needs a depth cache (RGB-D or geometry "
-                             f"reconstructor); {cache.identity} stores Gaussians: use render_in='worker'")  # fmt: skip
+                             f"reconstructor); {self.reader} stores Gaussians: use render_in='worker'")  # fmt: skip
         self.sampler = PerturbationSampler(config.level, mode=config.mode, seed=config.seed)
         #: set to count every item (augmented or not) and its time across workers
         self.counters: SampleCounters | None = None
@@ -303,30 +304,25 @@ class GenSplatTransform:
             if key not in item:
                 raise KeyError(f"GenSplatTransform: item has no {key!r}; keys: {sorted(item)}")
         keys = {n: self.cfg.image_key.format(name=n) for n in self.cfg.cameras}
-        needed = self.cfg.cameras if self.cache.kind == "depth" else self.cfg.replace
-        missing = [keys[n] for n in needed if keys[n] not in item]
-        if missing:
-            raise KeyError(f"GenSplatTransform: item lacks camera image(s) {missing}; keys: {sorted(item)}")
-        for n in needed:
-            _check_image(keys[n], item[keys[n]])
+        batch = self.cfg.render_in == "batch"
+        _check_images(item, keys, self.cfg.cameras if batch else self.cfg.replace)
         depth_keys = self._depth_keys(item, keys)
         episode, frame = _index(item, "episode_index"), _index(item, "frame_index")
         out = dict(item)
         applied = bool(torch.rand(()) < self.cfg.probability)
         view = int(torch.randint(self.cfg.views_per_source, ()))
         report, moves = [], []
-        batch = self.cfg.render_in == "batch"
+        frames = 0
         if applied or batch:  # the batch keys have the cache's image size even when not augmented
-            self._ensure(episode)
-            last = self.cache.num_frames(episode) - 1
-            if not 0 <= frame <= last:
-                raise IndexError(f"GenSplatTransform: frame_index {frame} outside episode {episode} (0..{last})")
+            frames = self.reader.frames(episode)
+            if not 0 <= frame < frames:
+                raise IndexError(f"GenSplatTransform: frame_index {frame} outside episode {episode} (0..{frames - 1})")
         read: dict[int, Reconstruction] = {}  # frame -> Gaussians, read once per item
         for ci, name in enumerate(self.cfg.replace):
             p = self.sampler.sample(episode, frame, view=view * len(self.cfg.replace) + ci) if applied else Perturbation()
             if applied and not batch:
                 depth_key = depth_keys.get(name)
-                out[keys[name]], depth = self._render_like(item, keys, episode, frame, name, p, read, depth_key)
+                out[keys[name]], depth = self._render_like(item, keys, (episode, frame, frames), name, p, read, depth_key)
                 if depth_key is not None:
                     out[depth_key] = depth
             moves.append(p)
@@ -338,24 +334,25 @@ class GenSplatTransform:
             out["gensplat.theta_deg"] = r[:, 2]
             out["gensplat.mu_m"] = r[:, 3]
         if batch:
-            out.update(self._batch_inputs(item, keys, episode, frame, applied, moves))
+            out.update(self._batch_inputs(item, keys, (episode, frame, frames), applied, moves))
         if self.counters is not None:
             self.counters.add(applied, time.perf_counter() - start)
         return out
 
-    def _render_like(self, item: dict, keys: dict[str, str], episode: int, frame: int, name: str,
+    def _render_like(self, item: dict, keys: dict[str, str], where: tuple[int, int, int], name: str,
                      p: Perturbation, read: dict[int, Reconstruction],
                      depth_key: str | None) -> tuple[torch.Tensor, torch.Tensor | None]:  # fmt: skip
         """Rendered replacements of ``item[keys[name]]`` and of its depth map ``item[depth_key]``
-        (None: none) with their shapes and dtypes (:func:`like_images`, :func:`like_depth`)."""
+        (None: none) with their shapes and dtypes (:func:`like_images`, :func:`like_depth`);
+        ``where``: the item's (episode, frame, frames in its episode)."""
         image = item[keys[name]]
         size = self._render_size(image)
         rgbs, depths = [], []
-        for k, (o, f) in enumerate(self._stack_frames(image, episode, frame)):
+        episode = where[0]
+        for k, (o, f) in enumerate(self._stack_frames(image, *where)):
             if f not in read:
-                depth = self.cache.kind == "depth"
-                images = self._source_images(item, keys, k, o, episode, f, size) if depth else None
-                read[f] = self._read(episode, lambda f=f, images=images: self.cache.read(episode, f, images, size))
+                images = functools.partial(self._source_images, item, keys, k, o, episode, f, size)
+                read[f] = self.reader.timestep(episode, f, size, images)
             target = p.move(read[f].cameras, self.cfg.cameras.index(name), self.cfg.pivot_depth)
             sensor = self.depth_sensors.get(name) if depth_key is not None else None
             out = render_view(read[f].gaussians, target, self.cfg, depth=depth_key is not None and sensor is None)
@@ -392,18 +389,17 @@ class GenSplatTransform:
         :func:`render_size`)."""
         return render_size(image.shape[-1], image.shape[-2], self.cfg.render_scale)
 
-    def _stack_frames(self, image: torch.Tensor, episode: int, frame: int) -> list[tuple[int, int]]:
+    def _stack_frames(self, image: torch.Tensor, episode: int, frame: int, frames: int) -> list[tuple[int, int]]:
         """(offset, frame) of each image of ``image``'s temporal stack, one for a single image;
-        frames are clamped to the episode (a stack reaching past it repeats its ends, as
-        LeRobot pads)."""
+        frames are clamped to the episode's ``frames`` (a stack reaching past it repeats its
+        ends, as LeRobot pads)."""
         stack = 1 if image.ndim == 3 else image.shape[0]
         offsets = (0,) if image.ndim == 3 else self.cfg.frame_offsets or tuple(range(1 - stack, 1))
         if len(offsets) != stack:
             raise ValueError(f"GenSplatTransform: {len(offsets)} frame_offsets for a stack of {stack}")
-        last = self.cache.num_frames(episode) - 1
-        return [(o, min(max(frame + o, 0), last)) for o in offsets]
+        return [(o, min(max(frame + o, 0), frames - 1)) for o in offsets]
 
-    def _batch_inputs(self, item: dict, keys: dict[str, str], episode: int, frame: int, applied: bool,
+    def _batch_inputs(self, item: dict, keys: dict[str, str], where: tuple[int, int, int], applied: bool,
                       moves: list[Perturbation]) -> dict[str, torch.Tensor]:
         """The ``BATCH_KEYS`` of an item for :func:`.batched.render_batch`, of the same shapes
         whether augmented or not (zeros when not), so that default collation stacks them:
@@ -424,29 +420,18 @@ class GenSplatTransform:
             raise ValueError(f"GenSplatTransform: render_in='batch' needs the images of {self.cfg.cameras} stacked "
                              f"alike, got stacks {sorted(stacks)}: use render_in='worker'")  # fmt: skip
         image = item[keys[self.cfg.replace[0]]]
-        width, height = self._render_size(image)
-        cached = self.cache.image_size(episode)
-        shrink = width <= cached[0] and height <= cached[1]  # else shipped small, enlarged by the batch side
-        w, h = (width, height) if shrink else cached
-        T, V, R = 1 if image.ndim == 3 else image.shape[0], len(self.cfg.cameras), len(self.cfg.replace)
-        depth = torch.zeros(T, V, h, w, dtype=torch.int16)
-        K = torch.zeros(T, V, 3, 3, dtype=torch.float64)
-        c2w = torch.zeros(T, V, 4, 4, dtype=torch.float64)
-        coded = False
-        for k, (_, f) in enumerate(self._stack_frames(image, episode, frame) if applied else []):
-            (words, coded), cameras = self._read(episode, lambda f=f: self.cache.read_depth_words(episode, f))
-            if words.shape[-2:] != (h, w):
-                words = nearest_pixels(words, w, h)
-            cameras = cameras.resize(width, height)
-            depth[k], K[k], c2w[k] = words, cameras.K, cameras.c2w
+        frames = [f for _, f in self._stack_frames(image, *where)]
+        stack = self.reader.depth(where[0], frames, self._render_size(image), read=applied)
         moved = torch.tensor([[AXES.index(p.axis), p.theta_deg, p.mu_m] for p in moves], dtype=torch.float64)
-        return dict(zip(BATCH_KEYS, (torch.tensor(applied), depth, torch.tensor(coded), K, c2w, moved.reshape(R, 3))))
+        return dict(zip(BATCH_KEYS, (torch.tensor(applied), stack.words, torch.tensor(stack.coded), stack.K,
+                                     stack.c2w, moved.reshape(len(self.cfg.replace), 3))))  # fmt: skip
 
     def _source_images(self, item: dict, keys: dict[str, str], k: int, offset: int, episode: int,
                        frame: int, size: tuple[int, int]) -> torch.Tensor:
         """(V, 3, h, w) float images of the reconstructed cameras at stack index ``k`` (frame
         ``frame``, offset ``offset`` from the item's), at ``size`` = (w, h) (a depth cache builds
         the Gaussians from them). Frames the item does not carry are read from the source."""
+        _check_images(item, keys, tuple(n for n in self.cfg.cameras if n not in self.cfg.replace))
         if any(item[keys[n]].ndim == 3 for n in self.cfg.cameras) and offset != 0:
             if self.source is None:
                 raise ValueError(f"GenSplatTransform: frame offset {offset} is rendered but not every reconstructed "
@@ -458,31 +443,15 @@ class GenSplatTransform:
         width, height = size
         return torch.cat([as_cache_images(image[None], height, width) for image in images])
 
-    def _ensure(self, episode: int, verify: bool = False) -> None:
-        """Build the episode unless the cache holds it (with ``verify``: every checksum passes)."""
-        status = self.cache.status(episode)
-        if status != "ok" or verify:
-            if self.source is None:
-                raise FileNotFoundError(
-                    f"GenSplatTransform: episode {episode} is {status} in the cache at {self.cache.root} "
-                    "and no source was given to build it; run the cache command first"
-                )
-            if status != "ok":
-                logger.warning("GenSplat cache at %s: episode %d is %s; building it in this process (run the "
-                               "cache command beforehand to build ahead)", self.cache.root, episode, status)  # fmt: skip
-            self.cache.ensure(episode, self.source, verify=verify)
 
-    def _read(self, episode: int, read):
-        """``read()`` from the cache; a file whose data fails its checksum is rebuilt once (when
-        a source is given) instead of stopping the training run."""
-        try:
-            return read()
-        except CorruptCacheError as e:
-            if self.source is None:
-                raise
-            logger.warning("%s: rebuilding episode %d", e, episode)
-            self._ensure(episode, verify=True)
-            return read()
+def _check_images(item: dict, keys: dict[str, str], cameras: tuple[str, ...]) -> None:
+    """The images of ``cameras`` in ``item`` (their ``keys``) exist and can be replaced or
+    reconstructed from (:func:`_check_image`)."""
+    missing = [keys[n] for n in cameras if keys[n] not in item]
+    if missing:
+        raise KeyError(f"GenSplatTransform: item lacks camera image(s) {missing}; keys: {sorted(item)}")
+    for n in cameras:
+        _check_image(keys[n], item[keys[n]])
 
 
 def _check_image(key: str, image: torch.Tensor) -> None:

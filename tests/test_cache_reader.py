@@ -1,0 +1,81 @@
+"""CacheReader: the transform's one way into a cache (frames, one timestep, a stack's depth),
+building missing episodes and keeping the storage's kind to itself."""
+
+import pytest
+import torch
+
+from gensplat_transforms.cache import GaussianCache
+from gensplat_transforms.cache_reader import CacheReader
+from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
+from gensplat_transforms.reconstruction import GenSplatReconstructor, RGBDReconstructor
+from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
+
+
+@pytest.fixture(scope="module")
+def source():
+    return SceneEpisodes(num_episodes=2, num_frames=3, size=24)
+
+
+@pytest.fixture(scope="module")
+def depth_cache(source, tmp_path_factory):
+    cache = GaussianCache(tmp_path_factory.mktemp("depth"), RGBDReconstructor(), source.fingerprint)
+    build_cache(cache, source, range(2), progress=False)
+    return cache
+
+
+def test_frames_builds_a_missing_episode_from_the_source_or_says_there_is_none(source, tmp_path):
+    cache = GaussianCache(tmp_path, RGBDReconstructor(), source.fingerprint)
+    with pytest.raises(FileNotFoundError, match="episode 1 is missing .* no source was given"):
+        CacheReader(cache).frames(1)
+    assert CacheReader(cache, source).frames(1) == 3 and cache.status(1) == "ok"
+
+
+def test_images_are_asked_for_only_where_the_storage_rebuilds_from_them(source, depth_cache, tmp_path):
+    asked = []
+
+    def images():
+        asked.append(1)
+        return source.views(0, 2).images
+
+    rec = CacheReader(depth_cache).timestep(0, 2, (24, 24), images)
+    assert asked == [1] and rec.gaussians.means.shape == (2 * 24 * 24, 3)
+    reader = CacheReader(GaussianCache(tmp_path, GenSplatReconstructor(), source.fingerprint), source)
+    reader.frames(0)
+    found = reader.timestep(0, 1, (12, 12), images)
+    assert asked == [1] and not reader.batchable  # stored Gaussians: never asked
+    assert (found.cameras.width, found.cameras.height) == (12, 12)
+
+
+def test_depth_at_the_render_size_or_the_stored_one_and_zeros_without_reading(depth_cache, monkeypatch):
+    reader = CacheReader(depth_cache)
+    stack = reader.depth(1, [0, 2], (12, 12))  # smaller than stored: the nearest stored pixels
+    (words, coded), cameras = depth_cache.read_depth_words(1, 2)
+    assert stack.words.shape == (2, 2, 12, 12) and stack.words.dtype == torch.int16
+    assert torch.equal(stack.words[1], words[..., 1::2, 1::2]) and stack.coded == coded
+    assert torch.equal(stack.K[1], cameras.resize(12, 12).K) and torch.equal(stack.c2w[1], cameras.c2w)
+    big = reader.depth(1, [2], (48, 48))  # larger: shipped at the stored size, cameras at the render's
+    assert big.words.shape == (1, 2, 24, 24) and torch.equal(big.K[0], cameras.resize(48, 48).K)
+
+    def no_read(*args):
+        raise AssertionError("read")
+
+    monkeypatch.setattr(depth_cache, "read_depth_words", no_read)
+    empty = reader.depth(1, [0, 2], (12, 12), read=False)
+    assert empty.words.shape == (2, 2, 12, 12) and not empty.words.any() and not empty.coded
+    assert empty.K.shape == (2, 2, 3, 3) and not empty.c2w.any()
+
+
+def test_a_gaussian_cache_cannot_serve_the_batch_path(source, tmp_path):
+    cache = GaussianCache(tmp_path, GenSplatReconstructor(), source.fingerprint)
+    with pytest.raises(ValueError, match="stores Gaussians, not depth"):
+        CacheReader(cache, source).depth(0, [0], (8, 8))
+    with pytest.raises(ValueError, match=r"render_in='batch' needs a depth cache .* stores Gaussians"):
+        GenSplatTransform(GenSplatConfig(render_in="batch"), cache, source)
+
+
+def test_a_depth_cache_item_without_the_other_cameras_image_is_refused_by_name(source, depth_cache):
+    tf = GenSplatTransform(GenSplatConfig(probability=1.0, replace=("left",)), depth_cache)
+    item = SceneDataset(source)[1]
+    del item["observation.images.right"]
+    with pytest.raises(KeyError, match=r"lacks camera image\(s\) \['observation.images.right'\]"):
+        tf(item)
