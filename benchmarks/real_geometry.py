@@ -15,7 +15,9 @@ Two real pairs with known cameras:
 Calibration estimate (``self_calibration.estimate_rig``, as ``gensplat calibrate --estimate``):
 with the Middlebury depth and no focal length (a rectified pair: expected to be refused, as
 depth tells only focal length x distance there), with its depth and the focal length given,
-and from the images alone with the focal length and the cameras' distance given. Errors of
+with its depth, the focal length and the true principal points given (``--principal-point``:
+the images are cropped, their principal points 59 and 28 px off centre), and from the images
+alone with the focal length and the cameras' distance given. Errors of
 the right camera's pose seen from the left: rotation (deg), centre (mm), the direction of the
 centre (deg).
 
@@ -100,7 +102,8 @@ def pose_errors(c2w_est: torch.Tensor, c2w_true: torch.Tensor) -> dict:
 
 
 def calibration_rows(name: str, pair: dict) -> dict:
-    """The estimate with what the pair offers: depth alone, depth and focal, images, focal and distance."""
+    """The estimate with what the pair offers: depth alone, depth and focal, depth, focal and
+    principal points, images, focal and distance."""
     images, depths, K, c2w = pair["images"], pair["depths"], pair["K"], pair["c2w"]
     h, w = images.shape[1:3]
     focals = [float(K[0, 0, 0]), float(K[1, 0, 0])]
@@ -109,7 +112,10 @@ def calibration_rows(name: str, pair: dict) -> dict:
     rgb = {n: (im, None) for n, (im, _) in step.items()}
     cases = {"rgb_focal_and_distance_given": (rgb, {"focals": focals, "scale": ("baseline", baseline)})}
     if depths is not None:
-        cases = {"depth": (step, {}), "depth_focal_given": (step, {"focals": focals}), **cases}
+        points = [tuple(K[i, :2, 2].tolist()) for i in range(2)]
+        cases = {"depth": (step, {}), "depth_focal_given": (step, {"focals": focals}),
+                 "depth_focal_principal_point_given": (step, {"focals": focals, "principal_points": points}),
+                 **cases}  # fmt: skip
     rows = {}
     for case, (sample, given) in cases.items():
         t0 = time.perf_counter()

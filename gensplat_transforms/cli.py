@@ -9,6 +9,15 @@ import time
 from pathlib import Path
 
 
+def _pixel_point(text: str) -> tuple[float, float]:
+    """``CX,CY`` -> (cx, cy) (checked against the image where it is used)."""
+    try:
+        cx, cy = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected CX,CY in pixels (e.g. 311.7,255.4), got {text!r}") from None
+    return cx, cy
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``gensplat`` parser and its subcommands."""
     parser = argparse.ArgumentParser(prog="gensplat", description="GenSplat camera-pose augmentation tools")
@@ -146,6 +155,10 @@ def build_parser() -> argparse.ArgumentParser:
                                 "centre)")
     calibrate.add_argument("--focal", type=float, default=None, metavar="PX",
                            help="as --fov, every camera's focal length in pixels")
+    calibrate.add_argument("--principal-point", type=_pixel_point, nargs="+", default=None, metavar="CX,CY",
+                           help="--estimate: the principal point in pixels instead of the image centre (cropped "
+                                "images), one for every camera or one per camera in --cameras order; the image "
+                                "centre is W/2,H/2 (OpenCV's cx, cy + 0.5)")
     calibrate.add_argument("--repo-id", default=None, help="--estimate: the dataset's repo id (default: local/<root name>)")
     calibrate.add_argument("--cameras", nargs="+", default=None,
                            help="--estimate, --from-features: the external cameras (--estimate: the first the "
@@ -316,9 +329,10 @@ def _dispatch(args) -> int:
 def _cache(args) -> None:
     try:
         from gensplat_lerobot import LeRobotSource, load_settings, prepare
-        from gensplat_lerobot.dataset import check_cameras
+        from gensplat_lerobot.dataset import check_cameras, content_path
     except ImportError as e:
         raise SystemExit(f"gensplat cache needs the LeRobot extra: pip install 'gensplat-transforms[lerobot]' ({e})")
+    from .atomic import read_json_object
     from .cache import size_text
     from .dataset_format import GENSPLAT_DIR, depth_path
     from .distributed import Shard, gather
@@ -368,12 +382,11 @@ def _cache(args) -> None:
           f"process(es) in {seconds:.2f} s, {cpu_s:.2f} CPU s ({len(built) / seconds:.3f} episodes/s): "
           f"{frames} timesteps, {size_text(size)}, {size_text(size / max(frames, 1))} per timestep{per}")
     spec = load_settings(args.root)[1]
-    if spec["name"] != "rgbd":
-        from .reconstruction.geometry import weights_licence
+    licence = read_json_object(content_path(args.root)).get("weights_licence")  # as prepare recorded it
+    if licence is not None:
         from .weights import DEFAULT_MODEL_DIR
 
-        model = spec.get("model") or DEFAULT_MODEL_DIR
-        print(f"model weights {model}: licence {weights_licence(model)}")
+        print(f"model weights {spec.get('model') or DEFAULT_MODEL_DIR}: licence {licence}")
     sensed = [n for n in cameras if n in source.depth_features and not depth_path(args.root, n, 0).exists()]
     if sensed and not args.fill_depth and spec["name"] == "rgbd":
         print(f"tip: the depth of {', '.join(sensed)} is a sensor's (LeRobot depth maps): --fill-depth 8 gives its "
@@ -452,7 +465,8 @@ def _estimate(args) -> None:
     repo_id = args.repo_id or f"local/{Path(args.root).name}"
     rig = estimate.estimate_calibration(args.root, repo_id, tuple(args.cameras) if args.cameras else None,
                                         args.timesteps, fov_deg=args.fov, focal_px=args.focal,
-                                        baseline_m=args.baseline, table_m=args.table_distance)  # fmt: skip
+                                        baseline_m=args.baseline, table_m=args.table_distance,
+                                        principal_point=args.principal_point)  # fmt: skip
     print("\n".join(estimate.report(rig)))
     print(f"estimated {', '.join(rig.names)}; written to {calibration_path(args.root)} (the dataset is not modified)")
 

@@ -19,7 +19,8 @@ For static external cameras (:func:`estimate_rig`; docs/calibration.md):
    protocol's rotations about world X and Y tilt the cameras as in a calibrated rig.
 
 Assumptions, stated where the estimate is reported: square pixels, the principal point at the
-image centre, no lens distortion, cameras static over the sampled frames.
+image centre unless given (``principal_points``: cropped images move it), no lens distortion,
+cameras static over the sampled frames.
 """
 
 from __future__ import annotations
@@ -87,7 +88,9 @@ class RigEstimate:
     (OpenCV axes), per camera the spread of the per-episode estimates around the pooled one
     (``focal_spread``: relative; ``rotation_spread_deg``; ``center_spread_m``: of its centre
     seen from the reference camera; NaN where given, not estimated), how many timesteps and
-    matches it rests on, and what makes it metric (``scale``)."""
+    matches it rests on, and what makes it metric (``scale``); ``sizes``: (width, height) per
+    camera; ``principal_given``: whether the principal points were given, not assumed at the
+    image centres."""
 
     names: tuple[str, ...]
     K: torch.Tensor
@@ -98,8 +101,10 @@ class RigEstimate:
     timesteps: list[int]
     matches: list[int]
     rms_px: list[float]
+    sizes: list[tuple[int, int]]
     levelled: bool = True
     scale: str = "metric, from the dataset's depth"
+    principal_given: bool = False
 
 
 def match_pair(image_a: np.ndarray, image_b: np.ndarray, depth_a: np.ndarray | None = None,
@@ -164,14 +169,15 @@ def _smooth_depth(depth: np.ndarray, uv: np.ndarray, tolerance: float = 0.02) ->
 
 
 def estimate_pair(matches: Matches, size_a: tuple[int, int], size_b: tuple[int, int],
-                  init: PairEstimate | None = None) -> PairEstimate:
+                  init: PairEstimate | None = None, centres=None) -> PairEstimate:
     """Focal lengths and relative pose of two cameras from depth-valid ``matches``
-    (``size_*``: (width, height); principal points at the image centres, square pixels).
-    Starts from ``init`` when given, else from a grid over :data:`FOV_RANGE_DEG`."""
+    (``size_*``: (width, height); square pixels; ``centres``: the principal points (cx, cy) of
+    a and b, default the image centres). Starts from ``init`` when given, else from a grid
+    over :data:`FOV_RANGE_DEG`."""
     if len(matches) < MIN_MATCHES:
         raise ValueError(f"only {len(matches)} depth-valid matches between the cameras (need {MIN_MATCHES}): "
                          "they may see too little in common, or the frames too little texture")  # fmt: skip
-    ca, cb = _centre(size_a), _centre(size_b)
+    ca, cb = _centre(size_a, centres, 0), _centre(size_b, centres, 1)
     if init is None:
         fa, fb, R, t = _focal_grid(matches, ca, cb, size_a[0], size_b[0])
     else:
@@ -179,8 +185,26 @@ def estimate_pair(matches: Matches, size_a: tuple[int, int], size_b: tuple[int, 
     return _refine(matches, ca, cb, fa, fb, R, t)
 
 
-def _centre(size: tuple[int, int]) -> torch.Tensor:
-    return torch.tensor([size[0] / 2, size[1] / 2], dtype=torch.float64)
+def _centre(size: tuple[int, int], centres=None, i: int = 0) -> torch.Tensor:
+    """The principal point ``centres[i]`` (cx, cy), or without ``centres`` the image centre."""
+    point = (size[0] / 2, size[1] / 2) if centres is None else centres[i]
+    return torch.tensor([float(point[0]), float(point[1])], dtype=torch.float64)
+
+
+def check_principal_points(names, sizes: list[tuple[int, int]], points) -> None:
+    """ValueError unless each camera's given principal point (cx, cy) in ``points`` is finite
+    and inside its image ``sizes`` (width, height), pixel centres at +0.5 (the image centre is
+    (W / 2, H / 2)); ``points`` None (the image centres) passes."""
+    if points is None:
+        return
+    if len(points) != len(names):
+        raise ValueError(f"--principal-point: {len(points)} principal points for {len(names)} cameras {list(names)}: "
+                         "give one CX,CY for every camera, or one per camera")  # fmt: skip
+    for name, (w, h), point in zip(names, sizes, points):
+        cx, cy = (float(v) for v in point)
+        if not (math.isfinite(cx) and math.isfinite(cy) and 0 < cx < w and 0 < cy < h):
+            raise ValueError(f"--principal-point of camera {name!r}: ({cx}, {cy}) must be finite and inside its "
+                             f"{w}x{h} image (0 < cx < {w}, 0 < cy < {h}; the centre is ({w / 2}, {h / 2}))")  # fmt: skip
 
 
 def _lift(uv: torch.Tensor, z: torch.Tensor, f, c: torch.Tensor) -> torch.Tensor:
@@ -310,7 +334,7 @@ def spread(estimates: list[PairEstimate], final: PairEstimate) -> tuple[float, f
 
 def estimate_rig(names: tuple[str, ...], sizes: list[tuple[int, int]], timesteps: list[dict],
                  groups: list | None = None, progress: bool = False, focals: list[float] | None = None,
-                 scale: tuple[str, float] | None = None) -> RigEstimate:
+                 scale: tuple[str, float] | None = None, principal_points: list | None = None) -> RigEstimate:
     """Estimate static cameras ``names`` (the first is the reference) from ``timesteps``, each
     ``{name: (image (H, W, 3) uint8, depth (H, W) metres or None)}``; ``sizes``: (width, height)
     per camera. What is estimated depends on what is given:
@@ -322,12 +346,18 @@ def estimate_rig(names: tuple[str, ...], sizes: list[tuple[int, int]], timesteps
       to the table plane;
     * one camera with depth and its focal length in ``focals``: its pose levelled on the table.
 
+    ``principal_points``: (cx, cy) per camera in pixels (pixel centres at +0.5), used instead
+    of the image centres everywhere (cropped images move them; a wrong one biases the pose and
+    the depth-derived scale).
+
     The cameras are static, so the matches of all timesteps are pooled into one estimate per
     camera pair; ``groups`` (a label per timestep, e.g. its episode; default: four interleaved
     groups) are estimated apart from it too, and their deviation from it is the spread.
     Raises ValueError naming what is missing or why a camera cannot be estimated."""
     from tqdm.auto import tqdm
 
+    check_principal_points(names, sizes, principal_points)
+    centres = principal_points or [(w / 2, h / 2) for w, h in sizes]
     depth = all(step[n][1] is not None for step in timesteps for n in names)
     if len(names) == 1 and not (depth and focals):
         raise ValueError("one external camera: its focal length is not observable from its own frames; give it "
@@ -350,16 +380,18 @@ def estimate_rig(names: tuple[str, ...], sizes: list[tuple[int, int]], timesteps
                              f"{MIN_MATCHES}): the cameras may see too little in common, or the frames too little "
                              "texture")  # fmt: skip
         if focals:
-            pairs.append(_rgb_pair(found, groups, _K(focals[0], sizes[0]), _K(focals[k], sizes[k])))
+            pairs.append(_rgb_pair(found, groups, _K(focals[0], sizes[0], centres[0]),
+                                   _K(focals[k], sizes[k], centres[k])))
         else:
-            pairs.append(_depth_pair(found, groups, sizes[0], sizes[k], names[0], names[k]))
+            pairs.append(_depth_pair(found, groups, sizes[0], sizes[k], names[0], names[k],
+                                     (centres[0], centres[k])))  # fmt: skip
     estimated = not focals
     if estimated:
         focals = [float(torch.tensor([p.final.focal_a for p in pairs]).median())] + [p.final.focal_b for p in pairs]
     elif pairs:  # unit translations: metric by the depth of each pair, or by the one distance given
         unit = _unit_distance(scale[0], torch.cat([p.points for p in pairs]), _rig(pairs)) if scale else None
         pairs = [p.scaled(p.depth_scale if unit is None else scale[1] / unit) for p in pairs]
-    K = torch.stack([_K(f, s) for f, s in zip(focals, sizes)])
+    K = torch.stack([_K(f, s, c) for f, s, c in zip(focals, sizes, centres)])
     c2w = _rig(pairs)
     if depth:
         points = _scene_points(timesteps[: min(len(timesteps), 4)], names, K, c2w)
@@ -375,8 +407,10 @@ def estimate_rig(names: tuple[str, ...], sizes: list[tuple[int, int]], timesteps
         center_spread_m=[0.0] + [p.center_spread for p in pairs],
         timesteps=[max([p.used for p in pairs], default=len(timesteps))] + [p.used for p in pairs],
         matches=[max([p.final.matches for p in pairs], default=0)] + [p.final.matches for p in pairs],
-        rms_px=[pairs[0].final.rms_px if pairs else math.nan] + [p.final.rms_px for p in pairs], levelled=levelled,
+        rms_px=[pairs[0].final.rms_px if pairs else math.nan] + [p.final.rms_px for p in pairs],
+        sizes=[tuple(s) for s in sizes], levelled=levelled,
         scale="metric, from the dataset's depth" if depth else f"metric, from the {scale[1]} m given {given}",
+        principal_given=principal_points is not None,
     )  # fmt: skip
 
 
@@ -406,24 +440,27 @@ class _Pair(NamedTuple):
         return self._replace(final=final, points=self.points * s, center_spread=self.center_spread * s)
 
 
-def _depth_pair(found: list[Matches], groups: list, size_a, size_b, name_a: str, name_b: str) -> _Pair:
-    """Focal lengths and metric pose of a camera pair from their depth-valid ``found`` matches."""
+def _depth_pair(found: list[Matches], groups: list, size_a, size_b, name_a: str, name_b: str,
+                centres=None) -> _Pair:
+    """Focal lengths and metric pose of a camera pair from their depth-valid ``found`` matches
+    (``centres``: their principal points, default the image centres)."""
     pooled = Matches.cat(found)
-    first = estimate_pair(pooled, size_a, size_b)
-    agreeing = _agreeing(pooled, first, size_a, size_b)
+    first = estimate_pair(pooled, size_a, size_b, centres=centres)
+    agreeing = _agreeing(pooled, first, size_a, size_b, centres=centres)
     if len(agreeing) < MIN_MATCHES:
         raise ValueError(f"cameras {name_a!r} and {name_b!r}: only {len(agreeing)} of {len(pooled)} feature matches "
                          "agree on one calibration: the cameras may see too little in common")  # fmt: skip
-    final = estimate_pair(agreeing, size_a, size_b, first)
+    final = estimate_pair(agreeing, size_a, size_b, first, centres)
     if final.focal_sd > FOCAL_SD_MAX:
         raise ValueError(f"cameras {name_a!r} and {name_b!r}: the views do not tell their focal lengths from their "
                          f"distance (standard deviation {final.focal_sd:.1%} of the focal length; e.g. parallel "
                          "cameras that only translate): give the field of view with --fov or --focal")  # fmt: skip
     parts = []
     for label in dict.fromkeys(groups):
-        m = _agreeing(Matches.cat([f for f, g in zip(found, groups) if g == label]), final, size_a, size_b)
+        m = _agreeing(Matches.cat([f for f, g in zip(found, groups) if g == label]), final, size_a, size_b,
+                      centres=centres)  # fmt: skip
         if len(m) >= MIN_MATCHES:
-            parts.append(estimate_pair(m, size_a, size_b, final))
+            parts.append(estimate_pair(m, size_a, size_b, final, centres))
     fa, fb, rot, centre = spread(parts, final)
     return _Pair(final, (fa, fb), rot, centre, sum(len(f) > 0 for f in found))
 
@@ -521,15 +558,18 @@ def _reprojection(m: Matches, ca, cb, fa, fb, R: torch.Tensor, t: torch.Tensor) 
     return torch.cat([ub, ua], 0)
 
 
-def _agreeing(m: Matches, e: PairEstimate, size_a, size_b, max_px: float = 4.0) -> Matches:
-    """The matches whose reprojection error under ``e`` is within ``max_px`` both ways."""
-    r = _reprojection(m, _centre(size_a), _centre(size_b), e.focal_a, e.focal_b, e.b_from_a[:3, :3],
-                      e.b_from_a[:3, 3]).norm(dim=-1)  # fmt: skip
+def _agreeing(m: Matches, e: PairEstimate, size_a, size_b, max_px: float = 4.0, centres=None) -> Matches:
+    """The matches whose reprojection error under ``e`` is within ``max_px`` both ways
+    (``centres``: the principal points, default the image centres)."""
+    r = _reprojection(m, _centre(size_a, centres, 0), _centre(size_b, centres, 1), e.focal_a, e.focal_b,
+                      e.b_from_a[:3, :3], e.b_from_a[:3, 3]).norm(dim=-1)  # fmt: skip
     return m.subset((r[: len(m)] <= max_px) & (r[len(m) :] <= max_px))
 
 
-def _K(f: float, size: tuple[int, int]) -> torch.Tensor:
-    return torch.tensor([[f, 0, size[0] / 2], [0, f, size[1] / 2], [0, 0, 1]], dtype=torch.float64)
+def _K(f: float, size: tuple[int, int], centre=None) -> torch.Tensor:
+    """Square pixels of focal ``f``; the principal point ``centre`` (cx, cy), default the centre of ``size``."""
+    cx, cy = _centre(size, None if centre is None else [centre]).tolist()
+    return torch.tensor([[f, 0, cx], [0, f, cy], [0, 0, 1]], dtype=torch.float64)
 
 
 def _scene_points(timesteps: list[dict], names, K: torch.Tensor, c2w: torch.Tensor, per_view: int = 20000):

@@ -275,6 +275,8 @@ def test_cache_command_writes_settings_and_cache(dataset_root, capsys):
     assert config.level == "large" and config.probability == 0.7 and config.cameras == ("left", "right")
     assert reconstructor["name"] == "rgbd" and config.fill_holes
     assert config.render_in == "auto"
+    record = json.loads((dataset_root / "gensplat" / "dataset.json").read_text())
+    assert "weights_licence" not in record and "licence" not in out  # no model: no weights
     main(["cache", "--root", str(dataset_root), "--repo-id", REPO, "--no-fill-holes", "--render-in", "batch",
           "--render-scale", "0.5"])  # fmt: skip
     config = load_settings(dataset_root)[0]
@@ -312,6 +314,32 @@ def test_rgb_only_dataset_uses_the_geometry_path(dataset_root):
     item, ref = ds[3], LeRobotDataset(REPO, root=dataset_root)[3]
     assert item[LEFT].shape == ref[LEFT].shape and torch.isfinite(item[LEFT]).all()
     assert not torch.equal(item[LEFT], ref[LEFT])
+
+
+def test_the_dataset_record_keeps_the_licence_of_the_model_weights(dataset_root, tmp_path, capsys):
+    """gensplat cache on the geometry path (a random checkpoint) records its weights' licence in
+    <root>/gensplat/dataset.json and prints it from there; the field is not part of the content
+    or its fingerprint, so a record without it (written before) still serves the cache."""
+    from gensplat_lerobot.dataset import content_path, what_differs
+    from tiny_model import tiny_model
+
+    from gensplat_transforms.cli import main
+
+    shutil.rmtree(dataset_root / "depth")
+    ckpt = tiny_model().save_pretrained(tmp_path / "ckpt")
+    assert main(["cache", "--root", str(dataset_root), "--repo-id", REPO, "--model", str(ckpt), "--episodes", "0",
+                 "--probability", "1"]) == 0  # fmt: skip
+    licence = "as its trainer set it (a gensplat train-model checkpoint)"
+    assert f"model weights {ckpt}: licence {licence}\n" in capsys.readouterr().out
+    record = json.loads(content_path(dataset_root).read_text())
+    source = LeRobotSource(dataset_root, REPO)
+    assert record == {"fingerprint": source.fingerprint, "content": json.loads(json.dumps(source.content)),
+                      "weights_licence": licence}  # fmt: skip
+    del record["weights_licence"]  # a record of an earlier version
+    content_path(dataset_root).write_text(json.dumps(record))
+    ds = enable_gensplat(LeRobotDataset(REPO, root=dataset_root))
+    assert ds.gensplat_cached == (1, 2) and ds.gensplat.cache.status(0) == "ok"
+    assert what_differs(source) == f"cache files built for other content; the content now is {source.fingerprint}"
 
 
 def test_max_pixels_caches_the_geometry_path_at_the_models_smaller_size(dataset_root):

@@ -30,8 +30,20 @@ def settings_path(root: str | Path) -> Path:
 
 
 def content_path(root: str | Path) -> Path:
-    """``<root>/gensplat/dataset.json``: the dataset's content when ``gensplat cache`` last ran."""
+    """``<root>/gensplat/dataset.json``: the dataset's content when ``gensplat cache`` last ran
+    (``fingerprint``, ``content``) and, for a model's reconstructor, its weights' licence
+    (``weights_licence``; not part of the content or its fingerprint)."""
     return Path(root) / GENSPLAT_DIR / "dataset.json"
+
+
+def weights_licence_of(reconstructor: dict) -> str | None:
+    """The licence of the model weights a reconstructor spec uses (None for ``rgbd``: no model)."""
+    if reconstructor["name"] == "rgbd":
+        return None
+    from gensplat_transforms.reconstruction.geometry import weights_licence
+    from gensplat_transforms.weights import DEFAULT_MODEL_DIR
+
+    return weights_licence(reconstructor.get("model") or DEFAULT_MODEL_DIR)
 
 
 def cache_command(root: str | Path, repo_id: str | None) -> str:
@@ -240,5 +252,9 @@ def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructo
     gensplat_folder(root)
     if shard.rank == 0:
         save_settings(root, config, reconstructor, link_depth)
-        atomic_write_json(content_path(root), {"fingerprint": source.fingerprint, "content": source.content})
+        record = {"fingerprint": source.fingerprint, "content": source.content}
+        licence = weights_licence_of(reconstructor)
+        if licence is not None:
+            record["weights_licence"] = licence
+        atomic_write_json(content_path(root), record)
     return build_cache(dataset_cache(root, rec, source, link_depth), source, episodes, progress, shard, verify)

@@ -21,18 +21,26 @@ from gensplat_transforms.dataset_format import (
     load_depth,
 )
 from gensplat_transforms.outputs import gensplat_folder
-from gensplat_transforms.self_calibration import RigEstimate, estimate_rig
+from gensplat_transforms.self_calibration import RigEstimate, check_principal_points, estimate_rig
 
 from .source import _is_depth_map, episode_table, read_info, video_backend
 
-#: what the estimate assumes, written beside it and printed
+#: what the estimate assumes, written beside it and printed (the principal point: see :func:`assumptions`)
 ASSUMPTIONS = "square pixels, principal point at the image centre, no lens distortion, static cameras"
+
+
+def assumptions(rig: RigEstimate) -> str:
+    """What ``rig``'s estimate assumed: :data:`ASSUMPTIONS`, with the principal points where given."""
+    if not rig.principal_given:
+        return ASSUMPTIONS
+    given = ", ".join(f"{n} ({float(rig.K[i, 0, 2]):g}, {float(rig.K[i, 1, 2]):g})" for i, n in enumerate(rig.names))
+    return ASSUMPTIONS.replace("principal point at the image centre", f"principal point given: {given} px")
 
 
 def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...] | None = None,
                          timesteps: int = 16, progress: bool = True, fov_deg: float | None = None,
                          focal_px: float | None = None, baseline_m: float | None = None,
-                         table_m: float | None = None) -> RigEstimate:
+                         table_m: float | None = None, principal_point: list | None = None) -> RigEstimate:
     """Estimate the external ``cameras`` (default: every colour camera whose name does not
     contain "wrist"; the first is the reference) of the dataset at ``root`` from ``timesteps``
     frames spread over its episodes and write ``<root>/gensplat/calibration.json``.
@@ -42,7 +50,10 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
     focal lengths (unless given) and metric poses from it. Otherwise the focal length is given
     (``fov_deg``, the horizontal field of view, or ``focal_px``) and so is one distance for the
     scale (``baseline_m`` between the first two cameras, or ``table_m`` from the first camera
-    down to the table). One camera needs depth and its focal length. Raises ValueError naming what
+    down to the table). ``principal_point``: (cx, cy) in pixels (pixel centres at +0.5, the
+    image centre (W / 2, H / 2); OpenCV's cx + 0.5), one for every camera or one per camera,
+    used instead of the image centres (cropped images). One camera needs depth and its focal
+    length. Raises ValueError naming what
     is missing or wrong (see :func:`~gensplat_transforms.self_calibration.estimate_rig`)."""
     root = Path(root)
     features = read_info(root)["features"]
@@ -63,6 +74,10 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
                              f"got {value}")  # fmt: skip
     if fov_deg is not None and focal_px is not None or baseline_m is not None and table_m is not None:
         raise ValueError("give one of --fov and --focal, and one of --baseline and --table-distance")
+    sizes = [(features[IMAGE_KEY_PREFIX + n]["shape"][1], features[IMAGE_KEY_PREFIX + n]["shape"][0]) for n in names]
+    if principal_point is not None and len(principal_point) == 1:
+        principal_point = list(principal_point) * len(names)
+    check_principal_points(names, sizes, principal_point)
     gensplat_folder(root)  # before minutes of matching, not after
     calibrated = [n for n in names if "camera.intrinsics" in (features[IMAGE_KEY_PREFIX + n].get("info") or {})]
     if calibrated:
@@ -75,7 +90,6 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
     registered = {n: depth_path(root, n, 0).exists() or (_is_depth_map(features.get(depth_keys[n])) and
                      "camera.depth" not in (features[depth_keys[n]].get("info") or {})) for n in names}  # fmt: skip
     use_depth = all(registered.values())
-    sizes = [(features[IMAGE_KEY_PREFIX + n]["shape"][1], features[IMAGE_KEY_PREFIX + n]["shape"][0]) for n in names]
     focals = None
     if fov_deg is not None or focal_px is not None:
         focals = [focal_px or focal_from_fov(fov_deg, w) for w, _ in sizes]
@@ -98,7 +112,8 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
             step[n] = (image, None if depth is None else np.asarray(depth, dtype=np.float32))
         samples.append(step)
         groups.append(episode)
-    rig = estimate_rig(names, sizes, samples, groups, progress=progress, focals=focals, scale=scale)
+    rig = estimate_rig(names, sizes, samples, groups, progress=progress, focals=focals, scale=scale,
+                       principal_points=principal_point)  # fmt: skip
     write_estimate(root, rig)
     return rig
 
@@ -128,7 +143,7 @@ def write_estimate(root: Path, rig: RigEstimate) -> Path:
             "cameras": {n: camera_info(rig.K[i], rig.c2w[i], "external") for i, n in enumerate(rig.names)},
             "estimate": {"method": "features+depth" if "depth" in rig.scale else "features+essential matrix",
                          "scale": rig.scale,
-                         "assumptions": ASSUMPTIONS, "reference": rig.names[0], "levelled": rig.levelled,
+                         "assumptions": assumptions(rig), "reference": rig.names[0], "levelled": rig.levelled,
                          "cameras": spread}}  # fmt: skip
     gensplat_folder(root)
     return atomic_write_json(calibration_path(root), data)
@@ -143,7 +158,7 @@ def report(rig: RigEstimate) -> list[str]:
     lines = []
     for i, n in enumerate(rig.names):
         f = float(rig.K[i, 0, 0])
-        fov = math.degrees(2 * math.atan(float(rig.K[i, 0, 2]) / f))
+        fov = math.degrees(2 * math.atan(rig.sizes[i][0] / 2 / f))
         given = math.isnan(rig.focal_spread[i])
         line = f"{n}: focal {f:.1f} px ({fov:.1f} deg wide), " + ("given" if given else
                                                                    f"spread {rig.focal_spread[i]:.2%}")  # fmt: skip
@@ -156,5 +171,5 @@ def report(rig: RigEstimate) -> list[str]:
             line += f"; {rig.matches[i]} matches in {rig.timesteps[i]} timesteps, {rig.rms_px[i]:.2f} px rms"
         lines.append(line)
     level = "levelled on the table plane" if rig.levelled else "no table plane found: world z is the cameras' image up"
-    lines.append(f"scale: {rig.scale}; world frame {level}; assumed: {ASSUMPTIONS}")
+    lines.append(f"scale: {rig.scale}; world frame {level}; assumed: {assumptions(rig)}")
     return lines
