@@ -3,13 +3,13 @@
 With ``GenSplatConfig.render_in="batch"`` the workers do the least they can: the transform
 draws whether a sample is augmented and its perturbation exactly as ``"worker"`` does (the
 same RNG calls, in the same order) and adds the moves, the cached cameras and the cached
-depth as stored (two bytes a pixel) to the item (``transform.BATCH_KEYS``). :func:`render_batch`
+depth as stored (two bytes a pixel) to the item (``plan.BATCH_KEYS``). :func:`render_batch`
 decodes the depth and moves the cameras of the whole batch at once, rebuilds the Gaussians
 of every augmented sample from that depth and the batch's own images with the PyTorch disc
 rule (:func:`.reconstruction.rgbd.dense_discs`, in float32, compiled on CUDA), renders all target cameras,
 fills the holes and writes the images back, in the images' dtype, range and size. On CUDA
 all scenes go through one gsplat call; elsewhere (tests) each scene is rendered with
-``config.backend``, through the same :func:`.transform.render_view` as the worker, so the
+``config.backend``, through the same :func:`.view_output.render_view` as the worker, so the
 images match the worker path's up to the disc rule's round-off.
 """
 
@@ -17,33 +17,35 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import torch
 
 from .cameras import Cameras
+from .config import GenSplatConfig, render_size
 from .depth_codec import depth_from_words
 from .gaussians import Gaussians
-from .perturbation import perturb_pose, rig_pivot
+from .perturbation import move_rig
+from .plan import BATCH_KEYS
 from .reconstruction import Reconstructor
 from .reconstruction.base import nearest_pixels
 from .reconstruction.rgbd import RGBDReconstructor, dense_discs
 from .rendering import RenderOutput
 from .rendering.gsplat_backend import render_gsplat_batch
 from .sh import num_sh_bases
-from .transform import (
-    BATCH_KEYS,
-    GenSplatConfig,
-    GenSplatTransform,
+from .view_output import (
     as_cache_images,
     filled,
     like_depth,
     like_images,
     render_background,
     render_depth,
-    render_size,
     render_view,
     seen_depth,
 )
+
+if TYPE_CHECKING:
+    from .transform import GenSplatTransform
 
 
 def disc_builder(reconstructor: Reconstructor) -> RGBDReconstructor:
@@ -72,7 +74,7 @@ def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None 
     Example: a DataLoader whose workers only prepare the items, then one render per batch
         >>> import tempfile
         >>> from torch.utils.data import DataLoader
-        >>> from gensplat_transforms import AugmentedDataset, GaussianCache, GenSplatConfig, RGBDReconstructor
+        >>> from gensplat_transforms import AugmentedDataset, GaussianCache, GenSplatConfig, GenSplatTransform, RGBDReconstructor
         >>> from gensplat_transforms.episodes import SceneDataset, SceneEpisodes
         >>> source = SceneEpisodes(num_episodes=1, num_frames=4, size=16)
         >>> folder = tempfile.TemporaryDirectory()
@@ -111,8 +113,9 @@ def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None 
         sh = torch.cat([sh, sh.new_zeros(*sh.shape[:2], num_sh_bases(discs.cfg.sh_degree) - 1, 3)], 2)
     views = [cfg.cameras.index(name) for name in cfg.replace]
     K = batch["gensplat.K"][rows][:, :, views].flatten(0, 1)  # (S*T, R, 3, 3)
-    c2w = _targets(batch["gensplat.c2w"][rows], batch["gensplat.moves"][rows], views,  # (S*T, R, 4, 4)
-                   cfg.pivot_depth).flatten(0, 1)  # fmt: skip
+    cached = batch["gensplat.c2w"][rows]  # (S, T, V, 4, 4); each sample's moves, the same at every frame
+    moves = batch["gensplat.moves"][rows][:, None].expand(-1, T, -1, -1)  # (S, T, R, 3)
+    c2w = move_rig(cached, moves, views, cfg.pivot_depth).flatten(0, 1)  # (S*T, R, 4, 4)
     opacity = discs.cfg.opacity
     depth_keys = {} if cfg.depth_unit in (None, "keep") else {
         r: key for r, name in enumerate(cfg.replace) if (key := cfg.image_key.format(name=name) + "_depth") in batch}  # fmt: skip
@@ -140,7 +143,7 @@ def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None 
             if sensor is None:
                 rendered = seen.unflatten(0, (S, T))[:, :, r].flatten(0, 1)  # (S*T, 1, h, w) metres
             else:  # the depth sensor beside the moved camera
-                sensor_c2w = c2w[:, r] @ torch.linalg.inv(sensor.to_camera.to(c2w))  # (S*T, 4, 4)
+                sensor_c2w = sensor.pose(c2w[:, r])  # (S*T, 4, 4)
                 sensor_K = sensor.K.to(c2w).expand(len(sensor_c2w), 3, 3)
                 rendered = _render_depth(means, quats, scales, sh, keep, opacity, sensor_K, sensor_c2w,
                                          sensor.width, sensor.height, backend, cfg)  # fmt: skip
@@ -150,7 +153,7 @@ def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None 
 
 def _render_depth(means, quats, scales, sh, keep, opacity: float, K: torch.Tensor, c2w: torch.Tensor, width: int,
                   height: int, backend: str, cfg: GenSplatConfig) -> torch.Tensor:  # fmt: skip
-    """(S, 1, H, W) depth maps (:func:`.transform.seen_depth`) of the S scenes' discs, each seen
+    """(S, 1, H, W) depth maps (:func:`.view_output.seen_depth`) of the S scenes' discs, each seen
     by one camera K (S, 3, 3), c2w (S, 4, 4) of ``width x height``."""
     if backend == "gsplat":
         background = torch.zeros(3).to(means)
@@ -181,15 +184,6 @@ def _compiled_discs(*args):
     return dense_discs(*args)
 
 
-def _targets(c2w: torch.Tensor, moves: torch.Tensor, views: list[int], pivot_depth: float | None) -> torch.Tensor:
-    """(S, T, R, 4, 4) perturbed poses of the replaced cameras ``views`` from the (S, T, V, 4, 4)
-    cached poses and the (S, R, 3) moves (axis index, theta_deg, mu_m), each about the rig's
-    pivot at its frame, as :meth:`.perturbation.Perturbation.move` moves one."""
-    pivot = rig_pivot(c2w, pivot_depth)[:, :, None]  # (S, T, 1, 3)
-    axis, theta, mu = (moves[:, None, :, i].expand(-1, c2w.shape[1], -1) for i in range(3))  # (S, T, R)
-    return perturb_pose(c2w[:, :, views], pivot, axis.long(), theta, mu)
-
-
 def _stacked(images: torch.Tensor, T: int, height: int, width: int) -> torch.Tensor:
     """(S, [T,] 3, H, W) images of one camera as (S, T, 3, height, width) float in [0, 1]."""
     stack = images.flatten(0, 1) if images.ndim == 5 else images
@@ -199,7 +193,7 @@ def _stacked(images: torch.Tensor, T: int, height: int, width: int) -> torch.Ten
 def _render_scene(means, quats, scales, sh, keep, cameras: Cameras, opacity: float, cfg: GenSplatConfig,
                   depth: bool) -> RenderOutput:  # fmt: skip
     """One scene's discs (:func:`_scene_gaussians`) rendered into C cameras by
-    :func:`.transform.render_view` with ``cfg.backend``: rgb (C, 3, H, W), with ``depth`` its
+    :func:`.view_output.render_view` with ``cfg.backend``: rgb (C, 3, H, W), with ``depth`` its
     depth (C, 1, H, W)."""
     return render_view(_scene_gaussians(means, quats, scales, sh, keep, opacity), cameras, cfg, depth=depth)
 

@@ -64,8 +64,12 @@ class DepthSensor:
 
     def cameras(self, camera: Cameras) -> Cameras:
         """The sensor as one :class:`Cameras` beside ``camera`` (one colour camera)."""
-        return Cameras(self.K[None].to(camera.c2w), camera.c2w @ torch.linalg.inv(self.to_camera.to(camera.c2w)),
-                       self.width, self.height)  # fmt: skip
+        return Cameras(self.K[None].to(camera.c2w), self.pose(camera.c2w), self.width, self.height)
+
+    def pose(self, c2w: torch.Tensor) -> torch.Tensor:
+        """(..., 4, 4) camera-to-world of the sensor beside colour cameras of (..., 4, 4) poses
+        ``c2w`` (each moved camera's sensor moves with it)."""
+        return c2w @ torch.linalg.inv(self.to_camera.to(c2w))
 
 
 @dataclass

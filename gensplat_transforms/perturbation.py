@@ -21,6 +21,7 @@ Example: the named levels
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -120,8 +121,8 @@ class Perturbation:
         cameras 0 and 1, or ``pivot_depth`` along the axis of a rig's one camera)."""
         if not 0 <= index < len(cameras):
             raise IndexError(f"Perturbation.move: camera index {index} outside 0..{len(cameras) - 1}")
-        pivot = rig_pivot(cameras.c2w, pivot_depth)
-        c2w = self.apply(cameras.c2w[index : index + 1], pivot)  # a rigid motion of a checked pose
+        move = torch.tensor([[AXES.index(self.axis), self.theta_deg, self.mu_m]], dtype=cameras.c2w.dtype)
+        c2w = move_rig(cameras.c2w, move, [index], pivot_depth)  # a rigid motion of a checked pose
         return cameras._derive(cameras.K[index : index + 1], c2w)
 
     def as_dict(self) -> dict:
@@ -163,6 +164,25 @@ def perturb_pose(c2w: torch.Tensor, pivot: torch.Tensor, axis: str | torch.Tenso
     out[..., :3, :3] = R
     out[..., :3, 3] = center + mu[..., None] * R[..., :, 2]
     return out
+
+
+def move_rig(c2w: torch.Tensor, moves: torch.Tensor, views: Sequence[int], pivot_depth: float | None = None
+             ) -> torch.Tensor:  # fmt: skip
+    """(..., R, 4, 4) poses of the cameras ``views`` (R indices) of rigs of (..., V, 4, 4)
+    camera-to-world poses, each moved about its rig's pivot (:func:`rig_pivot`) by its move of
+    the (..., R, 3) ``moves`` (axis index into ``AXES``, theta_deg, mu_m): what
+    :meth:`Perturbation.move` does to one camera, for any batch of rigs (the batch path moves a
+    whole training batch's cameras with it).
+
+    Example: the left camera of a rig turned 5 deg about world X
+        >>> from gensplat_transforms import look_at
+        >>> rig = torch.stack([look_at((1.0, 0.3, 0.5), (0, 0, 0)), look_at((1.0, -0.3, 0.5), (0, 0, 0))])
+        >>> move_rig(rig, torch.tensor([[0, 5.0, 0.0]], dtype=torch.float64), [0]).shape
+        torch.Size([1, 4, 4])
+    """
+    pivot = rig_pivot(c2w, pivot_depth)[..., None, :]  # (..., 1, 3)
+    axis, theta, mu = moves.unbind(-1)
+    return perturb_pose(c2w[..., list(views), :, :], pivot, axis.long(), theta, mu)
 
 
 def _closest(c2w_a: torch.Tensor, c2w_b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -123,3 +123,14 @@ def test_no_import_cycles():
 def test_the_cycle_finder_finds_a_cycle():
     assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == ["a", "b", "c", "a"]
     assert find_cycle({"a": {"b"}, "b": set()}) is None
+
+
+def test_the_batch_path_shares_the_workers_helpers_instead_of_reaching_into_the_transform():
+    """batched.py takes the config, the plan's keys and the view helpers from the modules that
+    hold them; from transform.py only the transform's type (for annotations)."""
+    tree = ast.parse(MODULES[f"{PACKAGE}.batched"].read_text())
+    from_transform = {a.name for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module == "transform"
+                      for a in n.names}  # fmt: skip
+    assert from_transform == {"GenSplatTransform"}
+    assert imports(f"{PACKAGE}.batched", MODULES[f"{PACKAGE}.batched"], MODULES) >= {
+        f"{PACKAGE}.plan", f"{PACKAGE}.config", f"{PACKAGE}.view_output", f"{PACKAGE}.perturbation"}

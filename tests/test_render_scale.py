@@ -9,7 +9,7 @@ import torch
 import torch.nn.functional as F
 from torch.utils.data import default_collate
 
-from gensplat_transforms import transform as transform_module
+from gensplat_transforms import view_output
 from gensplat_transforms.batched import render_batch
 from gensplat_transforms.cache import GaussianCache
 from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
@@ -43,13 +43,13 @@ class StoredRGBD(Reconstructor):
 
 def sizes_rendered(monkeypatch) -> list[tuple[int, int]]:
     """Records the (width, height) of every camera the transform renders."""
-    seen, render = [], transform_module.render
+    seen, render = [], view_output.render
 
     def spy(gaussians, camera, **kwargs):
         seen.append((camera.width, camera.height))
         return render(gaussians, camera, **kwargs)
 
-    monkeypatch.setattr(transform_module, "render", spy)
+    monkeypatch.setattr(view_output, "render", spy)
     return seen
 
 

@@ -1,0 +1,147 @@
+"""The transform's settings (:class:`GenSplatConfig`) and the sizes that follow from them."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+from .perturbation import PerturbationRange
+from .rendering import BACKENDS
+
+RENDER_IN = ("auto", "worker", "batch")
+#: ``GenSplatConfig.depth_unit`` values: metres per unit of the item's depth maps, or None
+DEPTH_UNITS = {None: None, "keep": None, "m": 1.0, "mm": 1e-3}
+@dataclass
+class GenSplatConfig:
+    """Settings of :class:`GenSplatTransform`.
+
+    Attributes:
+        cameras: the reconstructed (external) cameras, in the order the cache stores them.
+            The first two define the pivot; one camera alone needs ``pivot_depth``. A wrist
+            camera never belongs here.
+        replace: cameras whose image is replaced (default: all of ``cameras``).
+        image_key: item key of a camera's image; ``{name}`` is replaced by the camera name.
+        probability: chance that a sample is augmented.
+        level: a named level (see ``perturbation.LEVELS``) or a ``PerturbationRange``.
+        mode: "episode" (one perturbation per trajectory, the paper's default) or "frame".
+        views_per_source: distinct perturbed cameras per trajectory (the paper: ~3).
+        seed: fixes the set of perturbations; which one a sample gets is drawn from torch's
+            RNG, which DataLoader seeds per worker and per epoch.
+        frame_offsets: frames of a temporal stack (T, C, H, W) relative to the item's frame
+            (default: the T frames ending at it); clamped to the episode, as LeRobot pads.
+        backend, render_options: renderer (a ``rendering.BACKENDS`` name, or "auto" as in
+            ``render``) and its options; "fast" renders with one thread unless
+            ``{"threads": n}`` is given.
+        background: RGB where nothing was reconstructed (with ``fill_holes``: only where the
+            view shows nothing at all).
+        fill_holes: paint the pixels the Gaussians leave uncovered (parts of the new view no
+            source camera saw) and soften silhouette edges with the surrounding colours
+            (``holes.fill_holes``), instead of ``background``.
+        report: add ``gensplat.*`` keys describing the perturbation to the item.
+        render_scale: build and render the augmented views at this fraction of the item's
+            image size, in (0, 1], then resize them to the image size (see
+            :func:`render_size`): about scale^2 of the render's time, for about 1 dB PSNR
+            per halving of the side, also at the size a policy shrinks the frames to
+            (``benchmarks/render_scale.py``: 640x480 frames seen at 224x168, 27.6 dB at 1,
+            26.4 at 0.5, 25.3 at 0.35). Render no smaller than the policy reads. Cached
+            depth of another size (a geometry cache holds it at the model's input size) is
+            taken at the pixels nearest the render's, so the views keep the images' detail.
+        depth_unit: the unit of the depth maps an item carries for the replaced cameras, at
+            ``<image key>_depth`` (LeRobot's depth-map features: its ``depth_output_unit``,
+            "mm" or "m"): those are replaced by the depth of the view at the new pose, 0 where
+            it shows nothing (as a depth camera reports no return; see :func:`.view_output.render_view`).
+            "keep" leaves them unchanged (then they no longer match an augmented view); None,
+            the default, raises for an item that carries one (the LeRobot plugin sets the
+            dataset's unit).
+        render_in: "worker" renders in the transform; "batch" only reads the cache and draws
+            the perturbation there, adding the inputs of :func:`.batched.render_batch` to the
+            item, which renders a whole batch at once after collation (on the training GPU).
+            "auto": batch where the LeRobot plugin trains on CUDA, else worker (a transform
+            used on its own renders in the worker).
+        pivot_depth: with one reconstructed camera, the distance in metres along its optical
+            axis to the pivot (see :mod:`.perturbation`), needed by the transform; ``gensplat
+            cache`` measures it (:func:`.episodes.scene_depth`). None with two or more cameras.
+
+    Example:
+        >>> config = GenSplatConfig(cameras=("left", "right"), replace=("left",), level="small")
+        >>> config.replace, config.probability, config.views_per_source
+        (('left',), 0.5, 3)
+    """
+
+    cameras: tuple[str, ...] = ("left", "right")
+    replace: tuple[str, ...] | None = None
+    image_key: str = "observation.images.{name}"
+    probability: float = 0.5
+    level: str | PerturbationRange = "train"
+    mode: str = "episode"
+    views_per_source: int = 3
+    seed: int = 0
+    frame_offsets: tuple[int, ...] | None = None
+    backend: str = "fast"
+    render_options: dict = field(default_factory=dict)
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    fill_holes: bool = True
+    report: bool = False
+    render_in: str = "auto"
+    render_scale: float = 1.0
+    depth_unit: str | None = None
+    pivot_depth: float | None = None
+
+    def __post_init__(self) -> None:
+        self.cameras = tuple(self.cameras)
+        self.replace = tuple(self.cameras if self.replace is None else self.replace)
+        if not self.cameras:
+            raise ValueError("GenSplatConfig.cameras: need at least one external camera")
+        if self.pivot_depth is not None and (len(self.cameras) > 1 or not 0 < self.pivot_depth < math.inf):
+            raise ValueError("GenSplatConfig.pivot_depth: a positive distance in metres for one reconstructed "
+                             f"camera (two or more define the pivot); got {self.pivot_depth} for {self.cameras}")  # fmt: skip
+        unknown = [c for c in self.replace if c not in self.cameras]
+        if unknown:
+            raise ValueError(f"GenSplatConfig.replace: {unknown} are not reconstructed cameras {self.cameras}")
+        if not 0 <= self.probability <= 1:
+            raise ValueError(f"GenSplatConfig.probability must be in [0, 1], got {self.probability}")
+        if self.views_per_source < 1:
+            raise ValueError(f"GenSplatConfig.views_per_source must be >= 1, got {self.views_per_source}")
+        if self.backend not in (*BACKENDS, "auto"):
+            raise ValueError(f"GenSplatConfig.backend: unknown {self.backend!r}; available {sorted(BACKENDS)} "
+                             "or 'auto'")
+        if not 0 < self.render_scale <= 1:
+            raise ValueError(f"GenSplatConfig.render_scale must be in (0, 1], got {self.render_scale}")
+        if self.render_in not in RENDER_IN:
+            raise ValueError(f"GenSplatConfig.render_in must be one of {RENDER_IN}, got {self.render_in!r}")
+        if self.depth_unit not in DEPTH_UNITS:
+            raise ValueError(f"GenSplatConfig.depth_unit must be one of {tuple(DEPTH_UNITS)}, got {self.depth_unit!r}")
+
+    def to_dict(self) -> dict:
+        """The settings as plain values for JSON (a ``PerturbationRange`` level as a dict)."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> GenSplatConfig:
+        """The inverse of :meth:`to_dict`, also after JSON turned its tuples into lists.
+
+        Example:
+            >>> import json
+            >>> config = GenSplatConfig(level=PerturbationRange((2.0, 4.0), (0.01, 0.02)), frame_offsets=(-1, 0))
+            >>> GenSplatConfig.from_dict(json.loads(json.dumps(config.to_dict()))) == config
+            True
+        """
+        d = _tuples(d)
+        if isinstance(d.get("level"), dict):
+            d["level"] = PerturbationRange(**_tuples(d["level"]))
+        return cls(**d)
+
+
+def _tuples(d: dict) -> dict:
+    return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+
+
+def render_size(width: int, height: int, scale: float) -> tuple[int, int]:
+    """(width, height) of the views rendered for ``width x height`` images at ``scale``
+    (``GenSplatConfig.render_scale``), at least one pixel each.
+
+    Example:
+        >>> render_size(640, 480, 0.35)
+        (224, 168)
+    """
+    return max(1, round(width * scale)), max(1, round(height * scale))

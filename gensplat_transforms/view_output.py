@@ -1,0 +1,89 @@
+"""How a rendered view becomes what an item holds, the same in the worker path and in
+:func:`.batched.render_batch`: rendered with the config's backend over its background, holes
+filled, depth where the view sees something, then resized and typed like the item's own images
+and depth maps."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from .cameras import Cameras
+from .config import DEPTH_UNITS, GenSplatConfig
+from .gaussians import Gaussians
+from .holes import fill_holes
+from .rendering import RenderOutput, render
+from .views import nearest_pixels
+
+#: a view's depth counts where its alpha reaches this (elsewhere it shows nothing: depth 0)
+DEPTH_MIN_ALPHA = 0.5
+def render_view(gaussians: Gaussians, camera: Cameras, config: GenSplatConfig, depth: bool = False) -> RenderOutput:
+    """The augmented view of ``camera`` (B cameras) as the transform makes it, rendered with
+    ``config.backend``: rgb (B, 3, H, W), hole-filled with ``config.fill_holes``, the render's
+    alpha (B, 1, H, W) (its coverage) and, with ``depth``, its depth (B, 1, H, W) in metres
+    (:func:`seen_depth`; else None)."""
+    out = render(gaussians, camera, background=render_background(config), backend=config.backend,
+                 return_depth=depth, **config.render_options)  # fmt: skip
+    if depth:
+        out.depth = seen_depth(out.depth, out.alpha)
+    return filled(out, config)
+
+
+def render_depth(gaussians: Gaussians, camera: Cameras, config: GenSplatConfig) -> torch.Tensor:
+    """(B, 1, H, W) depth in metres of ``camera`` (B cameras, e.g. a depth sensor beside the
+    colour camera) as the transform renders depth maps (:func:`seen_depth`), with
+    ``config.backend``."""
+    out = render(gaussians, camera, background=(0.0, 0.0, 0.0), backend=config.backend, return_depth=True,
+                 **config.render_options)  # fmt: skip
+    return seen_depth(out.depth, out.alpha)
+
+
+def seen_depth(depth: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+    """A render's expected depth where its alpha reaches ``DEPTH_MIN_ALPHA``, else 0 (nothing
+    seen there: no depth, as a depth camera reports no return; holes are never filled with
+    made-up depth)."""
+    return torch.where(alpha >= DEPTH_MIN_ALPHA, depth, torch.zeros_like(depth))
+
+
+def render_background(config: GenSplatConfig) -> tuple[float, float, float]:
+    """What to render over: black when holes are filled afterwards, else ``config.background``."""
+    return (0.0, 0.0, 0.0) if config.fill_holes else config.background
+
+
+def filled(out: RenderOutput, config: GenSplatConfig) -> RenderOutput:
+    """``out`` rendered over :func:`render_background`, its holes filled as ``config`` says."""
+    if config.fill_holes:
+        out.rgb = fill_holes(out.rgb, out.alpha, empty=config.background)
+    return out
+
+
+def as_cache_images(images: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """(N, 3, H, W) uint8 or float images as float in [0, 1] at ``height x width`` (what a depth
+    cache rebuilds the Gaussians from)."""
+    images = images.float() / 255 if images.dtype == torch.uint8 else images.float()
+    if images.shape[-2:] != (height, width):
+        images = F.interpolate(images, size=(height, width), mode="bilinear", antialias=True, align_corners=False)
+    return images.clamp(0, 1)
+
+
+def like_depth(depth: torch.Tensor, like: torch.Tensor, unit: str) -> torch.Tensor:
+    """(N, 1, h, w) depth in metres as depth maps like ``like`` (..., 1, H, W) in ``unit``
+    ("m" or "mm"): resized to H x W at the nearest pixels (never a mix of depths), in its
+    dtype (integers rounded and clipped to the dtype's range)."""
+    if depth.shape[-2:] != like.shape[-2:]:
+        depth = nearest_pixels(depth, like.shape[-1], like.shape[-2])
+    depth = depth / DEPTH_UNITS[unit]
+    if like.is_floating_point():
+        return depth.to(like.dtype)
+    info = torch.iinfo(like.dtype)
+    return depth.round().clamp(max(info.min, 0), info.max).to(like.dtype)
+
+
+def like_images(rgb: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """(N, 3, h, w) renders as images like ``like`` (..., 3, H, W): resized to H x W, uint8 in
+    [0, 255] or float in [0, 1] of its dtype (float images are taken to be in [0, 1], as
+    LeRobot's are)."""
+    if rgb.shape[-2:] != like.shape[-2:]:
+        rgb = F.interpolate(rgb, size=like.shape[-2:], mode="bilinear", antialias=True, align_corners=False)
+    rgb = rgb.clamp(0, 1)
+    return (rgb * 255 + 0.5).to(torch.uint8) if like.dtype == torch.uint8 else rgb.to(like.dtype)

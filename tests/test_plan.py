@@ -1,0 +1,85 @@
+"""One plan per item: drawn once by the transform, replayed by transform(item, plan), and the
+same moves in the worker path and the batch path (render_batch)."""
+
+import pytest
+import torch
+from torch.utils.data import default_collate
+
+from gensplat_transforms.batched import render_batch
+from gensplat_transforms.cache import GaussianCache
+from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
+from gensplat_transforms.perturbation import Perturbation, move_rig
+from gensplat_transforms.plan import ViewPlan
+from gensplat_transforms.reconstruction import RGBDReconstructor
+from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform, render_view
+
+LEFT, RIGHT = "observation.images.left", "observation.images.right"
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    source = SceneEpisodes(num_episodes=1, num_frames=3, size=24)
+    cache = GaussianCache(tmp_path_factory.mktemp("cache"), RGBDReconstructor(), source.fingerprint)
+    build_cache(cache, source, range(1), progress=False)
+    return cache, SceneDataset(source)
+
+
+def test_a_drawn_plan_replays_to_the_same_item_without_touching_the_rng(setup):
+    cache, ds = setup
+    tf = GenSplatTransform(GenSplatConfig(probability=0.5, report=True, level="large"), cache)
+    item = ds[1]
+    for seed in range(6):
+        torch.manual_seed(seed)
+        drawn = tf(item)
+        torch.manual_seed(seed)
+        plan = tf.plan(item)
+        state = torch.get_rng_state()
+        replayed = tf(item, plan)
+        assert torch.equal(torch.get_rng_state(), state)  # a given plan draws nothing
+        assert drawn.keys() == replayed.keys()
+        assert all(torch.equal(drawn[k], replayed[k]) for k in drawn if isinstance(drawn[k], torch.Tensor))
+        assert bool(replayed["gensplat.applied"].any()) == plan.applied
+
+
+def test_a_hand_made_plan_renders_its_moves_and_no_plan_keeps_the_images(setup):
+    cache, ds = setup
+    tf = GenSplatTransform(GenSplatConfig(report=True), cache)
+    item = ds[2]
+    moves = (Perturbation("x", 8.0, 0.03), Perturbation("y", -6.0, 0.0))
+    out = tf(item, ViewPlan(True, moves))
+    rec = cache.read(0, 2, ds.episodes.views(0, 2).images)
+    for i, (key, p) in enumerate(zip((LEFT, RIGHT), moves)):
+        want = render_view(rec.gaussians, p.move(rec.cameras, i), tf.cfg).rgb[0]
+        assert torch.equal(out[key], want.clamp(0, 1).to(out[key].dtype))
+    assert out["gensplat.theta_deg"].tolist() == [8.0, -6.0] and out["gensplat.axis"].tolist() == [0, 1]
+    kept = tf(item, ViewPlan(False, (Perturbation(), Perturbation())))
+    assert torch.equal(kept[LEFT], item[LEFT]) and not kept["gensplat.applied"].any()
+    with pytest.raises(ValueError, match="the plan moves 1 cameras, the config replaces"):
+        tf(item, ViewPlan(True, moves[:1]))
+
+
+def test_the_batch_path_renders_the_plans_the_worker_path_renders(setup):
+    cache, ds = setup
+    config = {"probability": 1.0, "level": "large", "report": True}
+    worker = GenSplatTransform(GenSplatConfig(**config, render_in="worker"), cache)
+    batch = GenSplatTransform(GenSplatConfig(**config, render_in="batch"), cache)
+    items = [ds[i] for i in range(3)]
+    # (no exact zero angle: a camera moved straight forward sees fronto-parallel discs at equal
+    # depths, whose order the two disc rules' round-off breaks differently)
+    plans = [ViewPlan(True, (Perturbation("y", 4.0 + 3 * i, 0.01), Perturbation("x", -3.0, 0.02 * i))) for i in range(3)]
+    expected = default_collate([worker(it, p) for it, p in zip(items, plans)])
+    got = render_batch(default_collate([batch(it, p) for it, p in zip(items, plans)]), batch)
+    for key in (LEFT, RIGHT):
+        torch.testing.assert_close(got[key], expected[key], atol=1e-5, rtol=0)
+
+
+def test_move_rig_moves_any_batch_of_rigs_as_perturbation_move_moves_one(setup):
+    cache, ds = setup
+    cameras = cache.read(0, 0, ds.episodes.views(0, 0).images).cameras
+    p = Perturbation("y", 7.5, -0.02)
+    rigs = cameras.c2w.expand(5, 2, 4, 4)  # (5, V, 4, 4)
+    moves = torch.tensor([[1, 7.5, -0.02]], dtype=torch.float64).expand(5, 1, 3)
+    moved = move_rig(rigs, moves, [1])
+    assert moved.shape == (5, 1, 4, 4)
+    for m in moved:
+        assert torch.equal(m, p.move(cameras, 1).c2w)
