@@ -230,14 +230,14 @@ def test_a_cache_written_with_zlib_still_reads(tmp_path, source, built, monkeypa
     def zlib_pack(codes):
         return zlib.compress(np.diff(codes, axis=-1, prepend=np.uint16(0)).tobytes(), 6)
 
-    def old_header(frames, num_frames, encode=cache_module._encode_depth):
+    def old_header(frames, num_frames, encode=cache_module.encode_depth):
         tensors, meta = encode(frames, num_frames)
         meta["depth_codec"] = json.dumps({k: v for k, v in json.loads(meta["depth_codec"]).items() if k != "compression"})
         return tensors, meta
 
     with monkeypatch.context() as m:
         m.setattr(dc, "_pack", zlib_pack)
-        m.setattr(cache_module, "_encode_depth", old_header)
+        m.setattr(cache_module, "encode_depth", old_header)
         old = GaussianCache(tmp_path / "old", RGBDReconstructor(), source.fingerprint)
         build_cache(old, source, range(1), progress=False)
     assert "compression" not in old.path(0).read_bytes()[:4096].decode(errors="replace")
@@ -596,9 +596,9 @@ GAUSSIAN_EDITS = {
 
 def _header_is_still_consistent(header):
     """Recompute the header checksum after an edit, as a forger would: the tensor checksums still catch it."""
-    from gensplat_transforms.cache import _header_crc
+    from gensplat_transforms.cache_format import header_crc
 
-    header["__metadata__"]["header_crc"] = _header_crc(header["__metadata__"])
+    header["__metadata__"]["header_crc"] = header_crc(header["__metadata__"])
 
 
 @pytest.mark.parametrize("edit", list(HEADER_EDITS))
@@ -695,8 +695,8 @@ def test_a_resume_that_trusts_headers_reads_no_data_and_reads_still_verify(built
     cache.path(0).write_bytes(bytes(data))
     edit_header(cache.path(1), HEADER_EDITS["num_frames lowered"])
     read = []
-    tensor = cache_module._EpisodeFile.tensor
-    monkeypatch.setattr(cache_module._EpisodeFile, "tensor", lambda f, name: read.append(name) or tensor(f, name))
+    tensor = cache_module.EpisodeFile.tensor
+    monkeypatch.setattr(cache_module.EpisodeFile, "tensor", lambda f, name: read.append(name) or tensor(f, name))
     counting = CountingSource(source)
     stats = build_cache(fresh(cache), counting, range(2), progress=False, verify=False)
     assert stats[0] is None and stats[1] is not None and counting.calls == 3  # only episode 1 rebuilt
