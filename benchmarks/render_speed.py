@@ -131,10 +131,13 @@ def _gsplat(scene, fast, repeats: int) -> dict:
 def _scene_stats(scene) -> dict:
     proj = project(scene.gaussians, scene.target)
     b = proj.boxes
+    t = b >> 4  # the 16x16 tiles of the fast backend
     return {
         "num_gaussians": len(scene.gaussians),
         "visible_splats": len(proj),
         "box_pairs": int(((b[:, 2] - b[:, 0] + 1) * (b[:, 3] - b[:, 1] + 1)).sum()),
+        # (splat, tile) pairs: the entries of the fast backend's tile lists
+        "box_tile_pairs": int(((t[:, 2] - t[:, 0] + 1) * (t[:, 3] - t[:, 1] + 1)).sum()),
     }
 
 
@@ -223,6 +226,7 @@ def _print_table(r: dict) -> None:
     rows = [
         ("Gaussians / visible splats", f"{r['num_gaussians']} / {r['visible_splats']}"),
         ("(splat, pixel) pairs in boxes", f"{r['box_pairs'] / 1e6:.1f} M"),
+        ("(splat, tile) pairs in boxes", f"{r['box_tile_pairs'] / 1e3:.0f} k"),
         ("resolution", "x".join(map(str, r["resolution"]))),
         ("CPU (family/model), SIMD", f"{m.get('cpu_model')} ({m.get('cpu_family_model')}), {m.get('simd')}"),
         ("compiled for", r["codegen"]),
