@@ -56,29 +56,9 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     _dataset_arguments(cache)
     cache.add_argument("--cameras", nargs="+", default=None, help="external cameras to reconstruct (default: all)")
-    cache.add_argument("--replace", nargs="+", default=None, help="cameras whose image is replaced (default: all)")
-    cache.add_argument("--level", default="train", help="perturbation level (default: train)")
-    cache.add_argument("--probability", type=float, default=0.5,
-                       help="chance a training sample is augmented (default: 0.5)")
-    cache.add_argument("--mode", choices=["episode", "frame"], default="episode",
-                       help="episode: one perturbation per trajectory and view; frame: a new one every frame "
-                            "(default: episode)")
-    cache.add_argument("--views-per-source", type=int, default=3,
-                       help="distinct perturbed cameras per trajectory (default: 3)")
-    cache.add_argument("--seed", type=int, default=0, help="seed fixing the set of perturbations (default: 0)")
-    cache.add_argument("--no-fill-holes", dest="fill_holes", action="store_false",
-                       help="paint pixels no source camera saw black instead of filling them")
-    cache.add_argument("--backend", default="fast", help="render backend used in the workers (default: fast)")
-    cache.add_argument("--render-in", choices=["auto", "worker", "batch"], default="auto",
-                       help="worker: render in the dataloader workers; batch: render each batch on the training "
-                            "device after collation; auto: batch when training on CUDA (default: auto)")
-    cache.add_argument("--render-scale", type=float, default=1.0,
-                       help="render the augmented views at this fraction of the frame size, then resize them to it: "
-                            "about scale^2 of the render time, e.g. 0.5 for 640x480 frames that the policy shrinks "
-                            "to 320x240 (benchmarks/render_scale.py; default: 1.0)")
-    cache.add_argument("--keep-depth-maps", dest="depth_unit", action="store_const", const="keep", default=None,
-                       help="leave the replaced cameras' depth-map features (observation.images.<camera>_depth) as "
-                            "recorded instead of rendering them at the new pose (default: rendered)")
+    from .config import add_config_arguments
+
+    add_config_arguments(cache)  # the transform's settings: one flag per GenSplatConfig field that has one
     cache.add_argument("--episodes", type=int, nargs="+", default=None, help="only these episodes (default: all)")
     cache.add_argument("--trust-headers", dest="verify", action="store_false",
                        help="resume without reading cached data: skip every episode whose header is valid (data "
@@ -334,18 +314,14 @@ def _cache(args) -> None:
         raise SystemExit(f"gensplat cache needs the LeRobot extra: pip install 'gensplat-transforms[lerobot]' ({e})")
     from .atomic import read_json_object
     from .cache import size_text
+    from .config import config_from_arguments
     from .dataset_format import GENSPLAT_DIR, depth_path
     from .distributed import Shard, gather
-    from .transform import GenSplatConfig
 
     check_cameras(args.root, args.cameras or ())
     source = LeRobotSource(args.root, args.repo_id, tuple(args.cameras) if args.cameras else None)
     cameras = source.camera_names
-    config = GenSplatConfig(
-        cameras=cameras, replace=args.replace, level=args.level, probability=args.probability, mode=args.mode,
-        views_per_source=args.views_per_source, seed=args.seed, backend=args.backend, fill_holes=args.fill_holes,
-        render_in=args.render_in, render_scale=args.render_scale, depth_unit=args.depth_unit,
-    )  # fmt: skip
+    config = config_from_arguments(args, cameras=cameras)
     spec = None if args.reconstructor is None else {"name": args.reconstructor}
     if args.fill_depth:
         if args.reconstructor not in (None, "rgbd") or not source.has_depth():

@@ -2,15 +2,25 @@
 
 from __future__ import annotations
 
+import argparse
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 
 from .perturbation import PerturbationRange
 from .rendering import BACKENDS
 
 RENDER_IN = ("auto", "worker", "batch")
+#: ``GenSplatConfig.mode`` values
+MODES = ("episode", "frame")
 #: ``GenSplatConfig.depth_unit`` values: metres per unit of the item's depth maps, or None
 DEPTH_UNITS = {None: None, "keep": None, "m": 1.0, "mm": 1e-3}
+def _cli(help: str, **argparse_options) -> dict:
+    """A field's metadata giving it a command-line flag (``gensplat cache``): ``help`` and
+    argparse options (the flag defaults to ``--<field-name>``; type and default come from the
+    field, see :func:`add_config_arguments`)."""
+    return {"cli": {"help": help, **argparse_options}}
+
+
 @dataclass
 class GenSplatConfig:
     """Settings of :class:`GenSplatTransform`.
@@ -68,24 +78,39 @@ class GenSplatConfig:
         (('left',), 0.5, 3)
     """
 
+    # what is reconstructed and replaced
     cameras: tuple[str, ...] = ("left", "right")
-    replace: tuple[str, ...] | None = None
+    replace: tuple[str, ...] | None = field(default=None, metadata=_cli("cameras whose image is replaced", nargs="+"))
     image_key: str = "observation.images.{name}"
-    probability: float = 0.5
-    level: str | PerturbationRange = "train"
-    mode: str = "episode"
-    views_per_source: int = 3
-    seed: int = 0
+    # how the cameras move
+    probability: float = field(default=0.5, metadata=_cli("chance a training sample is augmented"))
+    level: str | PerturbationRange = field(default="train", metadata=_cli("perturbation level"))
+    mode: str = field(default="episode", metadata=_cli(
+        "episode: one perturbation per trajectory and view; frame: a new one every frame", choices=MODES))
+    views_per_source: int = field(default=3, metadata=_cli("distinct perturbed cameras per trajectory"))
+    seed: int = field(default=0, metadata=_cli("seed fixing the set of perturbations"))
+    pivot_depth: float | None = None
+    # the item's layout
     frame_offsets: tuple[int, ...] | None = None
-    backend: str = "fast"
+    depth_unit: str | None = field(default=None, metadata=_cli(
+        "leave the replaced cameras' depth-map features (observation.images.<camera>_depth) as recorded instead of "
+        "rendering them at the new pose (default: rendered)", flag="--keep-depth-maps", action="store_const",
+        const="keep"))  # fmt: skip
+    report: bool = False
+    # how a view is rendered
+    backend: str = field(default="fast", metadata=_cli("render backend used in the workers"))
     render_options: dict = field(default_factory=dict)
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    fill_holes: bool = True
-    report: bool = False
-    render_in: str = "auto"
-    render_scale: float = 1.0
-    depth_unit: str | None = None
-    pivot_depth: float | None = None
+    fill_holes: bool = field(default=True, metadata=_cli(
+        "paint pixels no source camera saw black instead of filling them", flag="--no-fill-holes",
+        action="store_false"))  # fmt: skip
+    render_in: str = field(default="auto", metadata=_cli(
+        "worker: render in the dataloader workers; batch: render each batch on the training device after "
+        "collation; auto: batch when training on CUDA", choices=RENDER_IN))  # fmt: skip
+    render_scale: float = field(default=1.0, metadata=_cli(
+        "render the augmented views at this fraction of the frame size, then resize them to it: about scale^2 of "
+        "the render time, e.g. 0.5 for 640x480 frames that the policy shrinks to 320x240 "
+        "(benchmarks/render_scale.py)"))  # fmt: skip
 
     def __post_init__(self) -> None:
         self.cameras = tuple(self.cameras)
@@ -145,3 +170,25 @@ def render_size(width: int, height: int, scale: float) -> tuple[int, int]:
         (224, 168)
     """
     return max(1, round(width * scale)), max(1, round(height * scale))
+
+
+def add_config_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add a flag for every :class:`GenSplatConfig` field that has one (see ``_cli``), with the
+    field's default and type: the command line and the config cannot drift apart."""
+    for f in fields(GenSplatConfig):
+        if "cli" not in f.metadata:
+            continue
+        options = dict(f.metadata["cli"])
+        flag = options.pop("flag", "--" + f.name.replace("_", "-"))
+        shown = "all" if f.default is None and options.get("nargs") else f.default
+        if options.get("action") is None:
+            options.setdefault("type", type(f.default) if f.default is not None else str)
+            options["help"] += f" (default: {shown})"
+        parser.add_argument(flag, dest=f.name, default=f.default, **options)
+
+
+def config_from_arguments(args: argparse.Namespace, **fixed) -> GenSplatConfig:
+    """The :class:`GenSplatConfig` of the flags :func:`add_config_arguments` added, parsed into
+    ``args``, and the ``fixed`` fields (e.g. the cameras of the dataset)."""
+    given = {f.name: getattr(args, f.name) for f in fields(GenSplatConfig) if "cli" in f.metadata}
+    return GenSplatConfig(**given, **fixed)
