@@ -15,7 +15,7 @@ out="$repo/outputs/dp_gensplat/run_$run"
 # 1. a local LeRobot dataset with calibrated cameras and depth (here: the built-in scene; kept for reruns)
 [ -d "$root" ] || "$bin/python" -c "
 import sys
-from gensplat_lerobot.record import record_scene_dataset
+from gensplat_lerobot.scene_dataset import record_scene_dataset
 from gensplat_transforms.episodes import SceneEpisodes
 record_scene_dataset(sys.argv[1], SceneEpisodes(num_episodes=4, num_frames=30, size=96), sys.argv[2])" "$root" "$repo_id"
 

@@ -22,7 +22,6 @@ from typing import TYPE_CHECKING
 import torch
 
 from .cameras import Cameras
-from .config import GenSplatConfig, render_size
 from .depth_codec import depth_from_words
 from .gaussians import Gaussians
 from .perturbation import move_rig
@@ -32,6 +31,7 @@ from .reconstruction.base import nearest_pixels
 from .reconstruction.rgbd import RGBDReconstructor, dense_discs
 from .rendering import RenderOutput
 from .rendering.gsplat_backend import render_gsplat_batch
+from .settings import GenSplatConfig, render_size
 from .sh import num_sh_bases
 from .view_output import (
     as_cache_images,

@@ -56,7 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     _dataset_arguments(cache)
     cache.add_argument("--cameras", nargs="+", default=None, help="external cameras to reconstruct (default: all)")
-    from .config import add_config_arguments
+    from .settings import add_config_arguments
 
     add_config_arguments(cache)  # the transform's settings: one flag per GenSplatConfig field that has one
     cache.add_argument("--episodes", type=int, nargs="+", default=None, help="only these episodes (default: all)")
@@ -314,9 +314,9 @@ def _cache(args) -> None:
         raise SystemExit(f"gensplat cache needs the LeRobot extra: pip install 'gensplat-transforms[lerobot]' ({e})")
     from .atomic import read_json_object
     from .cache import size_text
-    from .config import config_from_arguments
     from .dataset_format import GENSPLAT_DIR, depth_path
     from .distributed import Shard, gather
+    from .settings import config_from_arguments
 
     check_cameras(args.root, args.cameras or ())
     source = LeRobotSource(args.root, args.repo_id, tuple(args.cameras) if args.cameras else None)
@@ -427,7 +427,7 @@ def _lerobot_module(name: str, command: str):
 
 
 def _preview(args) -> None:
-    preview = _lerobot_module("preview", "preview").write_lerobot_preview(
+    preview = _lerobot_module("training_preview", "preview").write_lerobot_preview(
         args.root, args.repo_id, args.out, episode=args.episode, frames=args.frames, draws=args.draws,
         image_transforms=args.image_transforms, seed=args.seed,
     )  # fmt: skip

@@ -13,12 +13,12 @@ from torch.utils.data import Dataset
 
 from .cache import EpisodeSource, GaussianCache
 from .cache_reader import CacheReader
-from .config import GenSplatConfig, render_size
 from .counters import SampleCounters
 from .dataset_format import DepthSensor
 from .perturbation import Perturbation, PerturbationSampler
 from .plan import BATCH_KEYS, ViewPlan
 from .reconstruction import Reconstruction
+from .settings import GenSplatConfig, render_size
 from .view_output import as_cache_images, like_depth, like_images, render_depth, render_view
 
 __all__ = ["BATCH_KEYS", "AugmentedDataset", "GenSplatConfig", "GenSplatTransform", "ViewPlan", "render_depth",

@@ -9,10 +9,10 @@ import torch
 import torch.nn.functional as F
 
 from .cameras import Cameras
-from .config import DEPTH_UNITS, GenSplatConfig
 from .gaussians import Gaussians
 from .holes import fill_holes
 from .rendering import RenderOutput, render
+from .settings import DEPTH_UNITS, GenSplatConfig
 from .views import nearest_pixels
 
 #: a view's depth counts where its alpha reaches this (elsewhere it shows nothing: depth 0)

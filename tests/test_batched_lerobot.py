@@ -14,7 +14,7 @@ from gensplat_transforms.transform import GenSplatConfig
 
 pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
 from gensplat_lerobot import enable_gensplat, save_settings
-from gensplat_lerobot.batched import use_render_in
+from gensplat_lerobot.batch_mode import use_render_in
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from test_batched import assert_same_batch
 from test_lerobot import REPO, dataset_root, recorded, train_diffusion  # noqa: F401  (test_lerobot's fixtures)

@@ -169,7 +169,7 @@ def test_lerobot_source_uses_the_stored_calibration_and_the_dataset_is_untouched
     pytest.importorskip("lerobot", reason="the LeRobot extra is not installed")
     os.environ["HF_HUB_OFFLINE"] = "1"
     from gensplat_lerobot import LeRobotSource
-    from gensplat_lerobot.record import record_scene_dataset
+    from gensplat_lerobot.scene_dataset import record_scene_dataset
 
     from gensplat_transforms.episodes import SceneEpisodes
 

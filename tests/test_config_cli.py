@@ -7,7 +7,7 @@ from dataclasses import fields
 import pytest
 
 from gensplat_transforms.cli import build_parser
-from gensplat_transforms.config import GenSplatConfig, add_config_arguments, config_from_arguments
+from gensplat_transforms.settings import GenSplatConfig, add_config_arguments, config_from_arguments
 
 BASE = ["cache", "--root", "r", "--repo-id", "x/y"]
 

@@ -88,7 +88,7 @@ def test_two_torchrun_processes_build_what_one_process_builds(tmp_path):
     pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
     os.environ["HF_HUB_OFFLINE"] = "1"
     from gensplat_lerobot import prepare
-    from gensplat_lerobot.record import record_scene_dataset
+    from gensplat_lerobot.scene_dataset import record_scene_dataset
 
     from gensplat_transforms.transform import GenSplatConfig
 

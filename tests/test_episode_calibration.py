@@ -21,7 +21,7 @@ pytest.importorskip("lerobot", reason="the LeRobot extra is not installed")
 os.environ["HF_HUB_OFFLINE"] = "1"
 
 from gensplat_lerobot import LeRobotSource, enable_gensplat, prepare, video_backend
-from gensplat_lerobot.record import record_scene_dataset
+from gensplat_lerobot.scene_dataset import record_scene_dataset
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from gensplat_transforms.episodes import SceneEpisodes

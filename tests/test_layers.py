@@ -133,4 +133,12 @@ def test_the_batch_path_shares_the_workers_helpers_instead_of_reaching_into_the_
                       for a in n.names}  # fmt: skip
     assert from_transform == {"GenSplatTransform"}
     assert imports(f"{PACKAGE}.batched", MODULES[f"{PACKAGE}.batched"], MODULES) >= {
-        f"{PACKAGE}.plan", f"{PACKAGE}.config", f"{PACKAGE}.view_output", f"{PACKAGE}.perturbation"}
+        f"{PACKAGE}.plan", f"{PACKAGE}.settings", f"{PACKAGE}.view_output", f"{PACKAGE}.perturbation"}
+
+
+def test_no_module_name_is_used_twice():
+    """A file's name says which layer it belongs to: no two modules of the core and the LeRobot
+    integration share one (``__init__.py`` aside)."""
+    paths = [p for base in (ROOT / PACKAGE, ROOT / "integrations") for p in base.rglob("*.py") if p.name != "__init__.py"]
+    names = [p.name for p in paths]
+    assert not {n for n in names if names.count(n) > 1}

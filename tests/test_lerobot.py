@@ -25,7 +25,7 @@ from gensplat_lerobot import (
     video_backend,
 )
 from gensplat_lerobot.dataset import dataset_cache, make_reconstructor
-from gensplat_lerobot.record import record_scene_dataset
+from gensplat_lerobot.scene_dataset import record_scene_dataset
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from gensplat_transforms.cache import StaleCacheError

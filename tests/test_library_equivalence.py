@@ -19,7 +19,7 @@ from safetensors.torch import load_file
 from gensplat_transforms.gaussians import Gaussians
 from gensplat_transforms.images import save_grid, to_uint8
 from gensplat_transforms.metrics import ssim, ssim_map
-from gensplat_transforms.model.geometry import quat_mul
+from gensplat_transforms.model.frames import quat_mul
 from gensplat_transforms.model.losses import LossWeights, rgb_loss
 from gensplat_transforms.model.train import ema_model
 from gensplat_transforms.perturbation import axis_rotation

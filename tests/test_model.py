@@ -12,7 +12,7 @@ from tiny_model import tiny_model as perturbed_model
 
 from gensplat_transforms.cameras import Cameras, look_at
 from gensplat_transforms.model import GenSplatModel, ModelConfig, load_pi3_weights, to_gaussians
-from gensplat_transforms.model.geometry import (
+from gensplat_transforms.model.frames import (
     align_similarity,
     estimate_focal,
     quat_mul,

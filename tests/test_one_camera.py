@@ -122,7 +122,7 @@ def one_camera_dataset(tmp_path_factory):
     """A procedural dataset whose only calibrated external camera with depth is ``left``
     (``right`` carries no calibration, ``front`` no depth)."""
     os.environ["HF_HUB_OFFLINE"] = "1"
-    from gensplat_lerobot.record import record_scene_dataset
+    from gensplat_lerobot.scene_dataset import record_scene_dataset
 
     root = tmp_path_factory.mktemp("onecam") / "ds"
     record_scene_dataset(root, SceneEpisodes(num_episodes=2, num_frames=20, size=48), REPO, progress=False)

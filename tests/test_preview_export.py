@@ -16,8 +16,8 @@ import av
 from gensplat_lerobot import LeRobotSource, enable_gensplat, load_settings, save_settings
 from gensplat_lerobot.dataset import dataset_cache
 from gensplat_lerobot.export import timestep_gaussians
-from gensplat_lerobot.preview import MIN_TILE_HEIGHT, open_dataset, write_lerobot_preview
-from gensplat_lerobot.record import record_scene_dataset
+from gensplat_lerobot.scene_dataset import record_scene_dataset
+from gensplat_lerobot.training_preview import MIN_TILE_HEIGHT, open_dataset, write_lerobot_preview
 
 from gensplat_transforms.cli import main
 from gensplat_transforms.episodes import SceneEpisodes

@@ -183,7 +183,7 @@ def test_lerobot_source_registers_a_sensors_own_depth(tmp_path):
     from gensplat_lerobot import LeRobotSource, enable_gensplat, load_settings, prepare
     from gensplat_lerobot.dataset import dataset_cache, make_reconstructor
     from gensplat_lerobot.depth import import_dataset_depth
-    from gensplat_lerobot.record import record_scene_dataset
+    from gensplat_lerobot.scene_dataset import record_scene_dataset
 
     from gensplat_transforms.episodes import SceneEpisodes
     from gensplat_transforms.transform import GenSplatConfig

@@ -12,7 +12,7 @@ import pytest
 pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
 os.environ["HF_HUB_OFFLINE"] = "1"
 
-from gensplat_lerobot.record import record_scene_dataset
+from gensplat_lerobot.scene_dataset import record_scene_dataset
 
 from gensplat_transforms.cli import main
 from gensplat_transforms.dataset_format import depth_path

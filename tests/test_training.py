@@ -323,7 +323,7 @@ def test_lerobot_views_train_with_the_recorded_geometry(tmp_path, monkeypatch):
     pytest.importorskip("lerobot", reason="the LeRobot extra is not installed")
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     from gensplat_lerobot import LeRobotViews
-    from gensplat_lerobot.record import record_scene_dataset
+    from gensplat_lerobot.scene_dataset import record_scene_dataset
 
     from gensplat_transforms.episodes import SceneEpisodes
 
@@ -355,7 +355,7 @@ def test_cli_trains_and_exports(tmp_path):
 def test_cli_mixes_procedural_and_lerobot_data(tmp_path, monkeypatch):
     pytest.importorskip("lerobot", reason="the LeRobot extra is not installed")
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
-    from gensplat_lerobot.record import record_scene_dataset
+    from gensplat_lerobot.scene_dataset import record_scene_dataset
 
     from gensplat_transforms.episodes import SceneEpisodes
     from gensplat_transforms.model import train as train_module

@@ -10,7 +10,7 @@ import pytest
 pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import training_throughput as tt
-from gensplat_lerobot.record import record_scene_dataset
+from gensplat_lerobot.scene_dataset import record_scene_dataset
 
 from gensplat_transforms.episodes import SceneEpisodes
 

@@ -31,8 +31,8 @@ from .checkpoints import (
 from .config import PATCH_SIZE, ModelConfig, check_max_pixels
 from .decoder import Decoder, token_positions
 from .encoder import Encoder
+from .frames import quat_mul, sh_rotation
 from .gaussian_head import GaussianHead
-from .geometry import quat_mul, sh_rotation
 from .heads import CameraHead, HeadDecoder, PixelHead
 
 #: the most pixels per view Pi3's own image loaders feed it (its ``PIXEL_LIMIT``)

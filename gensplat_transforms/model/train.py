@@ -43,8 +43,8 @@ from ..rendering import render
 from ..views import Views
 from .checkpoints import GAUSSIAN_PREFIX, load_pi3_weights
 from .config import ModelConfig
+from .frames import estimate_focal
 from .gensplat import GenSplatModel, to_gaussians
-from .geometry import estimate_focal
 from .losses import LossWeights, camera_loss, depth_loss, points_loss, rgb_loss
 from .teacher import Teacher
 

@@ -44,7 +44,7 @@ from ..model import GenSplatModel
 from ..model.checkpoints import CONFIG_FILE, FORMAT_NAME, resolve
 from ..model.config import check_max_pixels
 from ..model.da3 import DepthAnything3, is_da3_checkpoint
-from ..model.geometry import align_similarity, estimate_focal, transform_poses
+from ..model.frames import align_similarity, estimate_focal, transform_poses
 from ..weights import DEFAULT_MODEL_DIR
 from .base import DepthReconstructor, Reconstruction, Views, valid_depth
 from .model import (

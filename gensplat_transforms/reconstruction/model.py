@@ -15,7 +15,7 @@ from ..model import PATCH_SIZE, GenSplatModel, to_gaussians
 from ..model.config import check_max_pixels
 from ..model.da3 import PRESETS as DA3_PRESETS
 from ..model.da3 import DepthAnything3
-from ..model.geometry import align_similarity, estimate_focal, transform_gaussians, transform_poses
+from ..model.frames import align_similarity, estimate_focal, transform_gaussians, transform_poses
 from ..weights import DEFAULT_MODEL_DIR
 from .base import Reconstruction, Reconstructor, Views
 

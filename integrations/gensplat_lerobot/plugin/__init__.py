@@ -12,7 +12,7 @@ from gensplat_transforms.cache import CacheError
 from gensplat_transforms.counters import SampleCounters
 from gensplat_transforms.transform import render_size
 
-from .. import batched
+from .. import batch_mode
 from ..dataset import enable_gensplat
 
 LINE = "--gensplat.discover_packages_path=gensplat_lerobot.plugin"
@@ -37,7 +37,7 @@ def _install() -> None:
             train, evaluation = _original(cfg)
             enable_gensplat(train)
             keep_unread_depth_maps(train, cfg)
-            batched.use_render_in(train, cfg)  # "batch": the views are rendered by the loop's cycle
+            batch_mode.use_render_in(train, cfg)  # "batch": the views are rendered by the loop's cycle
             train.gensplat.counters = SampleCounters(cfg.num_workers)  # shared before the workers start
             _run.update(counters=train.gensplat.counters, log_freq=cfg.log_freq)
             log.info(start_message(train, cfg))
@@ -56,7 +56,7 @@ def _install() -> None:
         make_train_eval_datasets.gensplat = True
         module.make_train_eval_datasets = make_train_eval_datasets
         module.update_policy = update_policy
-        batched.install(module)
+        batch_mode.install(module)
 
 
 def policy_input_size(policy, width: int, height: int) -> tuple[int, int] | None:
