@@ -14,7 +14,8 @@ from gensplat_transforms.transform import GenSplatConfig
 
 pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
 from gensplat_lerobot import enable_gensplat, save_settings
-from gensplat_lerobot.batch_mode import use_render_in
+from gensplat_lerobot.batch_mode import attach_batch_renderer, settled_render_in
+from gensplat_lerobot.plugin import run_settings
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from test_batched import assert_same_batch
 from test_lerobot import REPO, dataset_root, recorded, train_diffusion  # noqa: F401  (test_lerobot's fixtures)
@@ -27,7 +28,7 @@ def root(dataset_root):  # noqa: F811
 
 
 class RunConfig:
-    """What :func:`use_render_in` reads of a lerobot-train config."""
+    """What :func:`settled_render_in` reads of a lerobot-train config."""
 
     def __init__(self, device: str) -> None:
         self.trainable_config = type("Policy", (), {"device": device})()
@@ -39,13 +40,13 @@ def flip(image: torch.Tensor) -> torch.Tensor:
 
 
 def test_lerobot_batch_mode_matches_the_worker_with_2d_transforms_after_rendering(root):
-    save_settings(root, GenSplatConfig(probability=0.5, level="large", report=True), {"name": "rgbd"})
+    config = GenSplatConfig(probability=0.5, level="large", report=True)
+    save_settings(root, config, {"name": "rgbd"})
     datasets = {}
     for mode in ("worker", "batch"):
         ds = LeRobotDataset(REPO, root=root, image_transforms=flip)
-        enable_gensplat(ds)
-        ds.gensplat.cfg = replace(ds.gensplat.cfg, render_in=mode)
-        assert use_render_in(ds, RunConfig("cpu")) == mode
+        enable_gensplat(ds, replace(config, render_in=mode), {"name": "rgbd"})
+        assert attach_batch_renderer(ds) == mode
         datasets[mode] = ds
     assert datasets["batch"].gensplat_image_transforms is None  # moved to the batch side
     batches = {}
@@ -60,12 +61,17 @@ def test_lerobot_batch_mode_matches_the_worker_with_2d_transforms_after_renderin
 
 
 def test_render_in_auto_renders_in_the_workers_without_cuda(root):
+    assert settled_render_in("auto", RunConfig("cuda")) == ("batch" if torch.cuda.is_available() else "worker")
+    assert settled_render_in("auto", RunConfig("cpu")) == "worker"
+    assert settled_render_in("batch", RunConfig("cpu")) == "batch"  # asked for: kept
     save_settings(root, GenSplatConfig(), {"name": "rgbd"})
-    ds = enable_gensplat(LeRobotDataset(REPO, root=root))
-    expected = "batch" if torch.cuda.is_available() else "worker"
-    assert use_render_in(ds, RunConfig("cuda")) == expected == ds.gensplat.cfg.render_in
-    cpu = enable_gensplat(LeRobotDataset(REPO, root=root))
-    assert use_render_in(cpu, RunConfig("cpu")) == "worker" and not hasattr(cpu, "gensplat_batch")
+    unsettled = enable_gensplat(LeRobotDataset(REPO, root=root))
+    with pytest.raises(ValueError, match="render_in 'auto' is not settled"):
+        attach_batch_renderer(unsettled)
+    base = LeRobotDataset(REPO, root=root)
+    cpu = enable_gensplat(base, *run_settings(base, RunConfig("cpu")))  # as the plugin makes it
+    assert cpu.gensplat.cfg.render_in == "worker"
+    assert attach_batch_renderer(cpu) == "worker" and not hasattr(cpu, "gensplat_batch")
 
 
 def test_lerobot_train_diffusion_policy_renders_batches_after_collation(root, tmp_path):

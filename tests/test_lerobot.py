@@ -669,13 +669,13 @@ def test_lerobots_own_depth_features_are_read_and_copied_into_the_cache(tmp_path
         lines = start_message(ds, SimpleNamespace(policy=None, resume=False)).splitlines()
         assert lines[4] == (f"  depth maps {LEFT}_depth, observation.images.right_depth rendered at the new poses too, "
                             f"in {unit}")  # fmt: skip
-    from gensplat_lerobot.plugin import keep_unread_depth_maps
+    from gensplat_lerobot.plugin import run_settings
 
     right_depth = "observation.images.right_depth"
     for reads in ({LEFT: None}, {LEFT: None, right_depth: None}):  # a policy whose input features are given
         run = SimpleNamespace(policy=SimpleNamespace(input_features=reads), resume=False)
-        ds = enable_gensplat(LeRobotDataset(REPO, **opened))
-        keep_unread_depth_maps(ds, run)
+        base = LeRobotDataset(REPO, **opened)
+        ds = enable_gensplat(base, *run_settings(base, run))  # as the plugin makes it
         item = ds[2]
         assert not torch.equal(item[LEFT], ref[LEFT])
         assert torch.equal(item[LEFT + "_depth"], ref[LEFT + "_depth"]) == (right_depth not in reads)

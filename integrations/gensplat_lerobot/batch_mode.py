@@ -10,7 +10,6 @@ the rendered views, never to the images the Gaussians are rebuilt from.
 from __future__ import annotations
 
 import logging
-from dataclasses import replace
 
 import torch
 
@@ -47,17 +46,24 @@ class BatchRenderer:
         return rendered
 
 
-def use_render_in(dataset: GenSplatLeRobotDataset, cfg) -> str:
-    """Settle where ``dataset`` renders for the ``lerobot-train`` run ``cfg`` and return it:
-    ``render_in="auto"`` becomes "batch" when CUDA is available and the policy trains on CUDA,
-    else "worker". In batch mode the dataset gets a :class:`BatchRenderer` (``gensplat_batch``,
-    used by the loop :func:`install` wraps) and hands it its 2D image transforms."""
+def settled_render_in(mode: str, cfg) -> str:
+    """``GenSplatConfig.render_in`` for the ``lerobot-train`` run ``cfg``: "auto" becomes
+    "batch" when CUDA is available and the policy trains on CUDA, else "worker"; "worker" and
+    "batch" stay as they are."""
+    if mode != "auto":
+        return mode
+    device = getattr(getattr(cfg, "trainable_config", None), "device", None) or "cpu"
+    return "batch" if torch.cuda.is_available() and torch.device(device).type == "cuda" else "worker"
+
+
+def attach_batch_renderer(dataset: GenSplatLeRobotDataset) -> str:
+    """Where ``dataset`` renders (its transform's settled ``render_in``), returned; in batch
+    mode the dataset gets a :class:`BatchRenderer` (``gensplat_batch``, used by the loop
+    :func:`install` wraps) and hands it its 2D image transforms."""
     transform = dataset.gensplat
     mode = transform.cfg.render_in
-    if mode == "auto":
-        device = getattr(cfg.trainable_config, "device", None) or "cpu"
-        mode = "batch" if torch.cuda.is_available() and torch.device(device).type == "cuda" else "worker"
-    transform.cfg = replace(transform.cfg, render_in=mode)
+    if mode not in ("worker", "batch"):
+        raise ValueError(f"attach_batch_renderer: render_in {mode!r} is not settled (settled_render_in)")
     if mode == "batch":
         disc_builder(transform.cache.reconstructor)  # fails here, not in a worker, for caches it cannot render
         cameras = [key for key in dataset.meta.camera_keys if key not in dataset.meta.depth_keys]

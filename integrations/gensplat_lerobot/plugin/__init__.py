@@ -10,10 +10,10 @@ from dataclasses import replace
 
 from gensplat_transforms.cache import CacheError
 from gensplat_transforms.counters import SampleCounters
-from gensplat_transforms.transform import render_size
+from gensplat_transforms.settings import GenSplatConfig, render_size
 
 from .. import batch_mode
-from ..dataset import enable_gensplat
+from ..dataset import enable_gensplat, load_settings
 
 LINE = "--gensplat.discover_packages_path=gensplat_lerobot.plugin"
 
@@ -35,9 +35,8 @@ def _install() -> None:
 
         def make_train_eval_datasets(cfg, _original=original, _run=run):
             train, evaluation = _original(cfg)
-            enable_gensplat(train)
-            keep_unread_depth_maps(train, cfg)
-            batch_mode.use_render_in(train, cfg)  # "batch": the views are rendered by the loop's cycle
+            enable_gensplat(train, *run_settings(train, cfg))
+            batch_mode.attach_batch_renderer(train)  # "batch": the views are rendered by the loop's cycle
             train.gensplat.counters = SampleCounters(cfg.num_workers)  # shared before the workers start
             _run.update(counters=train.gensplat.counters, log_freq=cfg.log_freq)
             log.info(start_message(train, cfg))
@@ -127,9 +126,10 @@ def start_message(train, cfg) -> str:
     ])  # fmt: skip
 
 
-def depth_map_keys(train) -> list[str]:
-    """The depth-map features of the cameras GenSplat replaces (``<image key>_depth``)."""
-    c = train.gensplat.cfg
+def depth_map_keys(train, config: GenSplatConfig | None = None) -> list[str]:
+    """The depth-map features of the cameras GenSplat replaces (``<image key>_depth``), by
+    ``config`` (default: the dataset's transform's)."""
+    c = config or train.gensplat.cfg
     return [key for n in c.replace if (key := c.image_key.format(name=n) + "_depth") in train.meta.depth_keys]
 
 
@@ -141,13 +141,17 @@ def policy_reads_any(cfg, keys: list[str]) -> bool:
     return not given or any(key in given for key in keys)
 
 
-def keep_unread_depth_maps(train, cfg) -> None:
-    """Leave the replaced cameras' depth maps as recorded when the policy reads none of them
-    (``depth_unit="keep"``): rendering them would cost a render per sample and camera where
-    they are a depth sensor's own, for maps nothing reads."""
-    keys = depth_map_keys(train)
-    if keys and not policy_reads_any(cfg, keys):
-        train.gensplat.cfg = replace(train.gensplat.cfg, depth_unit="keep")
+def run_settings(train, cfg) -> tuple[GenSplatConfig, dict]:
+    """The settings ``gensplat cache`` stored beside ``train``'s dataset, settled for the
+    ``lerobot-train`` run ``cfg`` before the transform is made: where it renders
+    (:func:`.batch_mode.settled_render_in`), and the replaced cameras' depth maps left as
+    recorded (``depth_unit="keep"``) when the policy reads none of them (rendering them would
+    cost a render per sample and camera, for maps nothing reads); and the reconstructor."""
+    config, reconstructor = load_settings(train.root, train.repo_id)
+    keys = depth_map_keys(train, config)
+    keep = bool(keys) and not policy_reads_any(cfg, keys)
+    return replace(config, render_in=batch_mode.settled_render_in(config.render_in, cfg),
+                   depth_unit="keep" if keep else config.depth_unit), reconstructor  # fmt: skip
 
 
 def depth_maps_line(train, cfg) -> list[str]:
