@@ -76,7 +76,7 @@ def attach_batch_renderer(dataset: GenSplatLeRobotDataset) -> str:
 
 def install(module) -> None:
     """Make ``module`` (the running ``lerobot_train``) render the batches of a dataset that
-    :func:`use_render_in` set to batch mode: its ``cycle`` yields them rendered."""
+    :func:`attach_batch_renderer` put in batch mode: its ``cycle`` yields them rendered."""
     original = module.cycle
     if getattr(original, "gensplat", False):
         return
