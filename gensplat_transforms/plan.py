@@ -44,6 +44,14 @@ class ViewPlan:
     applied: bool
     moves: tuple[Perturbation, ...]
 
+    def __post_init__(self) -> None:
+        if not isinstance(self.applied, bool):
+            raise TypeError(f"ViewPlan.applied must be a bool, got {type(self.applied).__name__}")
+        object.__setattr__(self, "moves", tuple(self.moves))
+        wrong = [type(p).__name__ for p in self.moves if not isinstance(p, Perturbation)]
+        if wrong:
+            raise TypeError(f"ViewPlan.moves must be Perturbations (one per replaced camera), got {wrong}")
+
     def moves_tensor(self) -> torch.Tensor:
         """(R, 3) float64 moves as (axis index into ``AXES``, theta_deg, mu_m)."""
         rows = [[AXES.index(p.axis), p.theta_deg, p.mu_m] for p in self.moves]

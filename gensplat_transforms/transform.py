@@ -105,6 +105,8 @@ class GenSplatTransform:
         _check_images(item, keys, self.cfg.cameras if batch else self.cfg.replace)
         depth_keys = self._depth_keys(item, keys)
         plan = self.plan(item) if plan is None else plan
+        if not isinstance(plan, ViewPlan):
+            raise TypeError(f"GenSplatTransform: plan must be a ViewPlan (GenSplatTransform.plan), got {type(plan).__name__}")
         if len(plan.moves) != len(self.cfg.replace):
             raise ValueError(f"GenSplatTransform: the plan moves {len(plan.moves)} cameras, the config replaces "
                              f"{self.cfg.replace}")  # fmt: skip

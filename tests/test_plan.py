@@ -56,6 +56,13 @@ def test_a_hand_made_plan_renders_its_moves_and_no_plan_keeps_the_images(setup):
     assert torch.equal(kept[LEFT], item[LEFT]) and not kept["gensplat.applied"].any()
     with pytest.raises(ValueError, match="the plan moves 1 cameras, the config replaces"):
         tf(item, ViewPlan(True, moves[:1]))
+    with pytest.raises(TypeError, match="plan must be a ViewPlan"):
+        tf(item, {"applied": True})
+    with pytest.raises(TypeError, match=r"moves must be Perturbations .* got \['str', 'float'\]"):
+        ViewPlan(True, ("x", 5.0))
+    with pytest.raises(TypeError, match="applied must be a bool"):
+        ViewPlan(torch.tensor(True), moves)
+    assert ViewPlan(True, list(moves)).moves == moves  # a list of moves becomes the plan's tuple
 
 
 def test_the_batch_path_renders_the_plans_the_worker_path_renders(setup):
