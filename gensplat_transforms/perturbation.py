@@ -121,9 +121,14 @@ class Perturbation:
         cameras 0 and 1, or ``pivot_depth`` along the axis of a rig's one camera)."""
         if not 0 <= index < len(cameras):
             raise IndexError(f"Perturbation.move: camera index {index} outside 0..{len(cameras) - 1}")
-        move = torch.tensor([[AXES.index(self.axis), self.theta_deg, self.mu_m]], dtype=cameras.c2w.dtype)
+        move = torch.tensor([self.as_row()], dtype=cameras.c2w.dtype)
         c2w = move_rig(cameras.c2w, move, [index], pivot_depth)  # a rigid motion of a checked pose
         return cameras._derive(cameras.K[index : index + 1], c2w)
+
+    def as_row(self) -> list[float]:
+        """The move as (axis index into ``AXES``, theta_deg, mu_m): one row of the moves that
+        :func:`move_rig` takes."""
+        return [AXES.index(self.axis), self.theta_deg, self.mu_m]
 
     def as_dict(self) -> dict:
         return asdict(self)

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .perturbation import AXES, Perturbation
+from .perturbation import Perturbation
 
 #: item keys the transform adds with ``render_in="batch"`` and ``render_batch`` removes:
 #: ``gensplat.render`` () bool, the item is augmented; ``gensplat.depth`` (T, V, h, w) int16,
@@ -53,9 +53,8 @@ class ViewPlan:
             raise TypeError(f"ViewPlan.moves must be Perturbations (one per replaced camera), got {wrong}")
 
     def moves_tensor(self) -> torch.Tensor:
-        """(R, 3) float64 moves as (axis index into ``AXES``, theta_deg, mu_m)."""
-        rows = [[AXES.index(p.axis), p.theta_deg, p.mu_m] for p in self.moves]
-        return torch.tensor(rows, dtype=torch.float64).reshape(len(self.moves), 3)
+        """(R, 3) float64 moves, each :meth:`.perturbation.Perturbation.as_row`."""
+        return torch.tensor([p.as_row() for p in self.moves], dtype=torch.float64).reshape(len(self.moves), 3)
 
     def report(self) -> dict[str, torch.Tensor]:
         """The ``gensplat.*`` keys that describe the plan (``GenSplatConfig.report``):
