@@ -309,7 +309,7 @@ def _dispatch(args) -> int:
 def _cache(args) -> None:
     try:
         from gensplat_lerobot import LeRobotSource, load_settings, prepare
-        from gensplat_lerobot.dataset import check_cameras, content_path
+        from gensplat_lerobot.dataset import check_cameras, content_path, default_reconstructor
     except ImportError as e:
         raise SystemExit(f"gensplat cache needs the LeRobot extra: pip install 'gensplat-transforms[lerobot]' ({e})")
     from .atomic import read_json_object
@@ -334,8 +334,10 @@ def _cache(args) -> None:
         spec = {"name": args.reconstructor or "geometry", "model": args.model}
         if args.max_pixels is not None:
             spec["options"] = {"max_pixels": args.max_pixels}
-    if args.batch_timesteps is not None and args.reconstructor in ("rgbd", "gensplat"):
-        raise SystemExit("gensplat cache: --batch-timesteps batches the geometry reconstructor's model")
+    name = (spec or default_reconstructor(source))["name"]
+    if args.batch_timesteps is not None and name != "geometry":
+        raise SystemExit(f"gensplat cache: --batch-timesteps batches the geometry reconstructor's model; this cache "
+                         f"uses {name} (the default where the cameras have depth; --reconstructor geometry to batch)")
     shard = Shard.from_env()
     start, cpu = time.perf_counter(), time.process_time()
     if shard.rank == 0:

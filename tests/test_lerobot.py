@@ -376,6 +376,16 @@ def test_max_pixels_caches_the_geometry_path_at_the_models_smaller_size(dataset_
               "--reconstructor", "rgbd"])  # fmt: skip
 
 
+def test_batch_timesteps_is_refused_where_no_geometry_model_runs(dataset_root):
+    """With depth the default reconstructor is rgbd: a model batch size is refused, not ignored."""
+    from gensplat_transforms.cli import main
+
+    for given in ([], ["--reconstructor", "rgbd"], ["--reconstructor", "gensplat"]):
+        with pytest.raises(SystemExit, match="--batch-timesteps batches the geometry reconstructor's model; this"):
+            main(["cache", "--root", str(dataset_root), "--repo-id", REPO, "--batch-timesteps", "4", *given])
+    assert not (dataset_root / "gensplat").exists()  # refused before anything was written
+
+
 def test_recorded_depth_is_imported_as_the_datasets_sidecars(dataset_root, tmp_path, capsys):
     """gensplat import-depth: millimetre PNGs of an RGB-only dataset become its depth
     sidecars, which the rgbd cache then links; user mistakes end with a message."""
