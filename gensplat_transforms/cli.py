@@ -122,7 +122,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="calibration file (JSON, or YAML ending in .yaml/.yml)")
     given.add_argument("--estimate", action="store_true",
                        help="estimate the external cameras' intrinsics and poses from the dataset's own frames and "
-                            "depth (SIFT matches + depth, metric; docs/calibration.md)")
+                            "depth, or without depth from a field of view or a geometry model (--model) "
+                            "(docs/calibration.md)")
     given.add_argument("--from-features", action="store_true",
                        help="each external camera's pose per episode from the dataset's camera_extrinsics.<camera> "
                             "features (x, y, z, roll, pitch, yaw, as in DROID's LeRobot port; docs/lerobot.md), "
@@ -135,6 +136,12 @@ def build_parser() -> argparse.ArgumentParser:
                                 "centre)")
     calibrate.add_argument("--focal", type=float, default=None, metavar="PX",
                            help="as --fov, every camera's focal length in pixels")
+    calibrate.add_argument("--model", nargs="?", const="shipped", default=None, metavar="DIR_OR_HUB_ID",
+                           help="--estimate without depth: a geometry model predicts the focal lengths and, when it "
+                                "is metric and neither --baseline nor --table-distance is given, the scale; a "
+                                "checkpoint directory or hub id (Depth Anything 3: Apache-2.0; Pi3: CC BY-NC 4.0, "
+                                "non-commercial), or alone the shipped small model (trained on simulated tabletops "
+                                "only)")
     calibrate.add_argument("--principal-point", type=_pixel_point, nargs="+", default=None, metavar="CX,CY",
                            help="--estimate: the principal point in pixels instead of the image centre (cropped "
                                 "images), one for every camera or one per camera in --cameras order; the image "
@@ -444,9 +451,16 @@ def _estimate(args) -> None:
     rig = estimate.estimate_calibration(args.root, repo_id, tuple(args.cameras) if args.cameras else None,
                                         args.timesteps, fov_deg=args.fov, focal_px=args.focal,
                                         baseline_m=args.baseline, table_m=args.table_distance,
-                                        principal_point=args.principal_point)  # fmt: skip
+                                        principal_point=args.principal_point, model=_model_source(args.model))  # fmt: skip
     print("\n".join(estimate.report(rig)))
     print(f"estimated {', '.join(rig.names)}; written to {calibration_path(args.root)} (the dataset is not modified)")
+
+
+def _model_source(model: str | None) -> str | None:
+    """``--model``'s checkpoint: "shipped" is the shipped small model's directory."""
+    from .weights import DEFAULT_MODEL_DIR
+
+    return str(DEFAULT_MODEL_DIR) if model == "shipped" else model
 
 
 def _import_depth(args) -> None:

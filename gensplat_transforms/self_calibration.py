@@ -10,7 +10,9 @@ For static external cameras (:func:`estimate_rig`; docs/calibration.md):
    3-point rigid fits of the back-projected matches (a wrong focal length bends the points, so
    no rigid motion fits them), then Levenberg-Marquardt on the reprojection errors in both
    images (Huber-weighted). Without depth, given focal lengths: the essential matrix (RANSAC),
-   its inliers triangulated, and the scale from one distance the user gives;
+   its inliers triangulated, and the scale from one distance the user gives or from a metric
+   geometry model's depth at the matches; the focal lengths themselves can come from such a
+   model (:func:`predict_cameras`: its median over the timesteps);
 3. groups of timesteps (episodes) are estimated apart; their deviation from the pooled
    estimate is the spread, kept as the confidence of each camera;
 4. the world frame is levelled on the table: the dominant plane seen from below the cameras'
@@ -90,7 +92,8 @@ class RigEstimate:
     seen from the reference camera; NaN where given, not estimated), how many timesteps and
     matches it rests on, and what makes it metric (``scale``); ``sizes``: (width, height) per
     camera; ``principal_given``: whether the principal points were given, not assumed at the
-    image centres."""
+    image centres; ``model``: the geometry model that predicted the focal lengths (its
+    ``source`` and ``licence``), None for none."""
 
     names: tuple[str, ...]
     K: torch.Tensor
@@ -105,6 +108,76 @@ class RigEstimate:
     levelled: bool = True
     scale: str = "metric, from the dataset's depth"
     principal_given: bool = False
+    model: dict | None = None
+
+
+@dataclass
+class ModelPrediction:
+    """What a geometry model predicts of the sampled timesteps (:func:`predict_cameras`).
+
+    Attributes:
+        focals: per camera, its focal length in pixels at its image's size: the median over
+            the timesteps.
+        focal_spread: per camera, the median relative deviation of the timesteps' focal lengths
+            from it.
+        depths: per timestep, ``{name: (H, W) float32}`` the model's depth in the model's
+            units at the camera's image size, inside the central square it saw, 0 elsewhere.
+    """
+
+    focals: list[float]
+    focal_spread: list[float]
+    depths: list[dict[str, np.ndarray]]
+
+
+def predict_cameras(model, names: tuple[str, ...], timesteps: list[dict]) -> ModelPrediction:
+    """The focal lengths and depth ``model`` (a :class:`.reconstruction.GeometryReconstructor`)
+    predicts for cameras ``names`` at each of ``timesteps`` (``{name: (image (H, W, 3) uint8,
+    ...)}``, as :func:`estimate_rig` takes them). The model sees the central square of every
+    image (the aspect the shipped model was trained at; a crop keeps the focal length in
+    pixels), all cameras of a timestep in one pass, uncalibrated; the principal point is taken
+    at the image centre. Raises ValueError where its cameras are unusable (non-finite) or it
+    predicts no depth for a camera."""
+    import torch.nn.functional as F
+
+    from .reconstruction import Views
+
+    sides = [min(timesteps[0][n][0].shape[:2]) for n in names]
+    focals, depths = [], []
+    for step in timesteps:
+        crops = []
+        for n, side in zip(names, sides):
+            image = torch.from_numpy(_central_square(step[n][0])).permute(2, 0, 1).float() / 255
+            crops.append(F.interpolate(image[None], size=(min(sides),) * 2, mode="bilinear", antialias=True,
+                                       align_corners=False)[0])  # fmt: skip
+        try:
+            out = model.predict_depth(Views(torch.stack(crops).clamp(0, 1), None))
+        except ValueError as e:  # e.g. non-finite cameras
+            raise ValueError(f"the geometry model's prediction of cameras {list(names)} is unusable ({e}): check "
+                             "its weights and the images") from e  # fmt: skip
+        scale = torch.tensor(sides, dtype=torch.float64) / out.cameras.width
+        focals.append(out.cameras.K[:, 0, 0].double() * scale)
+        step_depth = {}
+        for i, (n, side) in enumerate(zip(names, sides)):
+            full = np.zeros(step[n][0].shape[:2], dtype=np.float32)
+            crop = F.interpolate(out.depths[i : i + 1].float(), size=(side, side), mode="nearest")[0, 0]
+            _central_square(full)[...] = crop.numpy()
+            step_depth[n] = full
+        depths.append(step_depth)
+    focals = torch.stack(focals)  # (T, V)
+    empty = [n for n in names if not any((d[n] > 0).any() for d in depths)]
+    if empty:
+        raise ValueError(f"camera(s) {empty}: the geometry model predicted no valid depth at any sampled timestep: "
+                         "check its weights and the images")  # fmt: skip
+    median = focals.median(0).values
+    spread = (focals / median - 1).abs().median(0).values
+    return ModelPrediction(median.tolist(), spread.tolist(), depths)
+
+
+def _central_square(image: np.ndarray) -> np.ndarray:
+    """The central square (S, S, ...) view of an (H, W, ...) array, S = min(H, W)."""
+    h, w = image.shape[:2]
+    s = min(h, w)
+    return image[(h - s) // 2 : (h - s) // 2 + s, (w - s) // 2 : (w - s) // 2 + s]
 
 
 def match_pair(image_a: np.ndarray, image_b: np.ndarray, depth_a: np.ndarray | None = None,
@@ -152,6 +225,16 @@ def _ratio_test(knn, ratio: float = 0.8) -> list:
 def _no_matches() -> Matches:
     return Matches(torch.zeros(0, 2, dtype=torch.float64), torch.zeros(0, dtype=torch.float64),
                    torch.zeros(0, 2, dtype=torch.float64), torch.zeros(0, dtype=torch.float64))  # fmt: skip
+
+
+def _with_depth(m: Matches, depth_a: np.ndarray, depth_b: np.ndarray) -> Matches:
+    """``m`` with the depths of ``depth_a``, ``depth_b`` (H, W) at its pixels where smooth
+    (:func:`_smooth_depth`), NaN elsewhere; no match is dropped."""
+    def z(depth: np.ndarray, uv: torch.Tensor) -> torch.Tensor:
+        found = _smooth_depth(depth, uv.numpy())
+        return torch.from_numpy(np.where(found > 0, found, np.nan))
+
+    return Matches(m.uv_a, z(depth_a, m.uv_a), m.uv_b, z(depth_b, m.uv_b))
 
 
 def _smooth_depth(depth: np.ndarray, uv: np.ndarray, tolerance: float = 0.02) -> np.ndarray:
@@ -334,7 +417,8 @@ def spread(estimates: list[PairEstimate], final: PairEstimate) -> tuple[float, f
 
 def estimate_rig(names: tuple[str, ...], sizes: list[tuple[int, int]], timesteps: list[dict],
                  groups: list | None = None, progress: bool = False, focals: list[float] | None = None,
-                 scale: tuple[str, float] | None = None, principal_points: list | None = None) -> RigEstimate:
+                 scale: tuple[str, float] | None = None, principal_points: list | None = None,
+                 predicted: list[dict] | None = None) -> RigEstimate:
     """Estimate static cameras ``names`` (the first is the reference) from ``timesteps``, each
     ``{name: (image (H, W, 3) uint8, depth (H, W) metres or None)}``; ``sizes``: (width, height)
     per camera. What is estimated depends on what is given:
@@ -345,6 +429,11 @@ def estimate_rig(names: tuple[str, ...], sizes: list[tuple[int, int]], timesteps
       metres)`` between cameras 0 and 1, or ``("table", metres)`` from camera 0's centre down
       to the table plane;
     * one camera with depth and its focal length in ``focals``: its pose levelled on the table.
+
+    ``predicted``: without the dataset's depth, a metric geometry model's depth per timestep
+    (``{name: (H, W) metres, 0 where none}``, :attr:`ModelPrediction.depths`) in its place
+    where ``scale`` is not given: each pair is scaled by the median ratio of the model's depth
+    to the triangulated depth at the matches, and one camera is levelled on it.
 
     ``principal_points``: (cx, cy) per camera in pixels (pixel centres at +0.5), used instead
     of the image centres everywhere (cropped images move them; a wrong one biases the pose and
@@ -359,21 +448,32 @@ def estimate_rig(names: tuple[str, ...], sizes: list[tuple[int, int]], timesteps
     check_principal_points(names, sizes, principal_points)
     centres = principal_points or [(w / 2, h / 2) for w, h in sizes]
     depth = all(step[n][1] is not None for step in timesteps for n in names)
+    by_model = predicted is not None and not depth
+    if by_model and (scale is not None or len(predicted) != len(timesteps)):
+        raise ValueError("a geometry model's depth gives the scale where no distance is given: "
+                         f"{len(predicted)} depth maps for {len(timesteps)} timesteps, scale {scale}")  # fmt: skip
+    if by_model and len(names) == 1:  # levelled on the model's depth as on the dataset's
+        timesteps = [{n: (step[n][0], p[n]) for n in names} for step, p in zip(timesteps, predicted)]
+        depth = True
     if len(names) == 1 and not (depth and focals):
         raise ValueError("one external camera: its focal length is not observable from its own frames; give it "
-                         "(--fov or --focal), and the camera needs depth to find the table")  # fmt: skip
-    if not depth and (not focals or scale is None):
+                         "(--fov or --focal) or a geometry model (--model), and the camera needs depth (or the "
+                         "model's) to find the table")  # fmt: skip
+    if not depth and (not focals or (scale is None and not by_model)):
         raise ValueError("without depth the calibration needs the cameras' focal length (--fov or --focal) and "
-                         "one distance for the scale (--baseline or --table-distance)")  # fmt: skip
+                         "one distance for the scale (--baseline or --table-distance), or a geometry model "
+                         "(--model) for either")  # fmt: skip
     if depth and scale is not None:
         raise ValueError("the cameras' depth gives the scale: leave out --baseline and --table-distance")
-    if not depth and len(names) > 2:
+    if not depth and len(names) > 2 and not by_model:
         raise ValueError("without depth, one distance scales one camera pair: estimate two cameras at a time")
     groups = list(groups) if groups is not None else [i % 4 for i in range(len(timesteps))]
     pairs = []
     for k in range(1, len(names)):
         steps = tqdm(timesteps, desc=f"matching {names[0]}-{names[k]}", unit="timestep", disable=not progress)
         found = [match_pair(s[names[0]][0], s[names[k]][0], s[names[0]][1], s[names[k]][1]) for s in steps]
+        if by_model:
+            found = [_with_depth(m, p[names[0]], p[names[k]]) for m, p in zip(found, predicted)]
         if len(Matches.cat(found)) < MIN_MATCHES:
             raise ValueError(f"cameras {names[0]!r} and {names[k]!r}: {len(Matches.cat(found))} feature matches "
                              f"{'with depth ' if depth else ''}in {len(timesteps)} sampled timesteps (need "
@@ -390,6 +490,10 @@ def estimate_rig(names: tuple[str, ...], sizes: list[tuple[int, int]], timesteps
         focals = [float(torch.tensor([p.final.focal_a for p in pairs]).median())] + [p.final.focal_b for p in pairs]
     elif pairs:  # unit translations: metric by the depth of each pair, or by the one distance given
         unit = _unit_distance(scale[0], torch.cat([p.points for p in pairs]), _rig(pairs)) if scale else None
+        lost = [names[k + 1] for k, p in enumerate(pairs) if unit is None and not p.depth_scale > 0]
+        if lost:
+            raise ValueError(f"camera(s) {lost}: no triangulated match has depth to scale it by (the model's depth "
+                             "covers the central square of each image): give --baseline or --table-distance")  # fmt: skip
         pairs = [p.scaled(p.depth_scale if unit is None else scale[1] / unit) for p in pairs]
     K = torch.stack([_K(f, s, c) for f, s, c in zip(focals, sizes, centres)])
     c2w = _rig(pairs)
@@ -409,7 +513,8 @@ def estimate_rig(names: tuple[str, ...], sizes: list[tuple[int, int]], timesteps
         matches=[max([p.final.matches for p in pairs], default=0)] + [p.final.matches for p in pairs],
         rms_px=[pairs[0].final.rms_px if pairs else math.nan] + [p.final.rms_px for p in pairs],
         sizes=[tuple(s) for s in sizes], levelled=levelled,
-        scale="metric, from the dataset's depth" if depth else f"metric, from the {scale[1]} m given {given}",
+        scale="metric, from the geometry model's depth" if by_model else "metric, from the dataset's depth" if depth
+              else f"metric, from the {scale[1]} m given {given}",
         principal_given=principal_points is not None,
     )  # fmt: skip
 

@@ -22,6 +22,7 @@ from gensplat_transforms.self_calibration import (
     estimate_rig,
     level_frame,
     match_pair,
+    predict_cameras,
     rotation_angle_deg,
 )
 
@@ -111,6 +112,69 @@ def test_estimate_rig_says_what_it_needs():
                      scale=("baseline", 1.0))  # fmt: skip
     with pytest.raises(ValueError, match="feature matches in 1 sampled timesteps"):
         estimate_rig(("a", "b"), [(8, 8)] * 2, [blank], focals=[10.0, 10.0], scale=("baseline", 1.0))
+
+
+class _Model:
+    """A stand-in geometry model: every view's focal length ``focal`` (at the model's 28 px)
+    and depth ``depth``."""
+
+    def __init__(self, focal: float, depth: float) -> None:
+        self.focal, self.depth, self.seen = focal, depth, []
+
+    def predict_depth(self, views):
+        from gensplat_transforms.cameras import Cameras
+        from gensplat_transforms.reconstruction import Views
+
+        V = len(views.images)
+        self.seen.append(tuple(views.images.shape))
+        K = torch.tensor([[self.focal, 0, 14], [0, self.focal, 14], [0, 0, 1]], dtype=torch.float64).expand(V, 3, 3)
+        cameras = Cameras(K, torch.eye(4, dtype=torch.float64).expand(V, 4, 4), 28, 28)
+        return Views(torch.zeros(V, 3, 28, 28), cameras, torch.full((V, 1, 28, 28), self.depth))
+
+
+def test_predict_cameras_reads_focal_lengths_from_the_central_square():
+    """Each camera's focal length at its own size (the model sees the central square, resized),
+    the median over timesteps, its spread, and its depth inside the square only."""
+    step = {"a": (np.zeros((60, 80, 3), np.uint8), None), "b": (np.zeros((30, 40, 3), np.uint8), None)}
+    model = _Model(focal=21.0, depth=1.5)
+    out = predict_cameras(model, ("a", "b"), [step, step])
+    assert model.seen == [(2, 3, 30, 30)] * 2  # both squares at the smaller one's side
+    assert out.focals == pytest.approx([21.0 * 60 / 28, 21.0 * 30 / 28]) and out.focal_spread == [0.0, 0.0]
+    depth = out.depths[0]["a"]
+    assert depth.shape == (60, 80) and (depth[:, 10:70] == 1.5).all() and (depth[:, :10] == 0).all()
+    with pytest.raises(ValueError, match=r"prediction of cameras \['a', 'b'\] is unusable \(Cameras.K: contains NaN"):
+        predict_cameras(_Model(focal=math.nan, depth=1.0), ("a", "b"), [step])
+    with pytest.raises(ValueError, match=r"camera\(s\) \['a', 'b'\]: the geometry model predicted no valid depth"):
+        predict_cameras(_Model(focal=21.0, depth=0.0), ("a", "b"), [step])
+
+
+def test_a_geometry_model_scales_the_pose_by_its_depth(monkeypatch):
+    """Without the dataset's depth or a distance, each pair is scaled by the model's depth at
+    the matches: a model depth k times the truth gives k times the true 0.8 m; without any
+    there, an error names the camera."""
+    import gensplat_transforms.self_calibration as selfcal
+    from gensplat_transforms.self_calibration import _with_depth
+
+    m, (fa, fb), _ = _synthetic_matches(outliers=0.0)
+    unknown = Matches(m.uv_a, torch.full_like(m.z_a, math.nan), m.uv_b, torch.full_like(m.z_b, math.nan))
+    monkeypatch.setattr(selfcal, "match_pair", lambda *args: unknown)
+    # a stand-in model's depth at the matches: the truth times the value of its (constant) map
+    monkeypatch.setattr(selfcal, "_with_depth", lambda found, da, db: Matches(found.uv_a, m.z_a * float(da[0, 0]),
+                                                                             found.uv_b, m.z_b))  # fmt: skip
+    blank = {"a": (np.zeros((240, 320, 3), np.uint8), None), "b": (np.zeros((240, 320, 3), np.uint8), None)}
+    maps = lambda z: [{"a": np.full((240, 320), z, np.float32), "b": np.full((240, 320), z, np.float32)}]
+    for k in (1.0, 2.0):
+        rig = estimate_rig(("a", "b"), [(320, 240)] * 2, [blank], focals=[fa, fb], predicted=maps(k))
+        assert float((rig.c2w[1, :3, 3] - rig.c2w[0, :3, 3]).norm()) == pytest.approx(0.8 * k, rel=0.01)
+        assert rig.scale == "metric, from the geometry model's depth"
+    with pytest.raises(ValueError, match=r"camera\(s\) \['b'\]: no triangulated match has depth"):
+        estimate_rig(("a", "b"), [(320, 240)] * 2, [blank], focals=[fa, fb], predicted=maps(math.nan))
+    with pytest.raises(ValueError, match="a geometry model's depth gives the scale where no distance is given"):
+        estimate_rig(("a", "b"), [(320, 240)] * 2, [blank], focals=[fa, fb], scale=("baseline", 1.0),
+                     predicted=maps(1.0))  # fmt: skip
+    monkeypatch.undo()
+    inside = _with_depth(m, np.full((240, 320), 2.0, np.float32), np.zeros((240, 320), np.float32))
+    assert len(inside) == len(m) and (inside.z_a == 2.0).all() and inside.z_b.isnan().all()
 
 
 def test_a_given_principal_point_removes_the_bias_of_off_centre_images(monkeypatch):
@@ -304,22 +368,54 @@ def test_estimate_with_the_field_of_view_given(simulated, tmp_path, capsys, scal
     assert float((pivot_e - pivot_t).norm()) < 0.03 and math.degrees(math.acos(float(up_e @ up_t))) < 2.0
 
 
-def test_a_dataset_without_calibration_or_depth_from_the_estimate_to_lerobot_train(simulated, tmp_path, capsys):
-    """RGB only, no calibration: gensplat calibrate --estimate (field of view and distance
-    given), then gensplat cache (the geometry path), preview and lerobot-train with the one line."""
+@pytest.mark.parametrize("cameras", [("left", "right"), ("left",)])
+def test_estimate_rgb_only_from_the_shipped_model(simulated, tmp_path, capsys, cameras):
+    """No calibration, no depth, nothing given (``--model``): the shipped model's focal lengths
+    (the median over timesteps) and metric depth. Two cameras: focal lengths within 5 %, the
+    rotation within 2 deg, the other camera within 5 % of their 0.8 m, the pivot within 3 cm;
+    one camera: levelled on the model's depth, whose table the shipped model tilts by 2-6 deg
+    at this size (world up within 8 deg, 0.5 m above the table within 10 cm)."""
+    root = tmp_path / "rgb"
+    shutil.copytree(simulated, root, ignore=shutil.ignore_patterns("gensplat", "depth"))
+    _strip_calibration(root)
+    assert main(["calibrate", "--root", str(root), "--estimate", "--repo-id", REPO, "--timesteps", "6", "--model",
+                 "--cameras", *cameras]) == 0  # fmt: skip
+    out = capsys.readouterr().out
+    assert "metric, from the geometry model's depth" in out and "(the geometry model's median), spread" in out
+    assert "weights licence Apache-2.0 (the small model shipped with gensplat-transforms)" in out
+    est = load_calibration(json.loads((root / "meta" / "info.json").read_text())["features"], root)
+    truth = load_calibration(json.loads((simulated / "meta" / "info.json").read_text())["features"])
+    assert all(abs(float(est[n].K[0, 0] / truth[n].K[0, 0]) - 1) < 0.05 for n in cameras)
+    record = json.loads(calibration_path(root).read_text())["estimate"]
+    assert record["model"]["licence"].startswith("Apache-2.0") and "geometry model" in record["method"]
+    assert all(0 <= record["cameras"][n]["focal_spread"] < 0.05 for n in cameras)
+    if len(cameras) == 1:
+        up = math.degrees(math.acos(float(est["left"].c2w[2, :3] @ truth["left"].c2w[2, :3])))
+        assert up < 8.0 and abs(float(est["left"].c2w[2, 3]) - 0.5) < 0.1
+        return
+    (rel_e, up_e, pivot_e), (rel_t, up_t, pivot_t) = _relative(est), _relative(truth)
+    assert float(rotation_angle_deg(rel_e[:3, :3] @ rel_t[:3, :3].T)) < 2.0
+    assert float((rel_e[:3, 3] - rel_t[:3, 3]).norm()) < 0.05 * 0.8
+    assert float((pivot_e - pivot_t).norm()) < 0.03 and math.degrees(math.acos(float(up_e @ up_t))) < 2.0
+
+
+@pytest.mark.parametrize("cameras", [("left", "right"), ("left",)])
+def test_a_dataset_without_calibration_or_depth_from_the_estimate_to_lerobot_train(simulated, tmp_path, capsys,
+                                                                                     cameras):  # fmt: skip
+    """RGB only, no calibration, nothing given: gensplat calibrate --estimate --model, then
+    gensplat cache (the geometry path), preview and lerobot-train with the one line; with two
+    external cameras, and with one."""
     from test_lerobot import train_diffusion
 
     root = tmp_path / "rgb"
     shutil.copytree(simulated, root, ignore=shutil.ignore_patterns("gensplat", "depth"))
     _strip_calibration(root)
-    fov = math.degrees(2 * math.atan(160 / float(load_calibration(json.loads(
-        (simulated / "meta" / "info.json").read_text())["features"])["left"].K[0, 0])))  # fmt: skip
-    assert main(["calibrate", "--root", str(root), "--estimate", "--repo-id", REPO, "--timesteps", "4",
-                 "--fov", f"{fov}", "--baseline", "0.8"]) == 0  # fmt: skip
+    assert main(["calibrate", "--root", str(root), "--estimate", "--repo-id", REPO, "--timesteps", "4", "--model",
+                 "--cameras", *cameras]) == 0  # fmt: skip
     assert main(["cache", "--root", str(root), "--repo-id", REPO, "--probability", "1", "--episodes", "0"]) == 0
     assert "licence Apache-2.0 (the small model shipped with gensplat-transforms)" in capsys.readouterr().out
     settings = json.loads((root / "gensplat" / "config.json").read_text())
-    assert settings["reconstructor"]["name"] == "geometry" and settings["transform"]["cameras"] == ["left", "right"]
+    assert settings["reconstructor"]["name"] == "geometry" and settings["transform"]["cameras"] == list(cameras)
     assert main(["preview", "--root", str(root), "--repo-id", REPO, "--out", str(tmp_path / "p"), "--draws", "1",
                  "--frames", "0"]) == 0  # fmt: skip
     capsys.readouterr()
@@ -377,8 +473,11 @@ def test_estimate_refuses_what_it_cannot_do(simulated, tmp_path, capsys):
     assert "depth gives the scale: leave out --baseline" in error(root, "--baseline", "0.8")
     for option, value in (("--baseline", "0"), ("--baseline", "-1"), ("--table-distance", "nan"), ("--fov", "180")):
         assert f"{option} must be a positive number" in error(root, option, value)
+    assert "cameras ['left', 'right'] have depth, from which the estimate takes" in error(root, "--model")
     shutil.rmtree(root / "depth" / "right")  # one camera without depth: RGB only, which needs more
     assert "needs the cameras' focal length (--fov or --focal) and one distance" in error(root)
+    assert "give one of --fov, --focal and --model" in error(root, "--model", "--fov", "60")
+    assert "--model /nonexistent: cannot load a geometry model from it" in error(root, "--model", "/nonexistent")
     assert not calibration_path(root).exists()
 
 

@@ -5,6 +5,7 @@ with the estimate's spread beside it."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -21,7 +22,7 @@ from gensplat_transforms.dataset_format import (
     load_depth,
 )
 from gensplat_transforms.outputs import gensplat_folder
-from gensplat_transforms.self_calibration import RigEstimate, check_principal_points, estimate_rig
+from gensplat_transforms.self_calibration import RigEstimate, check_principal_points, estimate_rig, predict_cameras
 
 from .source import _is_depth_map, episode_table, read_info, video_backend
 
@@ -40,7 +41,8 @@ def assumptions(rig: RigEstimate) -> str:
 def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...] | None = None,
                          timesteps: int = 16, progress: bool = True, fov_deg: float | None = None,
                          focal_px: float | None = None, baseline_m: float | None = None,
-                         table_m: float | None = None, principal_point: list | None = None) -> RigEstimate:
+                         table_m: float | None = None, principal_point: list | None = None,
+                         model: str | Path | None = None) -> RigEstimate:
     """Estimate the external ``cameras`` (default: every colour camera whose name does not
     contain "wrist"; the first is the reference) of the dataset at ``root`` from ``timesteps``
     frames spread over its episodes and write ``<root>/gensplat/calibration.json``.
@@ -50,7 +52,10 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
     focal lengths (unless given) and metric poses from it. Otherwise the focal length is given
     (``fov_deg``, the horizontal field of view, or ``focal_px``) and so is one distance for the
     scale (``baseline_m`` between the first two cameras, or ``table_m`` from the first camera
-    down to the table). ``principal_point``: (cx, cy) in pixels (pixel centres at +0.5, the
+    down to the table), or ``model``, a geometry model's checkpoint directory or hub id
+    (:class:`~gensplat_transforms.reconstruction.GeometryReconstructor`), predicts the focal
+    lengths (:func:`~gensplat_transforms.self_calibration.predict_cameras`) and, where it is
+    metric and no distance is given, the scale (and one camera's table). ``principal_point``: (cx, cy) in pixels (pixel centres at +0.5, the
     image centre (W / 2, H / 2); OpenCV's cx + 0.5), one for every camera or one per camera,
     used instead of the image centres (cropped images). One camera needs depth and its focal
     length. Raises ValueError naming what
@@ -72,8 +77,8 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
         if value is not None and not (0 < value < math.inf and (option != "--fov" or value < 180)):
             raise ValueError(f"{option} must be a positive number{' below 180 degrees' if option == '--fov' else ''}, "
                              f"got {value}")  # fmt: skip
-    if fov_deg is not None and focal_px is not None or baseline_m is not None and table_m is not None:
-        raise ValueError("give one of --fov and --focal, and one of --baseline and --table-distance")
+    if sum(v is not None for v in (fov_deg, focal_px, model)) > 1 or baseline_m is not None and table_m is not None:
+        raise ValueError("give one of --fov, --focal and --model, and one of --baseline and --table-distance")
     sizes = [(features[IMAGE_KEY_PREFIX + n]["shape"][1], features[IMAGE_KEY_PREFIX + n]["shape"][0]) for n in names]
     if principal_point is not None and len(principal_point) == 1:
         principal_point = list(principal_point) * len(names)
@@ -90,6 +95,13 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
     registered = {n: depth_path(root, n, 0).exists() or (_is_depth_map(features.get(depth_keys[n])) and
                      "camera.depth" not in (features[depth_keys[n]].get("info") or {})) for n in names}  # fmt: skip
     use_depth = all(registered.values())
+    if model is not None and use_depth:
+        raise ValueError(f"{root}: cameras {list(names)} have depth, from which the estimate takes their focal "
+                         "lengths and scale: leave out --model (it is for datasets without depth)")  # fmt: skip
+    geometry = None if model is None else _geometry_model(model)
+    if geometry is not None and not geometry.metric and baseline_m is None and table_m is None:
+        raise ValueError(f"--model {model}: its depth is up to scale (not metric): give --baseline or "
+                         "--table-distance for the scale")  # fmt: skip
     focals = None
     if fov_deg is not None or focal_px is not None:
         focals = [focal_px or focal_from_fov(fov_deg, w) for w, _ in sizes]
@@ -112,10 +124,35 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
             step[n] = (image, None if depth is None else np.asarray(depth, dtype=np.float32))
         samples.append(step)
         groups.append(episode)
+    prediction = None
+    if geometry is not None:
+        prediction = predict_cameras(geometry, names, samples)
+        focals = prediction.focals
     rig = estimate_rig(names, sizes, samples, groups, progress=progress, focals=focals, scale=scale,
-                       principal_points=principal_point)  # fmt: skip
+                       principal_points=principal_point,
+                       predicted=prediction.depths if prediction and scale is None else None)  # fmt: skip
+    if prediction is not None:
+        rig = dataclasses.replace(rig, focal_spread=prediction.focal_spread, model=_model_record(model))
     write_estimate(root, rig)
     return rig
+
+
+def _geometry_model(model: str | Path):
+    """The geometry reconstructor of checkpoint directory or hub id ``model``, with the error
+    a user can act on where it cannot be loaded."""
+    from gensplat_transforms.reconstruction import GeometryReconstructor
+
+    try:
+        return GeometryReconstructor(model)
+    except (OSError, ValueError, KeyError) as e:
+        raise ValueError(f"--model {model}: cannot load a geometry model from it ({e})") from e
+
+
+def _model_record(model: str | Path) -> dict:
+    """The geometry model an estimate used: where from, and its weights' licence."""
+    from gensplat_transforms.reconstruction.geometry import weights_licence
+
+    return {"source": str(model), "licence": weights_licence(model)}
 
 
 def sample_timesteps(lengths: list[int], count: int) -> list[tuple[int, int]]:
@@ -141,8 +178,9 @@ def write_estimate(root: Path, rig: RigEstimate) -> Path:
               for i, n in enumerate(rig.names)}  # fmt: skip
     data = {"format": CALIBRATION_FORMAT,
             "cameras": {n: camera_info(rig.K[i], rig.c2w[i], "external") for i, n in enumerate(rig.names)},
-            "estimate": {"method": "features+depth" if "depth" in rig.scale else "features+essential matrix",
-                         "scale": rig.scale,
+            "estimate": {"method": "features+depth" if "dataset's depth" in rig.scale else
+                                   "features+essential matrix" + (", focal lengths from a geometry model" if rig.model else ""),
+                         "scale": rig.scale, **({"model": rig.model} if rig.model else {}),
                          "assumptions": assumptions(rig), "reference": rig.names[0], "levelled": rig.levelled,
                          "cameras": spread}}  # fmt: skip
     gensplat_folder(root)
@@ -160,8 +198,9 @@ def report(rig: RigEstimate) -> list[str]:
         f = float(rig.K[i, 0, 0])
         fov = math.degrees(2 * math.atan(rig.sizes[i][0] / 2 / f))
         given = math.isnan(rig.focal_spread[i])
-        line = f"{n}: focal {f:.1f} px ({fov:.1f} deg wide), " + ("given" if given else
-                                                                   f"spread {rig.focal_spread[i]:.2%}")  # fmt: skip
+        source = " (the geometry model's median)" if rig.model else ""
+        line = f"{n}: focal {f:.1f} px ({fov:.1f} deg wide){source}, " + ("given" if given else
+                                                                           f"spread {rig.focal_spread[i]:.2%}")  # fmt: skip
         if i:
             ref = np.linalg.inv(rig.c2w[0].numpy()) @ rig.c2w[i].numpy()
             angle = math.degrees(math.acos(np.clip((np.trace(ref[:3, :3]) - 1) / 2, -1, 1)))
@@ -172,4 +211,6 @@ def report(rig: RigEstimate) -> list[str]:
         lines.append(line)
     level = "levelled on the table plane" if rig.levelled else "no table plane found: world z is the cameras' image up"
     lines.append(f"scale: {rig.scale}; world frame {level}; assumed: {assumptions(rig)}")
+    if rig.model:
+        lines.append(f"geometry model: {rig.model['source']}, weights licence {rig.model['licence']}")
     return lines
