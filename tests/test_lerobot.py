@@ -18,6 +18,7 @@ os.environ["HF_HUB_OFFLINE"] = "1"
 
 from gensplat_lerobot import (
     LeRobotSource,
+    LeRobotViews,
     enable_gensplat,
     load_settings,
     prepare,
@@ -27,11 +28,13 @@ from gensplat_lerobot import (
 from gensplat_lerobot.dataset import dataset_cache, make_reconstructor
 from gensplat_lerobot.scene_dataset import record_scene_dataset
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from safetensors.torch import save_file
 
 from gensplat_transforms.cache import StaleCacheError
-from gensplat_transforms.dataset_format import load_depth, save_depth
+from gensplat_transforms.dataset_format import DEPTH_FORMAT, depth_path, load_depth, save_depth
 from gensplat_transforms.episodes import SceneEpisodes
 from gensplat_transforms.metrics import psnr
+from gensplat_transforms.model import PATCH_SIZE
 from gensplat_transforms.perturbation import PerturbationRange
 from gensplat_transforms.transform import GenSplatConfig
 
@@ -298,8 +301,74 @@ def test_missing_settings_or_depth_raise_clear_errors(dataset_root):
     ds = enable_gensplat(LeRobotDataset(REPO, root=dataset_root))
     with pytest.raises(ValueError, match="depths"):
         ds[0]
-    with pytest.raises(ValueError, match="no calibration"):
-        LeRobotSource(dataset_root, REPO, ("left", "wrist"))
+    info = json.loads((dataset_root / "meta" / "info.json").read_text())
+    info["features"]["observation.images.front"]["info"] = {}  # an image feature without calibration
+    (dataset_root / "meta" / "info.json").write_text(json.dumps(info))
+    with pytest.raises(ValueError, match=re.escape("no calibration for camera(s) ['front']")):
+        LeRobotSource(dataset_root, REPO, ("left", "front"))
+
+
+@pytest.mark.parametrize("cameras", [("nope",), ("left", "nope")])
+def test_an_unknown_camera_is_named_with_the_datasets_cameras(recorded, cameras):
+    message = re.escape(f"{recorded}: no camera(s) ['nope']; its cameras: ['left', 'right', 'front']")
+    with pytest.raises(ValueError, match=message):
+        LeRobotSource(recorded, REPO, cameras)
+    with pytest.raises(ValueError, match=message):
+        LeRobotViews(recorded, REPO, cameras=cameras)
+    assert LeRobotSource(recorded, REPO, "left").camera_names == ("left",)  # one name, not its letters
+
+
+def test_an_info_json_without_features_is_refused(dataset_root):
+    info = dataset_root / "meta" / "info.json"
+    for text in ("{}", "not json", "[1, 2]"):
+        info.write_text(text)
+        with pytest.raises(ValueError, match=re.escape(f"{info}: not a LeRobot dataset's info")):
+            LeRobotSource(dataset_root, REPO)
+
+
+def test_frames_and_samples_out_of_range_are_refused(recorded):
+    """A frame past an episode's end (or negative) is not read from the next (or previous)
+    episode, nor a sample past the dataset's end left to a bare IndexError."""
+    source = LeRobotSource(recorded, REPO)
+    for frame in (20, -1):
+        with pytest.raises(IndexError, match=re.escape(f"frame {frame} is not in episode 0 (frames 0..19)")):
+            source.views(0, frame)
+    views = LeRobotViews(recorded, REPO, size=PATCH_SIZE)
+    assert len(views) == 40 and views[-1].images.shape[-1] == PATCH_SIZE
+    with pytest.raises(IndexError, match=re.escape(f"LeRobotViews: sample 40 is out of range; {recorded} has 40")):
+        views[40]
+
+
+def copy_over(root: Path, camera: str, episode: int, to_camera: str, to_episode: int) -> None:
+    shutil.copyfile(depth_path(root, camera, episode), depth_path(root, to_camera, to_episode))
+
+
+def no_metadata(root: Path, frames: int, height: int = 48) -> None:
+    """A depth file of left's episode 0 whose header records only its format."""
+    depth = torch.ones(frames, height, 48, dtype=torch.float16)
+    save_file({"depth": depth}, depth_path(root, "left", 0), metadata={"format": DEPTH_FORMAT})
+
+
+@pytest.mark.parametrize("corrupt, file, message", [
+    pytest.param(lambda root: copy_over(root, "left", 0, "right", 0), "right",
+                 "says camera 'left', expected camera 'right'", id="another camera's"),
+    pytest.param(lambda root: copy_over(root, "left", 1, "left", 0), "left",
+                 "says episode '1', expected episode '0'", id="another episode's"),
+    pytest.param(lambda root: save_depth(root, "left", 0, torch.ones(9, 48, 48)), "left",
+                 "says num_frames '9', expected num_frames '20'", id="fewer frames"),
+    pytest.param(lambda root: no_metadata(root, 21), "left", "21 frames of depth, the dataset's episode 0 has 20",
+                 id="more frames, no metadata"),
+    pytest.param(lambda root: no_metadata(root, 20, 40), "left", "depth maps of 48x40, expected 48x48",
+                 id="another size"),
+])  # fmt: skip
+def test_a_depth_sidecar_that_does_not_match_the_dataset_is_refused(dataset_root, corrupt, file, message):
+    """LeRobotViews (and every read of views) checks a depth sidecar's metadata and shape against the
+    dataset as a cache build does, naming the file; again when the file changes."""
+    views = LeRobotViews(dataset_root, REPO, size=PATCH_SIZE)
+    assert views[1].depths is not None
+    corrupt(dataset_root)
+    with pytest.raises(ValueError, match=re.escape(f"{depth_path(dataset_root, file, 0)}: ") + ".*" + re.escape(message)):
+        views[1]
 
 
 def test_rgb_only_dataset_uses_the_geometry_path(dataset_root):

@@ -12,7 +12,7 @@ from safetensors import SafetensorError, safe_open
 
 from gensplat_transforms.atomic import atomic_write_json, read_json_object
 from gensplat_transforms.cache import GaussianCache, StaleCacheError
-from gensplat_transforms.dataset_format import GENSPLAT_DIR, IMAGE_KEY_PREFIX
+from gensplat_transforms.dataset_format import GENSPLAT_DIR
 from gensplat_transforms.distributed import OnDevice, Shard
 from gensplat_transforms.outputs import gensplat_folder
 from gensplat_transforms.perturbation import get_range
@@ -20,7 +20,11 @@ from gensplat_transforms.reconstruction import make_reconstructor
 from gensplat_transforms.rendering.gsplat_backend import check_gsplat
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 
-from .source import LeRobotSource, episode_table, read_info
+from .source import (
+    LeRobotSource,
+    check_cameras,  # noqa: F401 (the CLI checks its --cameras with it from here)
+    episode_table,
+)
 
 log = logging.getLogger(__name__)
 
@@ -189,15 +193,6 @@ def enable_gensplat(dataset: LeRobotDataset, config: GenSplatConfig | None = Non
     dataset.gensplat_image_transforms = two_d
     dataset.gensplat_cached = (cached, len(episodes))
     return dataset
-
-
-def check_cameras(root: str | Path, cameras) -> None:
-    """ValueError naming the dataset's cameras when one of ``cameras`` is not among them."""
-    features = read_info(Path(root))["features"]
-    names = [k[len(IMAGE_KEY_PREFIX) :] for k in features if k.startswith(IMAGE_KEY_PREFIX)]
-    unknown = [c for c in cameras if c not in names]
-    if unknown:
-        raise ValueError(f"{root}: no camera(s) {unknown}; its cameras: {names}")
 
 
 def check_options(source: LeRobotSource, config: GenSplatConfig, total: int, episodes) -> None:

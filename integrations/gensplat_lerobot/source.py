@@ -19,6 +19,7 @@ from torch.utils.data import Dataset
 
 from gensplat_transforms.atomic import atomic_write_json, read_json_object, stat_stamp
 from gensplat_transforms.cache import DepthFiles
+from gensplat_transforms.cache_format import check_sidecars
 from gensplat_transforms.cameras import Cameras
 from gensplat_transforms.dataset_format import (
     IMAGE_KEY_PREFIX,
@@ -29,6 +30,7 @@ from gensplat_transforms.dataset_format import (
     digests_path,
     load_calibration,
     load_depth,
+    open_depth,
 )
 from gensplat_transforms.model import PATCH_SIZE
 from gensplat_transforms.reconstruction import Views
@@ -58,12 +60,15 @@ class LeRobotSource:
         root: dataset root (holds ``meta/info.json``).
         repo_id: the dataset's repo id (offline use: any id matching the local copy).
         cameras: names of the external cameras to reconstruct (default: the external
-            cameras that have depth, or all external cameras when none has).
+            cameras that have depth, or all external cameras when none has); ValueError
+            naming the dataset's cameras when one is not among them.
     """
 
-    def __init__(self, root: str | Path, repo_id: str, cameras: tuple[str, ...] | None = None) -> None:
+    def __init__(self, root: str | Path, repo_id: str, cameras: tuple[str, ...] | str | None = None) -> None:
         self.root, self.repo_id = Path(root), repo_id
         info = read_info(self.root)
+        cameras = (cameras,) if isinstance(cameras, str) else cameras
+        check_cameras(self.root, cameras or (), info["features"])
         self.calibration = load_calibration(info["features"], self.root, info.get("total_episodes"))
         self.depth_features = {n: key for n in self.calibration
                                if _is_depth_map(info["features"].get(key := f"{IMAGE_KEY_PREFIX}{n}_depth"))}  # fmt: skip
@@ -71,10 +76,9 @@ class LeRobotSource:
         with_depth = tuple(n for n in external if depth_path(self.root, n, 0).exists() or n in self.depth_features)
         self.camera_names = tuple(cameras) if cameras else (with_depth or external)
         if not self.camera_names:
-            images = [k[len(IMAGE_KEY_PREFIX) :] for k in info["features"] if k.startswith(IMAGE_KEY_PREFIX)]
             raise ValueError(
                 f"{self.root}: GenSplat needs a calibrated external camera; calibrated external: "
-                f"{list(external)}, image features: {images}. Estimate it from the frames and depth with "
+                f"{list(external)}, image features: {image_names(info['features'])}. Estimate it from the frames and depth with "
                 f"`gensplat calibrate --root {self.root} --estimate`, or give it with `gensplat calibrate --root "
                 f"{self.root} --from FILE` (either is stored in {calibration_path(self.root)}, the dataset is not "
                 "modified), or put it in the image features' info (gensplat_transforms.dataset_format)"
@@ -85,6 +89,8 @@ class LeRobotSource:
         #: cameras whose depth maps are their sensor's own: the sensor (in episode 0), registered on read
         self.sensors = self._sensors(self.cameras)
         self._dataset = None
+        #: depth sidecars found to match the dataset: path -> its stat stamp when checked
+        self._sidecars_checked: dict[Path, list[int]] = {}
 
     @cached_property
     def content(self) -> dict:
@@ -159,6 +165,9 @@ class LeRobotSource:
         return DepthFiles(paths, self.episode_cameras(episode), self.camera_names) if found else None
 
     def views(self, episode: int, frame: int) -> Views:
+        n = self.num_frames(episode)
+        if not 0 <= frame < n:
+            raise IndexError(f"{self.root}: frame {frame} is not in episode {episode} (frames 0..{n - 1})")
         return self._views(episode, frame, self.dataset[self._episode("dataset_from_index", episode) + frame])
 
     def episode_views(self, episode: int) -> Iterator[Views]:
@@ -192,8 +201,10 @@ class LeRobotSource:
         sensors = self._sensors(cameras) if self.sensors else {}
         depths = []
         for i, n in enumerate(self.camera_names):
-            if depth_path(self.root, n, episode).exists():
-                depth = load_depth(self.root, n, episode, frame).float()
+            path, where = depth_path(self.root, n, episode), self.root
+            if path.exists():
+                self._check_sidecar(DepthFiles((path,), cameras[i], (n,)), episode)
+                depth, where = load_depth(self.root, n, episode, frame).float(), path
             elif n in self.depth_features:  # LeRobot's own, (1, H, W) in metres
                 depth = item[self.depth_features[n]].float().reshape(1, *item[self.depth_features[n]].shape[-2:])
             else:
@@ -202,7 +213,7 @@ class LeRobotSource:
             want = tuple(images.shape[-2:]) if sensor is None else (sensor.height, sensor.width)
             if tuple(depth.shape[-2:]) != want:
                 raise ValueError(
-                    f"{self.root}: camera {n!r}, episode {episode}: depth maps of {depth.shape[-1]}x{depth.shape[-2]}, "
+                    f"{where}: camera {n!r}, episode {episode}: depth maps of {depth.shape[-1]}x{depth.shape[-2]}, "
                     f"expected {want[1]}x{want[0]}, "
                     + ("the size its calibration's depth block gives" if sensor is not None else "its images' size: "
                        "maps of another size are a depth sensor's own; add its depth block to the calibration "
@@ -210,6 +221,23 @@ class LeRobotSource:
                 )  # fmt: skip
             depths.append(depth if sensor is None else register_depth(depth, sensor, cameras[i]))
         return Views(images, cameras, torch.stack(depths))
+
+    def _check_sidecar(self, files: DepthFiles, episode: int) -> None:
+        """ValueError naming the file when a depth sidecar's metadata names another camera,
+        episode or frame count (:func:`~gensplat_transforms.cache_format.check_sidecars`) or it
+        holds another number of frames than the episode has; checked again only when the file
+        changes."""
+        (path,) = files.paths
+        stamp = stat_stamp(path.stat())
+        if self._sidecars_checked.get(path) == stamp:
+            return
+        n = self.num_frames(episode)
+        check_sidecars(files, episode, n)
+        frames = open_depth(path).get_shape()[0]
+        if frames != n:
+            raise ValueError(f"{path}: {frames} frames of depth, the dataset's episode {episode} has {n}; import "
+                             "the camera's depth again (gensplat import-depth --overwrite)")  # fmt: skip
+        self._sidecars_checked[path] = stamp
 
 
 class LeRobotViews(Dataset):
@@ -233,6 +261,9 @@ class LeRobotViews(Dataset):
         return len(self.index)
 
     def __getitem__(self, i: int) -> Views:
+        if not -len(self.index) <= i < len(self.index):
+            raise IndexError(f"LeRobotViews: sample {i} is out of range; {self.source.root} has {len(self.index)} "
+                             f"timesteps (0..{len(self.index) - 1})")  # fmt: skip
         return self.source.views(*self.index[i]).resized(self.size, self.size)
 
 
@@ -264,11 +295,32 @@ def _is_depth_map(feature: dict | None) -> bool:
 
 
 def read_info(root: Path) -> dict:
-    """``meta/info.json`` of a local LeRobot dataset."""
+    """``meta/info.json`` of a local LeRobot dataset (FileNotFoundError when missing,
+    ValueError when it is not a JSON object with ``features``)."""
     path = root / "meta" / "info.json"
     if not path.is_file():
         raise FileNotFoundError(f"{root}: not a local LeRobot dataset ({path} does not exist)")
-    return json.loads(path.read_text())
+    info = read_json_object(path)
+    if not isinstance(info.get("features"), dict):
+        raise ValueError(  # noqa: TRY004 (the file's content)
+            f"{path}: not a LeRobot dataset's info (unreadable, or no 'features' object); give the root of a "
+            "LeRobot dataset, the folder holding meta/info.json"
+        )
+    return info
+
+
+def image_names(features: dict) -> list[str]:
+    """The camera names of a LeRobot dataset's image features (``observation.images.<name>``)."""
+    return [k[len(IMAGE_KEY_PREFIX) :] for k in features if k.startswith(IMAGE_KEY_PREFIX)]
+
+
+def check_cameras(root: str | Path, cameras, features: dict | None = None) -> None:
+    """ValueError naming the dataset's cameras when one of ``cameras`` is not among them
+    (``features``: those of its ``info.json``, read when not given)."""
+    names = image_names(read_info(Path(root))["features"] if features is None else features)
+    unknown = [c for c in cameras if c not in names]
+    if unknown:
+        raise ValueError(f"{root}: no camera(s) {unknown}; its cameras: {names}; name cameras among them")
 
 
 def files_digest(root: Path, folder: str, memo: Path | None = None, sample: int = 16384) -> str:
