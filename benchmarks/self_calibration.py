@@ -7,7 +7,10 @@ one recorded with ``gensplat record``) is copied with its calibration removed: w
 exact depth (``depth``), with the depth a RealSense D435-like sensor measures there
 (``sensor_depth``: noise, holes, 1 mm steps; ``sim.sensor``, seeded per frame), and RGB only
 with the cameras' true field of view and distance given (``rgb_given_fov``) or the field of
-view 5 % too wide (``rgb_fov_5pct_wide``). On each copy ``gensplat calibrate --estimate``
+view 5 % too wide (``rgb_fov_5pct_wide``), and RGB only with nothing given: the shipped
+model's focal lengths and metric depth (``rgb_model``, ``gensplat calibrate --estimate
+--model``), or its focal lengths and the true distance (``rgb_model_baseline``). On each copy
+``gensplat calibrate --estimate``
 (``estimate_calibration``) runs, and is scored against the
 recorded calibration: focal lengths (relative error), the right camera's rotation and centre
 seen from the left camera, the world's up direction and the pivot (both seen from the left
@@ -19,7 +22,10 @@ the simulator's image at the pose the move means for the real camera, once for t
 calibration (``calibrated``) and once for the estimate (``estimated``; its moves are made in
 its own levelled frame, and the truth is rendered there, mapped into the simulator's world
 through the left camera). Both use the same depth (the recording's for the RGB-only copies:
-what is measured is the calibration's effect) and the same draws.
+what is measured is the calibration's effect) and the same draws. The model copies add
+``estimated_geometry``: the estimate with the depth of the shipped model (``gensplat cache``'s
+geometry path: predicted at the model's size, read at the image's nearest pixels), what a user
+without depth trains on.
 
 Writes ``benchmarks/results/self_calibration.json``.
 """
@@ -47,13 +53,15 @@ from gensplat_transforms.cameras import Cameras
 from gensplat_transforms.dataset_format import load_depth, save_depth
 from gensplat_transforms.metrics import psnr, ssim
 from gensplat_transforms.perturbation import EVAL_LEVELS, PerturbationSampler, pivot_point
-from gensplat_transforms.reconstruction import RGBDReconstructor, Views
+from gensplat_transforms.reconstruction import GeometryReconstructor, RGBDReconstructor, Views
+from gensplat_transforms.views import nearest_pixels
 from gensplat_transforms.rendering import render
 from gensplat_transforms.self_calibration import rotation_angle_deg
 from gensplat_transforms.sim.record import RecordConfig, record
 from gensplat_transforms.sim.sensor import SensorDepthConfig, sensor_depth
 from gensplat_transforms.sim.truth import GroundTruth
 from gensplat_transforms.sim.world import WorldConfig
+from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 
 REPO = "gensplat/sim_pick_place_heldout"
 HELDOUT_SEED = 1000
@@ -100,9 +108,12 @@ def errors(true: Cameras, est: Cameras) -> dict:
     }  # fmt: skip
 
 
-def novel_views(calibrated: LeRobotSource, estimated: LeRobotSource, truth: GroundTruth, frames, draws: int) -> dict:
-    """{level: {calibrated, estimated: mean PSNR / SSIM}} of the left camera's moved views."""
-    rows = {level: {"calibrated": [], "estimated": []} for level in EVAL_LEVELS}
+def novel_views(calibrated: LeRobotSource, estimated: LeRobotSource, truth: GroundTruth, frames, draws: int,
+                geometry: bool = False) -> dict:  # fmt: skip
+    """{level: {calibrated, estimated[, estimated_geometry]: mean PSNR / SSIM}} of the left
+    camera's moved views (``geometry``: also the estimate with the shipped model's depth)."""
+    names = ("calibrated", "estimated", *(("estimated_geometry",) if geometry else ()))
+    rows = {level: {name: [] for name in names} for level in EVAL_LEVELS}
     for ep, fr in frames:
         est_views = estimated.views(ep, fr)  # the copy's depth: exact or the sensor's; none: the recording's
         if est_views.depths is None:
@@ -110,14 +121,21 @@ def novel_views(calibrated: LeRobotSource, estimated: LeRobotSource, truth: Grou
         cal_views = Views(est_views.images, calibrated.cameras, est_views.depths)
         recs = {"calibrated": RGBDReconstructor().reconstruct(cal_views),
                 "estimated": RGBDReconstructor().reconstruct(est_views)}
+        if geometry:  # as the transform reads a geometry cache: the model's depth at the image's pixels
+            model = GeometryReconstructor()
+            depth = model.predict_depth(Views(est_views.images, estimated.cameras)).depths
+            H, W = est_views.images.shape[-2:]
+            recs["estimated_geometry"] = model.assemble(Views(est_views.images, estimated.cameras,
+                                                              nearest_pixels(depth, W, H)))  # fmt: skip
         to_world = calibrated.cameras.c2w[0] @ torch.linalg.inv(estimated.cameras.c2w[0])
         for level in EVAL_LEVELS:
             sampler = PerturbationSampler(level, seed=0)
             for d in range(1 if level == "none" else draws):
                 p = sampler.sample(ep, view=d)
-                for name, source in (("calibrated", calibrated), ("estimated", estimated)):
+                for name in names:
+                    source = calibrated if name == "calibrated" else estimated
                     target = p.move(source.cameras, 0)
-                    real = Cameras(calibrated.cameras.K[:1], (to_world if name == "estimated" else torch.eye(4,
+                    real = Cameras(calibrated.cameras.K[:1], (to_world if name != "calibrated" else torch.eye(4,
                                    dtype=torch.float64)) @ target.c2w, target.width, target.height)  # fmt: skip
                     gt = truth.render(ep, fr, real)[0][0]
                     out = render(recs[name].gaussians, target, backend="fast", return_depth=False).rgb[0].clamp(0, 1)
@@ -153,7 +171,9 @@ def main() -> None:
     baseline = float((c2w[1, :3, 3] - c2w[0, :3, 3]).norm())
     variants = {"depth": ("exact", {}), "sensor_depth": ("sensor", {}),  # focal lengths and scale estimated
                 "rgb_given_fov": ("none", {"fov_deg": fov, "baseline_m": baseline}),  # both given exactly
-                "rgb_fov_5pct_wide": ("none", {"fov_deg": fov * 1.05, "baseline_m": baseline})}  # fmt: skip
+                "rgb_fov_5pct_wide": ("none", {"fov_deg": fov * 1.05, "baseline_m": baseline}),
+                "rgb_model": ("none", {"model": str(DEFAULT_MODEL_DIR)}),  # focal lengths and scale from the model
+                "rgb_model_baseline": ("none", {"model": str(DEFAULT_MODEL_DIR), "baseline_m": baseline})}  # fmt: skip
     for variant, (depth, given) in variants.items():
         copy = uncalibrated_copy(root, work / variant, depth)
         t0, cpu0 = time.perf_counter(), time.process_time()
@@ -162,12 +182,12 @@ def main() -> None:
         estimated = LeRobotSource(copy, REPO, NAMES)
         result[variant] = {
             **errors(calibrated.cameras, estimated.cameras), "seconds": round(seconds, 1), "cpu_seconds": round(cpu, 1),
-            "given": given, "timesteps": timesteps, "matches": rig.matches[1], "rms_px": rig.rms_px[1],
+            "given": {k: ("shipped" if k == "model" else v) for k, v in given.items()}, "timesteps": timesteps, "matches": rig.matches[1], "rms_px": rig.rms_px[1],
             "levelled": rig.levelled, "scale": rig.scale,
             "spread": {"focal": [None if math.isnan(f) else f for f in rig.focal_spread],
                        "rotation_deg": rig.rotation_spread_deg[1],
                        "center_m": rig.center_spread_m[1]},
-            "novel_views": novel_views(calibrated, estimated, truth, frames, draws),
+            "novel_views": novel_views(calibrated, estimated, truth, frames, draws, geometry="model" in given),
         }  # fmt: skip
     result["settings"] = {"quick": args.quick, "image_size": [calibrated.cameras.height, calibrated.cameras.width],
                           "episodes": total, "frames": len(frames), "draws_per_level": draws,
@@ -179,10 +199,11 @@ def main() -> None:
         print(f"{variant}: focal {max(r['focal_error']):.2%}, rotation {r['rotation_error_deg']:.2f} deg, centre "
               f"{r['center_error_m'] * 100:.2f} cm of {r['baseline_m']:.2f} m, up {r['up_error_deg']:.2f} deg, pivot "
               f"{r['pivot_error_m'] * 100:.2f} cm; {r['matches']} matches, {r['seconds']} s")  # fmt: skip
-        print(f"{'level':>8} {'calibrated dB':>14} {'estimated dB':>13} {'delta':>7}")
+        print(f"{'level':>8} {'calibrated dB':>14} {'estimated dB':>13} {'delta':>7} {'model depth dB':>15}")
         for level, v in r["novel_views"].items():
             c, e = v["calibrated"]["psnr"], v["estimated"]["psnr"]
-            print(f"{level:>8} {c:14.2f} {e:13.2f} {e - c:+7.2f}")
+            g = f"{v['estimated_geometry']['psnr']:15.2f}" if "estimated_geometry" in v else ""
+            print(f"{level:>8} {c:14.2f} {e:13.2f} {e - c:+7.2f} {g}")
     shutil.rmtree(work, ignore_errors=True)
 
 

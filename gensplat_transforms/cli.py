@@ -142,6 +142,9 @@ def build_parser() -> argparse.ArgumentParser:
                                 "checkpoint directory or hub id (Depth Anything 3: Apache-2.0; Pi3: CC BY-NC 4.0, "
                                 "non-commercial), or alone the shipped small model (trained on simulated tabletops "
                                 "only)")
+    calibrate.add_argument("--per-episode", action="store_true",
+                           help="--estimate: cameras that move between episodes; every episode is estimated apart "
+                                "from --timesteps of its own frames and gets its own poses")
     calibrate.add_argument("--principal-point", type=_pixel_point, nargs="+", default=None, metavar="CX,CY",
                            help="--estimate: the principal point in pixels instead of the image centre (cropped "
                                 "images), one for every camera or one per camera in --cameras order; the image "
@@ -451,7 +454,8 @@ def _estimate(args) -> None:
     rig = estimate.estimate_calibration(args.root, repo_id, tuple(args.cameras) if args.cameras else None,
                                         args.timesteps, fov_deg=args.fov, focal_px=args.focal,
                                         baseline_m=args.baseline, table_m=args.table_distance,
-                                        principal_point=args.principal_point, model=_model_source(args.model))  # fmt: skip
+                                        principal_point=args.principal_point, model=_model_source(args.model),
+                                        per_episode=args.per_episode)  # fmt: skip
     print("\n".join(estimate.report(rig)))
     print(f"estimated {', '.join(rig.names)}; written to {calibration_path(args.root)} (the dataset is not modified)")
 

@@ -93,7 +93,8 @@ class RigEstimate:
     matches it rests on, and what makes it metric (``scale``); ``sizes``: (width, height) per
     camera; ``principal_given``: whether the principal points were given, not assumed at the
     image centres; ``model``: the geometry model that predicted the focal lengths (its
-    ``source`` and ``licence``), None for none."""
+    ``source`` and ``licence``), None for none; ``episodes``: for cameras that move between
+    episodes, each episode's (V, 4, 4) poses (``c2w`` is then the first episode's), else None."""
 
     names: tuple[str, ...]
     K: torch.Tensor
@@ -109,6 +110,7 @@ class RigEstimate:
     scale: str = "metric, from the dataset's depth"
     principal_given: bool = False
     model: dict | None = None
+    episodes: dict[int, torch.Tensor] | None = None
 
 
 @dataclass

@@ -481,6 +481,61 @@ def test_estimate_refuses_what_it_cannot_do(simulated, tmp_path, capsys):
     assert not calibration_path(root).exists()
 
 
+@pytest.fixture(scope="module")
+def moving(tmp_path_factory):
+    """A 320x240 recording of two episodes between which both external cameras moved (two
+    recordings without calibration, joined by LeRobot's ``aggregate_datasets``, their depth
+    sidecars copied), and the two recordings' calibrations."""
+    import gensplat_transforms.sim  # noqa: F401  selects MuJoCo's headless backend before mujoco loads
+
+    pytest.importorskip("mujoco", reason="the simulated world needs the 'sim' extra")
+    from lerobot.datasets.aggregate import aggregate_datasets
+
+    from gensplat_transforms.dataset_format import load_depth, save_depth
+    from gensplat_transforms.sim.record import RecordConfig, record
+    from gensplat_transforms.sim.scene import CameraSpec, SceneConfig
+    from gensplat_transforms.sim.world import WorldConfig
+
+    base = tmp_path_factory.mktemp("moving")
+    moved = SceneConfig(external={"left": CameraSpec((1.00, 0.48, 0.55), (0.45, 0.02, 0.12)),
+                                  "right": CameraSpec((1.08, -0.36, 0.47), (0.45, 0.0, 0.12))})  # fmt: skip
+    truth = []
+    for name, seed, scene in (("a", 5, SceneConfig()), ("b", 6, moved)):
+        record(RecordConfig(base / name, episodes=1, seed=seed, max_frames=20,
+                            world=WorldConfig(height=240, width=320, scene=scene)), progress=False)  # fmt: skip
+        truth.append(load_calibration(json.loads((base / name / "meta" / "info.json").read_text())["features"]))
+        _strip_calibration(base / name)
+    root = base / "moving"
+    aggregate_datasets([REPO, REPO], REPO, roots=[base / "a", base / "b"], aggr_root=root)
+    for episode, name in enumerate("ab"):
+        for camera in ("left", "right"):
+            save_depth(root, camera, episode, load_depth(base / name, camera, 0)[:, 0])
+    return root, truth
+
+
+def test_cameras_that_move_between_episodes_are_estimated_per_episode(moving, capsys):
+    """Pooled, the episodes disagree and the report says so; with --per-episode each episode
+    gets its own poses, each within 0.5 deg, 1 cm and 1 deg (world up) of its recording's
+    calibration, and the cache builds the moved episode with them."""
+    root, truth = moving
+    args = ["calibrate", "--root", str(root), "--estimate", "--repo-id", REPO, "--timesteps", "4"]
+    assert main(args) == 0
+    assert "the episodes disagree" in capsys.readouterr().out
+    assert main([*args, "--per-episode"]) == 0
+    out = capsys.readouterr().out
+    assert "per episode (2 episodes, each levelled on its own table): right 0.80" in out
+    stored = json.loads(calibration_path(root).read_text())
+    assert stored["estimate"]["per_episode"] is True
+    est = load_calibration(json.loads((root / "meta" / "info.json").read_text())["features"], root)
+    for episode, true in enumerate(truth):
+        rel_e = torch.linalg.inv(est["left"].pose(episode)) @ est["right"].pose(episode)
+        rel_t = torch.linalg.inv(true["left"].c2w) @ true["right"].c2w
+        assert float(rotation_angle_deg(rel_e[:3, :3] @ rel_t[:3, :3].T)) < 0.5
+        assert float((rel_e[:3, 3] - rel_t[:3, 3]).norm()) < 0.01
+        assert math.degrees(math.acos(float(est["left"].pose(episode)[2, :3] @ true["left"].c2w[2, :3]))) < 1.0
+    assert main(["cache", "--root", str(root), "--repo-id", REPO, "--episodes", "1"]) == 0
+
+
 def test_estimate_names_an_episode_without_depth(simulated, tmp_path, capsys):
     root = tmp_path / "holes"
     shutil.copytree(simulated, root, ignore=shutil.ignore_patterns("gensplat"))

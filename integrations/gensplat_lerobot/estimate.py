@@ -10,6 +10,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from gensplat_transforms.atomic import atomic_write_json
 from gensplat_transforms.cameras import focal_from_fov
@@ -22,10 +23,19 @@ from gensplat_transforms.dataset_format import (
     load_depth,
 )
 from gensplat_transforms.outputs import gensplat_folder
-from gensplat_transforms.self_calibration import RigEstimate, check_principal_points, estimate_rig, predict_cameras
+from gensplat_transforms.self_calibration import (
+    RigEstimate,
+    check_principal_points,
+    estimate_rig,
+    predict_cameras,
+    rotation_angle_deg,
+)
 
 from .source import _is_depth_map, episode_table, read_info, video_backend
 
+#: spreads of a pooled estimate beyond which the report suggests ``--per-episode`` (the static
+#: simulated rig's: at most 0.8 deg and 0.6 cm)
+MOVED_DEG, MOVED_M = 1.5, 0.02
 #: what the estimate assumes, written beside it and printed (the principal point: see :func:`assumptions`)
 ASSUMPTIONS = "square pixels, principal point at the image centre, no lens distortion, static cameras"
 
@@ -42,7 +52,7 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
                          timesteps: int = 16, progress: bool = True, fov_deg: float | None = None,
                          focal_px: float | None = None, baseline_m: float | None = None,
                          table_m: float | None = None, principal_point: list | None = None,
-                         model: str | Path | None = None) -> RigEstimate:
+                         model: str | Path | None = None, per_episode: bool = False) -> RigEstimate:
     """Estimate the external ``cameras`` (default: every colour camera whose name does not
     contain "wrist"; the first is the reference) of the dataset at ``root`` from ``timesteps``
     frames spread over its episodes and write ``<root>/gensplat/calibration.json``.
@@ -55,11 +65,13 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
     down to the table), or ``model``, a geometry model's checkpoint directory or hub id
     (:class:`~gensplat_transforms.reconstruction.GeometryReconstructor`), predicts the focal
     lengths (:func:`~gensplat_transforms.self_calibration.predict_cameras`) and, where it is
-    metric and no distance is given, the scale (and one camera's table). ``principal_point``: (cx, cy) in pixels (pixel centres at +0.5, the
-    image centre (W / 2, H / 2); OpenCV's cx + 0.5), one for every camera or one per camera,
-    used instead of the image centres (cropped images). One camera needs depth and its focal
-    length. Raises ValueError naming what
-    is missing or wrong (see :func:`~gensplat_transforms.self_calibration.estimate_rig`)."""
+    metric and no distance is given, the scale (and one camera's table). ``principal_point``:
+    (cx, cy) in pixels (pixel centres at +0.5, the image centre (W / 2, H / 2); OpenCV's cx +
+    0.5), one for every camera or one per camera, used instead of the image centres (cropped
+    images). One camera needs depth and its focal length. ``per_episode``: cameras that move
+    between episodes; every episode is estimated apart from ``timesteps`` of its own frames
+    (:func:`per_episode_rig`) and gets its own poses. Raises ValueError naming what is missing
+    or wrong (see :func:`~gensplat_transforms.self_calibration.estimate_rig`)."""
     root = Path(root)
     features = read_info(root)["features"]
     colour = [k[len(IMAGE_KEY_PREFIX) :] for k, ft in features.items()
@@ -107,34 +119,78 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
         focals = [focal_px or focal_from_fov(fov_deg, w) for w, _ in sizes]
     scale = ("baseline", baseline_m) if baseline_m is not None else ("table", table_m) if table_m is not None else None
     table = episode_table(dataset.meta)
-    samples, groups = [], []
-    for episode, frame in sample_timesteps(table["length"], timesteps):
-        item = dataset[int(table["dataset_from_index"][episode]) + frame]
-        step = {}
-        for n in names:
-            image = (item[IMAGE_KEY_PREFIX + n].permute(1, 2, 0).clamp(0, 1) * 255).round().byte().numpy()
-            depth = None
-            if use_depth and depth_path(root, n, episode).exists():
-                depth = load_depth(root, n, episode, frame)[0].numpy()
-            elif use_depth and depth_keys[n] in item:
-                depth = item[depth_keys[n]].reshape(image.shape[:2]).float().numpy()
-            elif use_depth:
-                raise ValueError(f"{root}: camera {n!r} has no depth for episode {episode} "
-                                 f"({depth_path(root, n, episode)} is missing)")  # fmt: skip
-            step[n] = (image, None if depth is None else np.asarray(depth, dtype=np.float32))
-        samples.append(step)
-        groups.append(episode)
-    prediction = None
-    if geometry is not None:
-        prediction = predict_cameras(geometry, names, samples)
-        focals = prediction.focals
-    rig = estimate_rig(names, sizes, samples, groups, progress=progress, focals=focals, scale=scale,
-                       principal_points=principal_point,
-                       predicted=prediction.depths if prediction and scale is None else None)  # fmt: skip
-    if prediction is not None:
-        rig = dataclasses.replace(rig, focal_spread=prediction.focal_spread, model=_model_record(model))
+
+    def read(pairs: list[tuple[int, int]]) -> list[dict]:
+        """The sampled timesteps ``pairs`` (episode, frame) as :func:`estimate_rig` takes them."""
+        samples = []
+        for episode, frame in pairs:
+            item = dataset[int(table["dataset_from_index"][episode]) + frame]
+            step = {}
+            for n in names:
+                image = (item[IMAGE_KEY_PREFIX + n].permute(1, 2, 0).clamp(0, 1) * 255).round().byte().numpy()
+                depth = None
+                if use_depth and depth_path(root, n, episode).exists():
+                    depth = load_depth(root, n, episode, frame)[0].numpy()
+                elif use_depth and depth_keys[n] in item:
+                    depth = item[depth_keys[n]].reshape(image.shape[:2]).float().numpy()
+                elif use_depth:
+                    raise ValueError(f"{root}: camera {n!r} has no depth for episode {episode} "
+                                     f"({depth_path(root, n, episode)} is missing)")  # fmt: skip
+                step[n] = (image, None if depth is None else np.asarray(depth, dtype=np.float32))
+            samples.append(step)
+        return samples
+
+    def estimate(pairs: list[tuple[int, int]], groups: list | None, show: bool) -> RigEstimate:
+        """The estimate from the timesteps ``pairs``, the spread over ``groups`` (None: four
+        interleaved groups)."""
+        samples, given = read(pairs), focals
+        prediction = predict_cameras(geometry, names, samples) if geometry is not None else None
+        rig = estimate_rig(names, sizes, samples, groups, progress=show, focals=prediction.focals if prediction
+                           else given, scale=scale, principal_points=principal_point,
+                           predicted=prediction.depths if prediction and scale is None else None)  # fmt: skip
+        if prediction is None:
+            return rig
+        return dataclasses.replace(rig, focal_spread=prediction.focal_spread, model=_model_record(model))
+
+    if per_episode:
+        from tqdm.auto import tqdm
+
+        rigs = {}
+        for episode in tqdm(range(len(table["length"])), desc="estimating", unit="episode", disable=not progress):
+            frames = sample_timesteps([int(table["length"][episode])], timesteps)
+            try:
+                rigs[episode] = estimate([(episode, f) for _, f in frames], None, False)
+            except ValueError as e:
+                raise ValueError(f"episode {episode}: {e}") from e
+        rig = per_episode_rig(rigs)
+    else:
+        pairs = sample_timesteps(table["length"], timesteps)
+        rig = estimate(pairs, [e for e, _ in pairs], progress)
     write_estimate(root, rig)
     return rig
+
+
+def per_episode_rig(rigs: dict[int, RigEstimate]) -> RigEstimate:
+    """One estimate of cameras whose poses differ between episodes, from each episode's own
+    ``rigs``: each camera's focal length the median over the episodes (its spread their median
+    relative deviation from it; where given, the given one), the poses per episode
+    (:attr:`RigEstimate.episodes`; ``c2w`` the first episode's), the other spreads the median
+    of the episodes' own."""
+    first = rigs[min(rigs)]
+    f = np.stack([r.K[:, 0, 0].numpy() for r in rigs.values()])  # (E, V)
+    median = np.median(f, 0)
+    K = first.K.clone()
+    K[:, 0, 0] = K[:, 1, 1] = torch.from_numpy(median)
+    estimated = [not math.isnan(x) for x in first.focal_spread]
+    focal_spread = [float(np.median(np.abs(f[:, i] / median[i] - 1))) if estimated[i] and len(rigs) > 1
+                    else first.focal_spread[i] for i in range(len(first.names))]  # fmt: skip
+    mid = lambda key: [float(np.median([getattr(r, key)[i] for r in rigs.values()])) for i in range(len(first.names))]
+    return dataclasses.replace(first, K=K, focal_spread=focal_spread, rotation_spread_deg=mid("rotation_spread_deg"),
+                               center_spread_m=mid("center_spread_m"), rms_px=mid("rms_px"),
+                               matches=[sum(r.matches[i] for r in rigs.values()) for i in range(len(first.names))],
+                               timesteps=[sum(r.timesteps[i] for r in rigs.values()) for i in range(len(first.names))],
+                               levelled=all(r.levelled for r in rigs.values()),
+                               episodes={e: r.c2w for e, r in rigs.items()})  # fmt: skip
 
 
 def _geometry_model(model: str | Path):
@@ -177,11 +233,14 @@ def write_estimate(root: Path, rig: RigEstimate) -> Path:
                   "timesteps": rig.timesteps[i], "rms_px": _finite(rig.rms_px[i])}
               for i, n in enumerate(rig.names)}  # fmt: skip
     data = {"format": CALIBRATION_FORMAT,
-            "cameras": {n: camera_info(rig.K[i], rig.c2w[i], "external") for i, n in enumerate(rig.names)},
+            "cameras": {n: camera_info(rig.K[i], rig.c2w[i], "external",
+                                       episodes={e: c2w[i] for e, c2w in (rig.episodes or {}).items()})
+                        for i, n in enumerate(rig.names)},
             "estimate": {"method": "features+depth" if "dataset's depth" in rig.scale else
                                    "features+essential matrix" + (", focal lengths from a geometry model" if rig.model else ""),
                          "scale": rig.scale, **({"model": rig.model} if rig.model else {}),
                          "assumptions": assumptions(rig), "reference": rig.names[0], "levelled": rig.levelled,
+                         "per_episode": rig.episodes is not None,
                          "cameras": spread}}  # fmt: skip
     gensplat_folder(root)
     return atomic_write_json(calibration_path(root), data)
@@ -213,4 +272,17 @@ def report(rig: RigEstimate) -> list[str]:
     lines.append(f"scale: {rig.scale}; world frame {level}; assumed: {assumptions(rig)}")
     if rig.model:
         lines.append(f"geometry model: {rig.model['source']}, weights licence {rig.model['licence']}")
+    if rig.episodes is not None:
+        ranges = []
+        for i, n in enumerate(rig.names[1:], 1):
+            rel = torch.stack([torch.linalg.inv(c2w[0]) @ c2w[i] for c2w in rig.episodes.values()])
+            d, a = rel[:, :3, 3].norm(dim=-1), rotation_angle_deg(rel[:, :3, :3])
+            ranges.append(f"{n} {float(d.min()):.3f}-{float(d.max()):.3f} m and {float(a.min()):.1f}-"
+                          f"{float(a.max()):.1f} deg from {rig.names[0]}")  # fmt: skip
+        lines.append(f"per episode ({len(rig.episodes)} episodes, each levelled on its own table)"
+                     + (f": {', '.join(ranges)}" if ranges else ""))  # fmt: skip
+    elif max(rig.rotation_spread_deg) > MOVED_DEG or max(rig.center_spread_m) > MOVED_M:
+        lines.append(f"the episodes disagree (spread up to {max(rig.rotation_spread_deg):.1f} deg, "
+                     f"{max(rig.center_spread_m) * 100:.1f} cm): if the cameras move between episodes, estimate "
+                     "each episode apart with --per-episode")  # fmt: skip
     return lines
