@@ -78,8 +78,9 @@ class LeRobotSource:
         if not self.camera_names:
             raise ValueError(
                 f"{self.root}: GenSplat needs a calibrated external camera; calibrated external: "
-                f"{list(external)}, image features: {image_names(info['features'])}. Estimate it from the frames and depth with "
-                f"`gensplat calibrate --root {self.root} --estimate`, or give it with `gensplat calibrate --root "
+                f"{list(external)}, image features: {image_names(info['features'])}. Estimate it from the frames with "
+                f"`gensplat calibrate --root {self.root} --estimate` (with depth; RGB only: add --model, or --fov and "
+                "--baseline), or give it with `gensplat calibrate --root "
                 f"{self.root} --from FILE` (either is stored in {calibration_path(self.root)}, the dataset is not "
                 "modified), or put it in the image features' info (gensplat_transforms.dataset_format)"
             )
