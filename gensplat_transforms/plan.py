@@ -1,19 +1,23 @@
 """One item's views planned once: whether it is augmented and how each replaced camera moves.
 
-:meth:`.transform.GenSplatTransform.plan` draws a :class:`ViewPlan` (torch's RNG and the
-transform's perturbation sampler) and ``transform(item, plan=...)`` replays one. The worker
-path renders the plan's moves; with ``render_in="batch"`` the item carries them
-(``BATCH_KEYS``) and :func:`.batched.render_batch` moves the cameras of the whole batch with
-the same function (:func:`.perturbation.move_rig`).
+:meth:`ViewPlan.draw` draws a plan (torch's RNG and the transform's perturbation sampler;
+:meth:`.transform.GenSplatTransform.plan` draws an item's) and ``transform(item, plan=...)``
+replays one. The worker path renders the plan's moves; with ``render_in="batch"`` the item
+carries them (``BATCH_KEYS``) and :func:`.batched.render_batch` moves the cameras of the whole
+batch with the same function (:func:`.perturbation.move_rig`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import torch
 
-from .perturbation import Perturbation
+from .perturbation import Perturbation, PerturbationSampler
+
+if TYPE_CHECKING:
+    from .settings import GenSplatConfig
 
 #: item keys the transform adds with ``render_in="batch"`` and ``render_batch`` removes:
 #: ``gensplat.render`` () bool, the item is augmented; ``gensplat.depth`` (T, V, h, w) int16,
@@ -21,7 +25,7 @@ from .perturbation import Perturbation
 #: size where it fits in the stored size, else at that (the batch side takes the nearest pixels);
 #: ``gensplat.coded`` () bool, log codes or float16 bits (:func:`.depth_codec.depth_from_words`);
 #: ``gensplat.K`` (T, V, 3, 3) and ``gensplat.c2w`` (T, V, 4, 4) float64, the cached cameras
-#: (intrinsics at the render size); ``gensplat.moves`` (R, 3) float64, :meth:`ViewPlan.moves_tensor`
+#: (intrinsics at the render size); ``gensplat.moves`` (R, 3) float64, :attr:`ViewPlan.rows`
 BATCH_KEYS = ("gensplat.render", "gensplat.depth", "gensplat.coded", "gensplat.K", "gensplat.c2w", "gensplat.moves")
 
 
@@ -33,16 +37,18 @@ class ViewPlan:
         applied: whether the item's replaced cameras are replaced.
         moves: one :class:`.perturbation.Perturbation` per replaced camera
             (``GenSplatConfig.replace`` order); no move where not applied.
+        rows: the R moves as (axis index, theta_deg, mu_m) floats, each
+            :meth:`.perturbation.Perturbation.as_row` (what the item's keys carry).
 
     Example:
         >>> plan = ViewPlan(True, (Perturbation("x", 5.0, 0.02), Perturbation("y", -3.0, 0.0)))
-        >>> plan.moves_tensor()
-        tensor([[ 0.0000,  5.0000,  0.0200],
-                [ 1.0000, -3.0000,  0.0000]], dtype=torch.float64)
+        >>> plan.rows
+        ((0.0, 5.0, 0.02), (1.0, -3.0, 0.0))
     """
 
     applied: bool
     moves: tuple[Perturbation, ...]
+    rows: tuple[tuple[float, float, float], ...] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if not isinstance(self.applied, bool):
@@ -51,16 +57,15 @@ class ViewPlan:
         wrong = [type(p).__name__ for p in self.moves if not isinstance(p, Perturbation)]
         if wrong:
             raise TypeError(f"ViewPlan.moves must be Perturbations (one per replaced camera), got {wrong}")
+        object.__setattr__(self, "rows", tuple(tuple(float(v) for v in p.as_row()) for p in self.moves))
 
-    def moves_tensor(self) -> torch.Tensor:
-        """(R, 3) float64 moves, each :meth:`.perturbation.Perturbation.as_row`."""
-        return torch.tensor([p.as_row() for p in self.moves], dtype=torch.float64).reshape(len(self.moves), 3)
-
-    def report(self) -> dict[str, torch.Tensor]:
-        """The ``gensplat.*`` keys that describe the plan (``GenSplatConfig.report``):
-        applied (R,) bool, axis (R,) long, theta_deg (R,) and mu_m (R,) float32; all zero
-        where not applied."""
-        r = torch.tensor([[1.0, *row] for row in self.moves_tensor().tolist()]) if self.applied else \
-            torch.zeros(len(self.moves), 4)  # fmt: skip
-        return {"gensplat.applied": r[:, 0].bool(), "gensplat.axis": r[:, 1].long(),
-                "gensplat.theta_deg": r[:, 2], "gensplat.mu_m": r[:, 3]}  # fmt: skip
+    @classmethod
+    def draw(cls, config: GenSplatConfig, sampler: PerturbationSampler, episode: int, frame: int) -> ViewPlan:
+        """The plan of frame ``frame`` of ``episode``: augmented with ``config.probability`` and
+        which of ``config.views_per_source`` moves (torch's RNG, which DataLoader seeds per
+        worker), each replaced camera's move from ``sampler``."""
+        applied = bool(torch.rand(()) < config.probability)
+        view = int(torch.randint(config.views_per_source, ()))
+        R = len(config.replace)
+        return cls(applied, tuple(sampler.sample(episode, frame, view=view * R + ci) if applied else Perturbation()
+                                  for ci in range(R)))  # fmt: skip

@@ -15,11 +15,10 @@ from .cache import EpisodeSource, GaussianCache
 from .cache_reader import CacheReader
 from .counters import SampleCounters
 from .dataset_format import DepthSensor
-from .perturbation import Perturbation, PerturbationSampler
+from .perturbation import PerturbationSampler
 from .plan import BATCH_KEYS, ViewPlan
-from .reconstruction import Reconstruction
 from .settings import GenSplatConfig, render_size
-from .view_output import as_cache_images, like_depth, like_images, render_depth, render_view
+from .view_output import as_cache_images, render_depth, render_view, render_views
 
 __all__ = ["BATCH_KEYS", "AugmentedDataset", "GenSplatConfig", "GenSplatTransform", "ViewPlan", "render_depth",
            "render_size", "render_view"]  # fmt: skip
@@ -82,20 +81,16 @@ class GenSplatTransform:
 
     # ------------------------------------------------------------------ per item
     def plan(self, item: dict) -> ViewPlan:
-        """Draw the item's :class:`.plan.ViewPlan`: augmented with ``probability`` and which of
-        ``views_per_source`` moves (torch's RNG, which DataLoader seeds per worker), each
-        replaced camera's move from the perturbation sampler. ``transform(item, plan)`` replays
-        it (previews, tests)."""
-        episode, frame = _index(item, "episode_index"), _index(item, "frame_index")
-        applied = bool(torch.rand(()) < self.cfg.probability)
-        view = int(torch.randint(self.cfg.views_per_source, ()))
-        R = len(self.cfg.replace)
-        return ViewPlan(applied, tuple(self.sampler.sample(episode, frame, view=view * R + ci) if applied
-                                       else Perturbation() for ci in range(R)))  # fmt: skip
+        """Draw the item's :class:`.plan.ViewPlan` with the transform's perturbation sampler
+        (:meth:`.plan.ViewPlan.draw`); ``transform(item, plan)`` replays it (previews, tests)."""
+        return ViewPlan.draw(self.cfg, self.sampler, _index(item, "episode_index"), _index(item, "frame_index"))
 
     def __call__(self, item: dict, plan: ViewPlan | None = None) -> dict:
         """The item with its replaced cameras' images (and depth maps) rendered as ``plan``
-        says (default: :meth:`plan` draws one)."""
+        says (default: :meth:`plan` draws one): one read of the cache for every frame of the
+        item's stacks (:meth:`.cache_reader.CacheReader.stacks`) and one render of all its views
+        (:func:`.view_output.render_views`); with ``render_in="batch"``, one read of their
+        stored depth (:meth:`.cache_reader.CacheReader.depth`) and no render."""
         start = time.perf_counter()
         for key in ("episode_index", "frame_index"):
             if key not in item:
@@ -112,49 +107,23 @@ class GenSplatTransform:
                              f"{self.cfg.replace}")  # fmt: skip
         episode, frame = _index(item, "episode_index"), _index(item, "frame_index")
         out = dict(item)
-        frames = 0
-        if plan.applied or batch:  # the batch keys have the cache's image size even when not augmented
-            frames = self.reader.frames(episode)
-            if not 0 <= frame < frames:
-                raise IndexError(f"GenSplatTransform: frame_index {frame} outside episode {episode} (0..{frames - 1})")
-        read: dict[int, Reconstruction] = {}  # frame -> Gaussians, read once per item
-        for name, p in zip(self.cfg.replace, plan.moves) if plan.applied and not batch else ():
-            depth_key = depth_keys.get(name)
-            out[keys[name]], depth = self._render_like(item, keys, (episode, frame, frames), name, p, read, depth_key)
-            if depth_key is not None:
-                out[depth_key] = depth
+        inputs = self._batch_inputs(item, keys, episode, frame, plan) if batch else {}
+        if plan.applied and not batch:
+            images = [item[keys[n]] for n in self.cfg.replace]
+            stacks = self.reader.stacks(episode, frame, [(self._offsets(i), self._render_size(i)) for i in images],
+                                        functools.partial(self._source_images, item, keys, episode))  # fmt: skip
+            depths = [item[depth_keys[n]] if n in depth_keys else None for n in self.cfg.replace]
+            views = render_views(stacks, plan.moves, images, depths, self.cfg, self.depth_sensors)
+            for name, (image, depth) in zip(self.cfg.replace, views):
+                out[keys[name]] = image
+                if name in depth_keys:
+                    out[depth_keys[name]] = depth
         if self.cfg.report:
-            out.update(plan.report())
-        if batch:
-            out.update(self._batch_inputs(item, keys, (episode, frame, frames), plan))
+            out.update(_report(plan))
+        out.update(inputs)
         if self.counters is not None:
             self.counters.add(plan.applied, time.perf_counter() - start)
         return out
-
-    def _render_like(self, item: dict, keys: dict[str, str], where: tuple[int, int, int], name: str,
-                     p: Perturbation, read: dict[int, Reconstruction],
-                     depth_key: str | None) -> tuple[torch.Tensor, torch.Tensor | None]:  # fmt: skip
-        """Rendered replacements of ``item[keys[name]]`` and of its depth map ``item[depth_key]``
-        (None: none) with their shapes and dtypes (:func:`.view_output.like_images`, :func:`.view_output.like_depth`);
-        ``where``: the item's (episode, frame, frames in its episode)."""
-        image = item[keys[name]]
-        size = self._render_size(image)
-        rgbs, depths = [], []
-        episode = where[0]
-        for k, (o, f) in enumerate(self._stack_frames(image, *where)):
-            if f not in read:
-                images = functools.partial(self._source_images, item, keys, k, o, episode, f, size)
-                read[f] = self.reader.timestep(episode, f, size, images)
-            target = p.move(read[f].cameras, self.cfg.cameras.index(name), self.cfg.pivot_depth)
-            sensor = self.depth_sensors.get(name) if depth_key is not None else None
-            out = render_view(read[f].gaussians, target, self.cfg, depth=depth_key is not None and sensor is None)
-            rgbs.append(out.rgb[0])
-            depths.append(out.depth if sensor is None else render_depth(read[f].gaussians, sensor.cameras(target), self.cfg))
-        rgb = like_images(torch.stack(rgbs), image).reshape(image.shape)
-        if depth_key is None:
-            return rgb, None
-        like = item[depth_key]
-        return rgb, like_depth(torch.cat(depths), like, self.cfg.depth_unit).reshape(like.shape)
 
     def _depth_keys(self, item: dict, keys: dict[str, str]) -> dict[str, str]:
         """{camera: key} of the replaced cameras' depth maps the item carries (``<image
@@ -181,17 +150,18 @@ class GenSplatTransform:
         :func:`render_size`)."""
         return render_size(image.shape[-1], image.shape[-2], self.cfg.render_scale)
 
-    def _stack_frames(self, image: torch.Tensor, episode: int, frame: int, frames: int) -> list[tuple[int, int]]:
-        """(offset, frame) of each image of ``image``'s temporal stack, one for a single image;
-        frames are clamped to the episode's ``frames`` (a stack reaching past it repeats its
-        ends, as LeRobot pads)."""
-        stack = 1 if image.ndim == 3 else image.shape[0]
-        offsets = (0,) if image.ndim == 3 else self.cfg.frame_offsets or tuple(range(1 - stack, 1))
-        if len(offsets) != stack:
-            raise ValueError(f"GenSplatTransform: {len(offsets)} frame_offsets for a stack of {stack}")
-        return [(o, min(max(frame + o, 0), frames - 1)) for o in offsets]
+    def _offsets(self, image: torch.Tensor) -> tuple[int, ...]:
+        """The offset from the item's frame of each image of ``image``'s temporal stack:
+        (0,) for a single image (3, H, W), ``frame_offsets`` or the T frames up to the item's
+        for a stack (T, 3, H, W)."""
+        if image.ndim == 3:
+            return (0,)
+        offsets = self.cfg.frame_offsets or tuple(range(1 - image.shape[0], 1))
+        if len(offsets) != image.shape[0]:
+            raise ValueError(f"GenSplatTransform: {len(offsets)} frame_offsets for a stack of {image.shape[0]}")
+        return offsets
 
-    def _batch_inputs(self, item: dict, keys: dict[str, str], where: tuple[int, int, int],
+    def _batch_inputs(self, item: dict, keys: dict[str, str], episode: int, frame: int,
                       plan: ViewPlan) -> dict[str, torch.Tensor]:  # fmt: skip
         """The :data:`.plan.BATCH_KEYS` of an item for :func:`.batched.render_batch`, of the
         same shapes whether augmented or not (zeros when not), so that default collation stacks
@@ -203,16 +173,17 @@ class GenSplatTransform:
             raise ValueError(f"GenSplatTransform: render_in='batch' needs the images of {self.cfg.cameras} stacked "
                              f"alike, got stacks {sorted(stacks)}: use render_in='worker'")  # fmt: skip
         image = item[keys[self.cfg.replace[0]]]
-        frames = [f for _, f in self._stack_frames(image, *where)]
-        stack = self.reader.depth(where[0], frames, self._render_size(image), read=plan.applied)
+        stack = self.reader.depth(episode, frame, self._offsets(image), self._render_size(image), read=plan.applied)
+        moves = torch.tensor(plan.rows, dtype=torch.float64).reshape(len(plan.rows), 3)
         return dict(zip(BATCH_KEYS, (torch.tensor(plan.applied), stack.words, torch.tensor(stack.coded), stack.K,
-                                     stack.c2w, plan.moves_tensor())))  # fmt: skip
+                                     stack.c2w, moves)))  # fmt: skip
 
-    def _source_images(self, item: dict, keys: dict[str, str], k: int, offset: int, episode: int,
-                       frame: int, size: tuple[int, int]) -> torch.Tensor:
+    def _source_images(self, item: dict, keys: dict[str, str], episode: int, k: int, offset: int, frame: int,
+                       size: tuple[int, int]) -> torch.Tensor:  # fmt: skip
         """(V, 3, h, w) float images of the reconstructed cameras at stack index ``k`` (frame
-        ``frame``, offset ``offset`` from the item's), at ``size`` = (w, h) (a depth cache builds
-        the Gaussians from them). Frames the item does not carry are read from the source."""
+        ``frame`` of ``episode``, offset ``offset`` from the item's), at ``size`` = (w, h) (a
+        depth cache builds the Gaussians from them). Frames the item does not carry are read
+        from the source."""
         _check_images(item, keys, tuple(n for n in self.cfg.cameras if n not in self.cfg.replace))
         if any(item[keys[n]].ndim == 3 for n in self.cfg.cameras) and offset != 0:
             if self.source is None:
@@ -224,6 +195,14 @@ class GenSplatTransform:
             images = [item[keys[n]] if item[keys[n]].ndim == 3 else item[keys[n]][k] for n in self.cfg.cameras]
         width, height = size
         return torch.cat([as_cache_images(image[None], height, width) for image in images])
+
+
+def _report(plan: ViewPlan) -> dict[str, torch.Tensor]:
+    """The ``gensplat.*`` keys that describe ``plan`` (``GenSplatConfig.report``): applied (R,)
+    bool, axis (R,) long, theta_deg (R,) and mu_m (R,) float32; all zero where not applied."""
+    r = torch.tensor([[1.0, *row] for row in plan.rows]) if plan.applied else torch.zeros(len(plan.rows), 4)
+    return {"gensplat.applied": r[:, 0].bool(), "gensplat.axis": r[:, 1].long(),
+            "gensplat.theta_deg": r[:, 2], "gensplat.mu_m": r[:, 3]}  # fmt: skip
 
 
 def _check_images(item: dict, keys: dict[str, str], cameras: tuple[str, ...]) -> None:

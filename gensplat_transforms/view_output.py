@@ -1,9 +1,12 @@
 """How a rendered view becomes what an item holds, the same in the worker path and in
 :func:`.batched.render_batch`: rendered with the config's backend over its background, holes
 filled, depth where the view sees something, then resized and typed like the item's own images
-and depth maps."""
+and depth maps. :func:`render_views` makes all of an item's views in the worker path."""
 
 from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
@@ -15,8 +18,41 @@ from .rendering import RenderOutput, render
 from .settings import DEPTH_UNITS, GenSplatConfig
 from .views import nearest_pixels
 
+if TYPE_CHECKING:
+    from .dataset_format import DepthSensor
+    from .perturbation import Perturbation
+    from .views import Reconstruction
+
 #: a view's depth counts where its alpha reaches this (elsewhere it shows nothing: depth 0)
 DEPTH_MIN_ALPHA = 0.5
+
+
+def render_views(stacks: Sequence[Sequence[Reconstruction]], moves: Sequence[Perturbation],
+                 images: Sequence[torch.Tensor], depths: Sequence[torch.Tensor | None], config: GenSplatConfig,
+                 sensors: dict[str, DepthSensor]) -> list[tuple[torch.Tensor, torch.Tensor | None]]:  # fmt: skip
+    """An item's views, one (image, depth map or None) per replaced camera r (``config.replace``
+    order): camera r of each of its stack's T reconstructions ``stacks[r]`` (one for a single
+    image), moved by ``moves[r]`` (:meth:`.perturbation.Perturbation.move`, ``config.pivot_depth``),
+    rendered (:func:`render_view`) like its image ``images[r]`` (..., 3, H, W)
+    (:func:`like_images`) and, where its depth map ``depths[r]`` (..., 1, H', W') is given, its
+    depth at the moved pose like that map in ``config.depth_unit`` (:func:`like_depth`): the
+    view's own, or that of its depth sensor ``sensors[name]`` moved with it
+    (:meth:`.dataset_format.DepthSensor.cameras`, :func:`render_depth`)."""
+    out = []
+    for name, stack, p, image, like in zip(config.replace, stacks, moves, images, depths):
+        sensor = sensors.get(name) if like is not None else None
+        rgbs, seen = [], []
+        for rec in stack:
+            target = p.move(rec.cameras, config.cameras.index(name), config.pivot_depth)
+            view = render_view(rec.gaussians, target, config, depth=like is not None and sensor is None)
+            rgbs.append(view.rgb[0])
+            seen.append(view.depth if sensor is None else render_depth(rec.gaussians, sensor.cameras(target), config))
+        rgb = like_images(torch.stack(rgbs), image).reshape(image.shape)
+        depth = None if like is None else like_depth(torch.cat(seen), like, config.depth_unit).reshape(like.shape)
+        out.append((rgb, depth))
+    return out
+
+
 def render_view(gaussians: Gaussians, camera: Cameras, config: GenSplatConfig, depth: bool = False) -> RenderOutput:
     """The augmented view of ``camera`` (B cameras) as the transform makes it, rendered with
     ``config.backend``: rgb (B, 3, H, W), hole-filled with ``config.fill_holes``, the render's
