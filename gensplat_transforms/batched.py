@@ -24,7 +24,7 @@ import torch
 from .cameras import Cameras
 from .depth_codec import depth_from_words
 from .gaussians import Gaussians
-from .perturbation import move_rig
+from .perturbation import move_rig, scale_focal
 from .plan import BATCH_KEYS
 from .reconstruction import Reconstructor
 from .reconstruction.base import nearest_pixels
@@ -112,9 +112,9 @@ def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None 
     if discs.cfg.sh_degree > 0:
         sh = torch.cat([sh, sh.new_zeros(*sh.shape[:2], num_sh_bases(discs.cfg.sh_degree) - 1, 3)], 2)
     views = [cfg.cameras.index(name) for name in cfg.replace]
-    K = batch["gensplat.K"][rows][:, :, views].flatten(0, 1)  # (S*T, R, 3, 3)
     cached = batch["gensplat.c2w"][rows]  # (S, T, V, 4, 4); each sample's moves, the same at every frame
-    moves = batch["gensplat.moves"][rows][:, None].expand(-1, T, -1, -1)  # (S, T, R, 3)
+    moves = batch["gensplat.moves"][rows][:, None].expand(-1, T, -1, -1)  # (S, T, R, ROW)
+    K = scale_focal(batch["gensplat.K"][rows][:, :, views], moves[..., 8]).flatten(0, 1)  # (S*T, R, 3, 3)
     c2w = move_rig(cached, moves, views, cfg.pivot_depth).flatten(0, 1)  # (S*T, R, 4, 4)
     opacity = discs.cfg.opacity
     depth_keys = {} if cfg.depth_unit in (None, "keep") else {

@@ -1,9 +1,19 @@
-"""The paper's camera perturbation protocol (GenSplat, RQ1).
+"""Camera perturbations: the paper's protocol (GenSplat, RQ1) and wider samplers.
 
-A novel view is made in two steps:
+A novel view is made in up to four steps (:class:`Perturbation`):
 
-1. rotate the camera about a *world* axis (X or Y) passing through the pivot by ``theta``;
-2. translate it forward by ``mu`` along its own viewing axis (+z, OpenCV).
+1. rotate the camera about a *world* axis passing through the pivot by ``theta`` (the
+   paper: world X or Y);
+2. shift it by ``shift_m`` in the world (position noise; the paper: none);
+3. translate it forward by ``mu`` along its own viewing axis (+z, OpenCV);
+4. scale its focal length by ``focal_scale``, the principal point and image size kept (a
+   zoom or another lens; the paper: none).
+
+The samplers draw these per episode (or frame) and view, seeded: :class:`PerturbationSampler`
+the paper's levels (rotation about X or Y, forward step), :class:`TiltSampler` rotations about
+a uniformly random axis with a position shift, :class:`ArcSampler` turns about the world's
+vertical (+z up) through the pivot, as a camera moved along an arc around the scene; each can
+add a focal-length change.
 
 The pivot is the midpoint of the shortest segment between the optical axes of the two
 external cameras (the midpoint of their centres when the axes are parallel). A rig with one
@@ -22,7 +32,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 import torch
@@ -30,7 +40,13 @@ from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
 from .cameras import Cameras
 
-AXES = ("x", "y")
+#: world axes a move can turn about by name; the paper's levels use x and y (``PAPER_AXES``)
+AXES = ("x", "y", "z")
+PAPER_AXES = ("x", "y")
+#: the samplers :func:`make_sampler` makes
+SAMPLERS = ("paper", "tilt", "arc")
+#: width of a move's row (:meth:`Perturbation.as_row`): axis (3), theta_deg, mu_m, shift_m (3), focal_scale
+ROW = 9
 
 
 @dataclass(frozen=True)
@@ -89,8 +105,11 @@ def get_range(level: str | PerturbationRange) -> PerturbationRange:
 
 @dataclass(frozen=True)
 class Perturbation:
-    """One camera move: rotation ``theta_deg`` about world ``axis`` through the pivot, then
-    ``mu_m`` metres forward along the camera's viewing axis.
+    """One camera move: rotation ``theta_deg`` about the world ``axis`` through the pivot, a
+    world shift ``shift_m``, then ``mu_m`` metres forward along the camera's viewing axis; its
+    focal length scaled by ``focal_scale`` (principal point and image size kept).
+
+    ``axis`` is "x", "y" or "z", or a (3,) direction (stored normalised).
 
     Example:
         >>> p = Perturbation(axis="y", theta_deg=0.0, mu_m=0.1)
@@ -98,67 +117,107 @@ class Perturbation:
         tensor([0.0000, 0.0000, 0.1000], dtype=torch.float64)
     """
 
-    axis: str = "y"
+    axis: str | tuple[float, float, float] = "y"
     theta_deg: float = 0.0
     mu_m: float = 0.0
+    shift_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    focal_scale: float = 1.0
 
     def __post_init__(self) -> None:
-        if self.axis not in AXES:
-            raise ValueError(f"Perturbation.axis must be one of {AXES}, got {self.axis!r}")
+        if isinstance(self.axis, str):
+            if self.axis not in AXES:
+                raise ValueError(f"Perturbation.axis must be one of {AXES} or a direction (x, y, z), got {self.axis!r}")
+        else:
+            v = tuple(float(a) for a in self.axis)
+            norm = math.sqrt(sum(a * a for a in v))
+            if len(v) != 3 or not (math.isfinite(norm) and norm > 0):
+                raise ValueError(f"Perturbation.axis: a direction needs 3 finite values, not all 0, got {self.axis}")
+            object.__setattr__(self, "axis", tuple(a / norm for a in v))
+        shift = tuple(float(a) for a in self.shift_m)
+        if len(shift) != 3 or not all(math.isfinite(a) for a in shift):
+            raise ValueError(f"Perturbation.shift_m must be 3 finite metres, got {self.shift_m}")
+        object.__setattr__(self, "shift_m", shift)
         if not (math.isfinite(self.theta_deg) and math.isfinite(self.mu_m)):
             raise ValueError(f"Perturbation: theta and mu must be finite, got {self.theta_deg}, {self.mu_m}")
+        if not (math.isfinite(self.focal_scale) and self.focal_scale > 0):
+            raise ValueError(f"Perturbation.focal_scale must be a positive number, got {self.focal_scale}")
 
     @property
     def is_identity(self) -> bool:
-        return self.theta_deg == 0.0 and self.mu_m == 0.0
+        return self.theta_deg == 0.0 and self.mu_m == 0.0 and self.shift_m == (0.0,) * 3 and self.focal_scale == 1.0
+
+    @property
+    def direction(self) -> tuple[float, float, float]:
+        """The rotation axis as a unit (3,) world direction."""
+        if not isinstance(self.axis, str):
+            return self.axis
+        i = AXES.index(self.axis)
+        return tuple(float(k == i) for k in range(3))
 
     def apply(self, c2w: torch.Tensor, pivot: torch.Tensor) -> torch.Tensor:
-        """Perturbed (..., 4, 4) camera-to-world; see :func:`perturb_pose`."""
-        return perturb_pose(c2w, pivot, self.axis, self.theta_deg, self.mu_m)
+        """Moved (..., 4, 4) camera-to-world (the focal length aside); see :func:`perturb_pose`."""
+        return perturb_pose(c2w, pivot, torch.tensor(self.direction), self.theta_deg, self.mu_m,
+                            torch.tensor(self.shift_m))  # fmt: skip
 
     def move(self, cameras: Cameras, index: int = 0, pivot_depth: float | None = None) -> Cameras:
         """Camera ``index`` of a rig, moved about the rig's pivot (:func:`rig_pivot`: of its
-        cameras 0 and 1, or ``pivot_depth`` along the axis of a rig's one camera)."""
+        cameras 0 and 1, or ``pivot_depth`` along the axis of a rig's one camera), its focal
+        length scaled (:func:`scale_focal`)."""
         if not 0 <= index < len(cameras):
             raise IndexError(f"Perturbation.move: camera index {index} outside 0..{len(cameras) - 1}")
         move = torch.tensor([self.as_row()], dtype=cameras.c2w.dtype)
         c2w = move_rig(cameras.c2w, move, [index], pivot_depth)  # a rigid motion of a checked pose
-        return cameras._derive(cameras.K[index : index + 1], c2w)
+        return cameras._derive(scale_focal(cameras.K[index : index + 1], move[:, 8]), c2w)
 
     def as_row(self) -> list[float]:
-        """The move as (axis index into ``AXES``, theta_deg, mu_m): one row of the moves that
-        :func:`move_rig` takes."""
-        return [AXES.index(self.axis), self.theta_deg, self.mu_m]
+        """The move as one row of :data:`ROW` floats: axis direction (3), theta_deg, mu_m,
+        shift_m (3), focal_scale (what :func:`move_rig` and :func:`scale_focal` take)."""
+        return [*self.direction, self.theta_deg, self.mu_m, *self.shift_m, self.focal_scale]
 
     def as_dict(self) -> dict:
-        return asdict(self)
+        """The move's fields; a shift and focal scale only where the move has them (a paper
+        move reads as (axis, theta_deg, mu_m))."""
+        d = asdict(self)
+        if self.shift_m == (0.0, 0.0, 0.0):
+            del d["shift_m"]
+        if self.focal_scale == 1.0:
+            del d["focal_scale"]
+        return d
+
+
+def scale_focal(K: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) intrinsics with their focal lengths (and skew) multiplied by (...) ``scale``,
+    the principal point kept."""
+    out = K.clone()
+    out[..., :2, :2] = K[..., :2, :2] * scale.to(K)[..., None, None]
+    return out
 
 
 def axis_rotation(axis: str | torch.Tensor, theta_deg: float | torch.Tensor, dtype=torch.float64,
                   device=None) -> torch.Tensor:
-    """(..., 3, 3) rotations by ``theta_deg`` (degrees, float or (...)) about the world X or Y
-    axis (right-handed); ``axis`` is "x" or "y", or (...) indices into ``AXES``. Kornia's
+    """(..., 3, 3) rotations by ``theta_deg`` (degrees, float or (...)) about world axes
+    (right-handed): ``axis`` is "x", "y" or "z", or (..., 3) unit directions. Kornia's
     axis-angle formula, element by element (a batch gives each element's own bits)."""
     if isinstance(axis, str):
         if axis not in AXES:
             raise ValueError(f"axis must be one of {AXES}, got {axis!r}")
-        axis = torch.tensor(AXES.index(axis), device=device)
-    elif not bool(((axis == 0) | (axis == 1)).all()):
-        raise ValueError(f"axis indices must be 0 (x) or 1 (y), got {axis.unique().tolist()}")
+        axis = torch.eye(3, dtype=dtype, device=device)[AXES.index(axis)]
+    elif axis.shape[-1:] != (3,):
+        raise ValueError(f"axis directions must be (..., 3), got {tuple(axis.shape)}")
     theta = (torch.as_tensor(theta_deg, dtype=torch.float64, device=device) * (math.pi / 180)).to(dtype)
-    theta, axis = torch.broadcast_tensors(theta, axis.to(device=theta.device))
-    axis_angle = torch.zeros(*theta.shape, 3, dtype=dtype, device=theta.device)
-    axis_angle.scatter_(-1, axis[..., None].long(), theta[..., None])
-    return axis_angle_to_rotation_matrix(axis_angle.reshape(-1, 3)).reshape(*theta.shape, 3, 3)
+    axis = axis.to(dtype=dtype, device=theta.device)
+    axis_angle = torch.where(axis == 0, torch.zeros((), dtype=dtype, device=theta.device), axis * theta[..., None])
+    shape = axis_angle.shape[:-1]
+    return axis_angle_to_rotation_matrix(axis_angle.reshape(-1, 3)).reshape(*shape, 3, 3)
 
 
 def perturb_pose(c2w: torch.Tensor, pivot: torch.Tensor, axis: str | torch.Tensor, theta_deg: float | torch.Tensor,
-                 mu_m: float | torch.Tensor) -> torch.Tensor:
-    """Apply the protocol to (..., 4, 4) OpenCV camera-to-world poses.
+                 mu_m: float | torch.Tensor, shift_m: torch.Tensor | None = None) -> torch.Tensor:
+    """Move (..., 4, 4) OpenCV camera-to-world poses.
 
-    R' = R_axis R, c' = p + R_axis (c - p) + mu * R'[:, 2], with p the pivot ((3,) or
-    (..., 3)); ``axis``, ``theta_deg`` and ``mu_m`` are one move or (...) moves, one per pose
-    (see :func:`axis_rotation`).
+    R' = R_axis R, c' = p + R_axis (c - p) + shift + mu * R'[:, 2], with p the pivot ((3,) or
+    (..., 3)); ``axis`` (see :func:`axis_rotation`), ``theta_deg``, ``mu_m`` and ``shift_m``
+    ((3,) or (..., 3), default none) are one move or (...) moves, one per pose.
     """
     Ra = axis_rotation(axis, theta_deg, c2w.dtype, c2w.device)
     p = torch.as_tensor(pivot, dtype=c2w.dtype, device=c2w.device)
@@ -166,6 +225,8 @@ def perturb_pose(c2w: torch.Tensor, pivot: torch.Tensor, axis: str | torch.Tenso
     out = c2w.clone()
     R = Ra @ c2w[..., :3, :3]
     center = p + (Ra @ (c2w[..., :3, 3] - p)[..., None])[..., 0]
+    if shift_m is not None:
+        center = center + torch.as_tensor(shift_m, dtype=c2w.dtype, device=c2w.device)
     out[..., :3, :3] = R
     out[..., :3, 3] = center + mu[..., None] * R[..., :, 2]
     return out
@@ -175,19 +236,21 @@ def move_rig(c2w: torch.Tensor, moves: torch.Tensor, views: Sequence[int], pivot
              ) -> torch.Tensor:  # fmt: skip
     """(..., R, 4, 4) poses of the cameras ``views`` (R indices) of rigs of (..., V, 4, 4)
     camera-to-world poses, each moved about its rig's pivot (:func:`rig_pivot`) by its move of
-    the (..., R, 3) ``moves`` (axis index into ``AXES``, theta_deg, mu_m): what
-    :meth:`Perturbation.move` does to one camera, for any batch of rigs (the batch path moves a
-    whole training batch's cameras with it).
+    the (..., R, :data:`ROW`) ``moves`` (:meth:`Perturbation.as_row`; their focal lengths:
+    :func:`scale_focal`): what :meth:`Perturbation.move` does to one camera, for any batch of
+    rigs (the batch path moves a whole training batch's cameras with it).
 
     Example: the left camera of a rig turned 5 deg about world X
         >>> from gensplat_transforms import look_at
         >>> rig = torch.stack([look_at((1.0, 0.3, 0.5), (0, 0, 0)), look_at((1.0, -0.3, 0.5), (0, 0, 0))])
-        >>> move_rig(rig, torch.tensor([[0, 5.0, 0.0]], dtype=torch.float64), [0]).shape
+        >>> move_rig(rig, torch.tensor([Perturbation("x", 5.0).as_row()], dtype=torch.float64), [0]).shape
         torch.Size([1, 4, 4])
     """
+    if moves.shape[-1] != ROW:
+        raise ValueError(f"move_rig: moves must be (..., R, {ROW}) rows (Perturbation.as_row), got {tuple(moves.shape)}")
     pivot = rig_pivot(c2w, pivot_depth)[..., None, :]  # (..., 1, 3)
-    axis, theta, mu = moves.unbind(-1)
-    return perturb_pose(c2w[..., list(views), :, :], pivot, axis.long(), theta, mu)
+    return perturb_pose(c2w[..., list(views), :, :], pivot, moves[..., :3], moves[..., 3], moves[..., 4],
+                        moves[..., 5:8])  # fmt: skip
 
 
 def _closest(c2w_a: torch.Tensor, c2w_b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -246,8 +309,42 @@ def pivot_point(c2w_a: torch.Tensor, c2w_b: torch.Tensor, parallel_tol: float = 
     return torch.where(parallel, 0.5 * (c2w_a[..., :3, 3] + c2w_b[..., :3, 3]), 0.5 * (pa + pb))
 
 
-class PerturbationSampler:
-    """Seeded sampling of perturbations.
+class _Sampler:
+    """Seeded draws per (episode, frame, view): ``mode="episode"`` gives every frame of an
+    episode the same move, ``"frame"`` a new one per frame; ``focal_scale`` (low, high) adds a
+    focal-length change drawn log-uniformly (none when (1, 1))."""
+
+    #: salt of the seed, so that samplers of one seed draw apart (None: the paper's, unsalted)
+    salt: int | None = None
+
+    def __init__(self, mode: str = "episode", seed: int = 0, focal_scale: tuple[float, float] = (1.0, 1.0)) -> None:
+        if mode not in ("episode", "frame"):
+            raise ValueError(f"{type(self).__name__}.mode must be 'episode' or 'frame', got {mode!r}")
+        if int(seed) < 0:
+            raise ValueError(f"{type(self).__name__}.seed must be >= 0, got {seed}")
+        lo, hi = (float(v) for v in focal_scale)
+        if not (0 < lo <= hi < math.inf):
+            raise ValueError(f"{type(self).__name__}.focal_scale: need 0 < low <= high, got {tuple(focal_scale)}")
+        self.mode, self.seed, self.focal_scale = mode, int(seed), (lo, hi)
+
+    def sample(self, episode_index: int, frame_index: int = 0, view: int = 0) -> Perturbation:
+        key = [self.seed, int(episode_index), int(frame_index) if self.mode == "frame" else 0, int(view)]
+        if min(key) < 0:
+            raise ValueError(f"{type(self).__name__}.sample: episode/frame/view indices must be >= 0, got {key[1:]}")
+        rng = np.random.default_rng(key if self.salt is None else [*key, self.salt])
+        move = self._draw(rng)
+        if self.focal_scale == (1.0, 1.0):
+            return move
+        lo, hi = self.focal_scale
+        return replace(move, focal_scale=float(math.exp(rng.uniform(math.log(lo), math.log(hi)))))
+
+    def _draw(self, rng: np.random.Generator) -> Perturbation:
+        raise NotImplementedError
+
+
+class PerturbationSampler(_Sampler):
+    """The paper's levels: rotation about world X or Y (``axes``) through the pivot, then a
+    forward step, drawn from ``level``'s ranges.
 
     ``mode="episode"`` (the paper's default) gives every frame of an episode the same
     perturbation, so an augmented trajectory shares one camera; ``mode="frame"`` draws a
@@ -260,35 +357,91 @@ class PerturbationSampler:
         True
     """
 
-    def __init__(
-        self,
-        level: str | PerturbationRange = "train",
-        mode: str = "episode",
-        seed: int = 0,
-        axes: tuple[str, ...] = AXES,
-    ) -> None:
-        if mode not in ("episode", "frame"):
-            raise ValueError(f"PerturbationSampler.mode must be 'episode' or 'frame', got {mode!r}")
-        bad = [a for a in axes if a not in AXES]
+    def __init__(self, level: str | PerturbationRange = "train", mode: str = "episode", seed: int = 0,
+                 axes: tuple[str, ...] = PAPER_AXES, focal_scale: tuple[float, float] = (1.0, 1.0)) -> None:  # fmt: skip
+        super().__init__(mode, seed, focal_scale)
+        bad = [a for a in axes if a not in PAPER_AXES]
         if bad or not axes:
-            raise ValueError(f"PerturbationSampler.axes must be a non-empty subset of {AXES}, got {axes}")
-        if int(seed) < 0:
-            raise ValueError(f"PerturbationSampler.seed must be >= 0, got {seed}")
+            raise ValueError(f"PerturbationSampler.axes must be a non-empty subset of {PAPER_AXES}, got {axes}")
         self.range = get_range(level)
-        self.mode = mode
-        self.seed = int(seed)
         self.axes = tuple(axes)
 
-    def sample(self, episode_index: int, frame_index: int = 0, view: int = 0) -> Perturbation:
-        key = [self.seed, int(episode_index), int(frame_index) if self.mode == "frame" else 0, int(view)]
-        if min(key) < 0:
-            raise ValueError(
-                f"PerturbationSampler.sample: episode/frame/view indices must be >= 0, got {key[1:]}"
-            )
-        rng = np.random.default_rng(key)
+    def _draw(self, rng: np.random.Generator) -> Perturbation:
         axis = self.axes[int(rng.integers(len(self.axes)))]
         theta = float(rng.uniform(*self.range.theta_deg))
         if self.range.random_sign and rng.random() < 0.5:
             theta = -theta
         mu = float(rng.uniform(*self.range.mu_m))
         return Perturbation(axis=axis, theta_deg=theta + 0.0, mu_m=mu)
+
+
+class _Turns(_Sampler):
+    """A sampler of turns by up to ``limit_deg`` either way and shifts by up to ``shift_m``."""
+
+    def __init__(self, limit_deg: float, shift_m: float = 0.03, mode: str = "episode", seed: int = 0,
+                 focal_scale: tuple[float, float] = (1.0, 1.0)) -> None:  # fmt: skip
+        super().__init__(mode, seed, focal_scale)
+        self.limit_deg = _non_negative(f"{type(self).__name__}.limit_deg", limit_deg, 180.0)
+        self.shift_m = _non_negative(f"{type(self).__name__}.shift_m", shift_m)
+
+
+class TiltSampler(_Turns):
+    """Rotations about a uniformly random world axis through the pivot by up to ``limit_deg``
+    either way (uniform), and a world shift uniform in [-``shift_m``, ``shift_m``] per axis:
+    the kind of move VISTA's ``small_perturb`` evaluates, over a box rather than its Gaussians.
+
+    Example:
+        >>> p = TiltSampler(limit_deg=10.0, shift_m=0.03, seed=0).sample(episode_index=2)
+        >>> abs(p.theta_deg) <= 10.0 and max(abs(v) for v in p.shift_m) <= 0.03
+        True
+    """
+
+    salt = 1
+
+    def _draw(self, rng: np.random.Generator) -> Perturbation:
+        axis = rng.normal(size=3)  # a normalised isotropic Gaussian: uniform on the sphere
+        theta = float(rng.uniform(-self.limit_deg, self.limit_deg))
+        shift = rng.uniform(-self.shift_m, self.shift_m, 3)
+        return Perturbation(tuple(axis.tolist()), theta + 0.0, 0.0, tuple(shift.tolist()))
+
+
+class ArcSampler(_Turns):
+    """Turns about the world's vertical (+z) through the pivot by up to ``limit_deg`` either
+    way (uniform), and a step along the viewing axis uniform in [-``shift_m``, ``shift_m``]:
+    the camera moved along an arc around the scene, as VISTA's ``arc_90deg`` evaluates (its
+    +-45 deg is ``limit_deg=45``). The world must have +z up (the simulated, the estimated and
+    DROID's calibrations do).
+
+    Example:
+        >>> p = ArcSampler(limit_deg=45.0, seed=0).sample(episode_index=2)
+        >>> p.axis, abs(p.theta_deg) <= 45.0
+        ('z', True)
+    """
+
+    salt = 2
+
+    def _draw(self, rng: np.random.Generator) -> Perturbation:
+        theta = float(rng.uniform(-self.limit_deg, self.limit_deg))
+        return Perturbation("z", theta + 0.0, float(rng.uniform(-self.shift_m, self.shift_m)))
+
+
+def _non_negative(name: str, value: float, most: float = math.inf) -> float:
+    value = float(value)
+    if not 0 <= value <= most:
+        raise ValueError(f"{name} must be in [0, {most:g}], got {value}")
+    return value
+
+
+def make_sampler(kind: str = "paper", level: str | PerturbationRange = "train", mode: str = "episode", seed: int = 0,
+                 tilt_deg: float = 10.0, arc_deg: float = 45.0, shift_m: float = 0.03,
+                 focal_scale: tuple[float, float] = (1.0, 1.0)) -> _Sampler:  # fmt: skip
+    """The sampler ``kind`` (one of :data:`SAMPLERS`) with its settings: "paper" draws from
+    ``level``, "tilt" from ``tilt_deg`` and ``shift_m``, "arc" from ``arc_deg`` and
+    ``shift_m``; every kind adds ``focal_scale``."""
+    if kind == "paper":
+        return PerturbationSampler(level, mode, seed, focal_scale=focal_scale)
+    if kind == "tilt":
+        return TiltSampler(tilt_deg, shift_m, mode, seed, focal_scale)
+    if kind == "arc":
+        return ArcSampler(arc_deg, shift_m, mode, seed, focal_scale)
+    raise ValueError(f"unknown perturbation sampler {kind!r}; choose one of {SAMPLERS}")

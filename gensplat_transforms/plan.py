@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from .perturbation import Perturbation, PerturbationSampler
+from .perturbation import Perturbation
 
 if TYPE_CHECKING:
     from .settings import GenSplatConfig
@@ -25,7 +25,8 @@ if TYPE_CHECKING:
 #: size where it fits in the stored size, else at that (the batch side takes the nearest pixels);
 #: ``gensplat.coded`` () bool, log codes or float16 bits (:func:`.depth_codec.depth_from_words`);
 #: ``gensplat.K`` (T, V, 3, 3) and ``gensplat.c2w`` (T, V, 4, 4) float64, the cached cameras
-#: (intrinsics at the render size); ``gensplat.moves`` (R, 3) float64, :attr:`ViewPlan.rows`
+#: (intrinsics at the render size); ``gensplat.moves`` (R, ``perturbation.ROW``) float64,
+#: :attr:`ViewPlan.rows`
 BATCH_KEYS = ("gensplat.render", "gensplat.depth", "gensplat.coded", "gensplat.K", "gensplat.c2w", "gensplat.moves")
 
 
@@ -37,18 +38,18 @@ class ViewPlan:
         applied: whether the item's replaced cameras are replaced.
         moves: one :class:`.perturbation.Perturbation` per replaced camera
             (``GenSplatConfig.replace`` order); no move where not applied.
-        rows: the R moves as (axis index, theta_deg, mu_m) floats, each
-            :meth:`.perturbation.Perturbation.as_row` (what the item's keys carry).
+        rows: the R moves as rows of floats, each :meth:`.perturbation.Perturbation.as_row`
+            (what the item's keys carry).
 
     Example:
         >>> plan = ViewPlan(True, (Perturbation("x", 5.0, 0.02), Perturbation("y", -3.0, 0.0)))
-        >>> plan.rows
-        ((0.0, 5.0, 0.02), (1.0, -3.0, 0.0))
+        >>> plan.rows[0]  # axis direction, theta_deg, mu_m, shift_m, focal_scale
+        (1.0, 0.0, 0.0, 5.0, 0.02, 0.0, 0.0, 0.0, 1.0)
     """
 
     applied: bool
     moves: tuple[Perturbation, ...]
-    rows: tuple[tuple[float, float, float], ...] = field(init=False, repr=False, compare=False)
+    rows: tuple[tuple[float, ...], ...] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if not isinstance(self.applied, bool):
@@ -60,10 +61,10 @@ class ViewPlan:
         object.__setattr__(self, "rows", tuple(tuple(float(v) for v in p.as_row()) for p in self.moves))
 
     @classmethod
-    def draw(cls, config: GenSplatConfig, sampler: PerturbationSampler, episode: int, frame: int) -> ViewPlan:
+    def draw(cls, config: GenSplatConfig, sampler, episode: int, frame: int) -> ViewPlan:
         """The plan of frame ``frame`` of ``episode``: augmented with ``config.probability`` and
         which of ``config.views_per_source`` moves (torch's RNG, which DataLoader seeds per
-        worker), each replaced camera's move from ``sampler``."""
+        worker), each replaced camera's move from ``sampler`` (``GenSplatConfig.perturbations``)."""
         applied = bool(torch.rand(()) < config.probability)
         view = int(torch.randint(config.views_per_source, ()))
         R = len(config.replace)

@@ -6,7 +6,7 @@ import argparse
 import math
 from dataclasses import asdict, dataclass, field, fields
 
-from .perturbation import PerturbationRange
+from .perturbation import SAMPLERS, PerturbationRange, make_sampler
 from .rendering import BACKENDS
 
 RENDER_IN = ("auto", "worker", "batch")
@@ -32,7 +32,17 @@ class GenSplatConfig:
         replace: cameras whose image is replaced (default: all of ``cameras``).
         image_key: item key of a camera's image; ``{name}`` is replaced by the camera name.
         probability: chance that a sample is augmented.
-        level: a named level (see ``perturbation.LEVELS``) or a ``PerturbationRange``.
+        sampler: how the cameras move (:mod:`.perturbation`): "paper" (default), the paper's
+            ``level``: rotation about world X or Y through the pivot and a forward step;
+            "tilt", rotation about a random axis by up to ``tilt_deg`` and a world shift up to
+            ``shift_m`` per axis; "arc", a turn about the world's vertical through the pivot by
+            up to ``arc_deg`` and a step up to ``shift_m`` along the viewing axis.
+        level: a named level (see ``perturbation.LEVELS``) or a ``PerturbationRange`` (the
+            "paper" sampler's).
+        tilt_deg, arc_deg, shift_m: the "tilt" and "arc" samplers' ranges.
+        focal_scale: (low, high) range of a focal-length change drawn log-uniformly for every
+            move (principal point and image size kept; holes the wider view reveals are
+            filled); (1, 1), the default, changes nothing.
         mode: "episode" (one perturbation per trajectory, the paper's default) or "frame".
         views_per_source: distinct perturbed cameras per trajectory (the paper: ~3).
         seed: fixes the set of perturbations; which one a sample gets is drawn from torch's
@@ -84,7 +94,16 @@ class GenSplatConfig:
     image_key: str = "observation.images.{name}"
     # how the cameras move
     probability: float = field(default=0.5, metadata=_cli("chance a training sample is augmented"))
-    level: str | PerturbationRange = field(default="train", metadata=_cli("perturbation level"))
+    sampler: str = field(default="paper", metadata=_cli(
+        "paper: the paper's --level moves; tilt: random-axis tilts and shifts; arc: turns about the vertical",
+        choices=SAMPLERS))  # fmt: skip
+    level: str | PerturbationRange = field(default="train", metadata=_cli("perturbation level of the paper sampler"))
+    tilt_deg: float = field(default=10.0, metadata=_cli("tilt sampler: largest rotation, degrees"))
+    arc_deg: float = field(default=45.0, metadata=_cli("arc sampler: largest turn either way, degrees"))
+    shift_m: float = field(default=0.03, metadata=_cli("tilt and arc samplers: largest shift, metres"))
+    focal_scale: tuple[float, float] = field(default=(1.0, 1.0), metadata=_cli(
+        "range of focal-length factors drawn for every move, e.g. 0.8 1.25", nargs=2, type=float,
+        metavar=("LOW", "HIGH")))  # fmt: skip
     mode: str = field(default="episode", metadata=_cli(
         "episode: one perturbation per trajectory and view; frame: a new one every frame", choices=MODES))
     views_per_source: int = field(default=3, metadata=_cli("distinct perturbed cameras per trajectory"))
@@ -134,8 +153,15 @@ class GenSplatConfig:
             raise ValueError(f"GenSplatConfig.render_scale must be in (0, 1], got {self.render_scale}")
         if self.render_in not in RENDER_IN:
             raise ValueError(f"GenSplatConfig.render_in must be one of {RENDER_IN}, got {self.render_in!r}")
+        self.focal_scale = tuple(float(v) for v in self.focal_scale)
+        self.perturbations()  # checks the sampler's settings
         if self.depth_unit not in DEPTH_UNITS:
             raise ValueError(f"GenSplatConfig.depth_unit must be one of {tuple(DEPTH_UNITS)}, got {self.depth_unit!r}")
+
+    def perturbations(self):
+        """The perturbation sampler these settings describe (:func:`.perturbation.make_sampler`)."""
+        return make_sampler(self.sampler, self.level, self.mode, self.seed, self.tilt_deg, self.arc_deg,
+                            self.shift_m, self.focal_scale)  # fmt: skip
 
     def to_dict(self) -> dict:
         """The settings as plain values for JSON (a ``PerturbationRange`` level as a dict)."""
@@ -181,6 +207,7 @@ def add_config_arguments(parser: argparse.ArgumentParser) -> None:
         options = dict(f.metadata["cli"])
         flag = options.pop("flag", "--" + f.name.replace("_", "-"))
         shown = "all" if f.default is None and options.get("nargs") else f.default
+        shown = " ".join(map(str, shown)) if isinstance(shown, tuple) else shown  # as typed: --flag 1.0 1.0
         if options.get("action") is None:
             options.setdefault("type", type(f.default) if f.default is not None else str)
             options["help"] += f" (default: {shown})"

@@ -15,7 +15,7 @@ from .cache import EpisodeSource, GaussianCache
 from .cache_reader import CacheReader
 from .counters import SampleCounters
 from .dataset_format import DepthSensor
-from .perturbation import PerturbationSampler
+from .perturbation import AXES, ROW
 from .plan import BATCH_KEYS, ViewPlan
 from .settings import GenSplatConfig, render_size
 from .view_output import as_cache_images, render_depth, render_view, render_views
@@ -75,7 +75,7 @@ class GenSplatTransform:
         if config.render_in == "batch" and not self.reader.batchable:
             raise ValueError(f"GenSplatTransform: render_in='batch' needs a depth cache (RGB-D or geometry "
                              f"reconstructor); {self.reader} stores Gaussians: use render_in='worker'")  # fmt: skip
-        self.sampler = PerturbationSampler(config.level, mode=config.mode, seed=config.seed)
+        self.sampler = config.perturbations()
         #: set to count every item (augmented or not) and its time across workers
         self.counters: SampleCounters | None = None
 
@@ -174,7 +174,7 @@ class GenSplatTransform:
                              f"alike, got stacks {sorted(stacks)}: use render_in='worker'")  # fmt: skip
         image = item[keys[self.cfg.replace[0]]]
         stack = self.reader.depth(episode, frame, self._offsets(image), self._render_size(image), read=plan.applied)
-        moves = torch.tensor(plan.rows, dtype=torch.float64).reshape(len(plan.rows), 3)
+        moves = torch.tensor(plan.rows, dtype=torch.float64).reshape(len(plan.rows), ROW)
         return dict(zip(BATCH_KEYS, (torch.tensor(plan.applied), stack.words, torch.tensor(stack.coded), stack.K,
                                      stack.c2w, moves)))  # fmt: skip
 
@@ -199,10 +199,17 @@ class GenSplatTransform:
 
 def _report(plan: ViewPlan) -> dict[str, torch.Tensor]:
     """The ``gensplat.*`` keys that describe ``plan`` (``GenSplatConfig.report``): applied (R,)
-    bool, axis (R,) long, theta_deg (R,) and mu_m (R,) float32; all zero where not applied."""
-    r = torch.tensor([[1.0, *row] for row in plan.rows]) if plan.applied else torch.zeros(len(plan.rows), 4)
-    return {"gensplat.applied": r[:, 0].bool(), "gensplat.axis": r[:, 1].long(),
-            "gensplat.theta_deg": r[:, 2], "gensplat.mu_m": r[:, 3]}  # fmt: skip
+    bool; axis (R,) long, the index into ``perturbation.AXES`` (-1: another direction);
+    theta_deg (R,) and mu_m (R,) float32; move (R, ``perturbation.ROW``) float32, the whole move
+    (:meth:`.perturbation.Perturbation.as_row`); all zero where not applied."""
+    R = len(plan.moves)
+    if not plan.applied:
+        return {"gensplat.applied": torch.zeros(R, dtype=torch.bool), "gensplat.axis": torch.zeros(R, dtype=torch.long),
+                "gensplat.theta_deg": torch.zeros(R), "gensplat.mu_m": torch.zeros(R), "gensplat.move": torch.zeros(R, ROW)}  # fmt: skip
+    rows = torch.tensor(plan.rows)
+    axis = [AXES.index(p.axis) if isinstance(p.axis, str) else -1 for p in plan.moves]
+    return {"gensplat.applied": torch.ones(R, dtype=torch.bool), "gensplat.axis": torch.tensor(axis),
+            "gensplat.theta_deg": rows[:, 3], "gensplat.mu_m": rows[:, 4], "gensplat.move": rows}  # fmt: skip
 
 
 def _check_images(item: dict, keys: dict[str, str], cameras: tuple[str, ...]) -> None:

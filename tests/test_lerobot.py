@@ -284,10 +284,13 @@ def test_cache_command_writes_settings_and_cache(dataset_root, capsys):
           "--render-scale", "0.5"])  # fmt: skip
     config = load_settings(dataset_root)[0]
     assert not config.fill_holes and config.render_in == "batch" and config.render_scale == 0.5
-    assert main(["cache", "--root", str(dataset_root), "--repo-id", REPO, "--fill-depth", "8"]) == 0
+    assert main(["cache", "--root", str(dataset_root), "--repo-id", REPO, "--fill-depth", "8", "--sampler", "arc",
+                 "--arc-deg", "30", "--focal-scale", "0.9", "1.2"]) == 0  # fmt: skip
     assert load_settings(dataset_root)[1] == {"name": "rgbd", "config": {"fill_depth_px": 8}}
     ds = enable_gensplat(LeRobotDataset(REPO, root=dataset_root))
     assert ds.gensplat.cache.reconstructor.cfg.fill_depth_px == 8 and ds.gensplat.cache.status(0) == "ok"
+    sampler = ds.gensplat.sampler  # the sampler the training workers draw from, as the settings say
+    assert type(sampler).__name__ == "ArcSampler" and (sampler.limit_deg, sampler.focal_scale) == (30.0, (0.9, 1.2))
     with pytest.raises(SystemExit, match="--fill-depth fills the holes of measured depth"):
         main(["cache", "--root", str(dataset_root), "--repo-id", REPO, "--fill-depth", "8", "--reconstructor",
               "geometry"])  # fmt: skip

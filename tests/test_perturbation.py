@@ -14,12 +14,15 @@ from gensplat_transforms.perturbation import (
     AXES,
     EVAL_LEVELS,
     LEVELS,
+    ArcSampler,
     Perturbation,
     PerturbationRange,
     PerturbationSampler,
+    TiltSampler,
     axis_rotation,
     closest_points_between_axes,
     get_range,
+    make_sampler,
     perturb_pose,
     pivot_point,
 )
@@ -298,10 +301,18 @@ def test_none_and_extreme_levels_are_fixed():
         (lambda: PerturbationSampler("large", seed=-1), "seed must be >= 0"),
         (lambda: PerturbationSampler("large").sample(-1), "indices must be >= 0"),
         (lambda: PerturbationSampler("large", mode="frame").sample(0, -2), "indices must be >= 0"),
-        (lambda: Perturbation(axis="z"), "axis must be one of"),
+        (lambda: Perturbation(axis="w"), "axis must be one of"),
+        (lambda: Perturbation(axis=(0.0, 0.0, 0.0)), "a direction needs 3 finite values, not all 0"),
+        (lambda: Perturbation(axis=(1.0, math.nan, 0.0)), "a direction needs 3 finite values"),
+        (lambda: Perturbation(shift_m=(0.0, math.inf, 0.0)), "shift_m must be 3 finite metres"),
+        (lambda: Perturbation(focal_scale=0.0), "focal_scale must be a positive number"),
+        (lambda: TiltSampler(limit_deg=-1.0), r"TiltSampler.limit_deg must be in \[0, 180\]"),
+        (lambda: ArcSampler(45.0, shift_m=math.nan), r"ArcSampler.shift_m must be in"),
+        (lambda: ArcSampler(45.0, focal_scale=(1.2, 0.8)), r"ArcSampler.focal_scale: need 0 < low <= high"),
+        (lambda: make_sampler("zoom"), "unknown perturbation sampler 'zoom'"),
         (lambda: Perturbation(theta_deg=math.nan), "finite"),
         (lambda: Perturbation(mu_m=math.inf), "finite"),
-        (lambda: axis_rotation("z", 10.0), "axis must be one of"),
+        (lambda: axis_rotation("w", 10.0), "axis must be one of"),
         (lambda: perturb_pose(torch.eye(4), torch.zeros(3), "Y", 10.0, 0.0), "axis must be one of"),
         (lambda: PerturbationRange((5.0, 1.0), (0.0, 0.1)), r"theta_deg: need finite low <= high"),
         (lambda: PerturbationRange((1.0, 5.0), (0.1, math.nan)), r"mu_m: need finite low <= high"),
@@ -374,13 +385,84 @@ def test_batched_moves_equal_one_move_at_a_time():
     for s in range(2):
         torch.testing.assert_close(pivots[s], pivot_point(c2w[s, 0], c2w[s, 1]), rtol=0, atol=1e-15)
     torch.testing.assert_close(pivots[1], 0.5 * (c2w[1, 0, :3, 3] + c2w[1, 1, :3, 3]))
-    axis = torch.tensor([[0, 1], [1, 0]])
+    index = torch.tensor([[0, 1], [1, 2]])
     theta = torch.empty(2, 2, dtype=DTYPE).uniform_(-30, 30, generator=g)
     mu = torch.empty(2, 2, dtype=DTYPE).uniform_(0, 0.06, generator=g)
-    moved = perturb_pose(c2w, pivots[:, None], axis, theta, mu)
+    shift = torch.empty(2, 2, 3, dtype=DTYPE).uniform_(-0.03, 0.03, generator=g)
+    moved = perturb_pose(c2w, pivots[:, None], torch.eye(3, dtype=DTYPE)[index], theta, mu)
+    shifted = perturb_pose(c2w, pivots[:, None], torch.eye(3, dtype=DTYPE)[index], theta, mu, shift)
     for s in range(2):
         for v in range(2):
-            one = perturb_pose(c2w[s, v], pivots[s], AXES[int(axis[s, v])], float(theta[s, v]), float(mu[s, v]))
-            torch.testing.assert_close(moved[s, v], one, rtol=0, atol=1e-15)
-    with pytest.raises(ValueError, match=r"axis indices must be 0 \(x\) or 1 \(y\), got \[0, 2\]"):
-        perturb_pose(c2w, pivots[:, None], torch.tensor([[0, 2], [0, 0]]), theta, mu)
+            one = perturb_pose(c2w[s, v], pivots[s], AXES[int(index[s, v])], float(theta[s, v]), float(mu[s, v]))
+            torch.testing.assert_close(moved[s, v], one, rtol=0, atol=0)  # a named axis has its direction's bits
+            torch.testing.assert_close(shifted[s, v, :3, 3], one[:3, 3] + shift[s, v], rtol=0, atol=1e-15)
+    with pytest.raises(ValueError, match=r"axis directions must be \(\.\.\., 3\), got \(2, 2\)"):
+        perturb_pose(c2w, pivots[:, None], index, theta, mu)
+
+
+# ---------------------------------------------------------------------------- wider samplers
+def test_tilt_sampler_draws_random_axes_angles_and_shifts_within_its_ranges():
+    """Axes uniform on the sphere (mean near 0, each component's |mean| of squares near 1/3),
+    angles uniform in [-tilt, tilt], shifts in the box; seeded, salted apart from the paper's."""
+    s = TiltSampler(limit_deg=12.0, shift_m=0.04, seed=3)
+    moves = [s.sample(ep) for ep in range(2000)]
+    axes = torch.tensor([m.axis for m in moves])
+    assert axes.mean(0).abs().max() < 0.05 and (axes.square().mean(0) - 1 / 3).abs().max() < 0.03
+    theta = torch.tensor([m.theta_deg for m in moves])
+    assert theta.abs().max() <= 12.0 and abs(float(theta.mean())) < 0.5 and float(theta.abs().mean()) == pytest.approx(6.0, abs=0.3)
+    shift = torch.tensor([m.shift_m for m in moves])
+    assert shift.abs().max() <= 0.04 and float(shift.abs().mean()) == pytest.approx(0.02, abs=0.002)
+    assert all(m.mu_m == 0.0 and m.focal_scale == 1.0 for m in moves)
+    assert s.sample(5) == TiltSampler(limit_deg=12.0, shift_m=0.04, seed=3).sample(5) != s.sample(6)
+    assert s.sample(5) == s.sample(5, frame_index=9) != TiltSampler(12.0, 0.04, mode="frame", seed=3).sample(5, 9)
+
+
+def test_arc_sampler_turns_about_the_vertical_and_keeps_the_pivot_in_view():
+    """Turns about world z through the pivot within +-arc; with no step, the pivot stays where
+    the camera saw it (the same camera-frame point), the camera's height is kept, and the move
+    is rigid."""
+    left, right = look_at((1.05, 0.4, 0.5), (0.45, 0.0, 0.12)), look_at((1.05, -0.4, 0.5), (0.45, 0.0, 0.12))
+    cameras = Cameras(torch.tensor([[100.0, 0, 32], [0, 100.0, 32], [0, 0, 1]], dtype=DTYPE).expand(2, 3, 3),
+                      torch.stack([left, right]), 64, 64)  # fmt: skip
+    pivot = pivot_point(left, right)
+    s = ArcSampler(limit_deg=45.0, shift_m=0.0, seed=1)
+    for ep in range(50):
+        p = s.sample(ep)
+        assert p.axis == "z" and abs(p.theta_deg) <= 45.0 and p.mu_m == 0.0
+        moved = p.move(cameras, 0).c2w[0]
+        seen = lambda c2w: (torch.linalg.inv(c2w) @ torch.cat([pivot, torch.ones(1, dtype=DTYPE)]))[:3]
+        torch.testing.assert_close(seen(moved), seen(left), rtol=0, atol=1e-12)
+        assert float(moved[2, 3]) == pytest.approx(float(left[2, 3]), abs=1e-12)
+        torch.testing.assert_close(moved[:3, :3] @ moved[:3, :3].T, torch.eye(3, dtype=DTYPE), rtol=0, atol=1e-12)
+    thetas = torch.tensor([s.sample(ep).theta_deg for ep in range(2000)])
+    assert float(thetas.min()) < -43 and float(thetas.max()) > 43 and abs(float(thetas.mean())) < 1.5
+
+
+def test_a_focal_length_change_keeps_the_move_the_principal_point_and_the_image_size():
+    """focal_scale is drawn log-uniformly after the move, so the paper's draws are unchanged;
+    the moved camera's focal lengths scale, its principal point and size stay."""
+    plain, zoom = PerturbationSampler("large", seed=2), PerturbationSampler("large", seed=2, focal_scale=(0.8, 1.25))
+    for ep in range(20):
+        a, b = plain.sample(ep), zoom.sample(ep)
+        assert (a.axis, a.theta_deg, a.mu_m) == (b.axis, b.theta_deg, b.mu_m) and 0.8 <= b.focal_scale <= 1.25
+    logs = torch.tensor([math.log(zoom.sample(ep).focal_scale) for ep in range(3000)])
+    assert abs(float(logs.mean())) < 0.01 and float(logs.min()) < math.log(0.81) and float(logs.max()) > math.log(1.24)
+    cameras = Cameras(torch.tensor([[100.0, 0, 30], [0, 90.0, 34], [0, 0, 1]], dtype=DTYPE)[None],
+                      look_at((1.0, 0.3, 0.5), (0, 0, 0))[None], 64, 48)  # fmt: skip
+    moved = Perturbation("y", 0.0, 0.0, focal_scale=1.25).move(cameras, 0, pivot_depth=1.0)
+    assert moved.K[0].tolist() == [[125.0, 0.0, 30.0], [0.0, 112.5, 34.0], [0.0, 0.0, 1.0]]
+    assert (moved.width, moved.height) == (64, 48) and torch.equal(moved.c2w, cameras.c2w)
+
+
+def test_make_sampler_and_the_config_choose_the_sampler():
+    from gensplat_transforms.settings import GenSplatConfig
+
+    assert isinstance(make_sampler("paper"), PerturbationSampler)
+    config = GenSplatConfig(sampler="arc", arc_deg=30.0, shift_m=0.01, focal_scale=[0.9, 1.1])
+    sampler = config.perturbations()
+    assert isinstance(sampler, ArcSampler) and sampler.limit_deg == 30.0 and sampler.focal_scale == (0.9, 1.1)
+    assert GenSplatConfig.from_dict(config.to_dict()) == config
+    with pytest.raises(ValueError, match="unknown perturbation sampler 'orbit'"):
+        GenSplatConfig(sampler="orbit")
+    with pytest.raises(ValueError, match="focal_scale: need 0 < low <= high"):
+        GenSplatConfig(focal_scale=(0.0, 1.0))

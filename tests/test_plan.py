@@ -83,10 +83,43 @@ def test_the_batch_path_renders_the_plans_the_worker_path_renders(setup):
 def test_move_rig_moves_any_batch_of_rigs_as_perturbation_move_moves_one(setup):
     cache, ds = setup
     cameras = cache.read(0, 0, ds.episodes.views(0, 0).images).cameras
-    p = Perturbation("y", 7.5, -0.02)
     rigs = cameras.c2w.expand(5, 2, 4, 4)  # (5, V, 4, 4)
-    moves = torch.tensor([[1, 7.5, -0.02]], dtype=torch.float64).expand(5, 1, 3)
-    moved = move_rig(rigs, moves, [1])
-    assert moved.shape == (5, 1, 4, 4)
-    for m in moved:
-        assert torch.equal(m, p.move(cameras, 1).c2w)
+    for p in (Perturbation("y", 7.5, -0.02), Perturbation((0.3, -1.0, 0.2), 12.0, 0.01, (0.02, 0.0, -0.01), 1.2)):
+        moves = torch.tensor([p.as_row()], dtype=torch.float64).expand(5, 1, 9)
+        moved = move_rig(rigs, moves, [1])
+        assert moved.shape == (5, 1, 4, 4)
+        for m in moved:
+            assert torch.equal(m, p.move(cameras, 1).c2w)
+    with pytest.raises(ValueError, match=r"moves must be \(\.\.\., R, 9\) rows"):
+        move_rig(rigs, torch.zeros(5, 1, 3, dtype=torch.float64), [1])
+
+
+@pytest.mark.parametrize("sampler", [{"sampler": "tilt", "tilt_deg": 12.0, "shift_m": 0.03},
+                                     {"sampler": "arc", "arc_deg": 40.0, "focal_scale": (0.8, 1.25)},
+                                     {"sampler": "paper", "level": "medium", "focal_scale": (0.8, 0.9)}])  # fmt: skip
+def test_the_wider_samplers_render_alike_in_the_worker_and_the_batch_path(setup, sampler):
+    """Random-axis tilts with shifts, arcs about the vertical and focal-length changes: the
+    batch path renders the plans the worker path renders, the images keep their size, and a
+    changed focal length shows in the render (a hand-made zoom against the same move without)."""
+    cache, ds = setup
+    config = {"probability": 1.0, "report": True, **sampler}
+    worker = GenSplatTransform(GenSplatConfig(**config, render_in="worker"), cache)
+    batch = GenSplatTransform(GenSplatConfig(**config, render_in="batch"), cache)
+    items = [ds[i] for i in range(3)]
+    torch.manual_seed(0)
+    plans = [worker.plan(it) for it in items]
+    assert all(p.applied for p in plans)
+    expected = default_collate([worker(it, p) for it, p in zip(items, plans)])
+    got = render_batch(default_collate([batch(it, p) for it, p in zip(items, plans)]), batch)
+    for key in (LEFT, RIGHT):
+        assert got[key].shape == expected[key].shape == (3, 3, 24, 24)
+        torch.testing.assert_close(got[key], expected[key], atol=1e-5, rtol=0)
+    moves = expected["gensplat.move"]  # (3, R, 9)
+    if "focal_scale" in sampler:
+        lo, hi = sampler["focal_scale"]
+        assert bool(((moves[..., 8] >= lo - 1e-6) & (moves[..., 8] <= hi + 1e-6)).all())
+    item = ds[1]
+    base = Perturbation("x", 5.0, 0.01)
+    zoomed = Perturbation("x", 5.0, 0.01, focal_scale=1.25)
+    a, b = (worker(item, ViewPlan(True, (m, Perturbation()))) for m in (base, zoomed))
+    assert (a[LEFT] - b[LEFT]).abs().mean() > 0.01 and torch.equal(a[RIGHT], b[RIGHT])

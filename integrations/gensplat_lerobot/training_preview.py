@@ -120,9 +120,18 @@ def _tiles(dataset, index: int, item: dict, keys: list[str], size: torch.Size) -
 
 
 def _label(item: dict, frame: int, draw: int, cameras: Sequence[str]) -> str:
-    """Row label: frame, draw and each replaced camera's axis, rotation and forward move."""
+    """Row label: frame, draw and each replaced camera's axis, rotation and forward move (and
+    its shift and focal-length change where it has them)."""
     lines = [f"frame {frame}, draw {draw + 1}"]
     for c, name in enumerate(cameras):
-        axis, theta = AXES[int(item["gensplat.axis"][c])], float(item["gensplat.theta_deg"][c])
-        lines += [f"{name}: {axis} {theta:+.1f} deg", f"  mu {float(item['gensplat.mu_m'][c]) * 100:.1f} cm"]
+        index, move = int(item["gensplat.axis"][c]), item["gensplat.move"][c]
+        if index >= 0:
+            lines.append(f"{name}: {AXES[index]} {float(move[3]):+.1f} deg")
+        else:  # a direction: on a line of its own
+            lines += [f"{name}: {float(move[3]):+.1f} deg", "  about {:+.1f},{:+.1f},{:+.1f}".format(*move[:3].tolist())]
+        lines.append(f"  mu {float(move[4]) * 100:.1f} cm")
+        if bool(move[5:8].any()):
+            lines.append("  shift {:+.1f},{:+.1f},{:+.1f} cm".format(*(move[5:8] * 100).tolist()))
+        if float(move[8]) != 1.0:
+            lines.append(f"  focal x{float(move[8]):.2f}")
     return "\n".join(lines)
