@@ -12,8 +12,8 @@ A novel view is made in up to four steps (:class:`Perturbation`):
 The samplers draw these per episode (or frame) and view, seeded: :class:`PerturbationSampler`
 the paper's levels (rotation about X or Y, forward step), :class:`TiltSampler` rotations about
 a uniformly random axis with a position shift, :class:`ArcSampler` turns about the world's
-vertical (+z up) through the pivot, as a camera moved along an arc around the scene; each can
-add a focal-length change.
+vertical (+z up) through the pivot, as a camera moved along an arc around the scene,
+:class:`MixSampler` one of them per move; each can add a focal-length change.
 
 The pivot is the midpoint of the shortest segment between the optical axes of the two
 external cameras (the midpoint of their centres when the axes are parallel). A rig with one
@@ -44,7 +44,7 @@ from .cameras import Cameras
 AXES = ("x", "y", "z")
 PAPER_AXES = ("x", "y")
 #: the samplers :func:`make_sampler` makes
-SAMPLERS = ("paper", "tilt", "arc")
+SAMPLERS = ("paper", "tilt", "arc", "mix")
 #: width of a move's row (:meth:`Perturbation.as_row`): axis (3), theta_deg, mu_m, shift_m (3), focal_scale
 ROW = 9
 
@@ -425,6 +425,29 @@ class ArcSampler(_Turns):
         return Perturbation("z", theta + 0.0, float(rng.uniform(-self.shift_m, self.shift_m)))
 
 
+class MixSampler(_Sampler):
+    """Each move from one of ``samplers`` chosen uniformly (their own settings; the focal
+    change is this sampler's): a training mix of the paper's moves, tilts and arcs.
+
+    Example:
+        >>> s = MixSampler((PerturbationSampler("train"), TiltSampler(10.0), ArcSampler(45.0)), seed=0)
+        >>> sorted({str(s.sample(ep).axis)[:1] for ep in range(50)})  # x, y (paper), z (arc), ( (tilt)
+        ['(', 'x', 'y', 'z']
+    """
+
+    salt = 3
+
+    def __init__(self, samplers: Sequence[_Sampler], mode: str = "episode", seed: int = 0,
+                 focal_scale: tuple[float, float] = (1.0, 1.0)) -> None:  # fmt: skip
+        super().__init__(mode, seed, focal_scale)
+        if not samplers:
+            raise ValueError("MixSampler: needs at least one sampler")
+        self.samplers = tuple(samplers)
+
+    def _draw(self, rng: np.random.Generator) -> Perturbation:
+        return self.samplers[int(rng.integers(len(self.samplers)))]._draw(rng)
+
+
 def _non_negative(name: str, value: float, most: float = math.inf) -> float:
     value = float(value)
     if not 0 <= value <= most:
@@ -437,11 +460,14 @@ def make_sampler(kind: str = "paper", level: str | PerturbationRange = "train", 
                  focal_scale: tuple[float, float] = (1.0, 1.0)) -> _Sampler:  # fmt: skip
     """The sampler ``kind`` (one of :data:`SAMPLERS`) with its settings: "paper" draws from
     ``level``, "tilt" from ``tilt_deg`` and ``shift_m``, "arc" from ``arc_deg`` and
-    ``shift_m``; every kind adds ``focal_scale``."""
+    ``shift_m``, "mix" from one of the three per move; every kind adds ``focal_scale``."""
     if kind == "paper":
         return PerturbationSampler(level, mode, seed, focal_scale=focal_scale)
     if kind == "tilt":
         return TiltSampler(tilt_deg, shift_m, mode, seed, focal_scale)
     if kind == "arc":
         return ArcSampler(arc_deg, shift_m, mode, seed, focal_scale)
+    if kind == "mix":
+        return MixSampler((PerturbationSampler(level), TiltSampler(tilt_deg, shift_m), ArcSampler(arc_deg, shift_m)),
+                          mode, seed, focal_scale)  # fmt: skip
     raise ValueError(f"unknown perturbation sampler {kind!r}; choose one of {SAMPLERS}")

@@ -36,7 +36,8 @@ class GenSplatConfig:
             ``level``: rotation about world X or Y through the pivot and a forward step;
             "tilt", rotation about a random axis by up to ``tilt_deg`` and a world shift up to
             ``shift_m`` per axis; "arc", a turn about the world's vertical through the pivot by
-            up to ``arc_deg`` and a step up to ``shift_m`` along the viewing axis.
+            up to ``arc_deg`` and a step up to ``shift_m`` along the viewing axis; "mix", one of
+            the three per move.
         level: a named level (see ``perturbation.LEVELS``) or a ``PerturbationRange`` (the
             "paper" sampler's).
         tilt_deg, arc_deg, shift_m: the "tilt" and "arc" samplers' ranges.
@@ -95,7 +96,8 @@ class GenSplatConfig:
     # how the cameras move
     probability: float = field(default=0.5, metadata=_cli("chance a training sample is augmented"))
     sampler: str = field(default="paper", metadata=_cli(
-        "paper: the paper's --level moves; tilt: random-axis tilts and shifts; arc: turns about the vertical",
+        "paper: the paper's --level moves; tilt: random-axis tilts and shifts; arc: turns about the vertical; "
+        "mix: one of the three per move",
         choices=SAMPLERS))  # fmt: skip
     level: str | PerturbationRange = field(default="train", metadata=_cli("perturbation level of the paper sampler"))
     tilt_deg: float = field(default=10.0, metadata=_cli("tilt sampler: largest rotation, degrees"))

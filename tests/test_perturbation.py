@@ -466,3 +466,11 @@ def test_make_sampler_and_the_config_choose_the_sampler():
         GenSplatConfig(sampler="orbit")
     with pytest.raises(ValueError, match="focal_scale: need 0 < low <= high"):
         GenSplatConfig(focal_scale=(0.0, 1.0))
+
+
+def test_the_mix_sampler_draws_each_kind_about_equally():
+    s = make_sampler("mix", level="train", tilt_deg=10.0, arc_deg=45.0, shift_m=0.02, seed=4)
+    kinds = [("tilt" if not isinstance(m.axis, str) else "arc" if m.axis == "z" else "paper")
+             for m in (s.sample(ep) for ep in range(900))]  # fmt: skip
+    assert all(250 < kinds.count(k) < 350 for k in ("paper", "tilt", "arc"))
+    assert s.sample(7) == make_sampler("mix", seed=4, shift_m=0.02).sample(7) != s.sample(8)

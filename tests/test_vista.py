@@ -132,8 +132,20 @@ def test_perturbed_camera_env_protocols():
     # the same seeds give the same layouts under both protocols: only the camera differs
     paper.reset(options={"episode_index": 1})
     assert paper.world.episode == arc.world.episode
-    for env in (paper, arc):
+    zoom = PerturbedCameraEnv(EvalConfig("reach_solo", "zoom", seed=5, world=world, protocol="fov"))
+    nominal = zoom.world.cameras(("left", "right"))
+    for i in range(3):
+        _, info = zoom.reset(options={"episode_index": i})
+        scale = PerturbationSampler("none", seed=5, focal_scale=(0.8, 1.25)).sample(i).focal_scale
+        assert info["perturbation"]["focal_scale"] == scale and 0.8 <= scale <= 1.25
+        seen = zoom.world.cameras(("left", "right"))
+        torch.testing.assert_close(seen.K[0, :2, :2], nominal.K[0, :2, :2] * scale, atol=1e-4, rtol=0)
+        torch.testing.assert_close(seen.K[1], nominal.K[1], atol=1e-9, rtol=0)  # only "left" is perturbed
+        torch.testing.assert_close(seen.c2w, nominal.c2w, atol=1e-6, rtol=0)  # nothing moves
+    for env in (paper, arc, zoom):
         env.close()
+    with pytest.raises(ValueError, match="the fov protocol has one level, 'zoom'"):
+        PerturbedCameraEnv(EvalConfig("reach_solo", "large", world=world, protocol="fov"))
     with pytest.raises(ValueError, match="protocol"):
         PerturbedCameraEnv(EvalConfig("reach_solo", "small", world=world, protocol="ours"))
     with pytest.raises(ValueError, match="VISTA sampler"):

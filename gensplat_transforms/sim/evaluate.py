@@ -1,14 +1,18 @@
 """Policy evaluation under camera perturbation, in simulation.
 
 :class:`PerturbedCameraEnv` is a Gymnasium environment of one task in which the named
-external cameras are moved, once per episode, by one of two protocols (``EvalConfig.protocol``):
+external cameras are moved, once per episode, by one of three protocols (``EvalConfig.protocol``):
 
 * ``"paper"`` (the default; the paper's RQ1 protocol): the perturbation that
   ``PerturbationSampler(level, seed=seed).sample(episode_index)`` draws, about the pivot of
   the two external cameras' nominal poses; levels none / small / medium / large / extreme;
 * ``"vista"``: VISTA's samplers (:mod:`.vista`), levels ``small_perturb`` and ``arc_90deg``:
   ``VistaSampler(level, seed=seed).sample(episode_index)``, about the point each camera
-  looks at in the scene layout.
+  looks at in the scene layout;
+* ``"fov"``: level ``zoom``, the camera kept in place with its focal length scaled by a factor
+  drawn log-uniformly in :data:`FOV_RANGE` (another lens or a zoom, as LIBERO-plus and
+  robosuite's camera randomisation vary it): ``PerturbationSampler("none", seed=seed,
+  focal_scale=FOV_RANGE).sample(episode_index)``.
 
 Observations use the recorded datasets' keys and the library's conventions, so a policy
 trained on a recorded dataset runs unchanged:
@@ -56,12 +60,12 @@ class EvalConfig:
     """Attributes:
     task: task name.
     level: perturbation level: with protocol "paper" none / small / medium / large / extreme
-        (or any key of LEVELS), with "vista" small_perturb / arc_90deg.
+        (or any key of LEVELS), with "vista" small_perturb / arc_90deg, with "fov" zoom.
     perturbed: external cameras that are moved (each by the same perturbation).
     seed: seeds the episode layouts (evaluation stream, disjoint from recording) and the perturbations.
     max_steps: step budget per episode (default: the task's).
     world: scene settings; keep the camera layout of the training data.
-    protocol: "paper" (default) or "vista"; see the module docstring.
+    protocol: "paper" (default), "vista" or "fov"; see the module docstring.
     """
 
     task: str = "pick_place"
@@ -73,7 +77,9 @@ class EvalConfig:
     protocol: str = "paper"
 
 
-PROTOCOLS = ("paper", "vista")
+PROTOCOLS = ("paper", "vista", "fov")
+#: the "fov" protocol's range of focal-length factors
+FOV_RANGE = (0.8, 1.25)
 
 
 class PerturbedCameraEnv(gym.Env):
@@ -88,9 +94,13 @@ class PerturbedCameraEnv(gym.Env):
             raise ValueError(f"only external cameras {EXTERNAL_CAMERAS} can be perturbed, got {bad}")
         if self.config.protocol not in PROTOCOLS:
             raise ValueError(f"unknown evaluation protocol {self.config.protocol!r}, choose from {PROTOCOLS}")
-        paper = self.config.protocol == "paper"
-        sampler = PerturbationSampler if paper else VistaSampler
-        self.sampler = sampler(self.config.level, seed=self.config.seed)
+        protocol = self.config.protocol
+        paper = protocol != "vista"  # the fov protocol keeps the paper's pivot (it moves nothing)
+        if protocol == "fov" and self.config.level != "zoom":
+            raise ValueError(f"the fov protocol has one level, 'zoom', got {self.config.level!r}")
+        self.sampler = (VistaSampler(self.config.level, seed=self.config.seed) if protocol == "vista" else
+                        PerturbationSampler("none" if protocol == "fov" else self.config.level, seed=self.config.seed,
+                                            focal_scale=FOV_RANGE if protocol == "fov" else (1.0, 1.0)))  # fmt: skip
         self.world = SimWorld(self.config.task, self.config.world)
         self.max_steps = self.config.max_steps or self.world.task.max_steps
         nominal = self.world.cameras(EXTERNAL_CAMERAS)
@@ -100,6 +110,7 @@ class PerturbedCameraEnv(gym.Env):
         external = self.config.world.scene.external
         self.centre = {n: self.pivot if paper else torch.tensor(external[n].target, dtype=torch.float64)
                        for n in EXTERNAL_CAMERAS}  # fmt: skip
+        self.nominal_fovy = {n: float(self.world.model.cam_fovy[self.world.model.camera(n).id]) for n in EXTERNAL_CAMERAS}
         self.perturbation = Perturbation()
         self.episode_index = -1
         self._steps = 0
@@ -130,6 +141,10 @@ class PerturbedCameraEnv(gym.Env):
             c2w = self.nominal_c2w[name]
             moved = name in self.config.perturbed
             self._place_camera(name, self.perturbation.apply(c2w, self.centre[name]) if moved else c2w)
+            scale = getattr(self.perturbation, "focal_scale", 1.0) if moved else 1.0
+            fovy = self.nominal_fovy[name]  # vertical; f = (H / 2) / tan(fovy / 2)
+            self.world.model.cam_fovy[self.world.model.camera(name).id] = fovy if scale == 1.0 else \
+                math.degrees(2 * math.atan(math.tan(math.radians(fovy) / 2) / scale))  # fmt: skip
         episode = self.world.reset(episode_seed(self.config.seed, self.episode_index, "eval"))
         self._steps = 0
         info = {
