@@ -449,9 +449,10 @@ class MixSampler(_Sampler):
 
 
 def _non_negative(name: str, value: float, most: float = math.inf) -> float:
+    """``value`` as a float, or ValueError naming ``name`` unless it is finite and in [0, most]."""
     value = float(value)
-    if not 0 <= value <= most:
-        raise ValueError(f"{name} must be in [0, {most:g}], got {value}")
+    if not (math.isfinite(value) and 0 <= value <= most):
+        raise ValueError(f"{name} must be a finite number in [0, {most:g}], got {value}")
     return value
 
 
@@ -460,7 +461,12 @@ def make_sampler(kind: str = "paper", level: str | PerturbationRange = "train", 
                  focal_scale: tuple[float, float] = (1.0, 1.0)) -> _Sampler:  # fmt: skip
     """The sampler ``kind`` (one of :data:`SAMPLERS`) with its settings: "paper" draws from
     ``level``, "tilt" from ``tilt_deg`` and ``shift_m``, "arc" from ``arc_deg`` and
-    ``shift_m``, "mix" from one of the three per move; every kind adds ``focal_scale``."""
+    ``shift_m``, "mix" from one of the three per move; every kind adds ``focal_scale``. Every
+    setting is checked, under its own name, whichever kind uses it."""
+    _non_negative("tilt_deg", tilt_deg, 180.0), _non_negative("arc_deg", arc_deg, 180.0)
+    _non_negative("shift_m", shift_m)
+    if not 0 < float(focal_scale[0]) <= float(focal_scale[1]) < math.inf:
+        raise ValueError(f"focal_scale: need 0 < low <= high, got {tuple(focal_scale)}")
     if kind == "paper":
         return PerturbationSampler(level, mode, seed, focal_scale=focal_scale)
     if kind == "tilt":

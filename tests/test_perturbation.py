@@ -306,8 +306,9 @@ def test_none_and_extreme_levels_are_fixed():
         (lambda: Perturbation(axis=(1.0, math.nan, 0.0)), "a direction needs 3 finite values"),
         (lambda: Perturbation(shift_m=(0.0, math.inf, 0.0)), "shift_m must be 3 finite metres"),
         (lambda: Perturbation(focal_scale=0.0), "focal_scale must be a positive number"),
-        (lambda: TiltSampler(limit_deg=-1.0), r"TiltSampler.limit_deg must be in \[0, 180\]"),
-        (lambda: ArcSampler(45.0, shift_m=math.nan), r"ArcSampler.shift_m must be in"),
+        (lambda: TiltSampler(limit_deg=-1.0), r"TiltSampler.limit_deg must be a finite number in \[0, 180\]"),
+        (lambda: ArcSampler(45.0, shift_m=math.nan), r"ArcSampler.shift_m must be a finite number in"),
+        (lambda: TiltSampler(10.0, shift_m=math.inf), r"TiltSampler.shift_m must be a finite number in \[0, inf\]"),
         (lambda: ArcSampler(45.0, focal_scale=(1.2, 0.8)), r"ArcSampler.focal_scale: need 0 < low <= high"),
         (lambda: make_sampler("zoom"), "unknown perturbation sampler 'zoom'"),
         (lambda: Perturbation(theta_deg=math.nan), "finite"),
@@ -464,8 +465,12 @@ def test_make_sampler_and_the_config_choose_the_sampler():
     assert GenSplatConfig.from_dict(config.to_dict()) == config
     with pytest.raises(ValueError, match="unknown perturbation sampler 'orbit'"):
         GenSplatConfig(sampler="orbit")
-    with pytest.raises(ValueError, match="focal_scale: need 0 < low <= high"):
+    with pytest.raises(ValueError, match=r"^focal_scale: need 0 < low <= high, got \(0.0, 1.0\)"):
         GenSplatConfig(focal_scale=(0.0, 1.0))
+    with pytest.raises(ValueError, match=r"^arc_deg must be a finite number in \[0, 180\], got -5.0"):
+        GenSplatConfig(sampler="paper", arc_deg=-5.0)  # a bad setting is refused whichever sampler is chosen
+    with pytest.raises(ValueError, match=r"^shift_m must be a finite number in \[0, inf\], got inf"):
+        GenSplatConfig(sampler="tilt", shift_m=math.inf)
 
 
 def test_the_mix_sampler_draws_each_kind_about_equally():
