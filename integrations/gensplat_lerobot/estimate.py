@@ -143,10 +143,10 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
     def estimate(pairs: list[tuple[int, int]], groups: list | None, show: bool) -> RigEstimate:
         """The estimate from the timesteps ``pairs``, the spread over ``groups`` (None: four
         interleaved groups)."""
-        samples, given = read(pairs), focals
+        samples = read(pairs)
         prediction = predict_cameras(geometry, names, samples) if geometry is not None else None
         rig = estimate_rig(names, sizes, samples, groups, progress=show, focals=prediction.focals if prediction
-                           else given, scale=scale, principal_points=principal_point,
+                           else focals, scale=scale, principal_points=principal_point,
                            predicted=prediction.depths if prediction and scale is None else None)  # fmt: skip
         if prediction is None:
             return rig
