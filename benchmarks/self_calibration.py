@@ -54,13 +54,13 @@ from gensplat_transforms.dataset_format import load_depth, save_depth
 from gensplat_transforms.metrics import psnr, ssim
 from gensplat_transforms.perturbation import EVAL_LEVELS, PerturbationSampler, pivot_point
 from gensplat_transforms.reconstruction import GeometryReconstructor, RGBDReconstructor, Views
-from gensplat_transforms.views import nearest_pixels
 from gensplat_transforms.rendering import render
 from gensplat_transforms.self_calibration import rotation_angle_deg
 from gensplat_transforms.sim.record import RecordConfig, record
 from gensplat_transforms.sim.sensor import SensorDepthConfig, sensor_depth
 from gensplat_transforms.sim.truth import GroundTruth
 from gensplat_transforms.sim.world import WorldConfig
+from gensplat_transforms.views import nearest_pixels
 from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 
 REPO = "gensplat/sim_pick_place_heldout"
@@ -114,6 +114,7 @@ def novel_views(calibrated: LeRobotSource, estimated: LeRobotSource, truth: Grou
     camera's moved views (``geometry``: also the estimate with the shipped model's depth)."""
     names = ("calibrated", "estimated", *(("estimated_geometry",) if geometry else ()))
     rows = {level: {name: [] for name in names} for level in EVAL_LEVELS}
+    model = GeometryReconstructor() if geometry else None
     for ep, fr in frames:
         est_views = estimated.views(ep, fr)  # the copy's depth: exact or the sensor's; none: the recording's
         if est_views.depths is None:
@@ -122,7 +123,6 @@ def novel_views(calibrated: LeRobotSource, estimated: LeRobotSource, truth: Grou
         recs = {"calibrated": RGBDReconstructor().reconstruct(cal_views),
                 "estimated": RGBDReconstructor().reconstruct(est_views)}
         if geometry:  # as the transform reads a geometry cache: the model's depth at the image's pixels
-            model = GeometryReconstructor()
             depth = model.predict_depth(Views(est_views.images, estimated.cameras)).depths
             H, W = est_views.images.shape[-2:]
             recs["estimated_geometry"] = model.assemble(Views(est_views.images, estimated.cameras,

@@ -536,6 +536,30 @@ def test_cameras_that_move_between_episodes_are_estimated_per_episode(moving, ca
     assert main(["cache", "--root", str(root), "--repo-id", REPO, "--episodes", "1"]) == 0
 
 
+def test_a_per_episode_estimate_that_fails_names_its_episode(simulated, tmp_path, capsys, monkeypatch):
+    """An episode whose own estimate fails (e.g. too few matches) stops --per-episode with an
+    error naming that episode, and nothing is written."""
+    from gensplat_lerobot import estimate
+
+    root = tmp_path / "uncalibrated"
+    shutil.copytree(simulated, root, ignore=shutil.ignore_patterns("gensplat"))
+    _strip_calibration(root)
+    calls = []
+
+    def fail_second(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise ValueError("cameras 'left' and 'right': 3 feature matches in 2 sampled timesteps (need 30)")
+        return real(*args, **kwargs)
+
+    real = estimate.estimate_rig
+    monkeypatch.setattr(estimate, "estimate_rig", fail_second)
+    args = ["calibrate", "--root", str(root), "--estimate", "--repo-id", REPO, "--timesteps", "2", "--per-episode"]
+    assert main(args) == 2
+    assert "episode 1: cameras 'left' and 'right': 3 feature matches" in capsys.readouterr().err
+    assert not calibration_path(root).exists()
+
+
 def test_estimate_names_an_episode_without_depth(simulated, tmp_path, capsys):
     root = tmp_path / "holes"
     shutil.copytree(simulated, root, ignore=shutil.ignore_patterns("gensplat"))
