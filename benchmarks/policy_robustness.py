@@ -10,7 +10,7 @@ resumes where it was; a ``--work`` made with other settings is refused):
    ``--seed``; lossless PNG frames, calibration and depth sidecars);
 2. when a GenSplat arm is trained: write the GenSplat settings beside the dataset and build
    its Gaussian cache (RGB-D reconstruction of the left + right cameras);
-3. train Diffusion Policy once per arm (``--arms``, default all six) with LeRobot's stock
+3. train Diffusion Policy once per arm (``--arms``, default all eight) with LeRobot's stock
    trainer through ``policies/train.sh``: same data, seed, steps, batch and policy settings;
    the policy sees ``--cameras`` and the robot state. The arms differ only in the training
    augmentation (``augmentation`` and ``train_command`` give what each passes):
@@ -41,14 +41,25 @@ resumes where it was; a ``--work`` made with other settings is refused):
    * ``gensplat+lerobot2d``: both; LeRobot's transforms apply after GenSplat's views;
    * ``gensplat+color``: GenSplat with only the colour and sharpness jitter of ``lerobot2d``
      (3 of those 5 per sample), no affine or crop;
+   * ``gensplat-wide``: ``gensplat`` with the ``mix`` sampler (``SAMPLER_ARMS``): each camera
+     moved by the paper's training range, a tilt about a random axis of up to 10 deg with a
+     shift of up to 3 cm per axis, or a turn of up to +-45 deg about the vertical through the
+     pivot, one of the three chosen per camera;
+   * ``gensplat-fov``: ``gensplat`` with the focal length scaled log-uniformly in 0.8-1.25
+     (the ``fov`` protocol's range) on top of the paper's moves.
+
+   The wider arms train on their own dataset roots (``work/dataset_<arm>``, links to
+   ``work/dataset`` beside their own ``gensplat`` settings and cache), since LeRobot's
+   GenSplat line reads the settings from the dataset root;
 
 4. evaluate every arm's checkpoint in ``PerturbedCameraEnv`` with the left external camera
-   moved once per episode, under two protocols (``PROTOCOLS``): ``paper`` (the paper's:
+   moved once per episode, under three protocols (``PROTOCOLS``): ``paper`` (the paper's:
    rotation about the pivot of the external cameras and a forward move, levels none / small /
    medium / large) and ``vista`` (VISTA's camera samplers, ``gensplat_transforms.sim.vista``:
    ``small_perturb``, 3 cm position and 0.075 rad rotation noise; ``arc_90deg``, the camera
-   anywhere on a +-45 deg arc about the point it looks at). Episode layouts come from the
-   evaluation stream (never a training layout), the same under both protocols, and every
+   anywhere on a +-45 deg arc about the point it looks at), and ``fov`` (level ``zoom``: the
+   camera in place, its focal length scaled log-uniformly in 0.8-1.25). Episode layouts come
+   from the evaluation stream (never a training layout), the same under every protocol, and every
    policy meets the same layouts, camera moves and sampling noise (torch is seeded per
    episode).
 
@@ -59,11 +70,11 @@ Diffusion Policy as in ``policies/diffusion.json`` (ResNet-18 encoder from scrat
 ``down_dims`` 64-128-256, horizon 16, 8 executed actions) with 1 observation step, DDIM and
 10 inference steps; 2500 steps at batch 32 (warm-up a tenth of the steps, at most 500); 100
 evaluation episodes per level of at most 50 control steps (the demonstrations take 15-18),
-6 levels per arm. Measured on a 2-core AMD EPYC (Zen 5) with no other job: 1.09 s per
+7 levels per arm. Measured on a 2-core AMD EPYC (Zen 5) with no other job: 1.09 s per
 training step for the baseline and 1.05 s for GenSplat (46 and 44 min per policy),
 evaluation 10.5 min per arm in two processes (0.05 s per control step), recording 4 min; on
 an older, busier 2-core EPYC 1.29-2.35 s per step (the 2D arms and GenSplat within 5 % of
-the baseline in 40-step runs). The six arms thus take 6-12 h; ``timing`` in the result
+the baseline in 40-step runs). The eight arms thus take 8-16 h; ``timing`` in the result
 holds the measured values. Harder tasks did not train at this budget: ``reach`` (a 4 cm cube
 among two distractors of random colours) stayed at about 10 % success at every level, and
 ``pick_place`` (``--cameras left,right,wrist``) lifted no cube after 1500 steps at batch 8 (see the README); ``--device cuda --steps 20000`` is the
@@ -75,7 +86,8 @@ setting to aim for on a GPU. Measured on one H100 machine (16 cores): with
 training and evaluating them again (an hour each here): the evaluation is seeded and
 reproducible, so an arm's episode records stand for its checkpoint. An arm is reused when
 the settings that shape it and its evaluation match (the common ones, its augmentation and
-the episodes per level; checked, and the arms whose settings differ are named and trained);
+the episodes per level; checked, and the arms whose settings differ are named and trained),
+under the protocols its file evaluated it (it is left out of the others' tables);
 ``settings["reused"]`` names the file of each reused arm. Within one ``--work``, a trained
 checkpoint is not trained again (its augmentation is checked), so adding an arm later trains
 only that arm. ``--table RESULT.json`` prints a result's tables in Markdown (benchmarks/README.md's).
@@ -88,7 +100,7 @@ protocols): ``{"arms": {arm: {level: success %}}, "levels", "progress": {arm: {l
 {lift_percent, median_reach_cm}}}, "difference": {"vs_baseline": {arm: {level: {points,
 ci95, a_only, b_only, mcnemar_p}}}, "vs_2d": {2D arm: {GenSplat arm: {...}}}}, "best_2d",
 "episodes_per_level": n,
-"quick", "protocols": {"vista": {the same keys from "arms" to "best_2d", and "episodes"}},
+"quick", "protocols": {"vista" / "fov": {the same keys from "arms" to "best_2d", and "episodes"}},
 "settings", "timing", "episodes": {arm: [per-episode records]}}``, the top level for the
 paper protocol.
 ``difference`` compares two arms episode by episode (they met the same episodes): every arm
@@ -124,7 +136,13 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 from gensplat_lerobot import prepare
 from plotting import Panel, line_panels
 
-from gensplat_transforms.sim.evaluate import EvalConfig, PerturbedCameraEnv, evaluate, paired_difference
+from gensplat_transforms.sim.evaluate import (
+    FOV_RANGE,
+    EvalConfig,
+    PerturbedCameraEnv,
+    evaluate,
+    paired_difference,
+)
 from gensplat_transforms.sim.policy_adapter import LeRobotPolicy
 from gensplat_transforms.sim.record import RecordConfig, record
 from gensplat_transforms.sim.tasks import TASKS
@@ -134,10 +152,14 @@ from gensplat_transforms.transform import GenSplatConfig
 
 LEVELS = ("none", "small", "medium", "large")
 #: The evaluation protocols and their levels (``PerturbedCameraEnv``'s ``protocol``).
-PROTOCOLS = {"paper": LEVELS, "vista": SAMPLERS}
-ARMS = ("baseline", "lerobot2d", "perspective", "gensplat", "gensplat+lerobot2d", "gensplat+color")
+PROTOCOLS = {"paper": LEVELS, "vista": SAMPLERS, "fov": ("zoom",)}
+ARMS = ("baseline", "lerobot2d", "perspective", "gensplat", "gensplat+lerobot2d", "gensplat+color", "gensplat-wide",
+        "gensplat-fov")  # fmt: skip
 TWO_D_ARMS = ("lerobot2d", "perspective")
-GENSPLAT_ARMS = ("gensplat", "gensplat+lerobot2d", "gensplat+color")
+GENSPLAT_ARMS = ("gensplat", "gensplat+lerobot2d", "gensplat+color", "gensplat-wide", "gensplat-fov")
+#: The GenSplat settings the wider arms change (the others draw the paper's moves).
+SAMPLER_ARMS = {"gensplat-wide": {"sampler": "mix", "tilt_deg": 10.0, "arc_deg": 45.0, "shift_m": 0.03},
+                "gensplat-fov": {"focal_scale": FOV_RANGE}}  # fmt: skip
 #: RandomPerspective's distortion_scale of the perspective arm (see the module docstring).
 PERSPECTIVE_DISTORTION = 0.25
 ROOT = Path(__file__).resolve().parents[1]
@@ -189,11 +211,26 @@ def perspective_transforms(probability: float) -> dict:
     return {"max_num_transforms": 1, "tfs": {"perspective": {"type": "RandomPerspective", "kwargs": kwargs}}}
 
 
-def gensplat_config(args) -> GenSplatConfig:
-    """The GenSplat settings of the GenSplat arms (written beside the dataset)."""
+def gensplat_config(args, arm: str = "gensplat") -> GenSplatConfig:
+    """The GenSplat settings of the GenSplat arm ``arm`` (written beside its dataset root)."""
     replace = tuple(c for c in args.cameras if c in EXTERNAL_CAMERAS)
     return GenSplatConfig(replace=replace, views_per_source=args.views_per_source, probability=args.probability,
-                          fill_holes=args.fill_holes, backend="fast", seed=args.seed)  # fmt: skip
+                          fill_holes=args.fill_holes, backend="fast", seed=args.seed, **SAMPLER_ARMS.get(arm, {}))  # fmt: skip
+
+
+def dataset_root(work: Path, arm: str) -> Path:
+    """The dataset root ``arm`` trains on: ``work/dataset``, or for an arm with its own GenSplat
+    settings (``SAMPLER_ARMS``) ``work/dataset_<arm>``, whose entries link to ``work/dataset``'s
+    but for its own ``gensplat`` folder (LeRobot's plugin reads the settings from the root)."""
+    return work / "dataset" if arm not in SAMPLER_ARMS else work / f"dataset_{arm}"
+
+
+def link_dataset(root: Path, linked: Path) -> None:
+    """Make ``linked`` a dataset root whose entries are links to ``root``'s, ``gensplat`` aside."""
+    linked.mkdir(parents=True, exist_ok=True)
+    for entry in root.iterdir():
+        if entry.name != "gensplat" and not (linked / entry.name).exists():
+            (linked / entry.name).symlink_to(entry.resolve(), target_is_directory=entry.is_dir())
 
 
 def augmentation(arm: str, args) -> dict:
@@ -201,10 +238,11 @@ def augmentation(arm: str, args) -> dict:
     settings) and ``image_transforms`` (LeRobot's), each only where the arm has it."""
     out = {}
     if arm in GENSPLAT_ARMS:
-        g = gensplat_config(args)
+        g = gensplat_config(args, arm)
         out["gensplat"] = {"cameras": list(g.cameras), "replace": list(g.replace), "probability": g.probability,
                            "level": g.level, "mode": g.mode, "views_per_source": g.views_per_source,
                            "fill_holes": g.fill_holes}  # fmt: skip
+        out["gensplat"] |= {k: list(v) if isinstance(v, tuple) else v for k, v in SAMPLER_ARMS.get(arm, {}).items()}
     if arm.endswith("lerobot2d"):
         out["image_transforms"] = lerobot2d_transforms(args.size)
     elif arm == "gensplat+color":
@@ -349,10 +387,11 @@ def protocol_part(result: dict, protocol: str) -> dict | None:
 
 
 def reused_arms(paths: list[Path], arms: tuple[str, ...], settings: dict, episodes: int) -> tuple[dict, dict, dict]:
-    """The arms of ``arms`` that earlier results hold with the same settings, evaluated under
-    every protocol: ({protocol: {arm: {level: evaluate_level-like record}}}, {"train_<arm>" /
-    "eval_<arm>": their timing}, {arm: file name}); the first file that holds an arm decides.
-    Prints which arms are reused, and why an arm a file holds is not. Raises SystemExit for a
+    """The arms of ``arms`` that earlier results hold with the same settings, under the
+    protocols each file evaluated them (an arm is left out of the others' tables):
+    ({protocol: {arm: {level: evaluate_level-like record}}}, {"train_<arm>" / "eval_<arm>":
+    their timing}, {arm: file name}); the first file that holds an arm decides. Prints which
+    arms are reused (and the protocols they lack), and why an arm a file holds is not. Raises SystemExit for a
     --quick result, one from before the arms, or missing episodes."""
     reused, timing, sources = {protocol: {} for protocol in PROTOCOLS}, {}, {}
     for path in paths:
@@ -367,12 +406,12 @@ def reused_arms(paths: list[Path], arms: tuple[str, ...], settings: dict, episod
                 changed["augmentation"] = (old["settings"]["augmentation"].get(arm), settings["augmentation"][arm])
             if old["episodes_per_level"] != episodes:
                 changed["episodes"] = (old["episodes_per_level"], episodes)
-            missing = [p for p in PROTOCOLS if arm not in (protocol_part(old, p) or {}).get("arms", {})]
-            if changed or missing:
-                why = f"made with other settings {changed} (was, now)" if changed else f"not evaluated under {missing}"
-                print(f"not reusing {arm} from {path}: {why}", flush=True)
+            if changed:
+                print(f"not reusing {arm} from {path}: made with other settings {changed} (was, now)", flush=True)
                 continue
-            for protocol, levels in PROTOCOLS.items():
+            held = [p for p in PROTOCOLS if arm in (protocol_part(old, p) or {}).get("arms", {})]
+            for protocol in held:
+                levels = PROTOCOLS[protocol]
                 part, reused[protocol][arm] = protocol_part(old, protocol), {}
                 for level in levels:
                     records = sorted((e for e in part["episodes"][arm] if e["level"] == level), key=lambda e: e["episode"])
@@ -383,7 +422,9 @@ def reused_arms(paths: list[Path], arms: tuple[str, ...], settings: dict, episod
                                                     "progress": part["progress"][arm][level]}  # fmt: skip
             timing |= {k: old["timing"][k] for k in (f"train_{arm}", f"eval_{arm}") if k in old["timing"]}
             sources[arm] = path.name
-            print(f"reusing {arm} from {path}", flush=True)
+            missing = [p for p in PROTOCOLS if p not in held]
+            print(f"reusing {arm} from {path}" + (f" (not evaluated under {', '.join(missing)}: left out of "
+                                                  "those tables)" if missing else ""), flush=True)  # fmt: skip
     return reused, timing, sources
 
 
@@ -437,25 +478,27 @@ def build_result(evaluated: dict, episodes: int, quick: bool, settings: dict, ti
 
 #: Line colours of the arms in the plot.
 COLOURS = {"baseline": (214, 39, 40), "lerobot2d": (31, 119, 180), "perspective": (148, 103, 189),
-           "gensplat": (44, 160, 44), "gensplat+lerobot2d": (255, 127, 14), "gensplat+color": (140, 86, 75)}  # fmt: skip
+           "gensplat": (44, 160, 44), "gensplat+lerobot2d": (255, 127, 14), "gensplat+color": (140, 86, 75),
+           "gensplat-wide": (23, 190, 207), "gensplat-fov": (227, 119, 194)}  # fmt: skip
 
 
 def plot(result: dict, path: Path) -> None:
-    """Four panels, a line per arm: success % and the median closest approach (cm) against the
-    level, under each protocol."""
-    arms = list(result["arms"])
+    """Two panels per protocol, a line per arm it evaluated: success % and the median closest
+    approach (cm) against the level."""
+    parts = {protocol: protocol_part(result, protocol) for protocol in PROTOCOLS}
+    arms = [a for a in ARMS if any(a in part["arms"] for part in parts.values())]
     panels = []
     for metric in ("success", "reach"):
         for protocol in PROTOCOLS:
-            part = protocol_part(result, protocol)
+            part = parts[protocol]
             x_ticks = list(enumerate(part["levels"]))
             x_range = (-0.5, len(x_ticks) - 0.5)
             if metric == "success":
-                series = {a: [(j, part["arms"][a][lv], "") for j, lv in x_ticks] for a in arms}
+                series = {a: [(j, part["arms"][a][lv], "") for j, lv in x_ticks] for a in part["arms"]}
                 panels.append(Panel(f"success (%), {protocol}", series, x_range, (0, 100), x_ticks,
                                     [(t, str(t)) for t in range(0, 101, 20)]))  # fmt: skip
                 continue
-            series = {a: [(j, part["progress"][a][lv]["median_reach_cm"], "") for j, lv in x_ticks] for a in arms}
+            series = {a: [(j, part["progress"][a][lv]["median_reach_cm"], "") for j, lv in x_ticks] for a in part["arms"]}
             top = float(np.ceil(max(5.0, *(y for pts in series.values() for _, y, _ in pts)) / 5) * 5)
             panels.append(Panel(f"median closest approach (cm), {protocol}", series, x_range, (0, top), x_ticks,
                                 [(t, f"{t:.0f}") for t in np.arange(0, top + 1e-9, 5)]))  # fmt: skip
@@ -607,11 +650,14 @@ def main() -> None:
         print(
             f"recorded {res.episodes} demonstrations, {res.frames} frames, in {res.seconds:.0f} s", flush=True
         )
-    if any(a in GENSPLAT_ARMS for a in to_run):
-        prepare(root, repo_id(args.task), gensplat_config(args), progress=False)
+    for arm in (a for a in to_run if a in GENSPLAT_ARMS):
+        if dataset_root(work, arm) != root:
+            link_dataset(root, dataset_root(work, arm))
+        prepare(dataset_root(work, arm), repo_id(args.task), gensplat_config(args, arm), progress=False)
 
     with ThreadPoolExecutor(len(to_run) if args.parallel_train and to_run else 1) as pool:  # each in a subprocess
-        for arm, t in zip(to_run, pool.map(lambda a: train(a, root, work / a, args), to_run)):
+        trained = pool.map(lambda a: train(a, dataset_root(work, a), work / a, args), to_run)
+        for arm, t in zip(to_run, trained):
             timing[f"train_{arm}"] = t
     print(f"evaluating {', '.join(to_run) or 'nothing'} ({args.eval_jobs} processes)", flush=True)
     t0 = time.perf_counter()
@@ -623,7 +669,7 @@ def main() -> None:
         timing[f"eval_{arm}"] = {"process_seconds": round(seconds, 1), "s_per_control_step": round(seconds / steps, 3),
                                  "s_per_episode": round(seconds / (len(records) * args.episodes), 2)}  # fmt: skip
     timing["total_seconds"] = round(time.perf_counter() - t_start, 1)
-    evaluated = {p: {arm: {**reused[p], **evaluated[p]}[arm] for arm in arms} for p in PROTOCOLS}
+    evaluated = {p: {arm: r[arm] for arm in arms if arm in (r := {**reused[p], **evaluated[p]})} for p in PROTOCOLS}
     result = build_result(evaluated, args.episodes, args.quick, settings, timing)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -46,7 +47,7 @@ def test_each_arm_passes_its_augmentation_to_lerobot_train():
         assert cmd[3] == mode and cmd[: len(base)] == [*base[:3], mode, *base[4:]], arm
         extra = cmd[len(base) :]
         assert extra == pr.arm_arguments(arm, args)[1:]
-        if arm in ("baseline", "gensplat"):
+        if arm in ("baseline", "gensplat", "gensplat-wide", "gensplat-fov"):
             assert extra == []
             continue
         config = image_transforms(extra)
@@ -85,6 +86,18 @@ def test_each_arm_passes_its_augmentation_to_lerobot_train():
         augment["gensplat"]["gensplat"]["replace"] == ["left"]
         and augment["gensplat"]["gensplat"]["probability"] == 0.25
     )
+    # the wider arms: the same settings but for their sampler, each on its own dataset root
+    paper, wide, fov = (pr.gensplat_config(args, arm) for arm in ("gensplat", "gensplat-wide", "gensplat-fov"))
+    assert (paper.sampler, paper.focal_scale) == ("paper", (1.0, 1.0))
+    assert (wide.sampler, wide.arc_deg, wide.tilt_deg, wide.focal_scale) == ("mix", 45.0, 10.0, (1.0, 1.0))
+    assert (fov.sampler, fov.focal_scale) == ("paper", (0.8, 1.25))
+    assert replace(wide, sampler="paper", tilt_deg=paper.tilt_deg, arc_deg=paper.arc_deg) == paper
+    assert augment["gensplat-wide"]["gensplat"] == {**augment["gensplat"]["gensplat"], "sampler": "mix",
+                                                    "tilt_deg": 10.0, "arc_deg": 45.0, "shift_m": 0.03}  # fmt: skip
+    assert augment["gensplat-fov"]["gensplat"] == {**augment["gensplat"]["gensplat"], "focal_scale": [0.8, 1.25]}
+    work = Path("work")
+    assert {pr.dataset_root(work, a) for a in pr.ARMS if a not in pr.SAMPLER_ARMS} == {work / "dataset"}
+    assert pr.dataset_root(work, "gensplat-fov") == work / "dataset_gensplat-fov"
     assert pr.parse_args(["--arms", "gensplat,baseline"]).arms == ("baseline", "gensplat")  # in ARMS order
     with pytest.raises(SystemExit):
         pr.parse_args(["--arms", "baseline,mixup"])
@@ -132,11 +145,13 @@ def evaluation(solved: dict[str, int], episodes: int) -> dict:
 
 
 def test_result_compares_every_arm_under_both_protocols(tmp_path, capsys):
-    solved = {"baseline": 2, "lerobot2d": 4, "perspective": 6, "gensplat": 9, "gensplat+lerobot2d": 7, "gensplat+color": 8}
+    solved = {"baseline": 2, "lerobot2d": 4, "perspective": 6, "gensplat": 9, "gensplat+lerobot2d": 7, "gensplat+color": 8,
+              "gensplat-wide": 5, "gensplat-fov": 3}  # fmt: skip
     args = pr.parse_args(["--episodes", "10"])
     result = pr.build_result(evaluation(solved, 10), 10, False, pr.result_settings(args), {})
-    assert list(result["protocols"]) == ["vista"] and result["episodes_per_level"] == 10
-    for part, levels in ((result, pr.LEVELS), (result["protocols"]["vista"], ("small_perturb", "arc_90deg"))):
+    assert list(result["protocols"]) == ["vista", "fov"] and result["episodes_per_level"] == 10
+    for part, levels in ((result, pr.LEVELS), (result["protocols"]["vista"], ("small_perturb", "arc_90deg")),
+                         (result["protocols"]["fov"], ("zoom",))):  # fmt: skip
         assert part["levels"] == list(levels) and list(part["arms"]) == list(pr.ARMS)
         assert part["arms"]["gensplat"] == dict.fromkeys(levels, 90.0) and part["best_2d"] == "perspective"
         diff = part["difference"]
@@ -205,14 +220,18 @@ def test_reuse_checks_the_settings(tmp_path, capsys):
     newer = earlier_result(tmp_path / "newer.json", args, ("lerobot2d", "gensplat"), 4)
     _, _, sources = pr.reused_arms([newer, old], args.arms, settings, 4)
     assert sources == {"lerobot2d": "newer.json", "gensplat": "newer.json", "baseline": "old.json"}
-    # an arm not evaluated under every protocol is evaluated again
+    # an arm a file did not evaluate under every protocol is reused under those it has
     partial = json.loads(old.read_text())
+    del partial["protocols"]["fov"]
     del partial["protocols"]["vista"]["arms"]["gensplat"]
     (tmp_path / "partial.json").write_text(json.dumps(partial))
-    _, _, sources = pr.reused_arms([tmp_path / "partial.json"], args.arms, settings, 4)
-    assert (
-        sources == {"baseline": "partial.json"} and "not evaluated under ['vista']" in capsys.readouterr().out
-    )
+    capsys.readouterr()
+    reused, _, sources = pr.reused_arms([tmp_path / "partial.json"], args.arms, settings, 4)
+    assert sources == {"baseline": "partial.json", "gensplat": "partial.json"}
+    assert set(reused["paper"]) == {"baseline", "gensplat"} and set(reused["vista"]) == {"baseline"}
+    assert reused["fov"] == {}
+    out = capsys.readouterr().out
+    assert "reusing gensplat from" in out and "(not evaluated under vista, fov: left out of those tables)" in out
     # not reusable at all: a quick check, a result from before the arms, episodes missing
     quick = earlier_result(tmp_path / "quick.json", args, ("baseline",), 4, quick=True)
     legacy = tmp_path / "legacy.json"
@@ -271,3 +290,37 @@ def test_work_refuses_another_augmentation(tmp_path, monkeypatch):
     pr.check_work(tmp_path, ("baseline", "gensplat"), args)
     with pytest.raises(SystemExit, match="perspective"):
         pr.check_work(tmp_path, ("perspective",), args)
+
+
+def test_an_arm_a_protocol_lacks_is_left_out_of_its_tables(tmp_path, monkeypatch):
+    args = pr.parse_args(["--episodes", "4"])
+    old = json.loads(earlier_result(tmp_path / "old.json", args, ("baseline", "gensplat"), 4).read_text())
+    del old["protocols"]["fov"]["arms"]["gensplat"]  # a result from before the fov protocol, for one arm
+    (tmp_path / "old.json").write_text(json.dumps(old))
+    out = tmp_path / "new.json"
+    argv = ["--episodes", "4", "--arms", "baseline,gensplat", "--reuse-from", str(tmp_path / "old.json"),
+            "--out", str(out), "--work", str(tmp_path / "work")]  # fmt: skip
+    monkeypatch.setattr(sys, "argv", ["policy_robustness.py", *argv])
+    pr.main()
+    result = json.loads(out.read_text())
+    assert list(result["arms"]) == ["baseline", "gensplat"]
+    assert list(result["protocols"]["fov"]["arms"]) == ["baseline"] and result["protocols"]["fov"]["difference"] == {
+        "vs_baseline": {}
+    }
+    fov_table = pr.markdown(result).split("fov protocol")[1]
+    assert "| baseline |" in fov_table and "| gensplat |" not in fov_table
+    assert out.with_suffix(".png").is_file()
+
+
+def test_link_dataset_shares_everything_but_the_gensplat_settings(tmp_path):
+    root, linked = tmp_path / "dataset", tmp_path / "dataset_gensplat-wide"
+    (root / "meta").mkdir(parents=True)
+    (root / "meta" / "info.json").write_text("{}")
+    (root / "gensplat").mkdir()
+    (root / "gensplat" / "config.json").write_text('{"sampler": "paper"}')
+    (root / "notes.txt").write_text("x")
+    for _ in range(2):  # linking again keeps what is there
+        pr.link_dataset(root, linked)
+    assert sorted(p.name for p in linked.iterdir()) == ["meta", "notes.txt"]
+    assert (linked / "meta").is_symlink() and (linked / "meta" / "info.json").read_text() == "{}"
+    assert (linked / "notes.txt").resolve() == (root / "notes.txt").resolve()
