@@ -85,7 +85,7 @@ def split_ms(ds, samples: int, clock=time.thread_time) -> dict:
         t3 = clock()
         for name in tf.cfg.replace:
             target = tf.sampler.sample(ep, fr).move(rec.cameras, tf.cfg.cameras.index(name))
-            out = render_view(rec.gaussians, target, tf.cfg)
+            out = render_view(rec, target, tf.cfg)
         t4 = clock()
         (out.rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8)
         t5 = clock()

@@ -84,17 +84,17 @@ def run(args: argparse.Namespace) -> dict:
             both = (depth > 0) & (truth > 0)
             e = (depth - truth)[both].abs()
             errors[way].append((float(e.median()), float(e.quantile(0.95)), float(both.float().mean())))
-            gaussians = rec.reconstruct(Views(images, colour, depth)).gaussians
+            built = rec.reconstruct(Views(images, colour, depth))
             for level in LEVELS:
                 sampler = PerturbationSampler(level, seed=0)
                 for draw in range(2):
                     moved = sampler.sample(i, view=draw).move(colour, 0)[0]
                     t0 = time.thread_time()
-                    view = render_view(gaussians, moved, config).rgb
+                    view = render_view(built, moved, config).rgb
                     t1 = time.thread_time()
                     if way == "registered":  # what a worker adds for the sensor's own map at the new pose
                         in_camera = colour.w2c()[:1] @ sensors.c2w[:1]  # the sensor's pose in its camera's frame
-                        render_depth(gaussians, Cameras(sensors.K[:1], moved.c2w @ in_camera, WIDTH, HEIGHT), config)
+                        render_depth(built, Cameras(sensors.K[:1], moved.c2w @ in_camera, WIDTH, HEIGHT), config)
                         render_ms["colour"].append(t1 - t0)
                         render_ms["sensor_depth"].append(time.thread_time() - t1)
                     scores[(way, level)].append(psnr(view, scene.render(moved)[0]))

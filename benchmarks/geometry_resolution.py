@@ -76,10 +76,10 @@ def run(args: argparse.Namespace) -> dict:
                 cpu.append(time.process_time() - t0)
                 errors.append(depth_errors(out.depths, nearest_pixels(depth, w, h)))
                 discs = Views(images, cameras, nearest_pixels(out.depths, width, height))
-                gaussians, small = rec.assemble(discs).gaussians, rec.assemble(out).gaussians
+                full, small = rec.assemble(discs), rec.assemble(out)
                 for draw in range(2):
                     moved = sampler.sample(i, view=draw).move(cameras, 0)[0]
-                    view, true_view = render_view(gaussians, moved, config).rgb, scene.render(moved)[0]
+                    view, true_view = render_view(full, moved, config).rgb, scene.render(moved)[0]
                     resized = F.interpolate(render_view(small, moved.resize(w, h), config).rgb, size=(height, width),
                                             mode="bilinear", align_corners=False).clamp(0, 1)  # fmt: skip
                     scores.append((psnr(view, true_view), sharpness_ratio(view, true_view),

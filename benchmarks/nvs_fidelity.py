@@ -8,7 +8,10 @@ left external camera is moved by ``draws`` perturbations per level (one for ``no
 each method's view at that pose is compared with ``GroundTruth.render`` there:
 
 * ``rgbd``: Gaussians from the calibrated left + right RGB-D views (``RGBDReconstructor``),
-  rendered with the fast CPU renderer at the perturbed pose;
+  rendered with the fast CPU renderer at the perturbed pose as the transform draws them
+  (sharp discs, the closest camera's in front: :func:`draw`);
+* ``rgbd_plain``: the same discs drawn as plain Gaussians (the renderer's 0.3 px^2
+  dilation, unsaturated alpha, every camera's discs alike: ``PLAIN``);
 * ``rgbd_fill``: the same render with the uncovered pixels filled from their surroundings
   (``holes.fill_holes``, what the training transform does by default);
 * ``rgbd_sensor``: ``rgbd`` on the depth a real RGB-D camera would give
@@ -83,7 +86,7 @@ from gensplat_transforms.reconstruction import (
     Views,
 )
 from gensplat_transforms.reconstruction.base import nearest_pixels
-from gensplat_transforms.rendering import render
+from gensplat_transforms.rendering import RenderOutput, render
 from gensplat_transforms.sim.record import RecordConfig, record
 from gensplat_transforms.sim.sensor import SensorDepthConfig, sensor_depth
 from gensplat_transforms.sim.truth import GroundTruth
@@ -93,7 +96,7 @@ from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 
 REPO = "gensplat/sim_pick_place_heldout"
 HELDOUT_SEED = 1000
-METHODS = ("rgbd", "rgbd_fill", "rgbd_sensor", "rgbd_sensor_fill", "rgbd_sensor_depth_fill", "forward_warp",
+METHODS = ("rgbd", "rgbd_plain", "rgbd_fill", "rgbd_sensor", "rgbd_sensor_fill", "rgbd_sensor_depth_fill", "forward_warp",
            "forward_warp_sensor", "gensplat_small",
            "geometry_small", "geometry_small_metric", "geometry_small_metric_fill", "source_image", "homography")  # fmt: skip
 SENSOR = SensorDepthConfig()
@@ -176,7 +179,7 @@ def score(pred: torch.Tensor, truth: torch.Tensor, seen: torch.Tensor, filled: t
 def warm_up(views: Views, model) -> None:
     """Run every timed step once (compiled-code cache, first-call allocations)."""
     cams = views.cameras
-    render(RGBDReconstructor().reconstruct(views).gaussians, cams[0], backend="fast", return_depth=False)
+    draw(RGBDReconstructor().reconstruct(views), cams[0])
     homography_warp(views.images[0], cams[0], cams[0])
     forward_warp(views.images, views.depths, cams, cams[0])
     if not isinstance(model, str):
@@ -192,10 +195,21 @@ def frame_size_geometry(rec: GeometryReconstructor, images: torch.Tensor, camera
     return rec.assemble(Views(images, out.cameras.resize(width, height), nearest_pixels(out.depths, width, height)))
 
 
+#: RGBDConfig settings that draw the discs as plain Gaussians (the ``rgbd_plain`` method)
+PLAIN = {"dilation": 0.3, "saturation": 1.0, "view_preference": 0.0}
+
+
+def draw(rec: Reconstruction, target: Cameras) -> RenderOutput:
+    """``rec`` rendered into one camera with the fast backend as the transform draws it (its
+    Gaussians as that camera composites them, with its render options), without depth."""
+    return render(rec.seen_from(target), target, backend="fast", return_depth=False, **rec.render_options)
+
+
 def compare_frame(views: Views, truth: GroundTruth, ep: int, fr: int, model, args, rows: list) -> None:
     """Append one row per (method, level, draw) for one timestep: metrics and times."""
     cams = views.cameras
     rgbd, rgbd_ms = timed(RGBDReconstructor().reconstruct, views)
+    plain = RGBDReconstructor(**PLAIN).reconstruct(views)
     sensor = sensor_views(views, seed=1000 * ep + fr)
     rgbd_s, rgbd_s_ms = timed(RGBDReconstructor().reconstruct, sensor)
     rgbd_sd, rgbd_sd_ms = timed(RGBDReconstructor(fill_depth_px=FILL_DEPTH_PX).reconstruct, sensor)
@@ -209,18 +223,20 @@ def compare_frame(views: Views, truth: GroundTruth, ep: int, fr: int, model, arg
             p = sampler.sample(ep, view=d)
             target = p.move(cams, 0)
             gt = truth.render(ep, fr, target)[0][0]
-            out, ms = timed(render, rgbd.gaussians, target, backend="fast", return_depth=False)
+            out, ms = timed(draw, rgbd, target)
             seen = out.alpha[0] > 0.5
             views_of = {"rgbd": (out.rgb[0], rgbd_ms, ms), "source_image": (views.images[0], 0.0, 0.0)}
+            out_p, ms_p = timed(draw, plain, target)
+            views_of["rgbd_plain"] = (out_p.rgb[0], rgbd_ms, ms_p)
             filled, fill_ms = timed(fill_holes, out.rgb, out.alpha)
             views_of["rgbd_fill"] = (filled[0], rgbd_ms, ms + fill_ms)
             warped, ms = timed(homography_warp, views.images[0], cams[0], target)
             views_of["homography"] = (warped, 0.0, ms)
-            out_s, ms = timed(render, rgbd_s.gaussians, target, backend="fast", return_depth=False)
+            out_s, ms = timed(draw, rgbd_s, target)
             views_of["rgbd_sensor"] = (out_s.rgb[0], rgbd_s_ms, ms)
             filled_s, fill_ms = timed(fill_holes, out_s.rgb, out_s.alpha)
             views_of["rgbd_sensor_fill"] = (filled_s[0], rgbd_s_ms, ms + fill_ms)
-            out_sd, ms = timed(render, rgbd_sd.gaussians, target, backend="fast", return_depth=False)
+            out_sd, ms = timed(draw, rgbd_sd, target)
             filled_sd, fill_ms = timed(fill_holes, out_sd.rgb, out_sd.alpha)
             views_of["rgbd_sensor_depth_fill"] = (filled_sd[0], rgbd_sd_ms, ms + fill_ms)
             (fw, warp_mask), ms = timed(forward_warp, views.images, views.depths, cams, target)
@@ -229,11 +245,10 @@ def compare_frame(views: Views, truth: GroundTruth, ep: int, fr: int, model, arg
             views_of["forward_warp_sensor"] = (fw_s[0], 0.0, ms)
             if not isinstance(model, str):
                 mtarget = p.move(mrec.cameras, 0)
-                out_m, ms = timed(render, mrec.gaussians, mtarget, backend="fast", return_depth=False)
+                out_m, ms = timed(draw, mrec, mtarget)
                 views_of["gensplat_small"] = (out_m.rgb[0], model_ms, ms)
                 for name, (grec, grec_ms) in geometry.items():  # calibrated cameras: move them as for rgbd
-                    out_g, ms = timed(render, grec.gaussians, p.move(grec.cameras, 0), backend="fast",
-                                      return_depth=False)  # fmt: skip
+                    out_g, ms = timed(draw, grec, p.move(grec.cameras, 0))
                     views_of[name] = (out_g.rgb[0], grec_ms, ms)
                     if name == "geometry_small_metric":  # what the transform shows: holes filled
                         filled_g, fill_ms = timed(fill_holes, out_g.rgb, out_g.alpha)
@@ -279,7 +294,7 @@ def plot(table: dict, path: Path) -> None:
     drawn at the top edge."""
     panels = (("psnr", "PSNR, whole image (dB)"), ("psnr_visible", "PSNR, pixels seen by the sources (dB)"),
               ("psnr_warp_mask", "PSNR, pixels the forward warp fills (dB)"))  # fmt: skip
-    colours = {"rgbd": (31, 119, 180), "rgbd_fill": (255, 127, 14), "rgbd_sensor": (23, 190, 207),
+    colours = {"rgbd": (31, 119, 180), "rgbd_plain": (158, 218, 229), "rgbd_fill": (255, 127, 14), "rgbd_sensor": (23, 190, 207),
                "rgbd_sensor_fill": (31, 60, 110), "rgbd_sensor_depth_fill": (0, 150, 120),
                "forward_warp": (140, 86, 75), "forward_warp_sensor": (227, 119, 194),
                "gensplat_small": (44, 160, 44), "geometry_small": (90, 90, 90),

@@ -8,10 +8,12 @@ the simulator's truth, over all of them (``warp_mask``) and split into ``edge`` 
 of a depth discontinuity of the true view: a relative depth step > 3 % in a 3x3 window) and
 ``interior`` (the rest), for one factor changed at a time:
 
-* ``forward_warp``, ``rgbd``: as in ``nvs_fidelity.py`` (left + right views);
+* ``forward_warp``, ``rgbd``, ``rgbd_plain``: as in ``nvs_fidelity.py`` (left + right views);
 * ``forward_warp_left``, ``rgbd_left``: the left view only (no fusion of two views);
-* ``rgbd_sigma_0.2``, ``rgbd_sigma_0.1``: smaller footprints (``RGBDConfig.sigma_px``, 0.4 by
-  default; the renderer's 0.3 px^2 dilation stays);
+* ``rgbd_no_preference``: every camera's discs composited alike (``view_preference`` 0);
+* ``rgbd_unsaturated``: plain alpha (``saturation`` 1);
+* ``rgbd_dilation_0.3``: the renderer's usual 0.3 px^2 dilation;
+* ``rgbd_sigma_0.3``: smaller footprints (``RGBDConfig.sigma_px``, 0.4 by default);
 * ``rgbd_edge_scale_1``: splats not shrunk across depth edges (``edge_scale`` 1, 0.25 by
   default).
 
@@ -29,17 +31,17 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from gensplat_lerobot import LeRobotSource
-from nvs_fidelity import _mean, heldout_dataset, sampled_frames, sampling_parser, with_defaults
+from nvs_fidelity import PLAIN, _mean, draw, heldout_dataset, sampled_frames, sampling_parser, with_defaults
 
 from gensplat_transforms.metrics import psnr
 from gensplat_transforms.perturbation import EVAL_LEVELS, PerturbationSampler
 from gensplat_transforms.reconstruction import RGBDReconstructor, Views
-from gensplat_transforms.rendering import render
 from gensplat_transforms.sim.truth import GroundTruth
 from gensplat_transforms.warp import forward_warp
 
-RGBD = {"rgbd": {}, "rgbd_left": {}, "rgbd_sigma_0.2": {"sigma_px": 0.2}, "rgbd_sigma_0.1": {"sigma_px": 0.1},
-        "rgbd_edge_scale_1": {"edge_scale": 1.0}}  # fmt: skip
+RGBD = {"rgbd": {}, "rgbd_plain": PLAIN, "rgbd_left": {}, "rgbd_no_preference": {"view_preference": 0.0},
+        "rgbd_unsaturated": {"saturation": 1.0}, "rgbd_dilation_0.3": {"dilation": 0.3},
+        "rgbd_sigma_0.3": {"sigma_px": 0.3}, "rgbd_edge_scale_1": {"edge_scale": 1.0}}  # fmt: skip
 
 
 def depth_edges(depth: torch.Tensor) -> torch.Tensor:
@@ -64,8 +66,7 @@ def compare_frame(views: Views, truth: GroundTruth, ep: int, fr: int, args, rows
             edge = depth_edges(gt_depth)
             masks = {"warp_mask": mask[0], "interior": mask[0] & ~edge, "edge": mask[0] & edge}
             images = {"forward_warp": fw[0], "forward_warp_left": fw_left[0]}
-            images.update({n: render(r.gaussians, target, backend="fast", return_depth=False).rgb[0]
-                           for n, r in recs.items()})  # fmt: skip
+            images.update({n: draw(r, target).rgb[0] for n, r in recs.items()})
             share = float(masks["edge"].float().sum() / mask.float().sum())
             for name, image in images.items():
                 rows.append({"variant": name, "level": level, "edge_share": share,

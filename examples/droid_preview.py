@@ -115,7 +115,7 @@ def main(argv: list[str] | None = None) -> dict:
     print("no ground truth at the new poses: coverage (alpha > 0.5), no PSNR")
 
     cfg = GenSplatConfig()
-    render_view(rec.gaussians, rec.cameras[0], cfg)  # warm-up: loads the compiled renderer
+    render_view(rec, rec.cameras[0], cfg)  # warm-up: loads the compiled renderer
     tile = (round(args.tile_width * h / w), args.tile_width)
 
     def to_tile(image: torch.Tensor) -> torch.Tensor:
@@ -126,7 +126,7 @@ def main(argv: list[str] | None = None) -> dict:
     for level in EVAL_LEVELS:
         p = PerturbationSampler(level, seed=args.seed).sample(0)
         t0 = time.perf_counter()
-        out = render_view(rec.gaussians, p.move(rec.cameras, 0), cfg)
+        out = render_view(rec, p.move(rec.cameras, 0), cfg)
         ms = (time.perf_counter() - t0) * 1e3
         coverage = float((out.alpha > 0.5).float().mean())
         renders.append(out.rgb[0])

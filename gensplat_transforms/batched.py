@@ -28,7 +28,7 @@ from .perturbation import move_rig, scale_focal
 from .plan import BATCH_KEYS
 from .reconstruction import Reconstructor
 from .reconstruction.base import nearest_pixels
-from .reconstruction.rgbd import RGBDReconstructor, dense_discs
+from .reconstruction.rgbd import RGBDReconstructor, dense_discs, grid_pixel_ids
 from .rendering import RenderOutput
 from .rendering.gsplat_backend import render_gsplat_batch
 from .settings import GenSplatConfig, render_size
@@ -43,6 +43,7 @@ from .view_output import (
     render_view,
     seen_depth,
 )
+from .views import Reconstruction, preferred_means
 
 if TYPE_CHECKING:
     from .transform import GenSplatTransform
@@ -113,23 +114,38 @@ def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None 
         sh = torch.cat([sh, sh.new_zeros(*sh.shape[:2], num_sh_bases(discs.cfg.sh_degree) - 1, 3)], 2)
     views = [cfg.cameras.index(name) for name in cfg.replace]
     cached = batch["gensplat.c2w"][rows]  # (S, T, V, 4, 4); each sample's moves, the same at every frame
+    sources = Cameras(batch["gensplat.K"][rows].flatten(0, 2), cached.flatten(0, 2), w, h)  # (S*T*V,): as cached
+    V = len(cfg.cameras)
     moves = batch["gensplat.moves"][rows][:, None].expand(-1, T, -1, -1)  # (S, T, R, ROW)
     K = scale_focal(batch["gensplat.K"][rows][:, :, views], moves[..., 8]).flatten(0, 1)  # (S*T, R, 3, 3)
     c2w = move_rig(cached, moves, views, cfg.pivot_depth).flatten(0, 1)  # (S*T, R, 4, 4)
     opacity = discs.cfg.opacity
+    style = discs.render_style()
+    options = {**style["render_options"], **cfg.render_options}
     depth_keys = {} if cfg.depth_unit in (None, "keep") else {
         r: key for r, name in enumerate(cfg.replace) if (key := cfg.image_key.format(name=name) + "_depth") in batch}  # fmt: skip
     backend = backend or ("gsplat" if depth.device.type == "cuda" else cfg.backend)
     if backend == "gsplat":
         background = torch.tensor(render_background(cfg)).to(depth)
-        rgb, alpha, seen = render_gsplat_batch(means, quats, scales, keep * opacity, sh, c2w, K, w, h, background,
-                                               return_depth=bool(depth_keys))  # fmt: skip
+        R, (M, N) = c2w.shape[1], keep.shape
+        origins = sources.centers.to(means).reshape(M, V, 1, 3).expand(M, V, N // V, 3).reshape(M, 1, N, 3)
+        # each target camera composites the views its own way: one scene per (scene, camera)
+        seen_means = preferred_means(means[:, None], origins, c2w[..., :3, 3].to(means), style["view_preference"])
+        rgb, alpha, seen = render_gsplat_batch(
+            seen_means.flatten(0, 1), *(t.repeat_interleave(R, 0) for t in (quats, scales)),
+            (keep * opacity * options["saturation"]).repeat_interleave(R, 0), sh.repeat_interleave(R, 0),
+            c2w.flatten(0, 1)[:, None], K.flatten(0, 1)[:, None], w, h, background, return_depth=bool(depth_keys),
+            dilation=options["dilation"])  # fmt: skip
+        rgb, alpha = rgb.reshape(M, R, *rgb.shape[2:]), alpha.reshape(M, R, *alpha.shape[2:])
         rgb = filled(RenderOutput(rgb.flatten(0, 1), alpha=alpha.flatten(0, 1)), cfg).rgb.unflatten(0, rgb.shape[:2])
-        seen = None if seen is None else seen_depth(seen, alpha)
+        seen = None if seen is None else seen_depth(seen.reshape(M, R, *seen.shape[2:]), alpha)
     else:
-        one, scenes = replace(cfg, backend=backend), zip(means, quats, scales, sh, keep, K, c2w)
-        views = [_render_scene(*discs_of_scene, Cameras(k, t, w, h), opacity, one, bool(depth_keys))
-                 for *discs_of_scene, k, t in scenes]  # fmt: skip
+        one = replace(cfg, backend=backend)
+        scenes = zip(means, quats, scales, sh, keep, K, c2w, sources.K.unflatten(0, (-1, V)),
+                     sources.c2w.unflatten(0, (-1, V)))  # fmt: skip
+        views = [render_view(_scene(*discs_of_scene, Cameras(sk, st, w, h), discs), Cameras(k, t, w, h), one,
+                             depth=bool(depth_keys))
+                 for *discs_of_scene, k, t, sk, st in scenes]  # fmt: skip
         rgb = torch.stack([v.rgb for v in views])
         seen = torch.stack([v.depth for v in views]) if depth_keys else None
     rgb = rgb.unflatten(0, (S, T))  # (S, T, R, 3, h, w)
@@ -145,24 +161,30 @@ def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None 
             else:  # the depth sensor beside the moved camera
                 sensor_c2w = sensor.pose(c2w[:, r])  # (S*T, 4, 4)
                 sensor_K = sensor.K.to(c2w).expand(len(sensor_c2w), 3, 3)
-                rendered = _render_depth(means, quats, scales, sh, keep, opacity, sensor_K, sensor_c2w,
-                                         sensor.width, sensor.height, backend, cfg)  # fmt: skip
+                rendered = _render_depth(means, quats, scales, sh, keep, sources, discs, options, sensor_K,
+                                         sensor_c2w, sensor.width, sensor.height, backend, cfg)  # fmt: skip
             like[rows] = like_depth(rendered, like[rows], cfg.depth_unit).reshape(like[rows].shape)
     return out
 
 
-def _render_depth(means, quats, scales, sh, keep, opacity: float, K: torch.Tensor, c2w: torch.Tensor, width: int,
-                  height: int, backend: str, cfg: GenSplatConfig) -> torch.Tensor:  # fmt: skip
-    """(S, 1, H, W) depth maps (:func:`.view_output.seen_depth`) of the S scenes' discs, each seen
-    by one camera K (S, 3, 3), c2w (S, 4, 4) of ``width x height``."""
+def _render_depth(means, quats, scales, sh, keep, sources: Cameras, discs: RGBDReconstructor, options: dict,
+                  K: torch.Tensor, c2w: torch.Tensor, width: int, height: int, backend: str,
+                  cfg: GenSplatConfig) -> torch.Tensor:  # fmt: skip
+    """(S, 1, H, W) depth maps (:func:`.view_output.render_depth`) of the S scenes' discs (from
+    the S * V ``sources``), each seen by one camera K (S, 3, 3), c2w (S, 4, 4) of ``width x
+    height``, drawn with ``options``."""
     if backend == "gsplat":
         background = torch.zeros(3).to(means)
-        _, alpha, depth = render_gsplat_batch(means, quats, scales, keep * opacity, sh, c2w[:, None], K[:, None],
-                                              width, height, background, return_depth=True)  # fmt: skip
+        _, alpha, depth = render_gsplat_batch(means, quats, scales, keep * discs.cfg.opacity * options["saturation"],
+                                              sh, c2w[:, None], K[:, None], width, height, background,
+                                              return_depth=True, dilation=options["dilation"])  # fmt: skip
         return seen_depth(depth, alpha)[:, 0]
     one = replace(cfg, backend=backend)
-    return torch.cat([render_depth(_scene_gaussians(*discs, opacity), Cameras(k[None], t[None], width, height), one)
-                      for *discs, k, t in zip(means, quats, scales, sh, keep, K, c2w)])  # fmt: skip
+    V = len(sources) // len(means)
+    cams = zip(K, c2w, sources.K.unflatten(0, (-1, V)), sources.c2w.unflatten(0, (-1, V)))
+    return torch.cat([render_depth(_scene(*g, Cameras(sk, st, sources.width, sources.height), discs),
+                                   Cameras(k[None], t[None], width, height), one)
+                      for *g, (k, t, sk, st) in zip(means, quats, scales, sh, keep, cams)])  # fmt: skip
 
 
 _COMPILED: dict = {}  # the disc rule compiled by torch.compile, made once per process
@@ -190,12 +212,13 @@ def _stacked(images: torch.Tensor, T: int, height: int, width: int) -> torch.Ten
     return as_cache_images(stack, height, width).unflatten(0, (images.shape[0], T))
 
 
-def _render_scene(means, quats, scales, sh, keep, cameras: Cameras, opacity: float, cfg: GenSplatConfig,
-                  depth: bool) -> RenderOutput:  # fmt: skip
-    """One scene's discs (:func:`_scene_gaussians`) rendered into C cameras by
-    :func:`.view_output.render_view` with ``cfg.backend``: rgb (C, 3, H, W), with ``depth`` its
-    depth (C, 1, H, W)."""
-    return render_view(_scene_gaussians(means, quats, scales, sh, keep, opacity), cameras, cfg, depth=depth)
+def _scene(means, quats, scales, sh, keep, sources: Cameras, discs: RGBDReconstructor) -> Reconstruction:
+    """One scene's discs (N, ...) where ``keep`` as the worker's reconstruction of them: its
+    source cameras (V), pixel ids and render style."""
+    V, (height, width) = len(sources), (sources.height, sources.width)
+    ids = grid_pixel_ids(height, width, discs.cfg.stride, V).reshape(-1).to(keep.device)[keep]
+    return Reconstruction(_scene_gaussians(means, quats, scales, sh, keep, discs.cfg.opacity), sources, ids,
+                          **discs.render_style())  # fmt: skip
 
 
 def _scene_gaussians(means, quats, scales, sh, keep, opacity: float) -> Gaussians:

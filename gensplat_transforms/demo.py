@@ -85,7 +85,7 @@ def _levels(tf: GenSplatTransform, truth, item: dict, path: Path, log) -> dict:
         target = p.move(rec.cameras, 0)
         true_rgb, _ = truth.render(ep, fr, target)
         t0 = time.perf_counter()
-        res = render_view(rec.gaussians, target, tf.cfg)
+        res = render_view(rec, target, tf.cfg)
         ms = (time.perf_counter() - t0) * 1e3
         seen = res.alpha > 0.5
         score = psnr(res.rgb, true_rgb, seen)

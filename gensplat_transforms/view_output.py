@@ -12,7 +12,6 @@ import torch
 import torch.nn.functional as F
 
 from .cameras import Cameras
-from .gaussians import Gaussians
 from .holes import fill_holes
 from .rendering import RenderOutput, render
 from .settings import DEPTH_UNITS, GenSplatConfig
@@ -44,33 +43,44 @@ def render_views(stacks: Sequence[Sequence[Reconstruction]], moves: Sequence[Per
         rgbs, seen = [], []
         for rec in stack:
             target = p.move(rec.cameras, config.cameras.index(name), config.pivot_depth)
-            view = render_view(rec.gaussians, target, config, depth=like is not None and sensor is None)
+            view = render_view(rec, target, config, depth=like is not None and sensor is None)
             rgbs.append(view.rgb[0])
-            seen.append(view.depth if sensor is None else render_depth(rec.gaussians, sensor.cameras(target), config))
+            seen.append(view.depth if sensor is None else render_depth(rec, sensor.cameras(target), config))
         rgb = like_images(torch.stack(rgbs), image).reshape(image.shape)
         depth = None if like is None else like_depth(torch.cat(seen), like, config.depth_unit).reshape(like.shape)
         out.append((rgb, depth))
     return out
 
 
-def render_view(gaussians: Gaussians, camera: Cameras, config: GenSplatConfig, depth: bool = False) -> RenderOutput:
-    """The augmented view of ``camera`` (B cameras) as the transform makes it, rendered with
-    ``config.backend``: rgb (B, 3, H, W), hole-filled with ``config.fill_holes``, the render's
-    alpha (B, 1, H, W) (its coverage) and, with ``depth``, its depth (B, 1, H, W) in metres
-    (:func:`seen_depth`; else None)."""
-    out = render(gaussians, camera, background=render_background(config), backend=config.backend,
-                 return_depth=depth, **config.render_options)  # fmt: skip
+def render_view(rec: Reconstruction, camera: Cameras, config: GenSplatConfig, depth: bool = False) -> RenderOutput:
+    """The augmented view of ``camera`` (B cameras) as the transform makes it from ``rec``
+    (its Gaussians as each camera composites them, :meth:`.views.Reconstruction.seen_from`,
+    drawn with its render options), rendered with ``config.backend``: rgb (B, 3, H, W),
+    hole-filled with ``config.fill_holes``, the render's alpha (B, 1, H, W) (its coverage)
+    and, with ``depth``, its depth (B, 1, H, W) in metres (:func:`seen_depth`; else None)."""
+    def one(cameras: Cameras) -> RenderOutput:
+        return render(rec.seen_from(cameras) if len(cameras) == 1 else rec.gaussians, cameras,
+                      background=render_background(config), backend=config.backend, return_depth=depth,
+                      **{**rec.render_options, **config.render_options})  # fmt: skip
+
+    if rec.view_preference and len(camera) > 1:  # each camera composites the views its own way
+        views = [one(camera[i]) for i in range(len(camera))]
+        out = RenderOutput(*(torch.cat([getattr(v, k) for v in views]) if depth or k != "depth" else None
+                             for k in ("rgb", "depth", "alpha")))  # fmt: skip
+    else:
+        out = one(camera)
     if depth:
         out.depth = seen_depth(out.depth, out.alpha)
     return filled(out, config)
 
 
-def render_depth(gaussians: Gaussians, camera: Cameras, config: GenSplatConfig) -> torch.Tensor:
+def render_depth(rec: Reconstruction, camera: Cameras, config: GenSplatConfig) -> torch.Tensor:
     """(B, 1, H, W) depth in metres of ``camera`` (B cameras, e.g. a depth sensor beside the
     colour camera) as the transform renders depth maps (:func:`seen_depth`), with
-    ``config.backend``."""
-    out = render(gaussians, camera, background=(0.0, 0.0, 0.0), backend=config.backend, return_depth=True,
-                 **config.render_options)  # fmt: skip
+    ``config.backend``: ``rec``'s Gaussians where they are (no view preference, which would
+    move depth) with its render options."""
+    out = render(rec.gaussians, camera, background=(0.0, 0.0, 0.0), backend=config.backend, return_depth=True,
+                 **{**rec.render_options, **config.render_options})  # fmt: skip
     return seen_depth(out.depth, out.alpha)
 
 

@@ -4,7 +4,7 @@ reconstruction (:class:`Reconstruction`), below both ``model/`` and ``reconstruc
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 import torch.nn.functional as F
@@ -98,12 +98,28 @@ class Reconstruction:
     calibration, or the poses a feed-forward model predicted).
 
     ``pixel_ids`` (N,) int64 tells pixel-aligned Gaussians' source pixel, ``v * H * W + row *
-    W + col``; caches use it to store the static part of a scene once.
+    W + col``; caches use it to store the static part of a scene once. ``render_options``
+    are the ``rendering.render`` options its Gaussians are drawn with (RGB-D discs: their
+    ``dilation`` and ``saturation``), and ``view_preference`` lets each view's Gaussians win
+    where their camera saw the surface best (:meth:`seen_from`; needs ``pixel_ids``).
     """
 
     gaussians: Gaussians
     cameras: Cameras
     pixel_ids: torch.Tensor | None = None
+    render_options: dict = field(default_factory=dict)
+    view_preference: float = 0.0
+
+    def seen_from(self, camera: Cameras) -> Gaussians:
+        """The Gaussians as one camera (``len(camera) == 1``) composites them: with a
+        ``view_preference``, moved away from it along its rays by :func:`preferred_means`."""
+        if not self.view_preference or self.pixel_ids is None:
+            return self.gaussians
+        g = self.gaussians
+        view = self.pixel_ids // (self.cameras.height * self.cameras.width)
+        origins = self.cameras.centers.to(g.means)[view.to(g.means.device)]
+        means = preferred_means(g.means, origins, camera.centers[0].to(g.means), self.view_preference)
+        return Gaussians(means, g.quats, g.scales, g.opacities, g.sh, validate=False).mark_checked()
 
     def __post_init__(self) -> None:
         ids = self.pixel_ids
@@ -116,3 +132,23 @@ class Reconstruction:
             )
         if len(ids) and int(ids.min()) < 0:
             raise ValueError(f"Reconstruction.pixel_ids: must be >= 0, got {int(ids.min())}")
+
+
+#: 1 - cos of the angle between a Gaussian's source ray and the viewing ray at which
+#: :func:`preferred_means` pushes by the full ``strength`` (about 16 deg)
+FULL_PREFERENCE = 0.04
+
+
+def preferred_means(means: torch.Tensor, origins: torch.Tensor, center: torch.Tensor, strength: float) -> torch.Tensor:
+    """Means (..., N, 3) moved away from a camera at ``center`` (..., 3) along its rays, by
+    ``strength`` times their distance to it, scaled down linearly while 1 - cos of the angle
+    between the ray and the Gaussian's source ray (from ``origins`` (..., N, 3), the centres of
+    the cameras that saw each Gaussian) is below ``FULL_PREFERENCE``. The image positions stay;
+    where two cameras saw one surface, the camera whose view is closest to this one is drawn in
+    front (front-to-back compositing sorts by depth), while the other's Gaussians still show
+    where it alone saw the surface. At a source camera's own pose, its Gaussians stay put."""
+    ray = means - center[..., None, :]
+    seen = means - origins
+    cos = (F.normalize(ray, dim=-1) * F.normalize(seen, dim=-1)).sum(-1, keepdim=True)  # unit first: no overflow
+    share = ((1 - cos) / FULL_PREFERENCE).clamp(0, 1)
+    return means + ray * (strength * share)

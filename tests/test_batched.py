@@ -16,7 +16,7 @@ from gensplat_transforms.cameras import Cameras, rigid_inverse
 from gensplat_transforms.dataset_format import DepthSensor
 from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
 from gensplat_transforms.gaussians import Gaussians
-from gensplat_transforms.reconstruction import Reconstructor, RGBDReconstructor, Views
+from gensplat_transforms.reconstruction import Reconstructor, RGBDConfig, RGBDReconstructor, Views
 from gensplat_transforms.rendering import gsplat_backend
 from gensplat_transforms.transform import BATCH_KEYS, GenSplatConfig, GenSplatTransform
 
@@ -123,7 +123,11 @@ def test_temporal_stacks_and_resized_images_match_the_worker(setup):
     items = [stacked(i) for i in (1, 3, 5, 7)]  # frames 1 and 3 of both episodes
     expected, got = both_ways(cache, items, seed=2, probability=1.0, views_per_source=2)
     assert got[LEFT].shape == (4, 2, 3, 40, 48)
-    assert_same_batch(expected, got, atol=1e-5)
+    # the two disc rules round apart by 1e-5, which can swap the depth order of two saturated
+    # discs on a pixel (measured: 0.005 on 0.015 % of the right camera's pixels)
+    assert_same_batch(expected, got, atol=1e-2)
+    for key in (LEFT, RIGHT):
+        assert ((got[key] - expected[key]).abs() > 2e-5).float().mean() < 1e-3, key
 
 
 def test_depth_smaller_than_the_render_travels_at_the_cache_size(setup):
@@ -176,13 +180,15 @@ def fake_rasterization(means, quats, scales, opacities, colors, viewmats, Ks, wi
     """gsplat's batched ``rasterization`` (scenes (M, N), cameras (M, C)) stood in for by the
     fast backend, one scene at a time: checks the arguments' layout and the outputs'."""
     assert means.shape[:-1] == opacities.shape and viewmats.shape[:2] == Ks.shape[:2] == backgrounds.shape[:2]
-    assert render_mode in ("RGB", "RGB+ED") and not packed and eps2d == 0.3
+    assert render_mode in ("RGB", "RGB+ED") and not packed and eps2d == RGBDConfig().dilation
     rgbs, alphas = [], []
     for m in range(means.shape[0]):
         keep = opacities[m] > 0
-        g = Gaussians(means[m][keep], quats[m][keep], scales[m][keep], opacities[m][keep], colors[m][keep])
+        saturation = float(opacities[m][keep].max().clamp_min(1))  # the discs' opacity 1 times their saturation
+        g = Gaussians(means[m][keep], quats[m][keep], scales[m][keep], opacities[m][keep] / saturation, colors[m][keep])
         cameras = Cameras(Ks[m].double(), rigid_inverse(viewmats[m].double()), width, height)
-        out = render(g, cameras, background=backgrounds[m, 0], near=near_plane, sh_degree=sh_degree, backend="fast")
+        out = render(g, cameras, background=backgrounds[m, 0], near=near_plane, sh_degree=sh_degree, backend="fast",
+                     dilation=eps2d, saturation=saturation)  # fmt: skip
         channels = (out.rgb, out.depth) if render_mode == "RGB+ED" else (out.rgb,)  # expected depth sum(w z) / alpha
         rgbs.append(torch.cat(channels, 1).permute(0, 2, 3, 1))
         alphas.append(out.alpha.permute(0, 2, 3, 1))

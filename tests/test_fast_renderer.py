@@ -8,6 +8,7 @@ accumulation of many splats. A pair exactly on a threshold (alpha = 1/255, T = 1
 principle flip; the seeded scenes here contain none.
 """
 
+import math
 import os
 import subprocess
 import sys
@@ -385,3 +386,43 @@ def test_parallel_projection_joins_its_chunks_like_the_serial_one():
     for nchunks in (1, 3, 7):
         for got, want in zip(fast._project_parallel(*args, nchunks), serial):
             np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_sharp_footprint_options_agree_with_reference(seed):
+    """A smaller dilation and saturated splats (the RGB-D discs' footprint) in both backends."""
+    g = random_scene(seed=seed, scale=0.03)
+    out = both(g, camera(torch.float32), dilation=0.05, saturation=3.0)
+    default = render(g, camera(torch.float32), backend="fast")
+    assert (out.alpha - default.alpha).abs().max() > 0.05  # the options change the image
+
+
+@pytest.mark.parametrize("name", sorted(HARD_CASES))
+def test_hard_cases_agree_with_sharp_footprints(name):
+    both(HARD_CASES[name], camera(torch.float32), background=(0.5, 0.25, 1.0), dilation=0.01, saturation=50.0)
+
+
+def test_saturation_makes_flat_topped_splats():
+    """A disc of sigma 0.3 px seen face on, centred between two pixel centres: saturated on
+    both, and 1.5 px away nearly nothing, where the unsaturated splat is 0.73 and 0.056."""
+    cam = Cameras.from_intrinsics(100.0, 100.0, 8.0, 8.0, torch.eye(4), 16, 16)
+    g = Gaussians(torch.tensor([[0.0, -0.005, 1.0]]), torch.tensor([[1.0, 0, 0, 0]]),  # at u = 8.0, v = 7.5
+                  torch.tensor([[0.003, 0.003, 1e-5]]), torch.ones(1), torch.ones(1, 1, 3))  # fmt: skip
+    for backend in ("reference", "fast"):
+        plain = render(g, cam, backend=backend).alpha[0, 0]  # sigma^2 = 0.09 + 0.3
+        sharp = render(g, cam, backend=backend, dilation=0.05, saturation=3.0).alpha[0, 0]  # 0.09 + 0.05
+        for col, distance in ((7, 0.5), (8, 0.5), (9, 1.5)):
+            assert plain[7, col] == pytest.approx(math.exp(-0.5 * distance**2 / 0.39), rel=1e-3)
+            a = min(0.99, 3 * math.exp(-0.5 * distance**2 / 0.14))
+            assert sharp[7, col] == pytest.approx(a if a >= 1 / 255 else 0.0, rel=1e-3)  # below 1/255: skipped
+        assert sharp[7, 7] == sharp[7, 8] == pytest.approx(0.99) and sharp[7, 9] == 0
+
+
+@pytest.mark.parametrize("options, message", [
+    ({"dilation": 0.0}, "dilation"), ({"dilation": float("nan")}, "dilation"), ({"dilation": -1.0}, "dilation"),
+    ({"saturation": 0.5}, "saturation"), ({"saturation": float("inf")}, "saturation"),
+])  # fmt: skip
+def test_footprint_options_are_checked(options, message):
+    for backend in ("reference", "fast"):
+        with pytest.raises(ValueError, match=message):
+            render(random_scene(n=3), camera(), backend=backend, **options)

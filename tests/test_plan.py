@@ -8,7 +8,7 @@ from torch.utils.data import default_collate
 from gensplat_transforms.batched import render_batch
 from gensplat_transforms.cache import GaussianCache
 from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
-from gensplat_transforms.perturbation import Perturbation, move_rig
+from gensplat_transforms.perturbation import ROW, Perturbation, move_rig
 from gensplat_transforms.plan import ViewPlan
 from gensplat_transforms.reconstruction import RGBDReconstructor
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform, render_view
@@ -49,7 +49,7 @@ def test_a_hand_made_plan_renders_its_moves_and_no_plan_keeps_the_images(setup):
     out = tf(item, ViewPlan(True, moves))
     rec = cache.read(0, 2, ds.episodes.views(0, 2).images)
     for i, (key, p) in enumerate(zip((LEFT, RIGHT), moves)):
-        want = render_view(rec.gaussians, p.move(rec.cameras, i), tf.cfg).rgb[0]
+        want = render_view(rec, p.move(rec.cameras, i), tf.cfg).rgb[0]
         assert torch.equal(out[key], want.clamp(0, 1).to(out[key].dtype))
     assert out["gensplat.theta_deg"].tolist() == [8.0, -6.0] and out["gensplat.axis"].tolist() == [0, 1]
     kept = tf(item, ViewPlan(False, (Perturbation(), Perturbation())))
@@ -77,7 +77,7 @@ def test_the_batch_path_renders_the_plans_the_worker_path_renders(setup):
     expected = default_collate([worker(it, p) for it, p in zip(items, plans)])
     got = render_batch(default_collate([batch(it, p) for it, p in zip(items, plans)]), batch)
     for key in (LEFT, RIGHT):
-        torch.testing.assert_close(got[key], expected[key], atol=1e-5, rtol=0)
+        torch.testing.assert_close(got[key], expected[key], atol=2e-5, rtol=0)  # the two disc rules round apart by 1e-5
 
 
 def test_move_rig_moves_any_batch_of_rigs_as_perturbation_move_moves_one(setup):
@@ -85,12 +85,12 @@ def test_move_rig_moves_any_batch_of_rigs_as_perturbation_move_moves_one(setup):
     cameras = cache.read(0, 0, ds.episodes.views(0, 0).images).cameras
     rigs = cameras.c2w.expand(5, 2, 4, 4)  # (5, V, 4, 4)
     for p in (Perturbation("y", 7.5, -0.02), Perturbation((0.3, -1.0, 0.2), 12.0, 0.01, (0.02, 0.0, -0.01), 1.2)):
-        moves = torch.tensor([p.as_row()], dtype=torch.float64).expand(5, 1, 9)
+        moves = torch.tensor([p.as_row()], dtype=torch.float64).expand(5, 1, ROW)
         moved = move_rig(rigs, moves, [1])
         assert moved.shape == (5, 1, 4, 4)
         for m in moved:
             assert torch.equal(m, p.move(cameras, 1).c2w)
-    with pytest.raises(ValueError, match=r"moves must be \(\.\.\., R, 9\) rows"):
+    with pytest.raises(ValueError, match=rf"moves must be \(\.\.\., R, {ROW}\) rows"):
         move_rig(rigs, torch.zeros(5, 1, 3, dtype=torch.float64), [1])
 
 
@@ -114,7 +114,7 @@ def test_the_wider_samplers_render_alike_in_the_worker_and_the_batch_path(setup,
     for key in (LEFT, RIGHT):
         assert got[key].shape == expected[key].shape == (3, 3, 24, 24)
         torch.testing.assert_close(got[key], expected[key], atol=1e-5, rtol=0)
-    moves = expected["gensplat.move"]  # (3, R, 9)
+    moves = expected["gensplat.move"]  # (3, R, ROW)
     if "focal_scale" in sampler:
         lo, hi = sampler["focal_scale"]
         assert bool(((moves[..., 8] >= lo - 1e-6) & (moves[..., 8] <= hi + 1e-6)).all())

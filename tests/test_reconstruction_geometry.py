@@ -165,7 +165,7 @@ def test_views_from_a_geometry_cache_keep_the_images_detail(tmp_path, render_in)
     assert out[left].shape == item[left].shape
     small = cache.read(0, 0, torch.nn.functional.interpolate(item[left][None].float(), size=(14, 14), mode="area")
                        .expand(2, -1, -1, -1))
-    blurred = torch.nn.functional.interpolate(render_view(small.gaussians, small.cameras[0:1], config).rgb,
+    blurred = torch.nn.functional.interpolate(render_view(small, small.cameras[0:1], config).rgb,
                                               size=(56, 56), mode="bilinear")[0]
     truth = item[left].float()
     assert sharpness_ratio(out[left].float(), truth) > 0.6 and sharpness_ratio(blurred, truth) < 0.3

@@ -1,5 +1,7 @@
 """RGB-D reconstruction: pixel-aligned Gaussians reproduce their source views."""
 
+from dataclasses import replace
+
 import pytest
 import torch
 import torch.nn.functional as F
@@ -10,6 +12,7 @@ from gensplat_transforms.reconstruction import RGBDReconstructor, Views
 from gensplat_transforms.reconstruction.rgbd import RGBDConfig
 from gensplat_transforms.rotations import quat_to_rotmat
 from gensplat_transforms.scenes import LABEL_TABLE, TabletopScene, default_cameras
+from gensplat_transforms.views import preferred_means
 
 SIZE = 96
 
@@ -298,3 +301,55 @@ def test_filled_sensor_holes_get_discs_and_the_source_view_back(scene_views):
         RGBDReconstructor(fill_depth_px=-1)
     near_limit = RGBDReconstructor(fill_depth_px=1, max_depth=2.0)  # filled 3 % behind 1.99 m: beyond it
     assert torch.equal(near_limit.disc_depth(torch.tensor([[1.0, 0.0, 1.99]])), torch.tensor([[1.0, 0.0, 1.99]]))
+
+
+def two_views(size: int = SIZE) -> Views:
+    cams = default_cameras(size, size)[:2]
+    images, depths = TabletopScene(0).render(cams)
+    return Views(images, cams, depths)
+
+
+def test_render_settings_leave_the_identity_and_travel_with_the_reconstruction():
+    """dilation, saturation and view_preference shape only the render: caches stay valid."""
+    views = two_views()
+    sharp = RGBDReconstructor(dilation=0.1, saturation=2.0, view_preference=0.05)
+    assert sharp.identity() == RGBDReconstructor().identity() == "rgbd-b4a28c8cc49722ec"
+    rec = sharp(views)
+    assert rec.render_options == {"dilation": 0.1, "saturation": 2.0} and rec.view_preference == 0.05
+    default = RGBDReconstructor()(views)
+    assert default.render_options == {"dilation": 0.04, "saturation": 2.0} and default.view_preference == 0.03
+    for name, value in (("dilation", 0.0), ("dilation", float("nan")), ("saturation", 0.5),
+                        ("saturation", float("inf")), ("view_preference", -0.1), ("view_preference", 2.0)):  # fmt: skip
+        with pytest.raises(ValueError, match=f"RGBDConfig.{name}"):
+            RGBDReconstructor(**{name: value})
+
+
+def test_each_camera_draws_its_own_discs_in_front_where_both_saw_the_surface():
+    """At a source camera's pose its discs stay put and the other camera's move back along
+    the rays (image positions kept); preferring views lifts the source pose's PSNR."""
+    views = two_views(size=48)
+    rec = RGBDReconstructor()(views)
+    left = rec.cameras[:1]
+    moved = rec.seen_from(left)
+    own = rec.pixel_ids < 48 * 48
+    torch.testing.assert_close(moved.means[own], rec.gaussians.means[own], atol=1e-6, rtol=0)  # round-off only
+    other = ~own
+    before = rec.gaussians.means[other] - left.centers[0].float()
+    after = moved.means[other] - left.centers[0].float()
+    along = torch.nn.functional.cosine_similarity(before, after, dim=-1)
+    assert along.min() > 1 - 1e-6  # along the ray
+    ratio = after.norm(dim=-1) / before.norm(dim=-1)
+    assert ratio.min() >= 1.0 and ratio.max() <= 1.03 + 1e-6 and ratio.max() > 1.025  # up to 3 % farther
+    no_preference = replace(rec, view_preference=0.0)
+    assert no_preference.seen_from(left) is rec.gaussians
+    scores = [psnr(render(r.seen_from(left), left, **r.render_options).rgb[0], views.images[0])
+              for r in (no_preference, rec)]  # fmt: skip
+    assert scores[1] > scores[0] + 0.5
+
+
+def test_preferred_means_stays_finite_for_degenerate_rays():
+    means = torch.tensor([[0.0, 0, 0], [1e6, -1e6, 1e6], [0.0, 0, 1.0], [0.0, 0, 2.0]])
+    origins = torch.tensor([[0.0, 0, 0], [0.0, 0, 0], [0.0, 0, 1.0], [1.0, 0, 0]])  # a mean at its camera
+    out = preferred_means(means, origins, torch.zeros(3), 0.02)  # and at the viewing camera's centre
+    assert torch.isfinite(out).all() and torch.equal(out[0], means[0])
+    assert out[3, 2] == pytest.approx(2.0 * 1.02)  # 1 - cos(26.6 deg) > 0.04: the full 2 %

@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterable, Iterator
-from dataclasses import asdict
 from pathlib import Path
 
 import torch
@@ -55,7 +54,7 @@ from .model import (
     timesteps_per_pass,
     weights_hash,
 )
-from .rgbd import RGBDConfig, RGBDReconstructor
+from .rgbd import RGBDConfig, RGBDReconstructor, disc_identity
 
 SCALES = ("auto", "metric", "fit")
 
@@ -149,7 +148,7 @@ class GeometryReconstructor(DepthReconstructor):
     def config(self) -> dict:
         return {
             "model": self.model.config.to_dict(), "weights": self._weights, "min_conf": self.min_conf,
-            "scale": self.scale, "metric_model": self.metric, "discs": asdict(self.discs.cfg),
+            "scale": self.scale, "metric_model": self.metric, "discs": disc_identity(self.discs.cfg),
             "autocast_dtype": str(self.autocast_dtype) if self.autocast_dtype else None,
         } | ({"max_pixels": self.max_pixels} if self.max_pixels is not None else {})  # unset: identities as before
 

@@ -15,10 +15,21 @@ bridges a depth edge; where even the shorter step is more than ``max_stretch`` t
 fronto-parallel footprint z/f (a grazing surface or an occlusion boundary), that axis
 falls back to the fronto-parallel footprint. Splats next to a depth edge are shrunk
 across it (``edge_scale``) so silhouettes do not bleed onto the background.
+
+The discs are drawn sharp: a small rasterizer dilation (``dilation``, 0.04 px^2 instead of
+the 0.3 learnt Gaussians are trained with) and saturated alpha (``saturation``: alpha =
+min(0.99, 2 exp(-q/2)) for opaque discs), so each disc covers its pixel fully and falls off
+within a fraction of a pixel: at the source pose every pixel shows its own colour, and a
+moved camera still sees a closed surface. Where two cameras saw one surface, the discs of the
+camera whose view is closest to the rendered one are composited in front
+(``view_preference``, :meth:`.views.Reconstruction.seen_from`), instead of a depth-noise
+coin toss between the two. These three settings shape only the render, not what a cache
+holds, so they are not part of the reconstructor's identity.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 
 import torch
@@ -51,6 +62,12 @@ class RGBDConfig:
             farthest depth around them before the discs are built (:mod:`.depth_fill`: a
             depth sensor's holes, whose colours the image has); 0 fills none. Stored depth
             stays as measured.
+        dilation: px^2 the rasterizer adds to each disc's 2D covariance (``render``'s).
+        saturation: alpha gain of the discs (``render``'s; 1: plain Gaussians).
+        view_preference: how far behind, as a fraction of their distance, discs from a
+            camera whose view differs from the rendered one by more than about 16 deg are
+            drawn (:func:`.views.preferred_means`; depth rendered where only such a camera
+            saw the surface is that much too far); 0 composites all views alike.
     """
 
     sigma_px: float = 0.4
@@ -62,6 +79,9 @@ class RGBDConfig:
     max_depth: float | None = None
     stride: int = 1
     fill_depth_px: int = 0
+    dilation: float = 0.04
+    saturation: float = 2.0
+    view_preference: float = 0.03
 
     def __post_init__(self) -> None:
         checks = {
@@ -69,6 +89,9 @@ class RGBDConfig:
             "max_stretch": self.max_stretch >= 1, "stride": self.stride >= 1,
             "edge_scale": 0 < self.edge_scale <= 1,
             "fill_depth_px": isinstance(self.fill_depth_px, int) and self.fill_depth_px >= 0,
+            "dilation": math.isfinite(self.dilation) and self.dilation > 0,
+            "saturation": math.isfinite(self.saturation) and self.saturation >= 1,
+            "view_preference": 0 <= self.view_preference <= 1,
         }  # fmt: skip
         for name, ok in checks.items():
             if not ok:
@@ -101,10 +124,15 @@ class RGBDReconstructor(DepthReconstructor):
         self.fast = fast
 
     def config(self) -> dict:
-        config = asdict(self.cfg)
+        config = disc_identity(self.cfg)
         if not config["fill_depth_px"]:  # unset: identities as before
             del config["fill_depth_px"]
         return config
+
+    def render_style(self) -> dict:
+        """What a :class:`~.views.Reconstruction` of these discs carries for rendering."""
+        return {"render_options": {"dilation": self.cfg.dilation, "saturation": self.cfg.saturation},
+                "view_preference": self.cfg.view_preference}  # fmt: skip
 
     def predict_depth(self, views: Views) -> Views:
         """The given depth, 0 where invalid (see :func:`.base.valid_depth`) or beyond
@@ -146,7 +174,16 @@ class RGBDReconstructor(DepthReconstructor):
         # the compiled builder's output is finite for any depth and finite images (Views checks
         # them): valid by construction, so the per-sample scan is skipped
         g = Gaussians(means, quats, scales, torch.full((n,), cfg.opacity), sh, validate=not self.fast)
-        return Reconstruction(g.mark_checked() if self.fast else g, views.cameras, pixel_ids)
+        return Reconstruction(g.mark_checked() if self.fast else g, views.cameras, pixel_ids, **self.render_style())
+
+
+#: RGBDConfig fields that shape only the render (not part of a cache's identity)
+RENDER_FIELDS = ("dilation", "saturation", "view_preference")
+
+
+def disc_identity(cfg: RGBDConfig) -> dict:
+    """The settings of ``cfg`` that a cache's identity covers: all but ``RENDER_FIELDS``."""
+    return {k: v for k, v in asdict(cfg).items() if k not in RENDER_FIELDS}
 
 
 def grid_pixel_ids(height: int, width: int, stride: int, views: int) -> torch.Tensor:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -12,7 +13,7 @@ from ..cameras import Cameras
 from ..gaussians import Gaussians
 from .fast import render_fast
 from .gsplat_backend import render_gsplat
-from .projection import Projected, precondition, project
+from .projection import DILATION, Projected, precondition, project
 from .reference import rasterize_reference
 
 __all__ = ["BACKENDS", "Projected", "RenderOutput", "auto_backend", "project", "render"]
@@ -39,14 +40,14 @@ class RenderOutput:
 
 
 def _render_reference(gaussians: Gaussians, camera: Cameras, *, background: torch.Tensor, near: float,
-                      sh_degree: int | None, out_dtype: torch.dtype, return_depth: bool,
+                      sh_degree: int | None, out_dtype: torch.dtype, return_depth: bool, dilation: float,
                       max_pairs: int = 1 << 22) -> tuple:
-    proj = project(gaussians, camera, near=near, sh_degree=sh_degree, out_dtype=out_dtype)
+    proj = project(gaussians, camera, near=near, sh_degree=sh_degree, out_dtype=out_dtype, dilation=dilation)
     return rasterize_reference(proj, camera.width, camera.height, background, max_pairs=max_pairs)
 
 
 #: Backend registry. Each entry is called for one camera as
-#: ``fn(gaussians, camera, *, background, near, sh_degree, out_dtype, return_depth, **options)``
+#: ``fn(gaussians, camera, *, background, near, sh_degree, out_dtype, return_depth, dilation, **options)``
 #: and returns ``(rgb (H*W, 3), depth_sum (H*W,) or None, alpha (H*W,))`` where depth_sum is
 #: sum_i w_i z_i (it may be None when ``return_depth`` is False).
 BACKENDS: dict[str, Callable] = {"reference": _render_reference, "fast": render_fast, "gsplat": render_gsplat}
@@ -83,6 +84,8 @@ def render(
     backend: str = "auto",
     return_depth: bool = True,
     return_alpha: bool = True,
+    dilation: float = DILATION,
+    saturation: float = 1.0,
     **options,
 ) -> RenderOutput:
     """Render Gaussians from each camera with EWA splatting and front-to-back compositing.
@@ -103,6 +106,11 @@ def render(
             ``BACKENDS``: "reference" is differentiable pure PyTorch; "fast" the compiled CPU
             renderer; "gsplat" needs CUDA and the gsplat package.
         return_depth, return_alpha: skip these outputs when False.
+        dilation: px^2 added to every splat's 2D covariance (anti-aliasing; 0.3 as in 3DGS and
+            gsplat, with which learnt Gaussians are trained); > 0.
+        saturation: each splat's alpha is min(0.99, saturation * opacity * exp(-q/2)): above 1,
+            flat-topped splats that cover their core fully and fall off within a fraction of
+            their size (pixel-aligned RGB-D discs, see ``reconstruction.rgbd``); >= 1.
         options: settings of the backend used (reference: ``max_pairs`` per chunk; fast:
             ``threads``).
     Returns:
@@ -124,6 +132,13 @@ def render(
     gaussians = precondition(gaussians.check(force=True))
     if not torch.isfinite(torch.as_tensor(near)) or near <= 0:
         raise ValueError(f"render: near must be a positive finite number, got {near}")
+    if not (math.isfinite(dilation) and dilation > 0):
+        raise ValueError(f"render: dilation must be a positive finite number of px^2, got {dilation}")
+    if not (math.isfinite(saturation) and saturation >= 1):
+        raise ValueError(f"render: saturation must be a finite number >= 1, got {saturation}")
+    if saturation != 1:  # opacities above 1 exist only here, for the backends' alpha
+        gaussians = Gaussians(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities * saturation,
+                              gaussians.sh, validate=False).mark_checked()  # fmt: skip
     out_dtype = torch.float64 if gaussians.dtype == torch.float64 else torch.float32
     bg = torch.as_tensor(background, dtype=out_dtype, device=gaussians.device).reshape(3)
     if not torch.isfinite(bg).all():
@@ -134,7 +149,7 @@ def render(
     for i in range(len(cameras)):
         rgb, depth_sum, alpha = fn(
             gaussians, cameras[i], background=bg, near=near, sh_degree=sh_degree,
-            out_dtype=out_dtype, return_depth=return_depth, **options,
+            out_dtype=out_dtype, return_depth=return_depth, dilation=float(dilation), **options,
         )
         rgbs.append(rgb.T.reshape(3, H, W))
         if return_depth:

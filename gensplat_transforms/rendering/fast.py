@@ -70,7 +70,6 @@ from ..sh import sh_degree_from_bases
 from .projection import (
     ALPHA_MAX,
     ALPHA_MIN,
-    DILATION,
     MAX_COLOR,
     MAX_DEPTH,
     MAX_SCALE,
@@ -127,8 +126,8 @@ def _geometry(lo, hi, soa, opacities, cam, near, opac_min, width, height, geom, 
     Inlined, with the loop inside: as a per-Gaussian call in a loop it stays scalar.
 
     soa: (10, N) rows: means (3), quaternions w-x-y-z (4), scales (3).
-    cam: (23,) float64: world-to-camera rows (12), fx, fy, cx, cy, the field-of-view clamp
-        limits of x/z (+, -) and y/z (+, -), camera centre (3).
+    cam: (24,) float64: world-to-camera rows (12), fx, fy, cx, cy, the field-of-view clamp
+        limits of x/z (+, -) and y/z (+, -), camera centre (3), the dilation (px^2).
     geom: (8, N) float64 out: u, v, conic A, 2B, C, depth, sqrt(cov_xx), sqrt(cov_yy).
     boxes: (4, N) out (whole numbers).  visible: (N,) out (1 or 0).
     """
@@ -136,6 +135,7 @@ def _geometry(lo, hi, soa, opacities, cam, near, opac_min, width, height, geom, 
     w20, w21, w22, w23 = cam[8], cam[9], cam[10], cam[11]
     fx, fy, cx, cy = cam[12], cam[13], cam[14], cam[15]
     lim_xp, lim_xn, lim_yp, lim_yn = cam[16], cam[17], cam[18], cam[19]
+    dil = cam[23]
     for i in range(lo, hi):
         mx, my, mz = np.float64(soa[0, i]), np.float64(soa[1, i]), np.float64(soa[2, i])
         x = w00 * mx + w01 * my + w02 * mz + w03
@@ -164,7 +164,7 @@ def _geometry(lo, hi, soa, opacities, cam, near, opac_min, width, height, geom, 
         r10, r11, r12 = 2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx)
         r20, r21, r22 = 2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)
 
-        # M = J W R S (2x3) with rows m, n; 2D covariance M M^T + 0.3 I, exact determinant
+        # M = J W R S (2x3) with rows m, n; 2D covariance M M^T + dil I, exact determinant
         s0 = min(np.float64(soa[7, i]), MAX_SCALE)
         s1 = min(np.float64(soa[8, i]), MAX_SCALE)
         s2 = min(np.float64(soa[9, i]), MAX_SCALE)
@@ -176,15 +176,15 @@ def _geometry(lo, hi, soa, opacities, cam, near, opac_min, width, height, geom, 
         n2 = (b0 * r02 + b1 * r12 + b2 * r22) * s2
         mm, nn, mn = m0 * m0 + m1 * m1 + m2 * m2, n0 * n0 + n1 * n1 + n2 * n2, m0 * n0 + m1 * n1 + m2 * n2
         k0, k1, k2 = m1 * n2 - m2 * n1, m2 * n0 - m0 * n2, m0 * n1 - m1 * n0
-        det = DILATION**2 + DILATION * (mm + nn) + (k0 * k0 + k1 * k1 + k2 * k2)
+        det = dil * dil + dil * (mm + nn) + (k0 * k0 + k1 * k1 + k2 * k2)
         idet = 1.0 / det
-        sa, sc = math.sqrt(mm + DILATION), math.sqrt(nn + DILATION)
+        sa, sc = math.sqrt(mm + dil), math.sqrt(nn + dil)
 
         u = fx * x * iz + cx
         v = fy * y * iz + cy
         x0, y0, x1, y1 = _pixel_box(u, v, SIGMA_EXTENT * sa, SIGMA_EXTENT * sc, width, height)
         geom[0, i], geom[1, i], geom[5, i], geom[6, i], geom[7, i] = u, v, z, sa, sc
-        geom[2, i], geom[3, i], geom[4, i] = (nn + DILATION) * idet, -2 * mn * idet, (mm + DILATION) * idet
+        geom[2, i], geom[3, i], geom[4, i] = (nn + dil) * idet, -2 * mn * idet, (mm + dil) * idet
         boxes[0, i], boxes[1, i], boxes[2, i], boxes[3, i] = x0, y0, x1, y1
         visible[i] = (z > near) & (z < MAX_DEPTH) & (opacities[i] >= opac_min) & (x0 <= x1) & (y0 <= y1)
 
@@ -697,6 +697,7 @@ def render_fast(
     sh_degree: int | None,
     out_dtype: torch.dtype,
     return_depth: bool,
+    dilation: float,
     threads: int = 1,
     timings: dict[str, float] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
@@ -732,7 +733,7 @@ def render_fast(
     w2c = camera.w2c()[0].to(torch.float64)
     fx, fy, cx, cy = camera.K[0].to(torch.float64)[[0, 1, 0, 1], [0, 1, 2, 2]].tolist()
     lims = fov_limits(W, H, fx, fy, cx, cy)  # the clamp of project()
-    cam = np.array([*w2c[:3].reshape(-1).tolist(), fx, fy, cx, cy, *lims, *camera.centers[0].tolist()])
+    cam = np.array([*w2c[:3].reshape(-1).tolist(), fx, fy, cx, cy, *lims, *camera.centers[0].tolist(), dilation])
     rgb = torch.empty(3, H * W)
     alpha = torch.empty(H * W)
     depth = torch.empty(H * W if return_depth else 0)

@@ -15,8 +15,8 @@ Conventions (ours -> gsplat), which match so that no data is reordered:
   the projection's ``MAX_SCALE`` so that gsplat's float32 covariances stay finite.
 * SH: our (N, K, 3) coefficients are gsplat's ``colors`` with ``sh_degree``; both use the
   3DGS real SH basis, view direction = mean - camera centre, and rgb = max(0, SH + 0.5).
-* projection: the same 1.3x field-of-view clamp of the Jacobian and the same 0.3 px^2
-  dilation of the 2D covariance (gsplat ``eps2d=0.3``); the same near-plane cull
+* projection: the same 1.3x field-of-view clamp of the Jacobian and the same dilation of
+  the 2D covariance (gsplat ``eps2d``: 0.3 px^2 unless ``render`` is given another); the same near-plane cull
   (camera z must exceed ``near``; gsplat keeps z == ``near_plane``, so this backend passes
   the next float32 above ``near``).
 * compositing: front-to-back with alpha >= 1/255 and stopping at transmittance 1e-4 in
@@ -43,7 +43,7 @@ from ..cameras import Cameras, rigid_inverse
 from ..gaussians import Gaussians
 from ..rotations import normalize_quat
 from ..sh import sh_degree_from_bases
-from .projection import MAX_SCALE
+from .projection import DILATION, MAX_SCALE
 
 _NEEDS = "gsplat backend needs CUDA and the gsplat package: "
 
@@ -79,6 +79,7 @@ def render_gsplat(
     sh_degree: int | None,
     out_dtype: torch.dtype,
     return_depth: bool,
+    dilation: float,
 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
     """Render one camera (``len(camera) == 1``) with gsplat on the default CUDA device.
 
@@ -96,7 +97,7 @@ def render_gsplat(
     g = gaussians.to(dev, torch.float32)
     colors, alphas = _rasterize(rasterization, g.means, g.quats, g.scales, g.opacities, g.sh, camera.w2c().to(dev),
                                 camera.K.to(dev), camera.width, camera.height, background.to(dev), near, sh_degree,
-                                "RGB+ED" if return_depth else "RGB")  # fmt: skip
+                                "RGB+ED" if return_depth else "RGB", dilation)  # fmt: skip
     colors, alpha = colors[0].reshape(-1, colors.shape[-1]), alphas[0].reshape(-1)
     depth_sum = colors[:, 3] * alpha if return_depth else None
 
@@ -109,7 +110,7 @@ def render_gsplat(
 def render_gsplat_batch(
     means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor, sh: torch.Tensor,
     c2w: torch.Tensor, K: torch.Tensor, width: int, height: int, background: torch.Tensor, near: float = 0.01,
-    return_depth: bool = False,
+    return_depth: bool = False, dilation: float = DILATION,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """M scenes, each into its own C cameras, in one gsplat call on the tensors' CUDA device.
 
@@ -117,19 +118,20 @@ def render_gsplat_batch(
         means (M, N, 3), quats (M, N, 4), scales (M, N, 3), opacities (M, N), sh (M, N, K, 3):
             the Gaussians of each scene (float32; opacity 0 pads a scene: gsplat culls those);
         c2w (M, C, 4, 4), K (M, C, 3, 3): the cameras of each scene, sharing one image size;
-        background: (3,) RGB; near: as for :func:`~gensplat_transforms.rendering.render`.
+        background: (3,) RGB; near, dilation: as for :func:`~gensplat_transforms.rendering.render`
+        (opacities already multiplied by its ``saturation``).
     Returns:
         rgb (M, C, 3, H, W), alpha (M, C, 1, H, W) and, with ``return_depth``, the expected
         depth sum(w z) / sum(w) (M, C, 1, H, W) (else None), float32.
     """
     colors, alphas = _rasterize(_rasterization(), means, quats, scales, opacities, sh, rigid_inverse(c2w), K, width,
-                                height, background, near, None, "RGB+ED" if return_depth else "RGB")  # fmt: skip
+                                height, background, near, None, "RGB+ED" if return_depth else "RGB", dilation)  # fmt: skip
     colors, alphas = colors.permute(0, 1, 4, 2, 3), alphas.permute(0, 1, 4, 2, 3)
     return colors[:, :, :3], alphas, colors[:, :, 3:] if return_depth else None
 
 
 def _rasterize(rasterization, means, quats, scales, opacities, sh, w2c, K, width, height, background, near,
-               sh_degree, render_mode) -> tuple[torch.Tensor, torch.Tensor]:
+               sh_degree, render_mode, dilation) -> tuple[torch.Tensor, torch.Tensor]:
     """gsplat's rasterization with this backend's conventions (module docstring); leading
     dimensions of the Gaussians (..., N) and cameras (..., C) batch scenes. Returns colors
     (..., C, H, W, D) and alphas (..., C, H, W, 1)."""
@@ -139,7 +141,7 @@ def _rasterize(rasterization, means, quats, scales, opacities, sh, w2c, K, width
     colors, alphas, _ = rasterization(
         means.to(f32), normalize_quat(quats.to(f32)), scales.to(f32).clamp(max=MAX_SCALE), opacities.to(f32),
         sh.to(f32), viewmats=w2c.to(f32), Ks=K.to(f32), width=width, height=height, near_plane=_just_above(near),
-        eps2d=0.3, sh_degree=degree,
+        eps2d=dilation, sh_degree=degree,
         # packed=False: gsplat 1.5.3 rejects per-camera backgrounds in packed mode (shape assert)
         backgrounds=background.to(f32).expand(*w2c.shape[:-2], 3), packed=False, render_mode=render_mode,
     )  # fmt: skip

@@ -98,9 +98,11 @@ def project(
     near: float = 0.01,
     sh_degree: int | None = None,
     out_dtype: torch.dtype = torch.float32,
+    dilation: float = DILATION,
 ) -> Projected:
     """Project Gaussians into one camera (``len(camera) == 1``); differentiable w.r.t. the
-    Gaussians and ``camera.c2w``. Returns only splats that can touch the image."""
+    Gaussians and ``camera.c2w``. Returns only splats that can touch the image. ``dilation``
+    (px^2) replaces the 0.3 added to the 2D covariance diagonal."""
     f64 = torch.float64
     W, H = camera.width, camera.height
     K = camera.K[0].to(f64)
@@ -126,10 +128,10 @@ def project(
     scales = gaussians.scales[idx].to(f64).clamp(max=MAX_SCALE)
     M = J @ Rwc @ quat_to_rotmat(gaussians.quats[idx].to(f64)) * scales[:, None, :]  # (M, 2, 3)
     m1, m2 = M[:, 0], M[:, 1]
-    a = (m1 * m1).sum(-1) + DILATION
+    a = (m1 * m1).sum(-1) + dilation
     b = (m1 * m2).sum(-1)
-    c = (m2 * m2).sum(-1) + DILATION
-    det = DILATION**2 + DILATION * ((m1 * m1).sum(-1) + (m2 * m2).sum(-1))
+    c = (m2 * m2).sum(-1) + dilation
+    det = dilation**2 + dilation * ((m1 * m1).sum(-1) + (m2 * m2).sum(-1))
     det = det + torch.linalg.cross(m1, m2).square().sum(-1)
     conics = torch.stack([c / det, -b / det, a / det], -1)
 
