@@ -1,4 +1,4 @@
-"""How far each camera move shifts the workspace in the image: the evaluation levels of both
+"""How far each camera move shifts the workspace in the image: the evaluation levels of the
 robustness protocols against what the policies are trained on.
 
 Usage: python benchmarks/camera_motion.py [--episodes N] [--size S] [--out PATH]
@@ -7,10 +7,11 @@ On the simulated left camera at S x S (default 96, the robustness study's), work
 (a 9 x 9 grid over the table workspace ``WORKSPACE_LOW .. WORKSPACE_HIGH`` at heights 0, 10
 and 20 cm) are projected with the nominal camera and with each moved one. Rows:
 
-* ``paper/<level>`` and ``vista/<level>``: the moves of evaluation episodes 0..N-1, exactly
+* ``paper/<level>``, ``vista/<level>`` and ``fov/zoom``: the moves of evaluation episodes 0..N-1, exactly
   those ``PerturbedCameraEnv`` (seed 0) gives the robustness study's policies;
 * ``train/gensplat``: GenSplat's training moves (level ``train``, seed 0, episodes 0..N-1,
   views 0-2), about the pivot of the external cameras, as the transform draws them;
+  ``train/gensplat-wide``, ``train/gensplat-fov``: those of the wider arms (``SAMPLER_ARMS``);
 * ``train/perspective``: the perspective arm's warps, torchvision's
   ``RandomPerspective(distortion_scale)`` corner draws (seeded) applied to the image points.
 
@@ -34,12 +35,14 @@ from torchvision.transforms import RandomPerspective
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import write_result
-from policy_robustness import PERSPECTIVE_DISTORTION, PROTOCOLS
+from policy_robustness import PERSPECTIVE_DISTORTION, PROTOCOLS, SAMPLER_ARMS
 
-from gensplat_transforms.perturbation import PerturbationSampler
+from gensplat_transforms.cameras import Cameras
+from gensplat_transforms.perturbation import PerturbationSampler, scale_focal
 from gensplat_transforms.sim.evaluate import EvalConfig, PerturbedCameraEnv
 from gensplat_transforms.sim.scene import WORKSPACE_HIGH, WORKSPACE_LOW
 from gensplat_transforms.sim.world import WorldConfig
+from gensplat_transforms.transform import GenSplatConfig
 
 RESULTS = Path(__file__).resolve().parent / "results" / "camera_motion.json"
 
@@ -91,9 +94,11 @@ def summary(rows: list[tuple]) -> dict:
     return out
 
 
-def camera_move(left, c2w: torch.Tensor, points: torch.Tensor, before: torch.Tensor, size: int) -> tuple:
-    """:func:`motion` of the left camera moved to the (4, 4) ``c2w``."""
-    after = left.with_c2w(c2w[None])
+def camera_move(left, c2w: torch.Tensor, points: torch.Tensor, before: torch.Tensor, size: int,
+                focal_scale: float = 1.0) -> tuple:  # fmt: skip
+    """:func:`motion` of the left camera moved to the (4, 4) ``c2w``, its focal length scaled
+    by ``focal_scale``."""
+    after = Cameras(scale_focal(left.K, torch.tensor([focal_scale])), c2w[None], left.width, left.height)
     return motion(before, after.project(points)[0][0], size, (left.centers[0], after.centers[0]))
 
 
@@ -106,12 +111,16 @@ def run(episodes: int, size: int) -> dict:
     before = left.project(points)[0][0]
     result = {}
     for name, env in envs.items():
-        moves = [env.sampler.sample(i).apply(env.nominal_c2w["left"], env.centre["left"]) for i in range(episodes)]
-        result[name] = summary([camera_move(left, c2w, points, before, size) for c2w in moves])
+        moves = [env.sampler.sample(i) for i in range(episodes)]  # a fov move scales the focal length
+        result[name] = summary([camera_move(left, m.apply(env.nominal_c2w["left"], env.centre["left"]), points, before,
+                                            size, getattr(m, "focal_scale", 1.0)) for m in moves])  # fmt: skip
         env.close()
-    sampler = PerturbationSampler("train", seed=0)
-    moves = [sampler.sample(i, view=v).apply(left.c2w[0], first.pivot) for i in range(episodes) for v in range(3)]
-    result["train/gensplat"] = summary([camera_move(left, c2w, points, before, size) for c2w in moves])
+    samplers = {"gensplat": PerturbationSampler("train", seed=0)}
+    samplers |= {arm: GenSplatConfig(**settings, seed=0).perturbations() for arm, settings in SAMPLER_ARMS.items()}
+    for arm, sampler in samplers.items():
+        moves = [sampler.sample(i, view=v) for i in range(episodes) for v in range(3)]
+        result[f"train/{arm}"] = summary([camera_move(left, m.apply(left.c2w[0], first.pivot), points, before, size,
+                                                      m.focal_scale) for m in moves])  # fmt: skip
     torch.manual_seed(0)
     rows = []
     for _ in range(3 * episodes):

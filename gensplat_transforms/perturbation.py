@@ -3,15 +3,16 @@
 A novel view is made in up to four steps (:class:`Perturbation`):
 
 1. rotate the camera about a *world* axis passing through the pivot by ``theta`` (the
-   paper: world X or Y);
+   paper: world X or Y), or through the camera's own centre (``about="camera"``: its
+   orientation turned, as a bumped mount is);
 2. shift it by ``shift_m`` in the world (position noise; the paper: none);
 3. translate it forward by ``mu`` along its own viewing axis (+z, OpenCV);
 4. scale its focal length by ``focal_scale``, the principal point and image size kept (a
    zoom or another lens; the paper: none).
 
 The samplers draw these per episode (or frame) and view, seeded: :class:`PerturbationSampler`
-the paper's levels (rotation about X or Y, forward step), :class:`TiltSampler` rotations about
-a uniformly random axis with a position shift, :class:`ArcSampler` turns about the world's
+the paper's levels (rotation about X or Y, forward step), :class:`TiltSampler` turns of the
+camera about a uniformly random axis through its own centre with a position shift, :class:`ArcSampler` turns about the world's
 vertical (+z up) through the pivot, as a camera moved along an arc around the scene,
 :class:`MixSampler` one of them per move; each can add a focal-length change.
 
@@ -45,8 +46,11 @@ AXES = ("x", "y", "z")
 PAPER_AXES = ("x", "y")
 #: the samplers :func:`make_sampler` makes
 SAMPLERS = ("paper", "tilt", "arc", "mix")
-#: width of a move's row (:meth:`Perturbation.as_row`): axis (3), theta_deg, mu_m, shift_m (3), focal_scale
-ROW = 9
+#: width of a move's row (:meth:`Perturbation.as_row`): axis (3), theta_deg, mu_m, shift_m (3), focal_scale,
+#: pivot share (1: the rotation is about the pivot, 0: about the camera's centre)
+ROW = 10
+#: where a move's rotation turns the camera about (:attr:`Perturbation.about`)
+ABOUT = ("pivot", "camera")
 
 
 @dataclass(frozen=True)
@@ -105,9 +109,10 @@ def get_range(level: str | PerturbationRange) -> PerturbationRange:
 
 @dataclass(frozen=True)
 class Perturbation:
-    """One camera move: rotation ``theta_deg`` about the world ``axis`` through the pivot, a
-    world shift ``shift_m``, then ``mu_m`` metres forward along the camera's viewing axis; its
-    focal length scaled by ``focal_scale`` (principal point and image size kept).
+    """One camera move: rotation ``theta_deg`` about the world ``axis`` through the pivot (or,
+    with ``about="camera"``, through the camera's own centre), a world shift ``shift_m``, then
+    ``mu_m`` metres forward along the camera's viewing axis; its focal length scaled by
+    ``focal_scale`` (principal point and image size kept).
 
     ``axis`` is "x", "y" or "z", or a (3,) direction (stored normalised).
 
@@ -122,8 +127,11 @@ class Perturbation:
     mu_m: float = 0.0
     shift_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     focal_scale: float = 1.0
+    about: str = "pivot"
 
     def __post_init__(self) -> None:
+        if self.about not in ABOUT:
+            raise ValueError(f"Perturbation.about must be one of {ABOUT}, got {self.about!r}")
         if isinstance(self.axis, str):
             if self.axis not in AXES:
                 raise ValueError(f"Perturbation.axis must be one of {AXES} or a direction (x, y, z), got {self.axis!r}")
@@ -157,7 +165,7 @@ class Perturbation:
     def apply(self, c2w: torch.Tensor, pivot: torch.Tensor) -> torch.Tensor:
         """Moved (..., 4, 4) camera-to-world (the focal length aside); see :func:`perturb_pose`."""
         return perturb_pose(c2w, pivot, torch.tensor(self.direction), self.theta_deg, self.mu_m,
-                            torch.tensor(self.shift_m))  # fmt: skip
+                            torch.tensor(self.shift_m), float(self.about == "pivot"))  # fmt: skip
 
     def move(self, cameras: Cameras, index: int = 0, pivot_depth: float | None = None) -> Cameras:
         """Camera ``index`` of a rig, moved about the rig's pivot (:func:`rig_pivot`: of its
@@ -171,8 +179,9 @@ class Perturbation:
 
     def as_row(self) -> list[float]:
         """The move as one row of :data:`ROW` floats: axis direction (3), theta_deg, mu_m,
-        shift_m (3), focal_scale (what :func:`move_rig` and :func:`scale_focal` take)."""
-        return [*self.direction, self.theta_deg, self.mu_m, *self.shift_m, self.focal_scale]
+        shift_m (3), focal_scale, pivot share (what :func:`move_rig` and :func:`scale_focal` take)."""
+        return [*self.direction, self.theta_deg, self.mu_m, *self.shift_m, self.focal_scale,
+                float(self.about == "pivot")]  # fmt: skip
 
     def as_dict(self) -> dict:
         """The move's fields; a shift and focal scale only where the move has them (a paper
@@ -182,6 +191,8 @@ class Perturbation:
             del d["shift_m"]
         if self.focal_scale == 1.0:
             del d["focal_scale"]
+        if self.about == "pivot":
+            del d["about"]
         return d
 
 
@@ -212,19 +223,24 @@ def axis_rotation(axis: str | torch.Tensor, theta_deg: float | torch.Tensor, dty
 
 
 def perturb_pose(c2w: torch.Tensor, pivot: torch.Tensor, axis: str | torch.Tensor, theta_deg: float | torch.Tensor,
-                 mu_m: float | torch.Tensor, shift_m: torch.Tensor | None = None) -> torch.Tensor:
+                 mu_m: float | torch.Tensor, shift_m: torch.Tensor | None = None,
+                 pivot_share: float | torch.Tensor = 1.0) -> torch.Tensor:  # fmt: skip
     """Move (..., 4, 4) OpenCV camera-to-world poses.
 
-    R' = R_axis R, c' = p + R_axis (c - p) + shift + mu * R'[:, 2], with p the pivot ((3,) or
-    (..., 3)); ``axis`` (see :func:`axis_rotation`), ``theta_deg``, ``mu_m`` and ``shift_m``
-    ((3,) or (..., 3), default none) are one move or (...) moves, one per pose.
+    R' = R_axis R, c' = q + R_axis (c - q) + shift + mu * R'[:, 2], with q = p + (1 - s) (c - p)
+    the centre of the rotation: the pivot p ((3,) or (..., 3)) for the pivot share s = 1, the
+    camera's centre c for s = 0; ``axis`` (see :func:`axis_rotation`), ``theta_deg``, ``mu_m``,
+    ``shift_m`` ((3,) or (..., 3), default none) and ``pivot_share`` are one move or (...)
+    moves, one per pose.
     """
     Ra = axis_rotation(axis, theta_deg, c2w.dtype, c2w.device)
     p = torch.as_tensor(pivot, dtype=c2w.dtype, device=c2w.device)
     mu = torch.as_tensor(mu_m, dtype=c2w.dtype, device=c2w.device)
+    share = torch.as_tensor(pivot_share, dtype=c2w.dtype, device=c2w.device)
     out = c2w.clone()
     R = Ra @ c2w[..., :3, :3]
-    center = p + (Ra @ (c2w[..., :3, 3] - p)[..., None])[..., 0]
+    q = p + (1 - share)[..., None] * (c2w[..., :3, 3] - p)  # exactly p for a share of 1
+    center = q + (Ra @ (c2w[..., :3, 3] - q)[..., None])[..., 0]
     if shift_m is not None:
         center = center + torch.as_tensor(shift_m, dtype=c2w.dtype, device=c2w.device)
     out[..., :3, :3] = R
@@ -250,7 +266,7 @@ def move_rig(c2w: torch.Tensor, moves: torch.Tensor, views: Sequence[int], pivot
         raise ValueError(f"move_rig: moves must be (..., R, {ROW}) rows (Perturbation.as_row), got {tuple(moves.shape)}")
     pivot = rig_pivot(c2w, pivot_depth)[..., None, :]  # (..., 1, 3)
     return perturb_pose(c2w[..., list(views), :, :], pivot, moves[..., :3], moves[..., 3], moves[..., 4],
-                        moves[..., 5:8])  # fmt: skip
+                        moves[..., 5:8], moves[..., 9])  # fmt: skip
 
 
 def _closest(c2w_a: torch.Tensor, c2w_b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -386,9 +402,11 @@ class _Turns(_Sampler):
 
 
 class TiltSampler(_Turns):
-    """Rotations about a uniformly random world axis through the pivot by up to ``limit_deg``
-    either way (uniform), and a world shift uniform in [-``shift_m``, ``shift_m``] per axis:
-    the kind of move VISTA's ``small_perturb`` evaluates, over a box rather than its Gaussians.
+    """The camera turned about a uniformly random world axis through its own centre by up to
+    ``limit_deg`` either way (uniform), and shifted in the world uniformly in [-``shift_m``,
+    ``shift_m``] per axis: a bumped or remounted camera, the kind of move VISTA's
+    ``small_perturb`` evaluates (over a box rather than its Gaussians). Unlike the turns about
+    the pivot, these move the image: 10 deg is about a sixth of a 60 deg field of view.
 
     Example:
         >>> p = TiltSampler(limit_deg=10.0, shift_m=0.03, seed=0).sample(episode_index=2)
@@ -402,7 +420,7 @@ class TiltSampler(_Turns):
         axis = rng.normal(size=3)  # a normalised isotropic Gaussian: uniform on the sphere
         theta = float(rng.uniform(-self.limit_deg, self.limit_deg))
         shift = rng.uniform(-self.shift_m, self.shift_m, 3)
-        return Perturbation(tuple(axis.tolist()), theta + 0.0, 0.0, tuple(shift.tolist()))
+        return Perturbation(tuple(axis.tolist()), theta + 0.0, 0.0, tuple(shift.tolist()), about="camera")
 
 
 class ArcSampler(_Turns):

@@ -34,8 +34,8 @@ class GenSplatConfig:
         probability: chance that a sample is augmented.
         sampler: how the cameras move (:mod:`.perturbation`): "paper" (default), the paper's
             ``level``: rotation about world X or Y through the pivot and a forward step;
-            "tilt", rotation about a random axis by up to ``tilt_deg`` and a world shift up to
-            ``shift_m`` per axis; "arc", a turn about the world's vertical through the pivot by
+            "tilt", the camera turned about a random axis through its own centre by up to
+            ``tilt_deg`` and a world shift up to ``shift_m`` per axis; "arc", a turn about the world's vertical through the pivot by
             up to ``arc_deg`` and a step up to ``shift_m`` along the viewing axis; "mix", one of
             the three per move.
         level: a named level (see ``perturbation.LEVELS``) or a ``PerturbationRange`` (the

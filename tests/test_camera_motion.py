@@ -39,8 +39,14 @@ def test_motion_of_a_shift_and_of_a_turn_about_the_workspace_centre():
 def test_a_small_run_orders_the_paper_levels():
     rows = cm.run(episodes=6, size=48)["rows"]
     assert set(rows) == {"paper/none", "paper/small", "paper/medium", "paper/large", "vista/small_perturb",
-                         "vista/arc_90deg", "train/gensplat", "train/perspective"}  # fmt: skip
+                         "vista/arc_90deg", "fov/zoom", "train/gensplat", "train/gensplat-wide",
+                         "train/gensplat-fov", "train/perspective"}  # fmt: skip
+    # a zoom moves the image points, not the camera
+    assert rows["fov/zoom"]["shift_pct_median"] > 1.0 and rows["fov/zoom"]["view_change_deg_p95"] == 0.0
+    assert rows["train/gensplat-fov"]["shift_pct_median"] > rows["train/gensplat"]["shift_pct_median"]
+    # the wide arm's tilts turn the camera about its own centre: they move the image more
+    assert rows["train/gensplat-wide"]["shift_pct_p95"] > rows["train/gensplat"]["shift_pct_p95"]
     assert rows["paper/none"]["shift_pct_median"] == 0.0 and rows["paper/none"]["view_change_deg_median"] == 0.0
     shifts = [rows[f"paper/{lv}"]["shift_pct_median"] for lv in ("small", "medium", "large")]
     assert shifts == sorted(shifts) and shifts[0] > 0
-    assert rows["train/perspective"]["view_change_deg_median"] is None and rows["train/gensplat"]["moves"] == 18
+    assert rows["train/perspective"]["view_change_deg_median"] is None and rows["train/gensplat-wide"]["moves"] == 18

@@ -23,6 +23,7 @@ from gensplat_transforms.perturbation import (
     closest_points_between_axes,
     get_range,
     make_sampler,
+    move_rig,
     perturb_pose,
     pivot_point,
 )
@@ -413,7 +414,7 @@ def test_tilt_sampler_draws_random_axes_angles_and_shifts_within_its_ranges():
     assert theta.abs().max() <= 12.0 and abs(float(theta.mean())) < 0.5 and float(theta.abs().mean()) == pytest.approx(6.0, abs=0.3)
     shift = torch.tensor([m.shift_m for m in moves])
     assert shift.abs().max() <= 0.04 and float(shift.abs().mean()) == pytest.approx(0.02, abs=0.002)
-    assert all(m.mu_m == 0.0 and m.focal_scale == 1.0 for m in moves)
+    assert all(m.mu_m == 0.0 and m.focal_scale == 1.0 and m.about == "camera" for m in moves)
     assert s.sample(5) == TiltSampler(limit_deg=12.0, shift_m=0.04, seed=3).sample(5) != s.sample(6)
     assert s.sample(5) == s.sample(5, frame_index=9) != TiltSampler(12.0, 0.04, mode="frame", seed=3).sample(5, 9)
 
@@ -479,3 +480,31 @@ def test_the_mix_sampler_draws_each_kind_about_equally():
              for m in (s.sample(ep) for ep in range(900))]  # fmt: skip
     assert all(250 < kinds.count(k) < 350 for k in ("paper", "tilt", "arc"))
     assert s.sample(7) == make_sampler("mix", seed=4, shift_m=0.02).sample(7) != s.sample(8)
+
+
+def test_a_turn_about_the_camera_keeps_its_centre_and_moves_the_image():
+    """``about="camera"``: the orientation turns, the centre stays (then the shift applies);
+    the pivot, which a turn about the pivot keeps at the same image point, leaves the image
+    centre by about f tan(theta). The row says where the turn is about, for move_rig."""
+    left, right = look_at((1.05, 0.4, 0.5), (0.45, 0.0, 0.12)), look_at((1.05, -0.4, 0.5), (0.45, 0.0, 0.12))
+    pivot = pivot_point(left, right)
+    cams = Cameras.from_intrinsics(100.0, 100.0, 48.0, 48.0, torch.stack([left, right]), 96, 96)
+    shift = (0.01, -0.02, 0.005)
+    bumped = Perturbation("x", 8.0, shift_m=shift, about="camera")
+    moved = bumped.move(cams, 0)
+    torch.testing.assert_close(moved.centers[0], left[:3, 3] + torch.tensor(shift, dtype=DTYPE))
+    torch.testing.assert_close(moved.c2w[0, :3, :3], axis_rotation("x", 8.0) @ left[:3, :3])
+    sideways = tuple(left[:3, 0].tolist())  # the camera's own x axis: a pure tilt of the view
+    plain = Perturbation(sideways, 8.0, about="camera").move(cams, 0)
+    u = plain.project(pivot[None])[0][0, 0]  # the pivot was at the image centre
+    assert (u - torch.tensor([48.0, 48.0], dtype=DTYPE)).norm() == pytest.approx(100 * math.tan(math.radians(8.0)))
+    about_pivot = Perturbation(sideways, 8.0).move(cams, 0).project(pivot[None])[0][0, 0]
+    torch.testing.assert_close(about_pivot, torch.tensor([48.0, 48.0], dtype=DTYPE))
+    assert bumped.as_row()[-1] == 0.0 and Perturbation("x", 8.0).as_row()[-1] == 1.0
+    assert bumped.as_dict()["about"] == "camera" and "about" not in Perturbation("x", 8.0).as_dict()
+    rows = torch.tensor([bumped.as_row(), Perturbation("y", -5.0, 0.02).as_row()], dtype=DTYPE)
+    both = move_rig(cams.c2w, rows, [0, 1])
+    torch.testing.assert_close(both[0], moved.c2w[0], rtol=0, atol=1e-12)
+    torch.testing.assert_close(both[1], Perturbation("y", -5.0, 0.02).move(cams, 1).c2w[0], rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="Perturbation.about must be one of"):
+        Perturbation("x", 1.0, about="world")
