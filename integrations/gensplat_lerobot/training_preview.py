@@ -121,7 +121,8 @@ def _tiles(dataset, index: int, item: dict, keys: list[str], size: torch.Size) -
 
 def _label(item: dict, frame: int, draw: int, cameras: Sequence[str]) -> str:
     """Row label: frame, draw and each replaced camera's axis, rotation and forward move (and
-    its shift and focal-length change where it has them)."""
+    its centre of rotation, shift and focal-length change where they are not the pivot, none
+    and none)."""
     lines = [f"frame {frame}, draw {draw + 1}"]
     for c, name in enumerate(cameras):
         index, move = int(item["gensplat.axis"][c]), item["gensplat.move"][c]
@@ -129,6 +130,8 @@ def _label(item: dict, frame: int, draw: int, cameras: Sequence[str]) -> str:
             lines.append(f"{name}: {AXES[index]} {float(move[3]):+.1f} deg")
         else:  # a direction: on a line of its own
             lines += [f"{name}: {float(move[3]):+.1f} deg", "  about {:+.1f},{:+.1f},{:+.1f}".format(*move[:3].tolist())]
+        if float(move[9]) == 0.0:  # turned about its own centre, not the pivot
+            lines.append("  about the camera")
         lines.append(f"  mu {float(move[4]) * 100:.1f} cm")
         if bool(move[5:8].any()):
             lines.append("  shift {:+.1f},{:+.1f},{:+.1f} cm".format(*(move[5:8] * 100).tolist()))
