@@ -139,3 +139,17 @@ def test_bad_episode_or_frame_is_a_clear_error(cached, tmp_path, capsys, command
     assert main([command[0], "--root", str(cached), "--repo-id", REPO, *command[1:], *out]) == 2
     assert re.search(f"^gensplat: error: {message}", capsys.readouterr().err)
     assert not list(tmp_path.iterdir())  # nothing written
+
+
+def test_preview_labels_name_each_move_and_where_it_turns():
+    from gensplat_lerobot.training_preview import _label
+
+    from gensplat_transforms.perturbation import Perturbation
+
+    moves = [Perturbation("x", 5.0, 0.02), Perturbation((0.0, 0.6, 0.8), -7.5, shift_m=(0.01, 0, 0), about="camera"),
+             Perturbation("z", 30.0, focal_scale=1.2)]  # fmt: skip
+    item = {"gensplat.axis": torch.tensor([0, -1, 2]), "gensplat.move": torch.tensor([m.as_row() for m in moves])}
+    label = _label(item, frame=3, draw=0, cameras=("left", "right", "top"))
+    assert label.splitlines()[:3] == ["frame 3, draw 1", "left: x +5.0 deg", "  mu 2.0 cm"]
+    assert "right: -7.5 deg\n  about +0.0,+0.6,+0.8\n  through the camera\n  mu 0.0 cm\n  shift +1.0,+0.0,+0.0 cm" in label
+    assert label.count("through the camera") == 1 and label.endswith("top: z +30.0 deg\n  mu 0.0 cm\n  focal x1.20")

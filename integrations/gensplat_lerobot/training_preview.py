@@ -131,7 +131,7 @@ def _label(item: dict, frame: int, draw: int, cameras: Sequence[str]) -> str:
         else:  # a direction: on a line of its own
             lines += [f"{name}: {float(move[3]):+.1f} deg", "  about {:+.1f},{:+.1f},{:+.1f}".format(*move[:3].tolist())]
         if float(move[9]) == 0.0:  # turned about its own centre, not the pivot
-            lines.append("  about the camera")
+            lines.append("  through the camera")
         lines.append(f"  mu {float(move[4]) * 100:.1f} cm")
         if bool(move[5:8].any()):
             lines.append("  shift {:+.1f},{:+.1f},{:+.1f} cm".format(*(move[5:8] * 100).tolist()))
