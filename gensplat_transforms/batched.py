@@ -43,7 +43,7 @@ from .view_output import (
     render_view,
     seen_depth,
 )
-from .views import Reconstruction, preferred_means
+from .views import Reconstruction, preferred_means, source_rays
 
 if TYPE_CHECKING:
     from .transform import GenSplatTransform
@@ -128,9 +128,10 @@ def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None 
     if backend == "gsplat":
         background = torch.tensor(render_background(cfg)).to(depth)
         R, (M, N) = c2w.shape[1], keep.shape
-        origins = sources.centers.to(means).reshape(M, V, 1, 3).expand(M, V, N // V, 3).reshape(M, 1, N, 3)
+        origins = sources.centers.to(means).reshape(M, V, 1, 3).expand(M, V, N // V, 3).reshape(M, N, 3)
         # each target camera composites the views its own way: one scene per (scene, camera)
-        seen_means = preferred_means(means[:, None], origins, c2w[..., :3, 3].to(means), style["view_preference"])
+        seen_means = preferred_means(means[:, None], source_rays(means, origins)[:, None], c2w[..., :3, 3].to(means),
+                                     style["view_preference"])  # fmt: skip
         rgb, alpha, seen = render_gsplat_batch(
             seen_means.flatten(0, 1), *(t.repeat_interleave(R, 0) for t in (quats, scales)),
             (keep * opacity * options["saturation"]).repeat_interleave(R, 0), sh.repeat_interleave(R, 0),

@@ -12,7 +12,7 @@ from gensplat_transforms.reconstruction import RGBDReconstructor, Views
 from gensplat_transforms.reconstruction.rgbd import RGBDConfig
 from gensplat_transforms.rotations import quat_to_rotmat
 from gensplat_transforms.scenes import LABEL_TABLE, TabletopScene, default_cameras
-from gensplat_transforms.views import preferred_means
+from gensplat_transforms.views import preferred_means, source_rays
 
 SIZE = 96
 
@@ -350,6 +350,6 @@ def test_each_camera_draws_its_own_discs_in_front_where_both_saw_the_surface():
 def test_preferred_means_stays_finite_for_degenerate_rays():
     means = torch.tensor([[0.0, 0, 0], [1e6, -1e6, 1e6], [0.0, 0, 1.0], [0.0, 0, 2.0]])
     origins = torch.tensor([[0.0, 0, 0], [0.0, 0, 0], [0.0, 0, 1.0], [1.0, 0, 0]])  # a mean at its camera
-    out = preferred_means(means, origins, torch.zeros(3), 0.02)  # and at the viewing camera's centre
+    out = preferred_means(means, source_rays(means, origins), torch.zeros(3), 0.02)  # and at the viewing camera's centre
     assert torch.isfinite(out).all() and torch.equal(out[0], means[0])
     assert out[3, 2] == pytest.approx(2.0 * 1.02)  # 1 - cos(26.6 deg) > 0.04: the full 2 %
