@@ -43,8 +43,8 @@ class ViewPlan:
 
     Example:
         >>> plan = ViewPlan(True, (Perturbation("x", 5.0, 0.02), Perturbation("y", -3.0, 0.0)))
-        >>> plan.rows[0]  # axis direction, theta_deg, mu_m, shift_m, focal_scale
-        (1.0, 0.0, 0.0, 5.0, 0.02, 0.0, 0.0, 0.0, 1.0)
+        >>> plan.rows[0]  # axis direction, theta_deg, mu_m, shift_m, focal_scale, pivot share
+        (1.0, 0.0, 0.0, 5.0, 0.02, 0.0, 0.0, 0.0, 1.0, 1.0)
     """
 
     applied: bool
