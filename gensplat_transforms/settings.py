@@ -96,7 +96,8 @@ class GenSplatConfig:
     # how the cameras move
     probability: float = field(default=0.5, metadata=_cli("chance a training sample is augmented"))
     sampler: str = field(default="paper", metadata=_cli(
-        "paper: the paper's --level moves; tilt: random-axis tilts and shifts; arc: turns about the vertical; "
+        "paper: the paper's --level moves; tilt: random-axis turns about the camera and shifts; "
+        "arc: turns about the vertical; "
         "mix: one of the three per move",
         choices=SAMPLERS))  # fmt: skip
     level: str | PerturbationRange = field(default="train", metadata=_cli("perturbation level of the paper sampler"))
