@@ -106,7 +106,7 @@ def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None 
     images = torch.stack([_stacked(batch[cfg.image_key.format(name=n)][rows], T, h, w) for n in cfg.cameras], 2)
     rule = _compiled_discs if (compiled if compiled is not None else depth.device.type == "cuda") else dense_discs
     f32 = torch.float32
-    means, quats, scales, dc, keep = (t.flatten(2, 3).flatten(0, 1) for t in rule(  # (S*T, V*n, ...)
+    means, quats, scales, dc, saturation, keep = (t.flatten(2, 3).flatten(0, 1) for t in rule(  # (S*T, V*n, ...)
         discs.disc_depth(depth), images, batch["gensplat.K"][rows].to(f32), batch["gensplat.c2w"][rows].to(f32),
         discs.cfg))  # fmt: skip
     sh = dc[:, :, None]
@@ -122,6 +122,9 @@ def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None 
     opacity = discs.cfg.opacity
     style = discs.render_style()
     options = {**style["render_options"], **cfg.render_options}
+    # each disc's own saturation (rough depth: plain Gaussians), unless the settings fix one
+    saturation = saturation if "saturation" not in cfg.render_options else torch.full_like(saturation,
+                                                                                           options["saturation"])
     depth_keys = {} if cfg.depth_unit in (None, "keep") else {
         r: key for r, name in enumerate(cfg.replace) if (key := cfg.image_key.format(name=name) + "_depth") in batch}  # fmt: skip
     backend = backend or ("gsplat" if depth.device.type == "cuda" else cfg.backend)
@@ -134,7 +137,7 @@ def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None 
                                      style["view_preference"])  # fmt: skip
         rgb, alpha, seen = render_gsplat_batch(
             seen_means.flatten(0, 1), *(t.repeat_interleave(R, 0) for t in (quats, scales)),
-            (keep * opacity * options["saturation"]).repeat_interleave(R, 0), sh.repeat_interleave(R, 0),
+            (keep * opacity * saturation).repeat_interleave(R, 0), sh.repeat_interleave(R, 0),
             c2w.flatten(0, 1)[:, None], K.flatten(0, 1)[:, None], w, h, background, return_depth=bool(depth_keys),
             dilation=options["dilation"])  # fmt: skip
         rgb, alpha = rgb.reshape(M, R, *rgb.shape[2:]), alpha.reshape(M, R, *alpha.shape[2:])
@@ -142,7 +145,7 @@ def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None 
         seen = None if seen is None else seen_depth(seen.reshape(M, R, *seen.shape[2:]), alpha)
     else:
         one = replace(cfg, backend=backend)
-        scenes = zip(means, quats, scales, sh, keep, K, c2w, sources.K.unflatten(0, (-1, V)),
+        scenes = zip(means, quats, scales, sh, saturation, keep, K, c2w, sources.K.unflatten(0, (-1, V)),
                      sources.c2w.unflatten(0, (-1, V)))  # fmt: skip
         views = [render_view(_scene(*discs_of_scene, Cameras(sk, st, w, h), discs), Cameras(k, t, w, h), one,
                              depth=bool(depth_keys))
@@ -162,13 +165,13 @@ def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None 
             else:  # the depth sensor beside the moved camera
                 sensor_c2w = sensor.pose(c2w[:, r])  # (S*T, 4, 4)
                 sensor_K = sensor.K.to(c2w).expand(len(sensor_c2w), 3, 3)
-                rendered = _render_depth(means, quats, scales, sh, keep, sources, discs, options, sensor_K,
+                rendered = _render_depth(means, quats, scales, sh, saturation, keep, sources, discs, options, sensor_K,
                                          sensor_c2w, sensor.width, sensor.height, backend, cfg)  # fmt: skip
             like[rows] = like_depth(rendered, like[rows], cfg.depth_unit).reshape(like[rows].shape)
     return out
 
 
-def _render_depth(means, quats, scales, sh, keep, sources: Cameras, discs: RGBDReconstructor, options: dict,
+def _render_depth(means, quats, scales, sh, saturation, keep, sources: Cameras, discs: RGBDReconstructor, options: dict,
                   K: torch.Tensor, c2w: torch.Tensor, width: int, height: int, backend: str,
                   cfg: GenSplatConfig) -> torch.Tensor:  # fmt: skip
     """(S, 1, H, W) depth maps (:func:`.view_output.render_depth`) of the S scenes' discs (from
@@ -176,7 +179,7 @@ def _render_depth(means, quats, scales, sh, keep, sources: Cameras, discs: RGBDR
     height``, drawn with ``options``."""
     if backend == "gsplat":
         background = torch.zeros(3).to(means)
-        _, alpha, depth = render_gsplat_batch(means, quats, scales, keep * discs.cfg.opacity * options["saturation"],
+        _, alpha, depth = render_gsplat_batch(means, quats, scales, keep * discs.cfg.opacity * saturation,
                                               sh, c2w[:, None], K[:, None], width, height, background,
                                               return_depth=True, dilation=options["dilation"])  # fmt: skip
         return seen_depth(depth, alpha)[:, 0]
@@ -185,7 +188,7 @@ def _render_depth(means, quats, scales, sh, keep, sources: Cameras, discs: RGBDR
     cams = zip(K, c2w, sources.K.unflatten(0, (-1, V)), sources.c2w.unflatten(0, (-1, V)))
     return torch.cat([render_depth(_scene(*g, Cameras(sk, st, sources.width, sources.height), discs),
                                    Cameras(k[None], t[None], width, height), one)
-                      for *g, (k, t, sk, st) in zip(means, quats, scales, sh, keep, cams)])  # fmt: skip
+                      for *g, (k, t, sk, st) in zip(means, quats, scales, sh, saturation, keep, cams)])  # fmt: skip
 
 
 _COMPILED: dict = {}  # the disc rule compiled by torch.compile, made once per process
@@ -213,13 +216,13 @@ def _stacked(images: torch.Tensor, T: int, height: int, width: int) -> torch.Ten
     return as_cache_images(stack, height, width).unflatten(0, (images.shape[0], T))
 
 
-def _scene(means, quats, scales, sh, keep, sources: Cameras, discs: RGBDReconstructor) -> Reconstruction:
+def _scene(means, quats, scales, sh, saturation, keep, sources: Cameras, discs: RGBDReconstructor) -> Reconstruction:
     """One scene's discs (N, ...) where ``keep`` as the worker's reconstruction of them: its
     source cameras (V), pixel ids and render style."""
     V, (height, width) = len(sources), (sources.height, sources.width)
     ids = grid_pixel_ids(height, width, discs.cfg.stride, V).reshape(-1).to(keep.device)[keep]
     return Reconstruction(_scene_gaussians(means, quats, scales, sh, keep, discs.cfg.opacity), sources, ids,
-                          **discs.render_style())  # fmt: skip
+                          **discs.render_style(saturation[keep].float()))  # fmt: skip
 
 
 def _scene_gaussians(means, quats, scales, sh, keep, opacity: float) -> Gaussians:

@@ -85,8 +85,9 @@ def test_on_cuda_the_compiled_rule_builds_the_plain_rules_discs(prepared, monkey
         compiled = batched._compiled_discs(*args, rgbd.cfg)
     assert not [w for w in caught if "disc rule failed" in str(w.message)]  # a fallback would hide a failure
     assert batched._COMPILED["rule"] is not batched.dense_discs
-    (means, quats, scales, dc, keep), plain = compiled, batched.dense_discs(*args, rgbd.cfg)
-    assert torch.equal(keep, plain[4])
+    (means, quats, scales, dc, opacities, keep), plain = compiled, batched.dense_discs(*args, rgbd.cfg)
+    assert torch.equal(keep, plain[5])
+    torch.testing.assert_close(opacities, plain[4], rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(means, plain[0], rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(dc, plain[3], rtol=1e-5, atol=1e-6)
     # a round disc's in-plane angle is arbitrary (atan2 of round-off): compare the covariances

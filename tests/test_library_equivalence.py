@@ -216,7 +216,10 @@ def test_ply_reads_old_files_identically_and_writes_the_same_bytes(tmp_path):
     ref = load_file(str(DATA / "gaussians_3dgs.safetensors"))
     read = Gaussians.from_ply(DATA / "gaussians_3dgs.ply")
     for name, t in read.tensors().items():
-        assert torch.equal(t, ref[f"read.{name}"]), name
+        if name == "scales":  # exp of the stored logarithms: torch releases differ in the last bit
+            torch.testing.assert_close(t, ref[f"read.{name}"], rtol=2.4e-7, atol=0)
+        else:
+            assert torch.equal(t, ref[f"read.{name}"]), name
     written = Gaussians(**{k[len("written.") :]: v for k, v in ref.items() if k.startswith("written.")})
     written.to_ply(tmp_path / "new.ply")
     assert (tmp_path / "new.ply").read_bytes() == (DATA / "gaussians_3dgs.ply").read_bytes()

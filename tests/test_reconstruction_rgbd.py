@@ -180,6 +180,8 @@ def test_compiled_discs_match_the_pytorch_rule(scene_views, overrides):
     torch.testing.assert_close(a.means, b.means, rtol=0, atol=1e-5)
     torch.testing.assert_close(a.sh, b.sh, rtol=0, atol=1e-5)
     torch.testing.assert_close(a.opacities, b.opacities)
+    sa, sb = (torch.as_tensor(r.render_options["saturation"]).expand(len(a)) for r in (fast, ref))
+    torch.testing.assert_close(sa, sb, rtol=0, atol=1e-4)  # softened discs (curved surfaces) alike
     ca, cb = covariance_3d(a.quats, a.scales), covariance_3d(b.quats, b.scales)
     err = (ca - cb).abs().amax((1, 2)) / cb.abs().amax((1, 2))
     # the compiled arithmetic (float32, accurate to ~1e-6) and the PyTorch rule's (float32,
@@ -224,12 +226,12 @@ def test_compiled_discs_match_the_float64_rule_on_hard_depth_maps(stride):
     z[1, 5:9, 10:14] *= 1e4
     z[1, 12:, :6] *= 1e-4
     z[0, 12:15, 18:21] = 1e30
-    cfg = RGBDConfig(stride=stride)
+    cfg = RGBDConfig(stride=stride, soften_noise=False)  # the disc rule alone
     means, quats, scales, dc, ids = surface_discs(
         z, images, K, c2w, stride, cfg.sigma_px, cfg.thickness, cfg.max_stretch, cfg.edge_scale
     )
     clean = torch.where(z > 0, z, 0).double()
-    M, Q, S, D, keep = dense_discs(clean, images.double(), K.double(), c2w.double(), cfg)
+    M, Q, S, D, _, keep = dense_discs(clean, images.double(), K.double(), c2w.double(), cfg)
     keep = keep.reshape(-1)
     assert torch.equal(ids, grid_pixel_ids(*z.shape[-2:], stride, len(z)).reshape(-1)[keep])
     M, Q, S, D = (t.reshape(-1, t.shape[-1])[keep] for t in (M, Q, S, D))
@@ -310,14 +312,17 @@ def two_views(size: int = SIZE) -> Views:
 
 
 def test_render_settings_leave_the_identity_and_travel_with_the_reconstruction():
-    """dilation, saturation and view_preference shape only the render: caches stay valid."""
+    """dilation, saturation, view_preference and soften_noise shape only what is drawn:
+    caches stay valid."""
     views = two_views()
-    sharp = RGBDReconstructor(dilation=0.1, saturation=2.0, view_preference=0.05)
+    sharp = RGBDReconstructor(dilation=0.1, saturation=2.0, view_preference=0.05, soften_noise=False)
     assert sharp.identity() == RGBDReconstructor().identity() == "rgbd-b4a28c8cc49722ec"
     rec = sharp(views)
     assert rec.render_options == {"dilation": 0.1, "saturation": 2.0} and rec.view_preference == 0.05
     default = RGBDReconstructor()(views)
-    assert default.render_options == {"dilation": 0.04, "saturation": 2.0} and default.view_preference == 0.03
+    assert default.render_options["dilation"] == 0.04 and default.view_preference == 0.03
+    per_disc = default.render_options["saturation"]  # the curved objects' discs are softened
+    assert per_disc.shape == (len(default.gaussians),) and per_disc.min() >= 1 and per_disc.max() == 2.0
     for name, value in (("dilation", 0.0), ("dilation", float("nan")), ("saturation", 0.5),
                         ("saturation", float("inf")), ("view_preference", -0.1), ("view_preference", 2.0)):  # fmt: skip
         with pytest.raises(ValueError, match=f"RGBDConfig.{name}"):

@@ -259,3 +259,108 @@ def surface_discs(
         consts = (_F(1 / fx), _F(1 / fy), *rest)
         k = _discs(zp[v], img[v], rx, ry, T[v], stride, consts, v * H * W, k, *flat, ids)
     return (*(torch.from_numpy(o) for o in out), torch.from_numpy(ids))
+
+
+
+@_jit()
+def _roughness(z, fu, fv, edge, window, out):
+    """``rgbd.depth_roughness`` of one view's (H, W) float32 depth ``z`` into ``out`` (H, W),
+    in float64, one row at a time: each row's |d| (both directions), d_u, d_v and count summed
+    along the row over the window into a ring of ``window`` rows, whose running column sums
+    give the window's sums."""
+    h, w = z.shape
+    inv = np.zeros((h, w))
+    for y in range(h):
+        for x in range(w):
+            if z[y, x] > 0:
+                inv[y, x] = 1.0 / np.float64(z[y, x])
+    r = window // 2
+    ring = np.zeros((window, 4, w))  # per row: sums over x - r .. x + r of |d|, d_u, d_v, count
+    per = np.zeros((4, w))
+    cols = np.zeros((4, w))
+    for y in range(h + r):
+        if y < h:
+            per[:] = 0.0  # branch-free along the row (SIMD): every condition a select
+            for x in range(1, w - 1):
+                c = inv[y, x]
+                d = (inv[y, x - 1] + inv[y, x + 1] - 2.0 * c) * (z[y, x] * 0.5 * fu)
+                ok = (c > 0) & (inv[y, x - 1] > 0) & (inv[y, x + 1] > 0) & (abs(d) < edge)
+                per[0, x] = abs(d) if ok else 0.0
+                per[1, x] = d if ok else 0.0
+                per[3, x] = 1.0 if ok else 0.0
+            if 0 < y < h - 1:
+                for x in range(w):
+                    c = inv[y, x]
+                    d = (inv[y - 1, x] + inv[y + 1, x] - 2.0 * c) * (z[y, x] * 0.5 * fv)
+                    ok = (c > 0) & (inv[y - 1, x] > 0) & (inv[y + 1, x] > 0) & (abs(d) < edge)
+                    per[0, x] += abs(d) if ok else 0.0
+                    per[2, x] = d if ok else 0.0
+                    per[3, x] += 1.0 if ok else 0.0
+            row = ring[y % window]
+            for k in range(4):
+                acc = 0.0
+                for x in range(min(r, w)):
+                    acc += per[k, x]
+                for x in range(w):
+                    if x + r < w:
+                        acc += per[k, x + r]
+                    row[k, x] = acc
+                    if x - r >= 0:
+                        acc -= per[k, x - r]
+            cols += row
+        yo = y - r  # the output row whose window is now complete
+        if yo >= 0:
+            for x in range(w):
+                noise = max(cols[0, x] - abs(cols[1, x]) - abs(cols[2, x]), 0.0)
+                out[yo, x] = noise / cols[3, x] if cols[3, x] > 0 else 0.0
+            if yo - r >= 0:
+                cols -= ring[(yo - r) % window]
+
+
+def depth_roughness(z: torch.Tensor, K: torch.Tensor, edge: float, window: int) -> torch.Tensor:
+    """Compiled twin of ``rgbd.depth_roughness``: (V, H, W) float32 roughness of (V, H, W)
+    depth (0: none) with intrinsics K (V, 3, 3); ``edge`` and ``window`` as ``rgbd.ROUGH_EDGE``
+    and ``ROUGH_WINDOW``."""
+    zn = z.detach().cpu().float().contiguous().numpy()
+    Kd = K.detach().cpu().double().numpy()
+    out = np.empty(zn.shape, np.float32)
+    for v in range(len(zn)):
+        _roughness(zn[v], Kd[v, 0, 0], Kd[v, 1, 1], edge, window, out[v])
+    return torch.from_numpy(out)
+
+
+@_jit()
+def _soften(rho, z, fx, ids, hw, start, full, grow, saturation, scales, out):
+    """``rgbd.soften`` of the discs at pixel ``ids`` (N,) from the flat roughness ``rho`` and
+    depth ``z`` (V * H * W,), ``fx`` (V,) and ``hw`` = H * W: scales (N, 3) in place, each
+    disc's saturation into ``out`` (N,)."""
+    span = 1.0 / (full - start)
+    for i in range(len(ids)):
+        p = ids[i]
+        blend = min(max((np.float64(rho[p]) - start) * span, 0.0), 1.0)
+        if blend == 0:
+            out[i] = saturation
+            continue
+        footprint = np.float64(z[p]) / fx[p // hw]
+        extra = blend * grow * footprint * footprint
+        s0, s1 = np.float64(scales[i, 0]), np.float64(scales[i, 1])
+        scales[i, 0] = math.sqrt(s0 * s0 + extra)
+        scales[i, 1] = math.sqrt(s1 * s1 + extra)
+        out[i] = saturation - blend * (saturation - 1.0)
+
+
+def soften_discs(z: torch.Tensor, K: torch.Tensor, pixel_ids: torch.Tensor, scales: torch.Tensor, edge: float,
+                 window: int, start: float, full: float, grow: float,
+                 saturation: float) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+    """Compiled ``rgbd.rough_blend`` + ``rgbd.soften`` for the discs of :func:`surface_discs`:
+    from (V, H, W) depth and (V, 3, 3) intrinsics, the scales (N, 3) (a new tensor) and
+    saturations (N,) float32 of the discs at ``pixel_ids`` (N,); ``grow``: the px^2 a fully
+    rough disc's footprint gains; the rest as ``rgbd``'s ROUGH_* constants and ``saturation``."""
+    zn = z.detach().cpu().float().contiguous()
+    rho = depth_roughness(zn, K, edge, window)
+    out_scales = scales.detach().cpu().float().contiguous().clone()
+    out = np.empty(len(pixel_ids), np.float32)
+    fx = K[:, 0, 0].detach().cpu().double().numpy()
+    _soften(rho.numpy().reshape(-1), zn.numpy().reshape(-1), fx, pixel_ids.numpy(), zn.shape[1] * zn.shape[2],
+            start, full, grow, saturation, out_scales.numpy(), out)  # fmt: skip
+    return out_scales, torch.from_numpy(out)

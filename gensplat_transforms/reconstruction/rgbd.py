@@ -25,6 +25,18 @@ camera whose view is closest to the rendered one are composited in front
 (``view_preference``, :meth:`.views.Reconstruction.seen_from`), instead of a depth-noise
 coin toss between the two. These three settings shape only the render, not what a cache
 holds, so they are not part of the reconstructor's identity.
+
+Sharp discs suit exact depth. On a depth sensor's noisy depth, neighbouring discs lie at
+scattered depths, and a moved camera sees the cracks and colour speckle between them. Where
+the depth is rough (``soften_noise``: the mean, over 5x5 pixels, of the second difference of
+inverse depth along u and v, in units of the pixel's footprint z/f, is above ``ROUGH_START``
+footprints), the discs turn into plain Gaussians, fully at ``ROUGH_FULL``: their own
+saturation falls to 1 (the reconstruction's ``render_options["saturation"]`` is then one
+number per disc) and their footprint in the surface widens by the plain render's dilation
+(``PLAIN_DILATION`` minus ``dilation`` px^2, in source pixels). A plane, at any tilt, has no second difference of inverse depth, and depth
+edges (a step beyond ``ROUGH_EDGE`` footprints) are not counted, so exact depth keeps its
+sharp discs. On the simulated RealSense depth (``sim.sensor``), 97 % of the discs are rough
+and 3 % of those from exact depth (curved and creased surfaces).
 """
 
 from __future__ import annotations
@@ -33,10 +45,12 @@ import math
 from dataclasses import asdict, dataclass
 
 import torch
+import torch.nn.functional as F
 
 from ..gaussians import Gaussians
 from ..rotations import rotmat_to_quat
 from ..sh import num_sh_bases, rgb_to_sh_dc
+from . import discs_fast
 from .base import DepthReconstructor, Reconstruction, Views, valid_depth
 from .depth_fill import fill_depth
 from .discs_fast import surface_discs
@@ -68,6 +82,8 @@ class RGBDConfig:
             camera whose view differs from the rendered one by more than about 16 deg are
             drawn (:func:`.views.preferred_means`; depth rendered where only such a camera
             saw the surface is that much too far); 0 composites all views alike.
+        soften_noise: discs on rough depth (a sensor's noise) are drawn as plain Gaussians
+            (module docstring); False keeps every disc sharp.
     """
 
     sigma_px: float = 0.4
@@ -82,6 +98,7 @@ class RGBDConfig:
     dilation: float = 0.04
     saturation: float = 2.0
     view_preference: float = 0.03
+    soften_noise: bool = True
 
     def __post_init__(self) -> None:
         checks = {
@@ -129,9 +146,12 @@ class RGBDReconstructor(DepthReconstructor):
             del config["fill_depth_px"]
         return config
 
-    def render_style(self) -> dict:
-        """What a :class:`~.views.Reconstruction` of these discs carries for rendering."""
-        return {"render_options": {"dilation": self.cfg.dilation, "saturation": self.cfg.saturation},
+    def render_style(self, saturation: torch.Tensor | None = None) -> dict:
+        """What a :class:`~.views.Reconstruction` of these discs carries for rendering; with
+        the discs' own ``saturation`` (N,) (:func:`soften`), that where they differ."""
+        if saturation is None or not bool((saturation != self.cfg.saturation).any()):
+            saturation = self.cfg.saturation
+        return {"render_options": {"dilation": self.cfg.dilation, "saturation": saturation},
                 "view_preference": self.cfg.view_preference}  # fmt: skip
 
     def predict_depth(self, views: Views) -> Views:
@@ -162,10 +182,15 @@ class RGBDReconstructor(DepthReconstructor):
                 depths[:, 0], views.images, views.cameras.K, views.cameras.c2w, cfg.stride, cfg.sigma_px,
                 cfg.thickness, cfg.max_stretch, cfg.edge_scale,
             )  # fmt: skip
+            saturation = None
+            if cfg.soften_noise:
+                scales, saturation = discs_fast.soften_discs(
+                    depths[:, 0], views.cameras.K, pixel_ids, scales, ROUGH_EDGE, ROUGH_WINDOW, ROUGH_START,
+                    ROUGH_FULL, _grow(cfg), cfg.saturation)  # fmt: skip
         else:
-            means, quats, scales, dc, keep = dense_discs(depths[:, 0], views.images, views.cameras.K.float(),
-                                                         views.cameras.c2w.float(), cfg)  # fmt: skip
-            means, quats, scales, dc = (t[keep] for t in (means, quats, scales, dc))
+            means, quats, scales, dc, saturation, keep = dense_discs(
+                depths[:, 0], views.images, views.cameras.K.float(), views.cameras.c2w.float(), cfg)  # fmt: skip
+            means, quats, scales, dc, saturation = (t[keep] for t in (means, quats, scales, dc, saturation))
             pixel_ids = grid_pixel_ids(*depths.shape[-2:], cfg.stride, len(views))[keep]
         n = means.shape[0]
         sh = dc[:, None]  # DC only; higher degrees are zero
@@ -174,11 +199,70 @@ class RGBDReconstructor(DepthReconstructor):
         # the compiled builder's output is finite for any depth and finite images (Views checks
         # them): valid by construction, so the per-sample scan is skipped
         g = Gaussians(means, quats, scales, torch.full((n,), cfg.opacity), sh, validate=not self.fast)
-        return Reconstruction(g.mark_checked() if self.fast else g, views.cameras, pixel_ids, **self.render_style())
+        return Reconstruction(g.mark_checked() if self.fast else g, views.cameras, pixel_ids,
+                              **self.render_style(saturation))  # fmt: skip
 
 
-#: RGBDConfig fields that shape only the render (not part of a cache's identity)
-RENDER_FIELDS = ("dilation", "saturation", "view_preference")
+#: RGBDConfig fields that shape only what is drawn, not what a cache stores (not part of its identity)
+RENDER_FIELDS = ("dilation", "saturation", "view_preference", "soften_noise")
+
+#: ``soften_noise``: roughness (in pixel footprints) at which discs start turning into plain
+#: Gaussians, and at which they are plain; second differences beyond ``ROUGH_EDGE`` are depth
+#: edges, not noise; the mean is taken over ``ROUGH_WINDOW`` x ``ROUGH_WINDOW`` pixels
+ROUGH_START, ROUGH_FULL, ROUGH_EDGE, ROUGH_WINDOW = 0.2, 0.4, 4.0, 5
+#: the rasterizer dilation (px^2) of plain Gaussians, which rough discs are drawn with
+PLAIN_DILATION = 0.3
+
+
+def depth_roughness(z: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """(M, H, W) roughness of (M, H, W) depth (0: none) seen with intrinsics K (M, 3, 3): how
+    far depth leaves the chord of its neighbours at random, in pixel footprints z/f. With
+    d = (w(-1) - 2 w + w(+1)) z f / 2 along u and along v (w = 1/z: a plane's d is 0), over
+    ``ROUGH_WINDOW`` x ``ROUGH_WINDOW`` pixels: (sum |d| - |sum d_u| - |sum d_v|) / count, so a
+    curved surface, whose d keeps its sign, reads near 0, and noise, whose d does not, reads
+    about its mean |d|. Steps beyond ``ROUGH_EDGE`` and pixels without both neighbours are left
+    out; a window with nothing counted reads 0."""
+    valid = z > 0
+    w = torch.where(valid, 1 / z.clamp_min(torch.finfo(z.dtype).tiny), 0.0)
+    planes = torch.zeros(len(z), 4, *z.shape[1:], dtype=z.dtype, device=z.device)  # sum |d|, sum d_u, d_v, count
+    for plane, dim, f in ((1, 2, K[:, 0, 0]), (2, 1, K[:, 1, 1])):
+        n = z.shape[dim]
+        if n < 3:
+            continue
+        inner = (slice(None), *(slice(1, n - 1) if d == dim else slice(None) for d in (1, 2)))
+        d = (w.narrow(dim, 0, n - 2) + w.narrow(dim, 2, n - 2) - 2 * w[inner]) * z[inner] * (0.5 * f).to(z).reshape(-1, 1, 1)
+        ok = valid.narrow(dim, 0, n - 2) & valid.narrow(dim, 2, n - 2) & valid[inner] & (d.abs() < ROUGH_EDGE)
+        d = torch.where(ok, d, 0.0)
+        planes[(slice(None), 0, *inner[1:])] += d.abs()
+        planes[(slice(None), plane, *inner[1:])] += d
+        planes[(slice(None), 3, *inner[1:])] += ok.to(z.dtype)
+    r = ROUGH_WINDOW // 2
+    sums = F.avg_pool2d(F.avg_pool2d(planes, (1, ROUGH_WINDOW), 1, (0, r)), (ROUGH_WINDOW, 1), 1, (r, 0))
+    noise = (sums[:, 0] - sums[:, 1].abs() - sums[:, 2].abs()).clamp_min(0)
+    return torch.where(sums[:, 3] > 0, noise / sums[:, 3].clamp_min(1e-12), 0.0)
+
+
+def rough_blend(z: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """For (M, H, W) depth and (M, 3, 3) intrinsics: how plain each pixel's disc is drawn,
+    (M, H, W) in [0, 1] (0 below ``ROUGH_START``, 1 from ``ROUGH_FULL``), and its footprint
+    z / fx (M, H, W) in metres."""
+    blend = ((depth_roughness(z, K) - ROUGH_START) / (ROUGH_FULL - ROUGH_START)).clamp(0, 1)
+    return blend, z / K[:, 0, 0].to(z).reshape(-1, 1, 1)
+
+
+def _grow(cfg: RGBDConfig) -> float:
+    """px^2 a fully rough disc's footprint gains: up to the plain render's dilation."""
+    return max(PLAIN_DILATION - cfg.dilation, 0.0)
+
+
+def soften(scales: torch.Tensor, blend: torch.Tensor, footprint: torch.Tensor,
+           cfg: RGBDConfig) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+    """Scales (..., 3) and saturations (...) of discs drawn ``blend`` (...) of the way to plain
+    Gaussians: in-plane variances plus blend (PLAIN_DILATION - dilation) footprint^2 (the
+    thickness kept), saturation from ``cfg.saturation`` (blend 0) down to 1 (blend 1)."""
+    grow = blend * (_grow(cfg) * footprint.square())
+    in_plane = (scales[..., :2].square() + grow[..., None]).sqrt()
+    return torch.cat([in_plane, scales[..., 2:]], -1), cfg.saturation - blend * (cfg.saturation - 1)
 
 
 def disc_identity(cfg: RGBDConfig) -> dict:
@@ -201,9 +285,10 @@ def dense_discs(z: torch.Tensor, images: torch.Tensor, K: torch.Tensor, c2w: tor
         z: (..., H, W) cleaned depth (0 = no disc); images: (..., 3, H, W) in [0, 1];
         K: (..., 3, 3); c2w: (..., 4, 4); all of one float dtype, which the rule computes in.
     Returns:
-        means (..., n, 3), quats (..., n, 4), scales (..., n, 3), SH DC (..., n, 3) and keep
-        (..., n) bool (the pixel has depth), for the n pixels on the stride grid, row-major.
-        Pixels without depth get finite placeholder values (identity rotation, zero scales).
+        means (..., n, 3), quats (..., n, 4), scales (..., n, 3), SH DC (..., n, 3), each
+        disc's saturation (..., n) (:func:`soften`) and keep (..., n) bool (the pixel has depth), for
+        the n pixels on the stride grid, row-major. Pixels without depth get finite
+        placeholder values (identity rotation, zero scales).
     """
     lead, (H, W) = z.shape[:-2], z.shape[-2:]
     z, images = z.reshape(-1, H, W), images.reshape(-1, 3, H, W)
@@ -227,8 +312,12 @@ def dense_discs(z: torch.Tensor, images: torch.Tensor, K: torch.Tensor, c2w: tor
     quats = torch.where(keep.reshape(-1, 1), quats, quats.new_tensor([1.0, 0, 0, 0]))
     scales = torch.where(keep.reshape(-1, 1), scales, 0.0)
     n = keep.shape[1]
+    saturation = torch.full_like(scales[:, 0], cfg.saturation)
+    if cfg.soften_noise:
+        blend, footprint = (t[sel].reshape(-1) for t in rough_blend(z, K.reshape(-1, 3, 3)))
+        scales, saturation = soften(scales, blend, footprint, cfg)
     return (means.reshape(*lead, n, 3), quats.reshape(*lead, n, 4), scales.reshape(*lead, n, 3),
-            rgb_to_sh_dc(rgb).reshape(*lead, n, 3), keep.reshape(*lead, n))  # fmt: skip
+            rgb_to_sh_dc(rgb).reshape(*lead, n, 3), saturation.reshape(*lead, n), keep.reshape(*lead, n))  # fmt: skip
 
 
 def _require_depth(views: Views) -> None:

@@ -74,6 +74,22 @@ def auto_backend(gaussians: Gaussians, cameras: Cameras, background: object = No
     return "fast"
 
 
+def _saturation(saturation: float | torch.Tensor, gaussians: Gaussians) -> float | torch.Tensor | None:
+    """``render``'s saturation checked: a number, or (N,) values in the Gaussians' dtype and
+    device; None where it is 1 (nothing to scale)."""
+    if isinstance(saturation, torch.Tensor) and saturation.ndim > 0:
+        if saturation.shape != (len(gaussians),):
+            raise ValueError(f"render: saturation per Gaussian must have shape ({len(gaussians)},), "
+                             f"got {tuple(saturation.shape)}")  # fmt: skip
+        if saturation.numel() and not bool(torch.isfinite(saturation).all() and saturation.min() >= 1):
+            raise ValueError("render: saturation must be finite and >= 1 for every Gaussian")
+        return saturation.to(gaussians.opacities) if bool((saturation != 1).any()) else None
+    saturation = float(saturation)
+    if not (math.isfinite(saturation) and saturation >= 1):
+        raise ValueError(f"render: saturation must be a finite number >= 1, got {saturation}")
+    return saturation if saturation != 1 else None
+
+
 def render(
     gaussians: Gaussians,
     cameras: Cameras,
@@ -85,7 +101,7 @@ def render(
     return_depth: bool = True,
     return_alpha: bool = True,
     dilation: float = DILATION,
-    saturation: float = 1.0,
+    saturation: float | torch.Tensor = 1.0,
     **options,
 ) -> RenderOutput:
     """Render Gaussians from each camera with EWA splatting and front-to-back compositing.
@@ -110,7 +126,8 @@ def render(
             gsplat, with which learnt Gaussians are trained); > 0.
         saturation: each splat's alpha is min(0.99, saturation * opacity * exp(-q/2)): above 1,
             flat-topped splats that cover their core fully and fall off within a fraction of
-            their size (pixel-aligned RGB-D discs, see ``reconstruction.rgbd``); >= 1.
+            their size (pixel-aligned RGB-D discs, see ``reconstruction.rgbd``); >= 1, one
+            number or one per Gaussian (N,).
         options: settings of the backend used (reference: ``max_pairs`` per chunk; fast:
             ``threads``).
     Returns:
@@ -134,9 +151,8 @@ def render(
         raise ValueError(f"render: near must be a positive finite number, got {near}")
     if not (math.isfinite(dilation) and dilation > 0):
         raise ValueError(f"render: dilation must be a positive finite number of px^2, got {dilation}")
-    if not (math.isfinite(saturation) and saturation >= 1):
-        raise ValueError(f"render: saturation must be a finite number >= 1, got {saturation}")
-    if saturation != 1:  # opacities above 1 exist only here, for the backends' alpha
+    saturation = _saturation(saturation, gaussians)
+    if saturation is not None:  # opacities above 1 exist only here, for the backends' alpha
         gaussians = Gaussians(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities * saturation,
                               gaussians.sh, validate=False).mark_checked()  # fmt: skip
     out_dtype = torch.float64 if gaussians.dtype == torch.float64 else torch.float32
