@@ -11,6 +11,8 @@ of a depth discontinuity of the true view: a relative depth step > 3 % in a 3x3 
 * ``forward_warp``, ``rgbd``, ``rgbd_plain``: as in ``nvs_fidelity.py`` (left + right views);
 * ``forward_warp_left``, ``rgbd_left``: the left view only (no fusion of two views);
 * ``rgbd_no_preference``: every camera's discs composited alike (``view_preference`` 0);
+* ``rgbd_no_soften``: every disc sharp, also where the depth reads as rough (``soften_noise``
+  off);
 * ``rgbd_unsaturated``: plain alpha (``saturation`` 1);
 * ``rgbd_dilation_0.3``: the renderer's usual 0.3 px^2 dilation;
 * ``rgbd_sigma_0.3``: smaller footprints (``RGBDConfig.sigma_px``, 0.4 by default);
@@ -40,6 +42,7 @@ from gensplat_transforms.sim.truth import GroundTruth
 from gensplat_transforms.warp import forward_warp
 
 RGBD = {"rgbd": {}, "rgbd_plain": PLAIN, "rgbd_left": {}, "rgbd_no_preference": {"view_preference": 0.0},
+        "rgbd_no_soften": {"soften_noise": False},
         "rgbd_unsaturated": {"saturation": 1.0}, "rgbd_dilation_0.3": {"dilation": 0.3},
         "rgbd_sigma_0.3": {"sigma_px": 0.3}, "rgbd_edge_scale_1": {"edge_scale": 1.0}}  # fmt: skip
 
