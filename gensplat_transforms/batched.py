@@ -28,7 +28,7 @@ from .perturbation import move_rig, scale_focal
 from .plan import BATCH_KEYS
 from .reconstruction import Reconstructor
 from .reconstruction.base import nearest_pixels
-from .reconstruction.rgbd import RGBDReconstructor, dense_discs, grid_pixel_ids
+from .reconstruction.rgbd import RGBDReconstructor, dense_discs, grid_pixel_ids, own_saturation
 from .rendering import RenderOutput
 from .rendering.gsplat_backend import render_gsplat_batch
 from .settings import GenSplatConfig, render_size
@@ -222,7 +222,7 @@ def _scene(means, quats, scales, sh, saturation, keep, sources: Cameras, discs: 
     V, (height, width) = len(sources), (sources.height, sources.width)
     ids = grid_pixel_ids(height, width, discs.cfg.stride, V).reshape(-1).to(keep.device)[keep]
     return Reconstruction(_scene_gaussians(means, quats, scales, sh, keep, discs.cfg.opacity), sources, ids,
-                          **discs.render_style(saturation[keep].float()))  # fmt: skip
+                          **discs.render_style(own_saturation(saturation[keep].float(), discs.cfg)))  # fmt: skip
 
 
 def _scene_gaussians(means, quats, scales, sh, keep, opacity: float) -> Gaussians:

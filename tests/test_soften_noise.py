@@ -11,7 +11,6 @@ from gensplat_transforms.reconstruction import GeometryReconstructor, RGBDRecons
 from gensplat_transforms.reconstruction.rgbd import (
     PLAIN_DILATION,
     ROUGH_EDGE,
-    ROUGH_FULL,
     ROUGH_START,
     ROUGH_WINDOW,
     RGBDConfig,
@@ -58,14 +57,14 @@ def test_planes_and_depth_edges_are_not_rough():
 
 
 def test_noise_of_a_fraction_of_a_footprint_is_rough():
-    """Depth noise of 1.5 footprints (z / f) reads as rough, fully (>= ROUGH_FULL) in the
-    interior; the two twins agree."""
+    """Depth noise of one footprint (z / f) reads as rough: about 0.7 footprints (differences
+    beyond ROUGH_EDGE count as edges), above ROUGH_START everywhere inside; the twins agree."""
     g = torch.Generator().manual_seed(0)
     z = plane_depth()
-    noisy = z + 1.5 * (z / F) * torch.randn(z.shape, generator=g)
+    noisy = z + 1.0 * (z / F) * torch.randn(z.shape, generator=g)
     ref, fast = both_roughness(noisy)
     torch.testing.assert_close(fast, ref.float(), rtol=1e-4, atol=1e-6)
-    assert ref[:, 3:-3, 3:-3].min() > ROUGH_FULL and ref.median() > 1.2
+    assert ref[:, 3:-3, 3:-3].min() > ROUGH_START and ref.median() > 0.6
     quiet = z + 0.02 * (z / F) * torch.randn(z.shape, generator=g)  # a fiftieth of a footprint
     assert both_roughness(quiet)[1].max() < ROUGH_START
 
@@ -98,13 +97,14 @@ def views_of(depth: torch.Tensor) -> Views:
 @pytest.mark.parametrize("fast", [True, False])
 def test_noisy_depth_gives_plain_discs_and_exact_depth_sharp_ones(fast):
     """A plane from exact depth: every disc at the configured saturation, shapes untouched.
-    The same plane with noise: its interior discs at saturation 1, their in-plane variances
-    grown by (PLAIN_DILATION - dilation) footprints^2; off: the rule's discs unchanged."""
+    The same plane with noise of a footprint: every interior disc softened, nearly all fully
+    (saturation 1, in-plane variances grown by (PLAIN_DILATION - dilation) footprints^2); off:
+    the rule's discs unchanged."""
     g = torch.Generator().manual_seed(2)
     z = plane_depth()
     exact = RGBDReconstructor(fast=fast)(views_of(z))
     assert exact.render_options["saturation"] == 2.0  # one number: nothing softened
-    noisy_depth = z + 1.5 * (z / F) * torch.randn(z.shape, generator=g)
+    noisy_depth = z + 1.0 * (z / F) * torch.randn(z.shape, generator=g)
     noisy = RGBDReconstructor(fast=fast)(views_of(noisy_depth))
     sharp = RGBDReconstructor(fast=fast, soften_noise=False)(views_of(noisy_depth))
     saturation = noisy.render_options["saturation"]
@@ -112,7 +112,8 @@ def test_noisy_depth_gives_plain_discs_and_exact_depth_sharp_ones(fast):
     interior = torch.zeros(H, W, dtype=torch.bool)
     interior[3:-3, 3:-3] = True
     interior = interior.reshape(-1)[noisy.pixel_ids]
-    assert torch.equal(saturation[interior], torch.ones(int(interior.sum())))
+    assert saturation[interior].max() < 2 and (saturation[interior] == 1).float().mean() > 0.9
+    interior &= saturation == 1
     footprint = noisy_depth.reshape(-1)[noisy.pixel_ids] / F
     grown = sharp.gaussians.scales[:, :2].square() + (PLAIN_DILATION - RGBDConfig.dilation) * footprint[:, None] ** 2
     torch.testing.assert_close(noisy.gaussians.scales[interior, :2], grown[interior].sqrt(), rtol=1e-5, atol=0)
@@ -127,7 +128,7 @@ def test_softened_discs_render_close_to_plain_gaussians():
     discs (the in-plane growth stands in for the dilation, up to each disc's tilt)."""
     g = torch.Generator().manual_seed(3)
     z = plane_depth()
-    noisy = z + 1.5 * (z / F) * torch.randn(z.shape, generator=g)
+    noisy = z + 1.0 * (z / F) * torch.randn(z.shape, generator=g)
     views = views_of(noisy)
     views = Views(torch.rand(1, 3, H, W, generator=g), views.cameras, views.depths)
     soft = RGBDReconstructor()(views)

@@ -333,8 +333,9 @@ def depth_roughness(z: torch.Tensor, K: torch.Tensor, edge: float, window: int) 
 def _soften(rho, z, fx, ids, hw, start, full, grow, saturation, scales, out):
     """``rgbd.soften`` of the discs at pixel ``ids`` (N,) from the flat roughness ``rho`` and
     depth ``z`` (V * H * W,), ``fx`` (V,) and ``hw`` = H * W: scales (N, 3) in place, each
-    disc's saturation into ``out`` (N,)."""
+    disc's saturation into ``out`` (N,); returns how many discs it softened."""
     span = 1.0 / (full - start)
+    softened = 0
     for i in range(len(ids)):
         p = ids[i]
         blend = min(max((np.float64(rho[p]) - start) * span, 0.0), 1.0)
@@ -347,20 +348,25 @@ def _soften(rho, z, fx, ids, hw, start, full, grow, saturation, scales, out):
         scales[i, 0] = math.sqrt(s0 * s0 + extra)
         scales[i, 1] = math.sqrt(s1 * s1 + extra)
         out[i] = saturation - blend * (saturation - 1.0)
+        softened += 1
+    return softened
 
 
 def soften_discs(z: torch.Tensor, K: torch.Tensor, pixel_ids: torch.Tensor, scales: torch.Tensor, edge: float,
                  window: int, start: float, full: float, grow: float,
-                 saturation: float) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+                 saturation: float) -> torch.Tensor | None:  # fmt: skip
     """Compiled ``rgbd.rough_blend`` + ``rgbd.soften`` for the discs of :func:`surface_discs`:
-    from (V, H, W) depth and (V, 3, 3) intrinsics, the scales (N, 3) (a new tensor) and
-    saturations (N,) float32 of the discs at ``pixel_ids`` (N,); ``grow``: the px^2 a fully
-    rough disc's footprint gains; the rest as ``rgbd``'s ROUGH_* constants and ``saturation``."""
+    from (V, H, W) depth and (V, 3, 3) intrinsics, the discs at ``pixel_ids`` (N,) softened:
+    ``scales`` (N, 3) (float32, contiguous, on the CPU, as :func:`surface_discs` makes them)
+    changed in place, and their saturations (N,) float32 returned, or None where no disc is
+    rough; ``grow``: the px^2 a fully rough disc's footprint gains; the rest as ``rgbd``'s
+    ROUGH_* constants and ``saturation``."""
+    if scales.dtype != torch.float32 or scales.device.type != "cpu" or not scales.is_contiguous():
+        raise ValueError("soften_discs: scales must be a contiguous float32 CPU tensor (changed in place)")
     zn = z.detach().cpu().float().contiguous()
     rho = depth_roughness(zn, K, edge, window)
-    out_scales = scales.detach().cpu().float().contiguous().clone()
     out = np.empty(len(pixel_ids), np.float32)
     fx = K[:, 0, 0].detach().cpu().double().numpy()
-    _soften(rho.numpy().reshape(-1), zn.numpy().reshape(-1), fx, pixel_ids.numpy(), zn.shape[1] * zn.shape[2],
-            start, full, grow, saturation, out_scales.numpy(), out)  # fmt: skip
-    return out_scales, torch.from_numpy(out)
+    softened = _soften(rho.numpy().reshape(-1), zn.numpy().reshape(-1), fx, pixel_ids.numpy(),
+                       zn.shape[1] * zn.shape[2], start, full, grow, saturation, scales.numpy(), out)  # fmt: skip
+    return torch.from_numpy(out) if softened else None

@@ -147,10 +147,10 @@ class RGBDReconstructor(DepthReconstructor):
         return config
 
     def render_style(self, saturation: torch.Tensor | None = None) -> dict:
-        """What a :class:`~.views.Reconstruction` of these discs carries for rendering; with
-        the discs' own ``saturation`` (N,) (:func:`soften`), that where they differ."""
-        if saturation is None or not bool((saturation != self.cfg.saturation).any()):
-            saturation = self.cfg.saturation
+        """What a :class:`~.views.Reconstruction` of these discs carries for rendering: with
+        the discs' own ``saturation`` (N,) where some were softened (:func:`own_saturation`),
+        else the configured one."""
+        saturation = self.cfg.saturation if saturation is None else saturation
         return {"render_options": {"dilation": self.cfg.dilation, "saturation": saturation},
                 "view_preference": self.cfg.view_preference}  # fmt: skip
 
@@ -184,7 +184,7 @@ class RGBDReconstructor(DepthReconstructor):
             )  # fmt: skip
             saturation = None
             if cfg.soften_noise:
-                scales, saturation = discs_fast.soften_discs(
+                saturation = discs_fast.soften_discs(  # scales changed in place
                     depths[:, 0], views.cameras.K, pixel_ids, scales, ROUGH_EDGE, ROUGH_WINDOW, ROUGH_START,
                     ROUGH_FULL, _grow(cfg), cfg.saturation)  # fmt: skip
         else:
@@ -192,6 +192,7 @@ class RGBDReconstructor(DepthReconstructor):
                 depths[:, 0], views.images, views.cameras.K.float(), views.cameras.c2w.float(), cfg)  # fmt: skip
             means, quats, scales, dc, saturation = (t[keep] for t in (means, quats, scales, dc, saturation))
             pixel_ids = grid_pixel_ids(*depths.shape[-2:], cfg.stride, len(views))[keep]
+            saturation = own_saturation(saturation, cfg)
         n = means.shape[0]
         sh = dc[:, None]  # DC only; higher degrees are zero
         if cfg.sh_degree > 0:
@@ -248,6 +249,11 @@ def rough_blend(z: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.T
     z / fx (M, H, W) in metres."""
     blend = ((depth_roughness(z, K) - ROUGH_START) / (ROUGH_FULL - ROUGH_START)).clamp(0, 1)
     return blend, z / K[:, 0, 0].to(z).reshape(-1, 1, 1)
+
+
+def own_saturation(saturation: torch.Tensor, cfg: RGBDConfig) -> torch.Tensor | None:
+    """The discs' saturations (N,) where some differ from ``cfg.saturation`` (softened), else None."""
+    return saturation if bool((saturation != cfg.saturation).any()) else None
 
 
 def _grow(cfg: RGBDConfig) -> float:
