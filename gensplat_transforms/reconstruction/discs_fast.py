@@ -261,7 +261,6 @@ def surface_discs(
     return (*(torch.from_numpy(o) for o in out), torch.from_numpy(ids))
 
 
-
 @_jit()
 def _roughness(z, fu, fv, edge, window, out):
     """``rgbd.depth_roughness`` of one view's (H, W) float32 depth ``z`` into ``out`` (H, W),
