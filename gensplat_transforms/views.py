@@ -7,11 +7,13 @@ import math
 from dataclasses import dataclass, field
 from functools import cached_property
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
 from .cameras import Cameras
 from .gaussians import Gaussians
+from .rendering.fast import _jit
 
 #: Depths beyond this (metres) mark pixels without depth, like zero, negative and non-finite
 #: ones: no sensor measures that far (such values are sentinels), and Gaussians built from
@@ -118,7 +120,10 @@ class Reconstruction:
         if not self.view_preference or self.pixel_ids is None:
             return self.gaussians
         g = self.gaussians
-        means = preferred_means(g.means, self._source_rays, camera.centers[0].to(g.means), self.view_preference)
+        center = camera.centers[0].to(g.means)
+        compiled = g.means.device.type == "cpu" and g.means.dtype == torch.float32 and not g.means.requires_grad
+        means = (_preferred_means_cpu if compiled else preferred_means)(g.means, self._source_rays, center,
+                                                                         self.view_preference)  # fmt: skip
         return Gaussians(means, g.quats, g.scales, g.opacities, g.sh, validate=False).mark_checked()
 
     @cached_property
@@ -166,3 +171,27 @@ def preferred_means(means: torch.Tensor, rays: torch.Tensor, center: torch.Tenso
     inverse = ray.square().sum(-1, keepdim=True).clamp_min(1e-30).rsqrt()  # a mean at the centre: no NaN
     cos = (ray * rays).sum(-1, keepdim=True) * inverse
     return torch.addcmul(means, ray, ((1 - cos) / FULL_PREFERENCE).clamp(0, 1) * strength)
+
+
+@_jit()
+def _prefer(means, rays, cx, cy, cz, strength, full, out):
+    """:func:`preferred_means` of (N, 3) float32 ``means`` and ``rays`` for one camera centre, in
+    one pass (float64 arithmetic), into ``out`` (N, 3)."""
+    for i in range(means.shape[0]):
+        rx, ry, rz = means[i, 0] - cx, means[i, 1] - cy, means[i, 2] - cz
+        inverse = 1.0 / math.sqrt(max(rx * rx + ry * ry + rz * rz, 1e-30))
+        cos = (rx * rays[i, 0] + ry * rays[i, 1] + rz * rays[i, 2]) * inverse
+        k = min(max((1.0 - cos) / full, 0.0), 1.0) * strength
+        out[i, 0] = means[i, 0] + rx * k
+        out[i, 1] = means[i, 1] + ry * k
+        out[i, 2] = means[i, 2] + rz * k
+
+
+def _preferred_means_cpu(means: torch.Tensor, rays: torch.Tensor, center: torch.Tensor, strength: float) -> torch.Tensor:
+    """:func:`preferred_means` for one camera, compiled, for (N, 3) float32 CPU tensors (a
+    dataloader worker's Gaussians): about 10x faster than the tensor operations."""
+    m, r = means.contiguous().numpy(), rays.contiguous().numpy()
+    out = np.empty_like(m)
+    cx, cy, cz = (float(c) for c in center.reshape(3))
+    _prefer(m, r, cx, cy, cz, float(strength), FULL_PREFERENCE, out)
+    return torch.from_numpy(out)

@@ -358,3 +358,25 @@ def test_preferred_means_stays_finite_for_degenerate_rays():
     out = preferred_means(means, source_rays(means, origins), torch.zeros(3), 0.02)  # and at the viewing camera's centre
     assert torch.isfinite(out).all() and torch.equal(out[0], means[0])
     assert out[3, 2] == pytest.approx(2.0 * 1.02)  # 1 - cos(26.6 deg) > 0.04: the full 2 %
+
+
+def test_compiled_preference_matches_the_tensor_rule():
+    """The workers' compiled push (float32 CPU Gaussians) against :func:`preferred_means`:
+    random means and cameras, a mean at the viewing camera's centre, a zero source ray."""
+    from gensplat_transforms.views import _preferred_means_cpu
+
+    g = torch.Generator().manual_seed(5)
+    means = torch.randn(5000, 3, generator=g) * 2
+    origins = torch.randn(5000, 3, generator=g)
+    means[0] = torch.tensor([0.5, -0.5, 1.0])  # at the viewing camera's centre
+    origins[1] = means[1]  # a mean at its own camera: zero ray
+    rays, center = source_rays(means, origins), torch.tensor([0.5, -0.5, 1.0])
+    got, expected = _preferred_means_cpu(means, rays, center, 0.03), preferred_means(means, rays, center, 0.03)
+    assert torch.isfinite(got).all() and torch.equal(got[0], means[0])
+    torch.testing.assert_close(got, expected, rtol=1e-6, atol=1e-6)
+    views = two_views(size=24)
+    rec = RGBDReconstructor()(views)
+    camera = rec.cameras[1:]
+    torch.testing.assert_close(rec.seen_from(camera).means,  # the worker's path: compiled
+                               preferred_means(rec.gaussians.means, rec._source_rays, camera.centers[0].float(),
+                                               rec.view_preference), rtol=1e-6, atol=1e-6)  # fmt: skip
