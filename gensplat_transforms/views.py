@@ -175,13 +175,15 @@ def preferred_means(means: torch.Tensor, rays: torch.Tensor, center: torch.Tenso
 
 @_jit()
 def _prefer(means, rays, cx, cy, cz, strength, full, out):
-    """:func:`preferred_means` of (N, 3) float32 ``means`` and ``rays`` for one camera centre, in
-    one pass (float64 arithmetic), into ``out`` (N, 3)."""
+    """:func:`preferred_means` of (N, 3) float32 ``means`` and ``rays`` for one camera centre
+    (float32 ``cx``, ``cy``, ``cz``), in one pass of float32 arithmetic as the tensor rule's,
+    into ``out`` (N, 3)."""
+    one, zero, tiny = np.float32(1.0), np.float32(0.0), np.float32(1e-30)
     for i in range(means.shape[0]):
         rx, ry, rz = means[i, 0] - cx, means[i, 1] - cy, means[i, 2] - cz
-        inverse = 1.0 / math.sqrt(max(rx * rx + ry * ry + rz * rz, 1e-30))
+        inverse = one / math.sqrt(max(rx * rx + ry * ry + rz * rz, tiny))
         cos = (rx * rays[i, 0] + ry * rays[i, 1] + rz * rays[i, 2]) * inverse
-        k = min(max((1.0 - cos) / full, 0.0), 1.0) * strength
+        k = min(max((one - cos) / full, zero), one) * strength
         out[i, 0] = means[i, 0] + rx * k
         out[i, 1] = means[i, 1] + ry * k
         out[i, 2] = means[i, 2] + rz * k
@@ -189,9 +191,9 @@ def _prefer(means, rays, cx, cy, cz, strength, full, out):
 
 def _preferred_means_cpu(means: torch.Tensor, rays: torch.Tensor, center: torch.Tensor, strength: float) -> torch.Tensor:
     """:func:`preferred_means` for one camera, compiled, for (N, 3) float32 CPU tensors (a
-    dataloader worker's Gaussians): about 10x faster than the tensor operations."""
+    dataloader worker's Gaussians): about 4x faster than the tensor operations."""
     m, r = means.contiguous().numpy(), rays.contiguous().numpy()
     out = np.empty_like(m)
-    cx, cy, cz = (float(c) for c in center.reshape(3))
-    _prefer(m, r, cx, cy, cz, float(strength), FULL_PREFERENCE, out)
+    cx, cy, cz = (np.float32(c) for c in center.reshape(3).tolist())
+    _prefer(m, r, cx, cy, cz, np.float32(strength), np.float32(FULL_PREFERENCE), out)
     return torch.from_numpy(out)
