@@ -264,40 +264,41 @@ def surface_discs(
 @_jit()
 def _roughness(z, fu, fv, edge, window, out):
     """``rgbd.depth_roughness`` of one view's (H, W) float32 depth ``z`` into ``out`` (H, W),
-    in float64, one row at a time: each row's |d| (both directions), d_u, d_v and count summed
+    in float32, one row at a time: each row's |d| (both directions), d_u, d_v and count summed
     along the row over the window into a ring of ``window`` rows, whose running column sums
     give the window's sums."""
     h, w = z.shape
-    inv = np.zeros((h, w))
+    zero, one, half = _F(0), _F(1), _F(0.5)
+    inv = np.zeros((h, w), np.float32)
     for y in range(h):
         for x in range(w):
             if z[y, x] > 0:
-                inv[y, x] = 1.0 / np.float64(z[y, x])
+                inv[y, x] = one / z[y, x]
     r = window // 2
-    ring = np.zeros((window, 4, w))  # per row: sums over x - r .. x + r of |d|, d_u, d_v, count
-    per = np.zeros((4, w))
-    cols = np.zeros((4, w))
+    ring = np.zeros((window, 4, w), np.float32)  # per row: sums over x - r .. x + r of |d|, d_u, d_v, count
+    per = np.zeros((4, w), np.float32)
+    cols = np.zeros((4, w), np.float32)
     for y in range(h + r):
         if y < h:
-            per[:] = 0.0  # branch-free along the row (SIMD): every condition a select
+            per[:] = zero  # branch-free along the row (SIMD): every condition a select
             for x in range(1, w - 1):
                 c = inv[y, x]
-                d = (inv[y, x - 1] + inv[y, x + 1] - 2.0 * c) * (z[y, x] * 0.5 * fu)
-                ok = (c > 0) & (inv[y, x - 1] > 0) & (inv[y, x + 1] > 0) & (abs(d) < edge)
-                per[0, x] = abs(d) if ok else 0.0
-                per[1, x] = d if ok else 0.0
-                per[3, x] = 1.0 if ok else 0.0
+                d = (inv[y, x - 1] + inv[y, x + 1] - (c + c)) * (z[y, x] * half * fu)
+                ok = (c > zero) & (inv[y, x - 1] > zero) & (inv[y, x + 1] > zero) & (abs(d) < edge)
+                per[0, x] = abs(d) if ok else zero
+                per[1, x] = d if ok else zero
+                per[3, x] = one if ok else zero
             if 0 < y < h - 1:
                 for x in range(w):
                     c = inv[y, x]
-                    d = (inv[y - 1, x] + inv[y + 1, x] - 2.0 * c) * (z[y, x] * 0.5 * fv)
-                    ok = (c > 0) & (inv[y - 1, x] > 0) & (inv[y + 1, x] > 0) & (abs(d) < edge)
-                    per[0, x] += abs(d) if ok else 0.0
-                    per[2, x] = d if ok else 0.0
-                    per[3, x] += 1.0 if ok else 0.0
+                    d = (inv[y - 1, x] + inv[y + 1, x] - (c + c)) * (z[y, x] * half * fv)
+                    ok = (c > zero) & (inv[y - 1, x] > zero) & (inv[y + 1, x] > zero) & (abs(d) < edge)
+                    per[0, x] += abs(d) if ok else zero
+                    per[2, x] = d if ok else zero
+                    per[3, x] += one if ok else zero
             row = ring[y % window]
             for k in range(4):
-                acc = 0.0
+                acc = zero
                 for x in range(min(r, w)):
                     acc += per[k, x]
                 for x in range(w):
@@ -310,8 +311,8 @@ def _roughness(z, fu, fv, edge, window, out):
         yo = y - r  # the output row whose window is now complete
         if yo >= 0:
             for x in range(w):
-                noise = max(cols[0, x] - abs(cols[1, x]) - abs(cols[2, x]), 0.0)
-                out[yo, x] = noise / cols[3, x] if cols[3, x] > 0 else 0.0
+                noise = max(cols[0, x] - abs(cols[1, x]) - abs(cols[2, x]), zero)
+                out[yo, x] = noise / cols[3, x] if cols[3, x] > half else zero
             if yo - r >= 0:
                 cols -= ring[(yo - r) % window]
 
@@ -324,7 +325,7 @@ def depth_roughness(z: torch.Tensor, K: torch.Tensor, edge: float, window: int) 
     Kd = K.detach().cpu().double().numpy()
     out = np.empty(zn.shape, np.float32)
     for v in range(len(zn)):
-        _roughness(zn[v], Kd[v, 0, 0], Kd[v, 1, 1], edge, window, out[v])
+        _roughness(zn[v], _F(Kd[v, 0, 0]), _F(Kd[v, 1, 1]), _F(edge), window, out[v])
     return torch.from_numpy(out)
 
 
