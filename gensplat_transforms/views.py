@@ -166,7 +166,8 @@ def preferred_means(means: torch.Tensor, rays: torch.Tensor, center: torch.Tenso
     the camera whose view is closest to this one is drawn in front (front-to-back compositing
     sorts by depth), while the other's Gaussians still show where it alone saw the surface. At
     a source camera's own pose, its Gaussians stay put. About 1.7 ms per 100k Gaussians on one
-    CPU thread."""
+    CPU thread; :meth:`Reconstruction.seen_from` runs a compiled twin on float32 CPU Gaussians
+    (0.45 ms)."""
     ray = means - center[..., None, :]
     inverse = ray.square().sum(-1, keepdim=True).clamp_min(1e-30).rsqrt()  # a mean at the centre: no NaN
     cos = (ray * rays).sum(-1, keepdim=True) * inverse
