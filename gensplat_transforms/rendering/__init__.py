@@ -81,9 +81,12 @@ def _saturation(saturation: float | torch.Tensor, gaussians: Gaussians) -> float
         if saturation.shape != (len(gaussians),):
             raise ValueError(f"render: saturation per Gaussian must have shape ({len(gaussians)},), "
                              f"got {tuple(saturation.shape)}")  # fmt: skip
-        if saturation.numel() and not bool(torch.isfinite(saturation).all() and saturation.min() >= 1):
+        if not saturation.numel():
+            return None
+        low, high = (float(v) for v in torch.aminmax(saturation.float()))  # one pass; NaN propagates
+        if not (math.isfinite(high) and low >= 1):
             raise ValueError("render: saturation must be finite and >= 1 for every Gaussian")
-        return saturation.to(gaussians.opacities) if bool((saturation != 1).any()) else None
+        return saturation.to(gaussians.opacities) if high > 1 else None
     saturation = float(saturation)
     if not (math.isfinite(saturation) and saturation >= 1):
         raise ValueError(f"render: saturation must be a finite number >= 1, got {saturation}")
