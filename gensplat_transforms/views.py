@@ -120,10 +120,7 @@ class Reconstruction:
         if not self.view_preference or self.pixel_ids is None:
             return self.gaussians
         g = self.gaussians
-        center = camera.centers[0].to(g.means)
-        compiled = g.means.device.type == "cpu" and g.means.dtype == torch.float32 and not g.means.requires_grad
-        means = (_preferred_means_cpu if compiled else preferred_means)(g.means, self._source_rays, center,
-                                                                         self.view_preference)  # fmt: skip
+        means = preferred_means(g.means, self._source_rays, camera.centers[0].to(g.means), self.view_preference)
         return Gaussians(means, g.quats, g.scales, g.opacities, g.sh, validate=False).mark_checked()
 
     @cached_property
@@ -165,9 +162,12 @@ def preferred_means(means: torch.Tensor, rays: torch.Tensor, center: torch.Tenso
     is below ``FULL_PREFERENCE``. The image positions stay; where two cameras saw one surface,
     the camera whose view is closest to this one is drawn in front (front-to-back compositing
     sorts by depth), while the other's Gaussians still show where it alone saw the surface. At
-    a source camera's own pose, its Gaussians stay put. About 1.7 ms per 100k Gaussians on one
-    CPU thread; :meth:`Reconstruction.seen_from` runs a compiled twin on float32 CPU Gaussians
-    (0.45 ms)."""
+    a source camera's own pose, its Gaussians stay put. One camera's (N, 3) float32 CPU means
+    (a dataloader worker's) take a compiled pass, 0.45 ms per 100k Gaussians on one thread;
+    anything else the tensor rule below (1.7 ms there)."""
+    if (means.ndim == 2 and center.ndim == 1 and means.device.type == "cpu" and means.dtype == torch.float32
+            and not (means.requires_grad or rays.requires_grad)):  # fmt: skip
+        return _preferred_means_cpu(means, rays.float(), center, strength)
     ray = means - center[..., None, :]
     inverse = ray.square().sum(-1, keepdim=True).clamp_min(1e-30).rsqrt()  # a mean at the centre: no NaN
     cos = (ray * rays).sum(-1, keepdim=True) * inverse

@@ -324,7 +324,8 @@ def test_render_settings_leave_the_identity_and_travel_with_the_reconstruction()
     per_disc = default.render_options["saturation"]  # the curved objects' discs are softened
     assert per_disc.shape == (len(default.gaussians),) and per_disc.min() >= 1 and per_disc.max() == 2.0
     for name, value in (("dilation", 0.0), ("dilation", float("nan")), ("saturation", 0.5),
-                        ("saturation", float("inf")), ("view_preference", -0.1), ("view_preference", 2.0)):  # fmt: skip
+                        ("saturation", float("inf")), ("view_preference", -0.1), ("view_preference", 2.0),
+                        ("soften_noise", "false"), ("soften_noise", 1)):  # fmt: skip
         with pytest.raises(ValueError, match=f"RGBDConfig.{name}"):
             RGBDReconstructor(**{name: value})
 
@@ -361,8 +362,9 @@ def test_preferred_means_stays_finite_for_degenerate_rays():
 
 
 def test_compiled_preference_matches_the_tensor_rule():
-    """The workers' compiled push (float32 CPU Gaussians) against :func:`preferred_means`:
-    random means and cameras, a mean at the viewing camera's centre, a zero source ray."""
+    """The workers' compiled push (float32 CPU Gaussians) against the tensor rule (which
+    ``preferred_means`` runs in float64): random means and cameras, a mean at the viewing
+    camera's centre, a zero source ray."""
     from gensplat_transforms.views import _preferred_means_cpu
 
     g = torch.Generator().manual_seed(5)
@@ -371,12 +373,15 @@ def test_compiled_preference_matches_the_tensor_rule():
     means[0] = torch.tensor([0.5, -0.5, 1.0])  # at the viewing camera's centre
     origins[1] = means[1]  # a mean at its own camera: zero ray
     rays, center = source_rays(means, origins), torch.tensor([0.5, -0.5, 1.0])
-    got, expected = _preferred_means_cpu(means, rays, center, 0.03), preferred_means(means, rays, center, 0.03)
+    expected = preferred_means(means.double(), rays.double(), center.double(), 0.03).float()
+    got = _preferred_means_cpu(means, rays, center, 0.03)
+    assert torch.equal(preferred_means(means, rays, center, 0.03), got)  # float32 CPU: the compiled pass
     assert torch.isfinite(got).all() and torch.equal(got[0], means[0])
     torch.testing.assert_close(got, expected, rtol=1e-6, atol=1e-6)
     views = two_views(size=24)
     rec = RGBDReconstructor()(views)
     camera = rec.cameras[1:]
     torch.testing.assert_close(rec.seen_from(camera).means,  # the worker's path: compiled
-                               preferred_means(rec.gaussians.means, rec._source_rays, camera.centers[0].float(),
-                                               rec.view_preference), rtol=1e-6, atol=1e-6)  # fmt: skip
+                               preferred_means(rec.gaussians.means.double(), rec._source_rays.double(),
+                                               camera.centers[0].double(), rec.view_preference).float(),
+                               rtol=1e-6, atol=1e-6)  # fmt: skip

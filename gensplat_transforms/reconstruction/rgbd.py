@@ -109,6 +109,7 @@ class RGBDConfig:
             "dilation": math.isfinite(self.dilation) and self.dilation > 0,
             "saturation": math.isfinite(self.saturation) and self.saturation >= 1,
             "view_preference": 0 <= self.view_preference <= 1,
+            "soften_noise": isinstance(self.soften_noise, bool),  # not a truthy "false" from a settings file
         }  # fmt: skip
         for name, ok in checks.items():
             if not ok:
