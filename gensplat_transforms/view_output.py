@@ -55,13 +55,14 @@ def render_views(stacks: Sequence[Sequence[Reconstruction]], moves: Sequence[Per
 def render_view(rec: Reconstruction, camera: Cameras, config: GenSplatConfig, depth: bool = False) -> RenderOutput:
     """The augmented view of ``camera`` (B cameras) as the transform makes it from ``rec``
     (its Gaussians as each camera composites them, :meth:`.views.Reconstruction.seen_from`,
-    drawn with its render options), rendered with ``config.backend``: rgb (B, 3, H, W),
+    drawn with its render options), rendered with ``config.backend`` (the Gaussians' check is
+    not repeated while torch saw no write to them: ``render``'s ``recheck``): rgb (B, 3, H, W),
     hole-filled with ``config.fill_holes``, the render's alpha (B, 1, H, W) (its coverage)
     and, with ``depth``, its depth (B, 1, H, W) in metres (:func:`seen_depth`; else None)."""
     def one(cameras: Cameras) -> RenderOutput:
         return render(rec.seen_from(cameras) if len(cameras) == 1 else rec.gaussians, cameras,
                       background=render_background(config), backend=config.backend, return_depth=depth,
-                      **{**rec.render_options, **config.render_options})  # fmt: skip
+                      recheck=False, **{**rec.render_options, **config.render_options})  # fmt: skip
 
     if rec.view_preference and len(camera) > 1:  # each camera composites the views its own way
         views = [one(camera[i]) for i in range(len(camera))]
@@ -80,7 +81,7 @@ def render_depth(rec: Reconstruction, camera: Cameras, config: GenSplatConfig) -
     ``config.backend``: ``rec``'s Gaussians where they are (no view preference, which would
     move depth) with its render options."""
     out = render(rec.gaussians, camera, background=(0.0, 0.0, 0.0), backend=config.backend, return_depth=True,
-                 **{**rec.render_options, **config.render_options})  # fmt: skip
+                 recheck=False, **{**rec.render_options, **config.render_options})  # fmt: skip
     return seen_depth(out.depth, out.alpha)
 
 

@@ -127,9 +127,8 @@ class Reconstruction:
     def _source_rays(self) -> torch.Tensor:
         """(N, 3) unit directions from the camera that saw each Gaussian to it (computed once,
         whichever cameras render it)."""
-        view = self.pixel_ids // (self.cameras.height * self.cameras.width)
-        origins = self.cameras.centers.to(self.gaussians.means)[view.to(self.gaussians.means.device)]
-        return source_rays(self.gaussians.means, origins)
+        means = self.gaussians.means
+        return pixel_rays(means, self.pixel_ids, self.cameras.centers.to(means), self.cameras.height * self.cameras.width)
 
     def __post_init__(self) -> None:
         ids = self.pixel_ids
@@ -153,6 +152,30 @@ def source_rays(means: torch.Tensor, origins: torch.Tensor) -> torch.Tensor:
     """(..., N, 3) unit directions from ``origins`` (..., N, 3), the centres of the cameras
     that saw each Gaussian, to its mean (zero where a mean is at its origin)."""
     return F.normalize(means - origins, dim=-1)
+
+
+def pixel_rays(means: torch.Tensor, pixel_ids: torch.Tensor, centers: torch.Tensor, pixels: int) -> torch.Tensor:
+    """:func:`source_rays` (N, 3) of pixel-aligned Gaussians (N, 3) from the centres (V, 3)
+    of the cameras whose pixels (``pixel_ids // pixels``, ``pixels`` per view) they came
+    from. Float32 CPU means (a dataloader worker's) take a compiled pass, 0.4 ms per 100k
+    Gaussians on one thread; anything else tensor operations (1.7 ms there)."""
+    if means.device.type == "cpu" and means.dtype == torch.float32 and not means.requires_grad:
+        out = np.empty(tuple(means.shape), np.float32)
+        _rays(means.detach().contiguous().numpy(), pixel_ids.contiguous().numpy(), centers.float().contiguous().numpy(),
+              pixels, out)  # fmt: skip
+        return torch.from_numpy(out)
+    return source_rays(means, centers[(pixel_ids // pixels).to(centers.device)])
+
+
+@_jit()
+def _rays(means, pixel_ids, centers, pixels, out):
+    """:func:`pixel_rays` of float32 (N, 3) ``means`` into ``out``, in float32 as ``F.normalize``."""
+    tiny = np.float32(1e-12)
+    for i in range(means.shape[0]):
+        v = pixel_ids[i] // pixels
+        x, y, z = means[i, 0] - centers[v, 0], means[i, 1] - centers[v, 1], means[i, 2] - centers[v, 2]
+        norm = max(np.float32(math.sqrt(x * x + y * y + z * z)), tiny)
+        out[i, 0], out[i, 1], out[i, 2] = x / norm, y / norm, z / norm
 
 
 def preferred_means(means: torch.Tensor, rays: torch.Tensor, center: torch.Tensor, strength: float) -> torch.Tensor:

@@ -211,6 +211,26 @@ def test_writes_that_bypass_torchs_version_counter_are_caught_by_the_next_render
         render(g, camera(), backend=backend)
 
 
+def test_recheck_false_trusts_a_passed_check_but_not_a_missing_or_outdated_one():
+    """``recheck=False`` (the dataset transform's own Gaussians) skips the scan of tensors a
+    check passed while torch saw no write; unchecked or changed tensors are still scanned."""
+    g = random_scene(n=50, seed=10)
+    g.sh[7, 0, 1] = float("nan")  # never checked: scanned
+    with pytest.raises(ValueError, match=r"Gaussians.sh: 1 Gaussian\(s\) have NaN or Inf"):
+        render(g, camera(), backend="fast", recheck=False)
+    g = random_scene(n=50, seed=10)
+    render(g, camera(), backend="fast")
+    g.opacities[0] = 2.0  # a write torch saw: scanned again
+    with pytest.raises(ValueError, match="opacities must lie in"):
+        render(g, camera(), backend="fast", recheck=False)
+    g = random_scene(n=50, seed=10)
+    before = render(g, camera(), backend="fast")
+    g.sh.data[7, 0, 1] = 0.5  # unseen by torch: trusted as documented, and drawn
+    after = render(g, camera(), backend="fast", recheck=False)
+    assert not torch.equal(before.rgb, after.rgb)
+    torch.testing.assert_close(after.rgb, render(g, camera(), backend="fast").rgb, rtol=0, atol=0)
+
+
 @pytest.mark.parametrize("name", sorted(HARD_CASES))
 def test_hard_cases_agree_with_reference(name):
     both(HARD_CASES[name], camera(torch.float32), background=(0.5, 0.25, 1.0))

@@ -12,7 +12,7 @@ from gensplat_transforms.reconstruction import RGBDReconstructor, Views
 from gensplat_transforms.reconstruction.rgbd import RGBDConfig
 from gensplat_transforms.rotations import quat_to_rotmat
 from gensplat_transforms.scenes import LABEL_TABLE, TabletopScene, default_cameras
-from gensplat_transforms.views import preferred_means, source_rays
+from gensplat_transforms.views import pixel_rays, preferred_means, source_rays
 
 SIZE = 96
 
@@ -359,6 +359,20 @@ def test_preferred_means_stays_finite_for_degenerate_rays():
     out = preferred_means(means, source_rays(means, origins), torch.zeros(3), 0.02)  # and at the viewing camera's centre
     assert torch.isfinite(out).all() and torch.equal(out[0], means[0])
     assert out[3, 2] == pytest.approx(2.0 * 1.02)  # 1 - cos(26.6 deg) > 0.04: the full 2 %
+
+
+def test_compiled_source_rays_match_the_tensor_rule():
+    """Float32 CPU means (the workers') take a compiled pass: the same rays as tensor
+    operations in float64, to float32 rounding; a mean at its camera's centre gets a zero ray."""
+    g = torch.Generator().manual_seed(3)
+    means, centers = torch.randn(4000, 3, generator=g), torch.randn(3, 3, generator=g)
+    ids = torch.randint(0, 3 * 60, (4000,), generator=g)
+    means[7] = centers[int(ids[7]) // 60]
+    got = pixel_rays(means, ids, centers, 60)
+    want = pixel_rays(means.double(), ids, centers.double(), 60)  # float64: tensor operations
+    assert got.dtype == torch.float32 and torch.equal(got[7], torch.zeros(3))
+    torch.testing.assert_close(got.double(), want, rtol=0, atol=1e-6)
+    torch.testing.assert_close(want, source_rays(means.double(), centers.double()[ids // 60]), rtol=0, atol=0)
 
 
 def test_compiled_preference_matches_the_tensor_rule():

@@ -105,6 +105,7 @@ def render(
     return_alpha: bool = True,
     dilation: float = DILATION,
     saturation: float | torch.Tensor = 1.0,
+    recheck: bool = True,
     **options,
 ) -> RenderOutput:
     """Render Gaussians from each camera with EWA splatting and front-to-back compositing.
@@ -113,7 +114,7 @@ def render(
         gaussians: the scene (any float dtype; half precision is computed in float32);
             checked in full on every call (``Gaussians.check(force=True)``: writes through
             ``.data`` or a NumPy view are caught too; about 0.5 ms per 150k Gaussians at SH
-            degree 0, 3 ms at degree 3), then passed through ``projection.precondition``
+            degree 0, 3 ms at degree 3; see ``recheck``), then passed through ``projection.precondition``
             (float64 values beyond float32's range are clamped, float64 quaternions
             normalised) for every backend.
         cameras: B cameras (OpenCV convention) sharing one image size.
@@ -131,6 +132,9 @@ def render(
             flat-topped splats that cover their core fully and fall off within a fraction of
             their size (pixel-aligned RGB-D discs, see ``reconstruction.rgbd``); >= 1, one
             number or one per Gaussian (N,).
+        recheck: False trusts a check the Gaussians passed while torch saw no write to their
+            tensors (``Gaussians.check()``), for Gaussians the caller has just built (the
+            dataset transform's); writes through ``.data`` or NumPy since then go unseen.
         options: settings of the backend used (reference: ``max_pairs`` per chunk; fast:
             ``threads``).
     Returns:
@@ -149,7 +153,7 @@ def render(
         backend = auto_backend(gaussians, cameras, background)
     if backend not in BACKENDS:
         raise ValueError(f"unknown render backend {backend!r}; available: 'auto', {sorted(BACKENDS)}")
-    gaussians = precondition(gaussians.check(force=True))
+    gaussians = precondition(gaussians.check(force=recheck))
     if not torch.isfinite(torch.as_tensor(near)) or near <= 0:
         raise ValueError(f"render: near must be a positive finite number, got {near}")
     if not (math.isfinite(dilation) and dilation > 0):
