@@ -277,7 +277,32 @@ def _user_error(e: Exception) -> bool:
     return tb.tb_frame.f_globals.get("__name__", "").split(".")[0] in ("gensplat_transforms", "gensplat_lerobot")
 
 
+#: the options each way of ``gensplat calibrate`` reads; one it does not read is refused, not ignored
+_CALIBRATE_READS = {
+    "--from": ("convention",),
+    "--from-features": ("intrinsics", "fov", "focal", "cameras"),
+    "--estimate": ("fov", "focal", "model", "per_episode", "principal_point", "repo_id", "cameras", "timesteps",
+                   "baseline", "table_distance"),
+}  # fmt: skip
+
+
+def _check_calibrate_options(args) -> None:
+    """Raise ``ValueError`` naming the options given to ``calibrate`` that its way of
+    calibrating (``--from``, ``--from-features`` or ``--estimate``) would not read."""
+    way = "--estimate" if args.estimate else "--from-features" if args.from_features else "--from"
+    defaults = vars(build_parser().parse_args(["calibrate", "--root", ".", "--estimate"]))
+    options = {name for names in _CALIBRATE_READS.values() for name in names} - set(_CALIBRATE_READS[way])
+    given = sorted("--" + name.replace("_", "-") for name in options if getattr(args, name) != defaults[name])
+    if given:
+        readers = {flag: [w for w, names in _CALIBRATE_READS.items() if flag[2:].replace("-", "_") in names]
+                   for flag in given}  # fmt: skip
+        raise ValueError(f"calibrate {way} does not read " + "; ".join(f"{flag} (only {' and '.join(readers[flag])})"
+                                                                       for flag in given))  # fmt: skip
+
+
 def _dispatch(args) -> int:
+    if args.command == "calibrate":
+        _check_calibrate_options(args)
     if args.command == "record":
         from .sim.record import record_from_cli
 

@@ -257,6 +257,22 @@ def test_a_stored_calibration_for_episodes_the_dataset_lacks_is_refused(dataset,
         LeRobotSource(root, REPO)
 
 
+@pytest.mark.parametrize("args, message", [
+    (["--from-features", "--fov", "60", "--principal-point", "100,90"],
+     r"calibrate --from-features does not read --principal-point \(only --estimate\)$"),
+    (["--from", "calibration.json", "--fov", "60", "--timesteps", "4"],
+     r"calibrate --from does not read --fov \(only --from-features and --estimate\); --timesteps \(only --estimate\)$"),
+    (["--estimate", "--convention", "gensplat", "--intrinsics", "k.json"],
+     r"calibrate --estimate does not read --convention \(only --from\); --intrinsics \(only --from-features\)$"),
+])  # fmt: skip
+def test_calibrate_refuses_options_its_way_does_not_read(args, message, tmp_path, capsys):
+    """An option the chosen way of calibrating ignores would be silently dropped: refused,
+    naming the way that reads it, before anything is read or written."""
+    assert main(["calibrate", "--root", str(tmp_path / "none"), *args]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("gensplat: error: ") and err.count("\n") == 1 and re.search(message, err.strip())
+
+
 @pytest.mark.parametrize("case, message", [
     ("drift", r"camera_extrinsics.exterior_1_left changes within episode 0 by up to 0.01 .*leave it out with --cameras"),
     ("no_intrinsics", r"give the cameras' intrinsics with one of --intrinsics FILE, --fov or --focal"),
