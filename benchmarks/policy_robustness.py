@@ -10,7 +10,7 @@ resumes where it was; a ``--work`` made with other settings is refused):
    ``--seed``; lossless PNG frames, calibration and depth sidecars);
 2. when a GenSplat arm is trained: write the GenSplat settings beside the dataset and build
    its Gaussian cache (RGB-D reconstruction of the left + right cameras);
-3. train Diffusion Policy once per arm (``--arms``, default all eight) with LeRobot's stock
+3. train Diffusion Policy once per arm (``--arms``, default all ten) with LeRobot's stock
    trainer through ``policies/train.sh``: same data, seed, steps, batch and policy settings;
    the policy sees ``--cameras`` and the robot state. The arms differ only in the training
    augmentation (``augmentation`` and ``train_command`` give what each passes):
@@ -46,7 +46,10 @@ resumes where it was; a ``--work`` made with other settings is refused):
      shift of up to 3 cm per axis, or a turn of up to +-45 deg about the vertical through the
      pivot, one of the three chosen per camera;
    * ``gensplat-fov``: ``gensplat`` with the focal length scaled log-uniformly in 0.8-1.25
-     (the ``fov`` protocol's range) on top of the paper's moves.
+     (the ``fov`` protocol's range) on top of the paper's moves;
+   * ``gensplat-tilt``, ``gensplat-arc``: ``gensplat-wide``'s tilts alone and its arcs alone
+     (``tilt`` and ``arc`` samplers with the same ranges), for what each kind of move gains
+     under its VISTA protocol and costs at the training camera.
 
    The wider arms train on their own dataset roots (``work/dataset_<arm>``, links to
    ``work/dataset`` beside their own ``gensplat`` settings and cache), since LeRobot's
@@ -154,12 +157,15 @@ LEVELS = ("none", "small", "medium", "large")
 #: The evaluation protocols and their levels (``PerturbedCameraEnv``'s ``protocol``).
 PROTOCOLS = {"paper": LEVELS, "vista": SAMPLERS, "fov": ("zoom",)}
 ARMS = ("baseline", "lerobot2d", "perspective", "gensplat", "gensplat+lerobot2d", "gensplat+color", "gensplat-wide",
-        "gensplat-fov")  # fmt: skip
+        "gensplat-fov", "gensplat-tilt", "gensplat-arc")  # fmt: skip
 TWO_D_ARMS = ("lerobot2d", "perspective")
-GENSPLAT_ARMS = ("gensplat", "gensplat+lerobot2d", "gensplat+color", "gensplat-wide", "gensplat-fov")
+GENSPLAT_ARMS = ("gensplat", "gensplat+lerobot2d", "gensplat+color", "gensplat-wide", "gensplat-fov", "gensplat-tilt",
+                 "gensplat-arc")  # fmt: skip
 #: The GenSplat settings the wider arms change (the others draw the paper's moves).
 SAMPLER_ARMS = {"gensplat-wide": {"sampler": "mix", "tilt_deg": 10.0, "arc_deg": 45.0, "shift_m": 0.03},
-                "gensplat-fov": {"focal_scale": FOV_RANGE}}  # fmt: skip
+                "gensplat-fov": {"focal_scale": FOV_RANGE},
+                "gensplat-tilt": {"sampler": "tilt", "tilt_deg": 10.0, "shift_m": 0.03},
+                "gensplat-arc": {"sampler": "arc", "arc_deg": 45.0, "shift_m": 0.03}}  # fmt: skip
 #: RandomPerspective's distortion_scale of the perspective arm (see the module docstring).
 PERSPECTIVE_DISTORTION = 0.25
 ROOT = Path(__file__).resolve().parents[1]
@@ -479,7 +485,8 @@ def build_result(evaluated: dict, episodes: int, quick: bool, settings: dict, ti
 #: Line colours of the arms in the plot.
 COLOURS = {"baseline": (214, 39, 40), "lerobot2d": (31, 119, 180), "perspective": (148, 103, 189),
            "gensplat": (44, 160, 44), "gensplat+lerobot2d": (255, 127, 14), "gensplat+color": (140, 86, 75),
-           "gensplat-wide": (23, 190, 207), "gensplat-fov": (227, 119, 194)}  # fmt: skip
+           "gensplat-wide": (23, 190, 207), "gensplat-fov": (227, 119, 194), "gensplat-tilt": (188, 189, 34),
+           "gensplat-arc": (127, 127, 127)}  # fmt: skip
 
 
 def plot(result: dict, path: Path) -> None:

@@ -47,7 +47,7 @@ def test_each_arm_passes_its_augmentation_to_lerobot_train():
         assert cmd[3] == mode and cmd[: len(base)] == [*base[:3], mode, *base[4:]], arm
         extra = cmd[len(base) :]
         assert extra == pr.arm_arguments(arm, args)[1:]
-        if arm in ("baseline", "gensplat", "gensplat-wide", "gensplat-fov"):
+        if arm == "baseline" or arm == "gensplat" or arm in pr.SAMPLER_ARMS:
             assert extra == []
             continue
         config = image_transforms(extra)
@@ -95,6 +95,11 @@ def test_each_arm_passes_its_augmentation_to_lerobot_train():
     assert augment["gensplat-wide"]["gensplat"] == {**augment["gensplat"]["gensplat"], "sampler": "mix",
                                                     "tilt_deg": 10.0, "arc_deg": 45.0, "shift_m": 0.03}  # fmt: skip
     assert augment["gensplat-fov"]["gensplat"] == {**augment["gensplat"]["gensplat"], "focal_scale": [0.8, 1.25]}
+    for arm, kind in (("gensplat-tilt", "tilt"), ("gensplat-arc", "arc")):  # the wide arm's moves, one kind each
+        config = pr.gensplat_config(args, arm)
+        assert (config.sampler, config.tilt_deg, config.arc_deg, config.shift_m) == (kind, wide.tilt_deg, wide.arc_deg,
+                                                                                      wide.shift_m)  # fmt: skip
+        assert replace(config, sampler="mix") == wide
     work = Path("work")
     assert {pr.dataset_root(work, a) for a in pr.ARMS if a not in pr.SAMPLER_ARMS} == {work / "dataset"}
     assert pr.dataset_root(work, "gensplat-fov") == work / "dataset_gensplat-fov"
@@ -146,7 +151,7 @@ def evaluation(solved: dict[str, int], episodes: int) -> dict:
 
 def test_result_compares_every_arm_under_both_protocols(tmp_path, capsys):
     solved = {"baseline": 2, "lerobot2d": 4, "perspective": 6, "gensplat": 9, "gensplat+lerobot2d": 7, "gensplat+color": 8,
-              "gensplat-wide": 5, "gensplat-fov": 3}  # fmt: skip
+              "gensplat-wide": 5, "gensplat-fov": 3, "gensplat-tilt": 4, "gensplat-arc": 6}  # fmt: skip
     args = pr.parse_args(["--episodes", "10"])
     result = pr.build_result(evaluation(solved, 10), 10, False, pr.result_settings(args), {})
     assert list(result["protocols"]) == ["vista", "fov"] and result["episodes_per_level"] == 10
