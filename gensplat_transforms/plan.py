@@ -61,12 +61,16 @@ class ViewPlan:
         object.__setattr__(self, "rows", tuple(tuple(float(v) for v in p.as_row()) for p in self.moves))
 
     @classmethod
-    def draw(cls, config: GenSplatConfig, sampler, episode: int, frame: int) -> ViewPlan:
+    def draw(cls, config: GenSplatConfig, sampler, episode: int, frame: int, view: int | None = None) -> ViewPlan:
         """The plan of frame ``frame`` of ``episode``: augmented with ``config.probability`` and
         which of ``config.views_per_source`` moves (torch's RNG, which DataLoader seeds per
-        worker), each replaced camera's move from ``sampler`` (``GenSplatConfig.perturbations``)."""
+        worker; ``view`` picks one, 0 .. views_per_source - 1), each replaced camera's move
+        from ``sampler`` (``GenSplatConfig.perturbations``)."""
+        if view is not None and not (isinstance(view, int) and 0 <= view < config.views_per_source):
+            raise ValueError(f"ViewPlan.draw: view must be an int in 0..{config.views_per_source - 1} "
+                             f"(views_per_source), got {view!r}")  # fmt: skip
         applied = bool(torch.rand(()) < config.probability)
-        view = int(torch.randint(config.views_per_source, ()))
+        view = int(torch.randint(config.views_per_source, ())) if view is None else view
         R = len(config.replace)
         return cls(applied, tuple(sampler.sample(episode, frame, view=view * R + ci) if applied else Perturbation()
                                   for ci in range(R)))  # fmt: skip

@@ -80,10 +80,11 @@ class GenSplatTransform:
         self.counters: SampleCounters | None = None
 
     # ------------------------------------------------------------------ per item
-    def plan(self, item: dict) -> ViewPlan:
+    def plan(self, item: dict, view: int | None = None) -> ViewPlan:
         """Draw the item's :class:`.plan.ViewPlan` with the transform's perturbation sampler
-        (:meth:`.plan.ViewPlan.draw`); ``transform(item, plan)`` replays it (previews, tests)."""
-        return ViewPlan.draw(self.cfg, self.sampler, _index(item, "episode_index"), _index(item, "frame_index"))
+        (:meth:`.plan.ViewPlan.draw`; ``view``: which of the trajectory's views, default
+        drawn); ``transform(item, plan)`` replays it (previews, tests)."""
+        return ViewPlan.draw(self.cfg, self.sampler, _index(item, "episode_index"), _index(item, "frame_index"), view)
 
     def __call__(self, item: dict, plan: ViewPlan | None = None) -> dict:
         """The item with its replaced cameras' images (and depth maps) rendered as ``plan``

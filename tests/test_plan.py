@@ -41,6 +41,24 @@ def test_a_drawn_plan_replays_to_the_same_item_without_touching_the_rng(setup):
         assert bool(replayed["gensplat.applied"].any()) == plan.applied
 
 
+def test_a_chosen_view_is_one_of_the_drawn_ones(setup):
+    """``plan(item, view)`` picks view ``view`` of the trajectory's ``views_per_source``: each
+    one a draw can give, the views distinct, anything else refused."""
+    cache, ds = setup
+    tf = GenSplatTransform(GenSplatConfig(probability=1.0, level="large", views_per_source=3), cache)
+    item = ds[1]
+    chosen = [tf.plan(item, view) for view in range(3)]
+    assert len({plan.rows for plan in chosen}) == 3
+    drawn = set()
+    for seed in range(40):
+        torch.manual_seed(seed)
+        drawn.add(tf.plan(item).rows)
+    assert drawn == {plan.rows for plan in chosen}
+    for bad in (3, -1, 1.0):
+        with pytest.raises(ValueError, match=r"view must be an int in 0..2"):
+            tf.plan(item, bad)
+
+
 def test_a_hand_made_plan_renders_its_moves_and_no_plan_keeps_the_images(setup):
     cache, ds = setup
     tf = GenSplatTransform(GenSplatConfig(report=True), cache)

@@ -71,18 +71,20 @@ def test_preview_items_are_what_enable_gensplat_gives_for_the_same_draws(cached,
     torch.manual_seed(7)
     dataset = enable_gensplat(open_dataset(cached, REPO, image_transforms=True))  # the settings on disk
     changed = set()
-    for index, item in zip(preview.indices, preview.items):
+    for draw, (index, item) in enumerate(zip(preview.indices, preview.items)):
         assert item["gensplat.applied"].all()  # forced on
-        ref = dataset[index]
+        ref = dataset.augmented(index, view=draw % 3)
         for name in CAMERAS:
             key = f"observation.images.{name}"
             assert torch.equal(item[key], ref[key])
             if not torch.equal(item[key], plain[index][key]):
                 changed.add(name)
     assert changed == set(CAMERAS)  # rendered and 2D-transformed, the front camera by the 2D transforms
-    # the draws differ: other views of the episode, other 2D transforms
-    left = [item["observation.images.left"] for item in preview.items[:3]]
-    assert not torch.equal(left[0], left[1]) or not torch.equal(left[0], left[2])
+    # a frame's rows show the episode's three views: three distinct moves
+    moves = {tuple(item["gensplat.move"].flatten().tolist()) for item in preview.items[:3]}
+    assert len(moves) == 3 and moves == {tuple(item["gensplat.move"].flatten().tolist()) for item in preview.items[3:]}
+    with pytest.raises(ValueError, match=r"view must be an int in 0..2"):
+        dataset.augmented(preview.indices[0], view=3)
 
 
 def test_preview_renders_in_the_item_whatever_the_settings_say(cached, tmp_path):
@@ -149,7 +151,7 @@ def test_preview_labels_name_each_move_and_where_it_turns():
     moves = [Perturbation("x", 5.0, 0.02), Perturbation((0.0, 0.6, 0.8), -7.5, shift_m=(0.01, 0, 0), about="camera"),
              Perturbation("z", 30.0, focal_scale=1.2)]  # fmt: skip
     item = {"gensplat.axis": torch.tensor([0, -1, 2]), "gensplat.move": torch.tensor([m.as_row() for m in moves])}
-    label = _label(item, frame=3, draw=0, cameras=("left", "right", "top"))
-    assert label.splitlines()[:3] == ["frame 3, draw 1", "left: x +5.0 deg", "  mu 2.0 cm"]
+    label = _label(item, frame=3, view=0, cameras=("left", "right", "top"))
+    assert label.splitlines()[:3] == ["frame 3, view 1", "left: x +5.0 deg", "  mu 2.0 cm"]
     assert "right: -7.5 deg\n  about +0.0,+0.6,+0.8\n  through the camera\n  mu 0.0 cm\n  shift +1.0,+0.0,+0.0 cm" in label
     assert label.count("through the camera") == 1 and label.endswith("top: z +30.0 deg\n  mu 0.0 cm\n  focal x1.20")

@@ -146,7 +146,13 @@ class GenSplatLeRobotDataset(LeRobotDataset):
     Created by :func:`enable_gensplat`, never directly."""
 
     def __getitem__(self, idx):
-        item = self.gensplat(super().__getitem__(idx))
+        return self.augmented(idx)
+
+    def augmented(self, idx, view: int | None = None) -> dict:
+        """Item ``idx`` through GenSplat (``view``: which of the trajectory's
+        ``views_per_source`` cameras, default drawn, as in training) and the 2D transforms."""
+        item = super().__getitem__(idx)
+        item = self.gensplat(item, None if view is None else self.gensplat.plan(item, view))
         if self.gensplat_image_transforms is not None:
             for cam in self.meta.camera_keys:
                 if cam not in self.meta.depth_keys:

@@ -70,9 +70,10 @@ def write_lerobot_preview(
     :func:`~gensplat_transforms.outputs.check_output`'s rule against the dataset ``root``).
 
     The grid has ``draws`` rows per frame of ``frames`` (default: 4 evenly spaced frames of
-    ``episode``), each a fresh draw of the perturbation (which of the ``views_per_source``
-    views, and the 2D transforms) labelled with each replaced camera's axis, rotation theta
-    and forward move mu; columns: every camera's original image and the image the policy gets.
+    ``episode``): row d shows view d of the trajectory's ``views_per_source`` (cycling when
+    ``draws`` is larger), so the rows show distinct moves, and a fresh draw of the 2D
+    transforms, labelled with each replaced camera's axis, rotation theta and forward move mu;
+    columns: every camera's original image and the image the policy gets.
     The video then has every frame of the episode, one draw each. Draws come from torch's
     generator seeded with ``seed`` (the caller's generator state is restored afterwards), in
     the order of :attr:`Preview.indices`, then the video's frames.
@@ -97,13 +98,13 @@ def write_lerobot_preview(
     mp4.unlink(missing_ok=True)  # not left from an earlier run when PyAV is missing
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
-        items = [dataset[i] for i, _, _ in rows]
+        items = [dataset.augmented(i, view=d % config.views_per_source) for i, _, d in rows]
         video = (torch.cat(_tiles(dataset, i, dataset[i], keys, size), dim=2) for i in every)  # encoded as drawn
         written = save_video(video, mp4, int(dataset.meta.fps))
     scale = -(-MIN_TILE_HEIGHT // size[0])
     grid = [[F.interpolate(t[None], scale_factor=scale)[0] for t in _tiles(dataset, i, item, keys, size)]
             for (i, _, _), item in zip(rows, items)]  # fmt: skip
-    labels = [_label(item, f, d, config.replace) for (_, f, d), item in zip(rows, items)]
+    labels = [_label(item, f, d % config.views_per_source, config.replace) for (_, f, d), item in zip(rows, items)]
     gensplat = "GenSplat+2D" if image_transforms else "GenSplat"
     columns = [f"{n}: {kind}" for k, n in zip(keys, names)
                for kind in ("original", gensplat if k in replaced else "2D" if image_transforms else "as is")]  # fmt: skip
@@ -119,11 +120,11 @@ def _tiles(dataset, index: int, item: dict, keys: list[str], size: torch.Size) -
             for t in tiles]  # fmt: skip
 
 
-def _label(item: dict, frame: int, draw: int, cameras: Sequence[str]) -> str:
-    """Row label: frame, draw and each replaced camera's axis, rotation and forward move (and
+def _label(item: dict, frame: int, view: int, cameras: Sequence[str]) -> str:
+    """Row label: frame, view and each replaced camera's axis, rotation and forward move (and
     its centre of rotation, shift and focal-length change where they are not the pivot, none
     and none)."""
-    lines = [f"frame {frame}, draw {draw + 1}"]
+    lines = [f"frame {frame}, view {view + 1}"]
     for c, name in enumerate(cameras):
         index, move = int(item["gensplat.axis"][c]), item["gensplat.move"][c]
         if index >= 0:
