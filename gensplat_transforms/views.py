@@ -139,8 +139,12 @@ class Reconstruction:
                 f"Reconstruction.pixel_ids: expected int64 of shape ({len(self.gaussians)},), "
                 f"got {ids.dtype} of shape {tuple(ids.shape)}"
             )
-        if len(ids) and int(ids.min()) < 0:
-            raise ValueError(f"Reconstruction.pixel_ids: must be >= 0, got {int(ids.min())}")
+        if len(ids):
+            low, high = (int(v) for v in torch.aminmax(ids))
+            pixels = len(self.cameras) * self.cameras.height * self.cameras.width
+            if low < 0 or high >= pixels:
+                raise ValueError(f"Reconstruction.pixel_ids: must lie in 0..{pixels - 1} (the {len(self.cameras)} "
+                                 f"cameras' pixels), got {low}..{high}")  # fmt: skip
 
 
 #: 1 - cos of the angle between a Gaussian's source ray and the viewing ray at which
@@ -159,6 +163,9 @@ def pixel_rays(means: torch.Tensor, pixel_ids: torch.Tensor, centers: torch.Tens
     of the cameras whose pixels (``pixel_ids // pixels``, ``pixels`` per view) they came
     from. Float32 CPU means (a dataloader worker's) take a compiled pass, 0.4 ms per 100k
     Gaussians on one thread; anything else tensor operations (1.7 ms there)."""
+    if means.ndim != 2 or means.shape[1] != 3 or pixel_ids.shape != means.shape[:1] or centers.shape[-1:] != (3,):
+        raise ValueError(f"pixel_rays: need means (N, 3), pixel_ids (N,) and centres (V, 3), got "
+                         f"{tuple(means.shape)}, {tuple(pixel_ids.shape)}, {tuple(centers.shape)}")  # fmt: skip
     if means.device.type == "cpu" and means.dtype == torch.float32 and not means.requires_grad:
         out = np.empty(tuple(means.shape), np.float32)
         _rays(means.detach().contiguous().numpy(), pixel_ids.contiguous().numpy(), centers.float().contiguous().numpy(),
@@ -173,6 +180,8 @@ def _rays(means, pixel_ids, centers, pixels, out):
     tiny = np.float32(1e-12)
     for i in range(means.shape[0]):
         v = pixel_ids[i] // pixels
+        if v < 0 or v >= centers.shape[0]:
+            raise IndexError("pixel_rays: a pixel id beyond the cameras' pixels")
         x, y, z = means[i, 0] - centers[v, 0], means[i, 1] - centers[v, 1], means[i, 2] - centers[v, 2]
         norm = max(np.float32(math.sqrt(x * x + y * y + z * z)), tiny)
         out[i, 0], out[i, 1], out[i, 2] = x / norm, y / norm, z / norm
@@ -188,6 +197,8 @@ def preferred_means(means: torch.Tensor, rays: torch.Tensor, center: torch.Tenso
     a source camera's own pose, its Gaussians stay put. One camera's (N, 3) float32 CPU means
     (a dataloader worker's) take a compiled pass, 0.45 ms per 100k Gaussians on one thread;
     anything else the tensor rule below (1.7 ms there)."""
+    if means.shape != rays.shape:
+        raise ValueError(f"preferred_means: means {tuple(means.shape)} and rays {tuple(rays.shape)} differ in shape")
     if (means.ndim == 2 and center.ndim == 1 and means.device.type == "cpu" and means.dtype == torch.float32
             and not (means.requires_grad or rays.requires_grad)):  # fmt: skip
         return _preferred_means_cpu(means, rays.float(), center, strength)

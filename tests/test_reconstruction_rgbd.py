@@ -12,7 +12,7 @@ from gensplat_transforms.reconstruction import RGBDReconstructor, Views
 from gensplat_transforms.reconstruction.rgbd import RGBDConfig
 from gensplat_transforms.rotations import quat_to_rotmat
 from gensplat_transforms.scenes import LABEL_TABLE, TabletopScene, default_cameras
-from gensplat_transforms.views import pixel_rays, preferred_means, source_rays
+from gensplat_transforms.views import Reconstruction, pixel_rays, preferred_means, source_rays
 
 SIZE = 96
 
@@ -373,6 +373,25 @@ def test_compiled_source_rays_match_the_tensor_rule():
     assert got.dtype == torch.float32 and torch.equal(got[7], torch.zeros(3))
     torch.testing.assert_close(got.double(), want, rtol=0, atol=1e-6)
     torch.testing.assert_close(want, source_rays(means.double(), centers.double()[ids // 60]), rtol=0, atol=0)
+
+
+def test_pixel_ids_beyond_the_cameras_pixels_are_refused():
+    """A Reconstruction's pixel ids name a pixel of its cameras; the compiled rays (no bounds
+    checks of their own in compiled code) refuse any other instead of reading past the centres."""
+    rec = RGBDReconstructor()(two_views(size=12))
+    n = len(rec.gaussians)
+    for bad in (-1, 2 * 12 * 12):
+        ids = rec.pixel_ids.clone()
+        ids[n // 2] = bad
+        with pytest.raises(ValueError, match=r"pixel_ids: must lie in 0..287 \(the 2 cameras' pixels\)"):
+            Reconstruction(rec.gaussians, rec.cameras, ids)
+        with pytest.raises(IndexError, match="a pixel id beyond the cameras' pixels"):  # the compiled pass
+            pixel_rays(rec.gaussians.means, ids, rec.cameras.centers.float(), 12 * 12)
+    means, centers = rec.gaussians.means, rec.cameras.centers.float()
+    with pytest.raises(ValueError, match=r"pixel_rays: need means \(N, 3\), pixel_ids \(N,\)"):
+        pixel_rays(means, rec.pixel_ids[:-1], centers, 12 * 12)
+    with pytest.raises(ValueError, match=r"preferred_means: means .* and rays .* differ in shape"):
+        preferred_means(means, rec._source_rays[:-1], centers[0], 0.02)
 
 
 def test_compiled_preference_matches_the_tensor_rule():
