@@ -1,5 +1,10 @@
 """Hole filling: covered pixels unchanged, holes take the surrounding colour, hard inputs."""
 
+import os
+import subprocess
+import sys
+import textwrap
+
 import pytest
 import torch
 import torch.nn.functional as F
@@ -135,3 +140,20 @@ def test_images_without_pixels_are_returned_empty():
 def test_halving_is_the_ceil_mode_average_pooling(size):
     x = torch.rand(2, 4, *size)
     assert torch.equal(_halve(x), F.avg_pool2d(x, 2, ceil_mode=True))
+
+
+def test_compiled_pass_is_cached_for_new_processes():
+    """A new dataloader worker loads the compiled hole filling from numba's disk cache (a
+    cold compile takes seconds) instead of compiling it."""
+    fill_holes(torch.rand(1, 3, 8, 8), torch.rand(1, 1, 8, 8))  # make sure this process compiled
+    script = textwrap.dedent("""
+        import torch
+        from gensplat_transforms import holes
+        holes.fill_holes(torch.rand(1, 3, 8, 8), torch.rand(1, 1, 8, 8))
+        print(len(holes._pull_push_cpu.stats.cache_misses), len(holes._pull_push_cpu.stats.cache_hits))
+    """)
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_DISABLE_JIT"}
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=120,
+                          check=False)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert tuple(map(int, done.stdout.split())) == (0, 1)
