@@ -224,7 +224,8 @@ def build_parser() -> argparse.ArgumentParser:
     preview.add_argument("--episode", type=int, default=0, help="episode to show (default: 0)")
     preview.add_argument("--frames", type=int, nargs="+", default=None,
                          help="frames of the episode in the grid (default: 4 evenly spaced)")
-    preview.add_argument("--draws", type=int, default=3, help="perturbation draws per frame in the grid, draw d showing view d of the episode's "
+    preview.add_argument("--draws", type=int, default=3,
+                         help="perturbation draws per frame in the grid, draw d showing view d of the episode's "
                               "views_per_source (default: 3)")
     preview.add_argument("--image-transforms", action="store_true",
                          help="also apply LeRobot's 2D image transforms at their default config, after GenSplat "
