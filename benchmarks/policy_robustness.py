@@ -93,7 +93,8 @@ the episodes per level; checked, and the arms whose settings differ are named an
 under the protocols its file evaluated it (it is left out of the others' tables);
 ``settings["reused"]`` names the file of each reused arm. Within one ``--work``, a trained
 checkpoint is not trained again (its augmentation is checked), so adding an arm later trains
-only that arm. ``--table RESULT.json`` prints a result's tables in Markdown (benchmarks/README.md's).
+only that arm. ``--table RESULT.json`` prints a result's tables in Markdown (benchmarks/README.md's), and
+the training range of each arm against its success (``range_markdown``).
 ``--quick`` (a few minutes): 2 demos, 4 steps at batch 4, a smaller U-Net, 2 episodes per
 level of at most 20 steps: it checks the pipeline end to end, its success rates mean nothing.
 
@@ -170,6 +171,8 @@ SAMPLER_ARMS = {"gensplat-wide": {"sampler": "mix", "tilt_deg": 10.0, "arc_deg":
 PERSPECTIVE_DISTORTION = 0.25
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
+#: ``camera_motion.py``'s result: how far each arm's training draws move the camera
+MOTION = RESULTS / "camera_motion.json"
 
 
 def repo_id(task: str) -> str:
@@ -555,6 +558,38 @@ def markdown(result: dict) -> str:
     return "\n".join(lines)
 
 
+def range_markdown(result: dict, motion: dict) -> str:
+    """What a training range costs and gains: a row per arm of ``result`` whose training draws
+    ``motion`` (``camera_motion.py``'s result) measured (``train/<arm>``; the baseline's range
+    is 0), with the median (95th percentile) image shift and view change of its draws, and its
+    success % at the training camera, the paper's large level and each VISTA and ``fov``
+    level its file evaluated (blank where it did not); "" when no arm has draws measured (nor
+    is the baseline)."""
+    columns = [("paper", "none"), ("paper", "large")] + [
+        (protocol, level) for protocol in ("vista", "fov") for level in PROTOCOLS[protocol]
+    ]
+    zero = {f"{k}_{q}": 0.0 for k in ("shift_pct", "view_change_deg") for q in ("median", "p95")}
+    lines = []
+    for arm in protocol_part(result, "paper")["arms"]:
+        draws = zero if arm == "baseline" else motion["rows"].get(f"train/{arm}")
+        if draws is None:
+            continue
+        cells = []
+        for protocol, level in columns:
+            rates = ((protocol_part(result, protocol) or {}).get("arms") or {}).get(arm, {})
+            cells.append(f"{rates[level]:.0f}" if level in rates else "")
+        ranges = ["-" if draws[f"{k}_median"] is None else f"{draws[f'{k}_median']:.1f} ({draws[f'{k}_p95']:.1f})"
+                  for k in ("shift_pct", "view_change_deg")]  # an image warp has no view change
+        lines.append(f"| {arm} | " + " | ".join(ranges + cells) + " |")
+    if not lines:
+        return ""
+    head = ["arm", "training shift % of width", "training view change (deg)"]
+    head += [f"{protocol} {level}" for protocol, level in columns]
+    title = "Training range against success % (range: median (95th percentile) of the arm's training draws):"
+    return "\n".join([title, "", "| " + " | ".join(head) + " |",
+                      "|---" * len(head) + "|", *lines, ""])  # fmt: skip
+
+
 def _points(diff: dict) -> str:
     return f"{diff['points']:+.0f} [{diff['ci95'][0]:+.0f}, {diff['ci95'][1]:+.0f}]"
 
@@ -637,7 +672,10 @@ def result_settings(args) -> dict:
 def main() -> None:
     args = parse_args()
     if args.table:
-        print(markdown(json.loads(args.table.read_text())))
+        result = json.loads(args.table.read_text())
+        print(markdown(result))
+        if MOTION.is_file():
+            print(range_markdown(result, json.loads(MOTION.read_text())))
         return
     arms, work = args.arms, args.work
     root = work / "dataset"

@@ -317,6 +317,28 @@ def test_an_arm_a_protocol_lacks_is_left_out_of_its_tables(tmp_path, monkeypatch
     assert out.with_suffix(".png").is_file()
 
 
+def test_range_table_puts_each_arms_training_draws_beside_its_success(tmp_path):
+    args = pr.parse_args(["--episodes", "4"])
+    result = json.loads(earlier_result(tmp_path / "r.json", args, ("baseline", "perspective", "gensplat"), 4).read_text())
+    del result["protocols"]["fov"]["arms"]["gensplat"]  # evaluated without the fov protocol
+    draws = {"shift_pct_median": 3.77, "shift_pct_p95": 7.75, "view_change_deg_median": 12.54,
+             "view_change_deg_p95": 24.32}  # fmt: skip
+    warp = {**draws, "view_change_deg_median": None, "view_change_deg_p95": None}
+    table = pr.range_markdown(result, {"rows": {"train/gensplat": draws, "train/perspective": warp}})
+    rows = {line.split(" | ")[0].strip("| "): line.strip("|").split("|") for line in table.splitlines()
+            if line.startswith("| ") and not line.startswith("| arm")}  # fmt: skip
+    assert list(rows) == ["baseline", "perspective", "gensplat"]
+    rates = lambda arm, protocol, level: f"{pr.protocol_part(result, protocol)['arms'][arm][level]:.0f}"
+    assert [c.strip() for c in rows["gensplat"][1:]] == [
+        "3.8 (7.8)", "12.5 (24.3)", rates("gensplat", "paper", "none"), rates("gensplat", "paper", "large"),
+        rates("gensplat", "vista", "small_perturb"), rates("gensplat", "vista", "arc_90deg"), ""]  # fmt: skip
+    assert [c.strip() for c in rows["baseline"][1:3]] == ["0.0 (0.0)", "0.0 (0.0)"]
+    assert rows["baseline"][-1].strip() == rates("baseline", "fov", "zoom")
+    assert rows["perspective"][2].strip() == "-"  # an image warp moves no camera
+    only_baseline = [r for r in pr.range_markdown(result, {"rows": {}}).splitlines() if r.startswith("| ")]
+    assert [r.split(" | ")[0] for r in only_baseline] == ["| arm", "| baseline"]  # draws not measured: left out
+
+
 def test_link_dataset_shares_everything_but_the_gensplat_settings(tmp_path):
     root, linked = tmp_path / "dataset", tmp_path / "dataset_gensplat-wide"
     (root / "meta").mkdir(parents=True)
