@@ -171,7 +171,10 @@ def pixel_rays(means: torch.Tensor, pixel_ids: torch.Tensor, centers: torch.Tens
         _rays(means.detach().contiguous().numpy(), pixel_ids.contiguous().numpy(), centers.float().contiguous().numpy(),
               pixels, out)  # fmt: skip
         return torch.from_numpy(out)
-    return source_rays(means, centers[(pixel_ids // pixels).to(centers.device)])
+    views = (pixel_ids // pixels).to(centers.device)
+    if len(views) and not 0 <= int(views.min()) <= int(views.max()) < len(centers):  # no index from the end
+        raise IndexError("pixel_rays: a pixel id beyond the cameras' pixels")
+    return source_rays(means, centers[views])
 
 
 @_jit()

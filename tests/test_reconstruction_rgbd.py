@@ -377,7 +377,8 @@ def test_compiled_source_rays_match_the_tensor_rule():
 
 def test_pixel_ids_beyond_the_cameras_pixels_are_refused():
     """A Reconstruction's pixel ids name a pixel of its cameras; the compiled rays (no bounds
-    checks of their own in compiled code) refuse any other instead of reading past the centres."""
+    checks of their own in compiled code) refuse any other instead of reading past the centres,
+    and the tensor rule (float64, GPU) any other instead of indexing from the end."""
     rec = RGBDReconstructor()(two_views(size=12))
     n = len(rec.gaussians)
     for bad in (-1, 2 * 12 * 12):
@@ -385,8 +386,9 @@ def test_pixel_ids_beyond_the_cameras_pixels_are_refused():
         ids[n // 2] = bad
         with pytest.raises(ValueError, match=r"pixel_ids: must lie in 0..287 \(the 2 cameras' pixels\)"):
             Reconstruction(rec.gaussians, rec.cameras, ids)
-        with pytest.raises(IndexError, match="a pixel id beyond the cameras' pixels"):  # the compiled pass
-            pixel_rays(rec.gaussians.means, ids, rec.cameras.centers.float(), 12 * 12)
+        for dtype in (torch.float32, torch.float64):  # the compiled pass, the tensor rule
+            with pytest.raises(IndexError, match="a pixel id beyond the cameras' pixels"):
+                pixel_rays(rec.gaussians.means.to(dtype), ids, rec.cameras.centers.to(dtype), 12 * 12)
     means, centers = rec.gaussians.means, rec.cameras.centers.float()
     with pytest.raises(ValueError, match=r"pixel_rays: need means \(N, 3\), pixel_ids \(N,\)"):
         pixel_rays(means, rec.pixel_ids[:-1], centers, 12 * 12)
