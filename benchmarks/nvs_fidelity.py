@@ -1,6 +1,6 @@
 """Novel-view fidelity against the simulator's truth, per perturbation level and method.
 
-    python benchmarks/nvs_fidelity.py [--quick] [--root DATASET] [--model WEIGHTS_DIR]
+    python benchmarks/nvs_fidelity.py [--quick] [--samplers] [--root DATASET] [--model WEIGHTS_DIR]
 
 Held-out simulated pick-and-place episodes are recorded (run seed 1000; training datasets
 use other seeds) unless ``--root`` names a recorded simulated dataset. At sampled frames the
@@ -51,8 +51,15 @@ one CPU thread, as in a dataloader worker): ``reconstruct_ms`` once per timestep
 training), ``render_ms`` per view (the warp for ``homography`` and ``forward_warp``), ``ms``
 their sum.
 
-Writes ``benchmarks/results/nvs_fidelity.json`` (``{method: {level: {psnr, ssim, ms, ...}}}``
-plus ``settings`` and ``unavailable``) and ``nvs_fidelity.png`` (PSNR vs level).
+``--samplers`` draws the wider moves instead of the paper's levels (``level_samplers``, the
+settings of ``policy_robustness.py``'s wider arms): ``tilt`` (up to 10 deg about a random
+axis through the camera, 3 cm shifts), ``arc`` (up to +-45 deg about the vertical through the
+pivot) and ``zoom`` (the focal length scaled log-uniformly in 0.8-1.25, the camera in place),
+beside ``none``: how faithful the views are that those arms train on.
+
+Writes ``benchmarks/results/nvs_fidelity.json`` (``nvs_fidelity_samplers.json`` with
+``--samplers``; ``{method: {level: {psnr, ssim, ms, ...}}}`` plus ``settings`` and
+``unavailable``) and a plot beside it (PSNR vs level).
 """
 
 from __future__ import annotations
@@ -73,6 +80,7 @@ import torch
 import torch.nn.functional as F
 from gensplat_lerobot import LeRobotSource
 from plotting import Panel, line_panels
+from policy_robustness import SAMPLER_ARMS
 
 from gensplat_transforms.cameras import Cameras
 from gensplat_transforms.holes import fill_holes
@@ -87,10 +95,12 @@ from gensplat_transforms.reconstruction import (
 )
 from gensplat_transforms.reconstruction.base import nearest_pixels
 from gensplat_transforms.rendering import RenderOutput, render
+from gensplat_transforms.sim.evaluate import FOV_RANGE
 from gensplat_transforms.sim.record import RecordConfig, record
 from gensplat_transforms.sim.sensor import SensorDepthConfig, sensor_depth
 from gensplat_transforms.sim.truth import GroundTruth
 from gensplat_transforms.sim.world import WorldConfig
+from gensplat_transforms.transform import GenSplatConfig
 from gensplat_transforms.warp import forward_warp
 from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 
@@ -103,6 +113,18 @@ SENSOR = SensorDepthConfig()
 FILL_DEPTH_PX = 8  # rgbd_sensor_depth_fill: the sensor's holes filled before the discs (gensplat cache --fill-depth 8)
 RESULTS = Path(__file__).parent / "results"
 PLOT_MAX_DB = 40.0
+
+
+def level_samplers(args: argparse.Namespace) -> dict:
+    """{level: sampler} of the run: the paper's levels, or with ``--samplers`` ``none``, the
+    ``gensplat-tilt`` and ``gensplat-arc`` arms' training moves and the ``fov`` protocol's focal
+    change alone (policy_robustness.py's ``SAMPLER_ARMS``; sim.evaluate's ``FOV_RANGE``)."""
+    if args.samplers:
+        arm = {kind: GenSplatConfig(**SAMPLER_ARMS[f"gensplat-{kind}"], seed=args.seed).perturbations()
+               for kind in ("tilt", "arc")}  # fmt: skip
+        return {"none": PerturbationSampler("none", seed=args.seed), **arm,
+                "zoom": PerturbationSampler("none", seed=args.seed, focal_scale=FOV_RANGE)}  # fmt: skip
+    return {level: PerturbationSampler(level, seed=args.seed) for level in EVAL_LEVELS}
 
 
 def _plane_to_pixels(cam: Cameras) -> torch.Tensor:
@@ -217,8 +239,7 @@ def compare_frame(views: Views, truth: GroundTruth, ep: int, fr: int, model, arg
         mrec, model_ms = timed(model.reconstruct, Views(views.images, cams))  # RGB only
         geometry = {name: timed(frame_size_geometry, GeometryReconstructor(model.model, scale=scale), views.images, cams)
                     for name, scale in (("geometry_small", "fit"), ("geometry_small_metric", "metric"))}  # fmt: skip
-    for level in EVAL_LEVELS:
-        sampler = PerturbationSampler(level, seed=args.seed)
+    for level, sampler in level_samplers(args).items():
         for d in range(1 if level == "none" else args.draws):
             p = sampler.sample(ep, view=d)
             target = p.move(cams, 0)
@@ -302,14 +323,14 @@ def plot(table: dict, path: Path) -> None:
                "source_image": (214, 39, 40), "homography": (148, 103, 189)}  # fmt: skip
     values = [e[k] for m in table.values() for e in m.values() for k, _ in panels if e[k] is not None]
     lo, hi = np.floor(min(values) / 5) * 5, min(np.ceil(max(values) / 5) * 5, PLOT_MAX_DB)
-    x_ticks = list(enumerate(EVAL_LEVELS))
+    x_ticks = list(enumerate(next(iter(table.values()))))
 
     def series(key: str) -> dict:
         return {m: [(j, hi if levels[lv][key] is None else levels[lv][key], "") for j, lv in x_ticks]
                 for m, levels in table.items()}  # fmt: skip
 
     y_ticks = [(t, f"{t:.0f}") for t in np.arange(lo, hi + 1e-9, 5)]
-    plots = [Panel(title, series(key), (-0.5, len(EVAL_LEVELS) - 0.5), (lo, hi), x_ticks, y_ticks)
+    plots = [Panel(title, series(key), (-0.5, len(x_ticks) - 0.5), (lo, hi), x_ticks, y_ticks)
              for key, title in panels]  # fmt: skip
     note = f"Values above {PLOT_MAX_DB:.0f} dB (exact copies of the truth) are drawn at {PLOT_MAX_DB:.0f}."
     line_panels(path, plots, {m: colours[m] for m in table}, note)
@@ -352,6 +373,8 @@ def sampled_frames(source: LeRobotSource, episodes: int, frames: int):
 def main() -> None:
     parser = sampling_parser(__doc__.splitlines()[0])
     parser.add_argument("--model", type=Path, default=DEFAULT_MODEL_DIR, help="GenSplat weights directory")
+    parser.add_argument("--samplers", action="store_true",
+                        help="the wider arms' moves (tilt, arc, zoom) instead of the paper's levels")  # fmt: skip
     args = with_defaults(parser.parse_args())
 
     t0 = time.perf_counter()
@@ -372,6 +395,7 @@ def main() -> None:
             "heldout_seed": HELDOUT_SEED if args.root is None else None,
             "image_size": [source.cameras.height, source.cameras.width], "episodes": args.episodes,
             "frames_per_episode": args.frames, "draws_per_level": args.draws, "perturbed_camera": "left",
+            "levels": "samplers: none, gensplat-tilt, gensplat-arc, fov zoom" if args.samplers else "paper",
             "source_cameras": ["left", "right"], "perturbation_seed": args.seed, "torch_threads": 1,
             "model": None if isinstance(model, str) else _shown(args.model),
             "homography": "plane-induced, table plane z = 0", "visible": "alpha > 0.5 of the rgbd render",
@@ -382,8 +406,9 @@ def main() -> None:
         },
     }  # fmt: skip
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "nvs_fidelity.json").write_text(json.dumps(result, indent=2, allow_nan=False) + "\n")
-    plot(table, args.out / "nvs_fidelity.png")
+    path = args.out / ("nvs_fidelity_samplers.json" if args.samplers else "nvs_fidelity.json")
+    path.write_text(json.dumps(result, indent=2, allow_nan=False) + "\n")
+    plot(table, path.with_suffix(".png"))
 
     print(f"{'method':>19} {'level':>8} {'PSNR':>7} {'SSIM':>6} {'PSNR vis':>8} {'SSIM vis':>8} "
           f"{'PSNR warp':>9} {'ms':>8}")  # fmt: skip
@@ -397,10 +422,7 @@ def main() -> None:
                   f"{e['ssim_visible']:8.3f} {db[2]:>9} {e['ms']:8.1f}")  # fmt: skip
     for method, reason in result["unavailable"].items():
         print(f"{method}: unavailable, {reason}")
-    print(
-        f"wrote {args.out / 'nvs_fidelity.json'} and {args.out / 'nvs_fidelity.png'} "
-        f"({result['settings']['seconds']} s)"
-    )
+    print(f"wrote {path} and {path.with_suffix('.png')} ({result['settings']['seconds']} s)")
 
 
 if __name__ == "__main__":
