@@ -395,18 +395,31 @@ def protocol_part(result: dict, protocol: str) -> dict | None:
     return result if protocol == "paper" else result.get("protocols", {}).get(protocol)
 
 
+def read_result(path: Path, option: str) -> dict:
+    """A result file of this script, or SystemExit naming ``option`` and what is wrong with it."""
+    try:
+        result = json.loads(path.read_text())
+    except OSError as e:
+        raise SystemExit(f"{option} {path}: cannot read it ({e.strerror})") from None
+    except ValueError as e:
+        raise SystemExit(f"{option} {path}: not JSON ({e})") from None
+    if not isinstance(result, dict) or not {"arms", "levels", "settings"} <= result.keys():
+        raise SystemExit(f"{option} {path}: not a result of policy_robustness.py (no arms, levels and settings)")
+    return result
+
+
 def reused_arms(paths: list[Path], arms: tuple[str, ...], settings: dict, episodes: int) -> tuple[dict, dict, dict]:
     """The arms of ``arms`` that earlier results hold with the same settings, under the
     protocols each file evaluated them (an arm is left out of the others' tables):
     ({protocol: {arm: {level: evaluate_level-like record}}}, {"train_<arm>" / "eval_<arm>":
     their timing}, {arm: file name}); the first file that holds an arm decides. Prints which
     arms are reused (and the protocols they lack), and why an arm a file holds is not. Raises SystemExit for a
-    --quick result, one from before the arms, or missing episodes."""
+    file that is not a result (``read_result``), a --quick result, one without arms, or missing episodes."""
     reused, timing, sources = {protocol: {} for protocol in PROTOCOLS}, {}, {}
     for path in paths:
-        old = json.loads(path.read_text())
-        if old.get("quick") or "arms" not in old:
-            why = "a --quick result" if old.get("quick") else "a result from before the arms"
+        old = read_result(path, "--reuse-from")
+        if old.get("quick") or not old["arms"]:
+            why = "a --quick result" if old.get("quick") else "a result without arms"
             raise SystemExit(f"--reuse-from {path}: {why} is not reusable")
         for arm in (a for a in arms if a in old["arms"] and a not in sources):
             changed = {k: (old["settings"].get(k), settings[k]) for k in ARM_SETTINGS
@@ -672,7 +685,7 @@ def result_settings(args) -> dict:
 def main() -> None:
     args = parse_args()
     if args.table:
-        result = json.loads(args.table.read_text())
+        result = read_result(args.table, "--table")
         print(markdown(result))
         if MOTION.is_file():
             print(range_markdown(result, json.loads(MOTION.read_text())))

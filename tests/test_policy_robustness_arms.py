@@ -202,7 +202,7 @@ def earlier_result(path: Path, args, arms: tuple[str, ...], episodes: int, quick
     return path
 
 
-def test_reuse_checks_the_settings(tmp_path, capsys):
+def test_reuse_checks_the_settings(tmp_path, capsys, monkeypatch):
     args = pr.parse_args(["--episodes", "4"])
     old = earlier_result(tmp_path / "old.json", args, ("baseline", "gensplat"), 4)
     settings = pr.result_settings(args)
@@ -237,20 +237,27 @@ def test_reuse_checks_the_settings(tmp_path, capsys):
     assert reused["fov"] == {}
     out = capsys.readouterr().out
     assert "reusing gensplat from" in out and "(not evaluated under vista, fov: left out of those tables)" in out
-    # not reusable at all: a quick check, a result from before the arms, episodes missing
+    # not reusable at all: a quick check, a file that is not a result, episodes missing, a broken file
     quick = earlier_result(tmp_path / "quick.json", args, ("baseline",), 4, quick=True)
     legacy = tmp_path / "legacy.json"
     legacy.write_text(json.dumps({"baseline": {}, "quick": False}))
     gap = json.loads(old.read_text())
     gap["protocols"]["vista"]["episodes"]["baseline"].pop(2)
     (tmp_path / "gap.json").write_text(json.dumps(gap))
+    (tmp_path / "cut.json").write_text(old.read_text()[:200])  # a copy cut short
     for path, message in (
         (quick, "quick"),
-        (legacy, "before the arms"),
+        (legacy, "not a result of policy_robustness.py"),
         (tmp_path / "gap.json", "not all there"),
+        (tmp_path / "cut.json", "cut.json: not JSON"),
+        (tmp_path / "missing.json", "missing.json: cannot read it"),
     ):
         with pytest.raises(SystemExit, match=message):
             pr.reused_arms([path], args.arms, settings, 4)
+    for path in (legacy, tmp_path / "cut.json", tmp_path / "missing.json"):  # --table reads them the same way
+        monkeypatch.setattr(sys, "argv", ["policy_robustness.py", "--table", str(path)])
+        with pytest.raises(SystemExit, match=f"--table {path}: (not a result|not JSON|cannot read it)"):
+            pr.main()
 
 
 def test_a_run_of_reused_arms_only_trains_and_evaluates_nothing(tmp_path, monkeypatch):
