@@ -573,8 +573,8 @@ def markdown(result: dict) -> str:
 
 def range_markdown(result: dict, motion: dict) -> str:
     """What a training range costs and gains: a row per arm of ``result`` whose training draws
-    ``motion`` (``camera_motion.py``'s result) measured (``train/<arm>``; the baseline's range
-    is 0), with the median (95th percentile) image shift and view change of its draws, and its
+    ``motion`` (``camera_motion.py``'s result) measured (``train/<arm>``, ``gensplat``'s for
+    ``gensplat+color``; the baseline's range is 0), with the median (95th percentile) image shift and view change of its draws, and its
     success % at the training camera, the paper's large level and each VISTA and ``fov``
     level its file evaluated (blank where it did not); "" when no arm has draws measured (nor
     is the baseline)."""
@@ -584,7 +584,8 @@ def range_markdown(result: dict, motion: dict) -> str:
     zero = {f"{k}_{q}": 0.0 for k in ("shift_pct", "view_change_deg") for q in ("median", "p95")}
     lines = []
     for arm in protocol_part(result, "paper")["arms"]:
-        draws = zero if arm == "baseline" else motion["rows"].get(f"train/{arm}")
+        # colour jitter on top moves nothing: the camera moves are GenSplat's
+        draws = zero if arm == "baseline" else motion["rows"].get(f"train/{arm.removesuffix('+color')}")
         if draws is None:
             continue
         cells = []

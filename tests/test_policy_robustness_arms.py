@@ -326,7 +326,7 @@ def test_an_arm_a_protocol_lacks_is_left_out_of_its_tables(tmp_path, monkeypatch
 
 def test_range_table_puts_each_arms_training_draws_beside_its_success(tmp_path):
     args = pr.parse_args(["--episodes", "4"])
-    result = json.loads(earlier_result(tmp_path / "r.json", args, ("baseline", "perspective", "gensplat"), 4).read_text())
+    result = json.loads(earlier_result(tmp_path / "r.json", args, ("baseline", "perspective", "gensplat", "gensplat+color"), 4).read_text())
     del result["protocols"]["fov"]["arms"]["gensplat"]  # evaluated without the fov protocol
     draws = {"shift_pct_median": 3.77, "shift_pct_p95": 7.75, "view_change_deg_median": 12.54,
              "view_change_deg_p95": 24.32}  # fmt: skip
@@ -334,7 +334,8 @@ def test_range_table_puts_each_arms_training_draws_beside_its_success(tmp_path):
     table = pr.range_markdown(result, {"rows": {"train/gensplat": draws, "train/perspective": warp}})
     rows = {line.split(" | ")[0].strip("| "): line.strip("|").split("|") for line in table.splitlines()
             if line.startswith("| ") and not line.startswith("| arm")}  # fmt: skip
-    assert list(rows) == ["baseline", "perspective", "gensplat"]
+    assert list(rows) == ["baseline", "perspective", "gensplat", "gensplat+color"]
+    assert rows["gensplat+color"][1:3] == rows["gensplat"][1:3]  # the same camera moves
     rates = lambda arm, protocol, level: f"{pr.protocol_part(result, protocol)['arms'][arm][level]:.0f}"
     assert [c.strip() for c in rows["gensplat"][1:]] == [
         "3.8 (7.8)", "12.5 (24.3)", rates("gensplat", "paper", "none"), rates("gensplat", "paper", "large"),
