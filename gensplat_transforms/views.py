@@ -172,8 +172,10 @@ def pixel_rays(means: torch.Tensor, pixel_ids: torch.Tensor, centers: torch.Tens
               pixels, out)  # fmt: skip
         return torch.from_numpy(out)
     views = (pixel_ids // pixels).to(centers.device)
-    if len(views) and not 0 <= int(views.min()) <= int(views.max()) < len(centers):  # no index from the end
-        raise IndexError("pixel_rays: a pixel id beyond the cameras' pixels")
+    if len(views):  # no index from the end
+        low, high = (int(v) for v in torch.aminmax(views))
+        if low < 0 or high >= len(centers):
+            raise IndexError("pixel_rays: a pixel id beyond the cameras' pixels")
     return source_rays(means, centers[views])
 
 
