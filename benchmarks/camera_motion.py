@@ -12,7 +12,7 @@ and 20 cm) are projected with the nominal camera and with each moved one. Rows:
 * ``train/gensplat``: GenSplat's training moves (level ``train``, seed 0, episodes 0..N-1,
   views 0-2), about the pivot of the external cameras, as the transform draws them;
   ``train/gensplat-wide``, ``train/gensplat-fov``, ``train/gensplat-tilt``, ``train/gensplat-arc``: those of
-  the wider arms (``SAMPLER_ARMS``);
+  the wider arms (``SAMPLER_ARMS``; the arms that draw one of them more often have its row);
 * ``train/perspective``: the perspective arm's warps, torchvision's
   ``RandomPerspective(distortion_scale)`` corner draws (seeded) applied to the image points.
 
@@ -36,7 +36,7 @@ from torchvision.transforms import RandomPerspective
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import write_result
-from policy_robustness import PERSPECTIVE_DISTORTION, PROTOCOLS, SAMPLER_ARMS
+from policy_robustness import MORE_OFTEN, PERSPECTIVE_DISTORTION, PROTOCOLS, SAMPLER_ARMS
 
 from gensplat_transforms.cameras import Cameras
 from gensplat_transforms.perturbation import PerturbationSampler, scale_focal
@@ -117,7 +117,8 @@ def run(episodes: int, size: int) -> dict:
                                             size, getattr(m, "focal_scale", 1.0)) for m in moves])  # fmt: skip
         env.close()
     samplers = {"gensplat": PerturbationSampler("train", seed=0)}
-    samplers |= {arm: GenSplatConfig(**settings, seed=0).perturbations() for arm, settings in SAMPLER_ARMS.items()}
+    samplers |= {arm: GenSplatConfig(**settings, seed=0).perturbations() for arm, settings in SAMPLER_ARMS.items()
+                 if arm not in MORE_OFTEN}  # those draw another arm's moves  # fmt: skip
     for arm, sampler in samplers.items():
         moves = [sampler.sample(i, view=v) for i in range(episodes) for v in range(3)]
         result[f"train/{arm}"] = summary([camera_move(left, m.apply(left.c2w[0], first.pivot), points, before, size,

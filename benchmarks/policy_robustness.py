@@ -10,7 +10,7 @@ resumes where it was; a ``--work`` made with other settings is refused):
    ``--seed``; lossless PNG frames, calibration and depth sidecars);
 2. when a GenSplat arm is trained: write the GenSplat settings beside the dataset and build
    its Gaussian cache (RGB-D reconstruction of the left + right cameras);
-3. train Diffusion Policy once per arm (``--arms``, default all ten) with LeRobot's stock
+3. train Diffusion Policy once per arm (``--arms``, default all twelve) with LeRobot's stock
    trainer through ``policies/train.sh``: same data, seed, steps, batch and policy settings;
    the policy sees ``--cameras`` and the robot state. The arms differ only in the training
    augmentation (``augmentation`` and ``train_command`` give what each passes):
@@ -49,7 +49,10 @@ resumes where it was; a ``--work`` made with other settings is refused):
      (the ``fov`` protocol's range) on top of the paper's moves;
    * ``gensplat-tilt``, ``gensplat-arc``: ``gensplat-wide``'s tilts alone and its arcs alone
      (``tilt`` and ``arc`` samplers with the same ranges), for what each kind of move gains
-     under its VISTA protocol and costs at the training camera.
+     under its VISTA protocol and costs at the training camera;
+   * ``gensplat-fov-p0.5``, ``gensplat-arc-p0.5``: ``gensplat-fov`` and ``gensplat-arc`` with
+     GenSplat replacing the camera with probability 0.5 (``MORE_OFTEN``), whatever
+     ``--probability`` says.
 
    The wider arms train on their own dataset roots (``work/dataset_<arm>``, links to
    ``work/dataset`` beside their own ``gensplat`` settings and cache), since LeRobot's
@@ -158,15 +161,17 @@ LEVELS = ("none", "small", "medium", "large")
 #: The evaluation protocols and their levels (``PerturbedCameraEnv``'s ``protocol``).
 PROTOCOLS = {"paper": LEVELS, "vista": SAMPLERS, "fov": ("zoom",)}
 ARMS = ("baseline", "lerobot2d", "perspective", "gensplat", "gensplat+lerobot2d", "gensplat+color", "gensplat-wide",
-        "gensplat-fov", "gensplat-tilt", "gensplat-arc")  # fmt: skip
+        "gensplat-fov", "gensplat-tilt", "gensplat-arc", "gensplat-fov-p0.5", "gensplat-arc-p0.5")  # fmt: skip
 TWO_D_ARMS = ("lerobot2d", "perspective")
-GENSPLAT_ARMS = ("gensplat", "gensplat+lerobot2d", "gensplat+color", "gensplat-wide", "gensplat-fov", "gensplat-tilt",
-                 "gensplat-arc")  # fmt: skip
+GENSPLAT_ARMS = ARMS[ARMS.index("gensplat"):]
 #: The GenSplat settings the wider arms change (the others draw the paper's moves).
 SAMPLER_ARMS = {"gensplat-wide": {"sampler": "mix", "tilt_deg": 10.0, "arc_deg": 45.0, "shift_m": 0.03},
                 "gensplat-fov": {"focal_scale": FOV_RANGE},
                 "gensplat-tilt": {"sampler": "tilt", "tilt_deg": 10.0, "shift_m": 0.03},
                 "gensplat-arc": {"sampler": "arc", "arc_deg": 45.0, "shift_m": 0.03}}  # fmt: skip
+#: Arms that draw another arm's moves, more often: {arm: (that arm, the chance GenSplat replaces a camera)}.
+MORE_OFTEN = {"gensplat-fov-p0.5": ("gensplat-fov", 0.5), "gensplat-arc-p0.5": ("gensplat-arc", 0.5)}
+SAMPLER_ARMS |= {arm: {**SAMPLER_ARMS[like], "probability": p} for arm, (like, p) in MORE_OFTEN.items()}
 #: RandomPerspective's distortion_scale of the perspective arm (see the module docstring).
 PERSPECTIVE_DISTORTION = 0.25
 ROOT = Path(__file__).resolve().parents[1]
@@ -223,8 +228,9 @@ def perspective_transforms(probability: float) -> dict:
 def gensplat_config(args, arm: str = "gensplat") -> GenSplatConfig:
     """The GenSplat settings of the GenSplat arm ``arm`` (written beside its dataset root)."""
     replace = tuple(c for c in args.cameras if c in EXTERNAL_CAMERAS)
-    return GenSplatConfig(replace=replace, views_per_source=args.views_per_source, probability=args.probability,
-                          fill_holes=args.fill_holes, backend="fast", seed=args.seed, **SAMPLER_ARMS.get(arm, {}))  # fmt: skip
+    common = {"replace": replace, "views_per_source": args.views_per_source, "probability": args.probability,
+              "fill_holes": args.fill_holes, "backend": "fast", "seed": args.seed}  # fmt: skip
+    return GenSplatConfig(**common | SAMPLER_ARMS.get(arm, {}))
 
 
 def dataset_root(work: Path, arm: str) -> Path:
@@ -502,7 +508,8 @@ def build_result(evaluated: dict, episodes: int, quick: bool, settings: dict, ti
 COLOURS = {"baseline": (214, 39, 40), "lerobot2d": (31, 119, 180), "perspective": (148, 103, 189),
            "gensplat": (44, 160, 44), "gensplat+lerobot2d": (255, 127, 14), "gensplat+color": (140, 86, 75),
            "gensplat-wide": (23, 190, 207), "gensplat-fov": (227, 119, 194), "gensplat-tilt": (188, 189, 34),
-           "gensplat-arc": (127, 127, 127)}  # fmt: skip
+           "gensplat-arc": (127, 127, 127), "gensplat-fov-p0.5": (247, 182, 210),
+           "gensplat-arc-p0.5": (199, 199, 199)}  # fmt: skip
 
 
 def plot(result: dict, path: Path) -> None:
@@ -584,8 +591,9 @@ def range_markdown(result: dict, motion: dict) -> str:
     zero = {f"{k}_{q}": 0.0 for k in ("shift_pct", "view_change_deg") for q in ("median", "p95")}
     lines = []
     for arm in protocol_part(result, "paper")["arms"]:
-        # colour jitter on top moves nothing: the camera moves are GenSplat's
-        draws = zero if arm == "baseline" else motion["rows"].get(f"train/{arm.removesuffix('+color')}")
+        # colour jitter on top moves nothing, a higher probability draws the same moves
+        like = MORE_OFTEN[arm][0] if arm in MORE_OFTEN else arm.removesuffix("+color")
+        draws = zero if arm == "baseline" else motion["rows"].get(f"train/{like}")
         if draws is None:
             continue
         cells = []

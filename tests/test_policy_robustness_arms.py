@@ -100,6 +100,13 @@ def test_each_arm_passes_its_augmentation_to_lerobot_train():
         assert (config.sampler, config.tilt_deg, config.arc_deg, config.shift_m) == (kind, wide.tilt_deg, wide.arc_deg,
                                                                                       wide.shift_m)  # fmt: skip
         assert replace(config, sampler="mix") == wide
+    for arm, (like, probability) in pr.MORE_OFTEN.items():  # another arm's moves, drawn more often
+        config = pr.gensplat_config(args, arm)
+        assert config.probability == probability != args.probability
+        assert replace(config, probability=args.probability) == pr.gensplat_config(args, like)
+        assert augment[arm]["gensplat"] == {**augment[like]["gensplat"], "probability": probability}
+        assert pr.dataset_root(work := Path("work"), arm) == work / f"dataset_{arm}"
+    assert pr.gensplat_config(pr.parse_args(["--probability", "0.1"]), "gensplat-arc-p0.5").probability == 0.5
     work = Path("work")
     assert {pr.dataset_root(work, a) for a in pr.ARMS if a not in pr.SAMPLER_ARMS} == {work / "dataset"}
     assert pr.dataset_root(work, "gensplat-fov") == work / "dataset_gensplat-fov"
@@ -151,7 +158,8 @@ def evaluation(solved: dict[str, int], episodes: int) -> dict:
 
 def test_result_compares_every_arm_under_both_protocols(tmp_path, capsys):
     solved = {"baseline": 2, "lerobot2d": 4, "perspective": 6, "gensplat": 9, "gensplat+lerobot2d": 7, "gensplat+color": 8,
-              "gensplat-wide": 5, "gensplat-fov": 3, "gensplat-tilt": 4, "gensplat-arc": 6}  # fmt: skip
+              "gensplat-wide": 5, "gensplat-fov": 3, "gensplat-tilt": 4, "gensplat-arc": 6, "gensplat-fov-p0.5": 4,
+              "gensplat-arc-p0.5": 5}  # fmt: skip
     args = pr.parse_args(["--episodes", "10"])
     result = pr.build_result(evaluation(solved, 10), 10, False, pr.result_settings(args), {})
     assert list(result["protocols"]) == ["vista", "fov"] and result["episodes_per_level"] == 10
@@ -326,16 +334,19 @@ def test_an_arm_a_protocol_lacks_is_left_out_of_its_tables(tmp_path, monkeypatch
 
 def test_range_table_puts_each_arms_training_draws_beside_its_success(tmp_path):
     args = pr.parse_args(["--episodes", "4"])
-    result = json.loads(earlier_result(tmp_path / "r.json", args, ("baseline", "perspective", "gensplat", "gensplat+color"), 4).read_text())
+    result = json.loads(earlier_result(tmp_path / "r.json", args, ("baseline", "perspective", "gensplat", "gensplat+color",
+                                                                  "gensplat-arc", "gensplat-arc-p0.5"), 4).read_text())
     del result["protocols"]["fov"]["arms"]["gensplat"]  # evaluated without the fov protocol
     draws = {"shift_pct_median": 3.77, "shift_pct_p95": 7.75, "view_change_deg_median": 12.54,
              "view_change_deg_p95": 24.32}  # fmt: skip
     warp = {**draws, "view_change_deg_median": None, "view_change_deg_p95": None}
-    table = pr.range_markdown(result, {"rows": {"train/gensplat": draws, "train/perspective": warp}})
+    arc = {**draws, "view_change_deg_p95": 39.9}
+    table = pr.range_markdown(result, {"rows": {"train/gensplat": draws, "train/perspective": warp, "train/gensplat-arc": arc}})
     rows = {line.split(" | ")[0].strip("| "): line.strip("|").split("|") for line in table.splitlines()
             if line.startswith("| ") and not line.startswith("| arm")}  # fmt: skip
-    assert list(rows) == ["baseline", "perspective", "gensplat", "gensplat+color"]
+    assert list(rows) == ["baseline", "perspective", "gensplat", "gensplat+color", "gensplat-arc", "gensplat-arc-p0.5"]
     assert rows["gensplat+color"][1:3] == rows["gensplat"][1:3]  # the same camera moves
+    assert rows["gensplat-arc-p0.5"][1:3] == rows["gensplat-arc"][1:3] != rows["gensplat"][1:3]
     rates = lambda arm, protocol, level: f"{pr.protocol_part(result, protocol)['arms'][arm][level]:.0f}"
     assert [c.strip() for c in rows["gensplat"][1:]] == [
         "3.8 (7.8)", "12.5 (24.3)", rates("gensplat", "paper", "none"), rates("gensplat", "paper", "large"),
