@@ -4,7 +4,9 @@ with the 2D augmentations users already have as the alternatives to GenSplat.
     python benchmarks/policy_robustness.py [--quick] [--arms A,B,...] [--work DIR] [--steps N] ...
 
 Stages (each is skipped when its output already exists in ``--work``, so a stopped run
-resumes where it was; a ``--work`` made with other settings is refused):
+resumes where it was: a training from its last checkpoint, every ``CHECKPOINT_EVERY`` steps,
+an evaluation at the levels it had not finished; a ``--work`` made with other settings is
+refused):
 
 1. record ``--demos`` scripted demonstrations of ``--task`` at ``--size`` px (run seed
    ``--seed``; lossless PNG frames, calibration and depth sidecars);
@@ -124,6 +126,7 @@ the cube's centre (to the reach goal in a reach).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import multiprocessing
 import os
@@ -143,6 +146,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 from gensplat_lerobot import prepare
 from plotting import Panel, line_panels
 
+from gensplat_transforms.atomic import atomic_write_json, read_json_object
 from gensplat_transforms.sim.evaluate import (
     FOV_RANGE,
     EvalConfig,
@@ -287,7 +291,7 @@ def train_command(arm: str, root: Path, out: Path, config: Path, args) -> list[s
         "bash", str(ROOT / "policies" / "train.sh"), str(config), mode,
         f"--dataset.repo_id={repo_id(args.task)}", f"--dataset.root={root}", f"--output_dir={out}",
         f"--steps={args.steps}", f"--batch_size={args.batch_size}", f"--num_workers={args.workers}",
-        f"--seed={args.seed}", f"--save_freq={args.steps}", f"--log_freq={max(1, args.steps // 50)}",
+        f"--seed={args.seed}", f"--save_freq={min(CHECKPOINT_EVERY, args.steps)}", f"--log_freq={max(1, args.steps // 50)}",
         f"--policy.down_dims=[{args.down_dims}]", f"--policy.n_obs_steps={args.n_obs_steps}",
         "--policy.noise_scheduler_type=DDIM", f"--policy.num_inference_steps={args.inference_steps}",
         f"--policy.scheduler_warmup_steps={min(500, args.steps // 10)}",
@@ -327,28 +331,59 @@ def policy_config(work: Path, args) -> Path:
     return path
 
 
+#: Training steps between checkpoints: a stopped training resumes from its last one.
+CHECKPOINT_EVERY = 500
+
+
+def trained_steps(out: Path) -> int:
+    """The step of the last checkpoint in the training folder ``out`` (0 without one). LeRobot
+    points ``checkpoints/last`` at a checkpoint only once it is written whole."""
+    last = out / "checkpoints" / "last"
+    state = last / "training_state" / "training_step.json"
+    if not (state.is_file() and (last / "pretrained_model" / "train_config.json").is_file()):
+        return 0
+    return int(json.loads(state.read_text())["step"])
+
+
 def train(arm: str, root: Path, out: Path, args) -> dict:
-    """Train one arm with :func:`train_command` unless ``out`` holds a finished run; returns
-    {"seconds", "s_per_step" (start-up included), "last_loss"}, kept in ``train_<arm>.json``
-    beside ``out`` so that a resumed run still reports them."""
+    """Train one arm with :func:`train_command` unless ``out`` holds a finished run; a stopped
+    run resumes from its last checkpoint (LeRobot's ``--resume``: the model, optimiser and data
+    order continue, while the augmentation's draws differ from an unstopped run's). Returns
+    {"seconds", "s_per_step" (start-up included), "last_loss"} of the run that finished, with
+    "resumed_from_step" when it resumed; kept in ``train_<arm>.json`` beside ``out`` so that a
+    later run still reports them. Only the final checkpoint is kept."""
     record = out.parent / f"train_{arm}.json"
-    if (out / "checkpoints" / "last" / "pretrained_model" / "config.json").is_file():
+    done = trained_steps(out)
+    if done >= args.steps:
         return json.loads(record.read_text()) if record.is_file() else {}
-    shutil.rmtree(out, ignore_errors=True)  # an unfinished run: lerobot-train refuses existing folders
+    if done == 0:
+        shutil.rmtree(out, ignore_errors=True)  # no checkpoint: lerobot-train refuses existing folders
     out.parent.mkdir(parents=True, exist_ok=True)
-    cmd = train_command(arm, root, out, policy_config(out.parent, args), args)
+    if done:
+        config = out / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
+        cmd = [*train_command(arm, root, out, config, args), "--resume=true"]
+        print(f"resuming {arm} from step {done}", flush=True)
+    else:
+        cmd = train_command(arm, root, out, policy_config(out.parent, args), args)
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}"}
     log = out.parent / f"train_{arm}.log"
     t0 = time.perf_counter()
-    with open(log, "w") as f:
+    with open(log, "a" if done else "w") as f:
+        start = f.tell()
         run = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, env=env, check=False)
     seconds = time.perf_counter() - t0
     if run.returncode != 0:
         raise RuntimeError(f"training {arm} failed (exit {run.returncode}); see {log}")
-    losses = re.findall(r"\bloss:([0-9.]+)", log.read_text())
+    with open(log) as f:
+        f.seek(start)
+        losses = re.findall(r"\bloss:([0-9.]+)", f.read())
     print(f"trained {arm} in {seconds:.0f} s, last logged loss {losses[-1] if losses else '?'}", flush=True)
-    timing = {"seconds": round(seconds, 1), "s_per_step": round(seconds / args.steps, 2),
-              "last_loss": float(losses[-1]) if losses else None}  # fmt: skip
+    timing = {"seconds": round(seconds, 1), "s_per_step": round(seconds / (args.steps - done), 2),
+              "last_loss": float(losses[-1]) if losses else None} | ({"resumed_from_step": done} if done else {})  # fmt: skip
+    final = (out / "checkpoints" / "last").resolve()
+    for checkpoint in (out / "checkpoints").iterdir():
+        if checkpoint.name != "last" and checkpoint.resolve() != final:
+            shutil.rmtree(checkpoint)
     record.write_text(json.dumps(timing))
     return timing
 
@@ -375,18 +410,48 @@ def evaluate_level(checkpoint: Path, protocol: str, level: str, args) -> dict:
             "seconds": time.perf_counter() - t0, "steps": sum(result.steps)}  # fmt: skip
 
 
+def evaluation_key(checkpoint: Path, protocol: str, level: str, args) -> dict:
+    """What decides one level's evaluation of the checkpoint in the training folder
+    ``checkpoint``: the policy's weights and config (a digest), the level and the evaluation
+    settings. The evaluation is seeded, so the same key gives the same episodes."""
+    model, digest = checkpoint / "checkpoints" / "last" / "pretrained_model", hashlib.sha256()
+    for name in ("config.json", "model.safetensors"):
+        digest.update((model / name).read_bytes())
+    return {"checkpoint": digest.hexdigest(), "protocol": protocol, "level": level, "task": args.task,
+            "episodes": args.episodes, "max_steps": args.max_steps, "seed": args.seed, "size": args.size,
+            "device": args.device}  # fmt: skip
+
+
 def evaluate_all(work: Path, arms: tuple[str, ...], args) -> dict:
     """{protocol: {arm: {level: evaluate_level(...)}}}, ``args.eval_jobs`` (protocol, arm,
-    level) jobs at a time in separate processes."""
+    level) jobs at a time in separate processes. Each level's record is kept in
+    ``work/<arm>/evaluation/<protocol>_<level>.json`` with its :func:`evaluation_key`, so that a
+    stopped evaluation resumes at the levels it had not finished."""
     jobs = [(protocol, arm, level) for protocol, levels in PROTOCOLS.items() for arm in arms for level in levels]
+    out: dict = {protocol: {arm: {} for arm in arms} for protocol in PROTOCOLS}
+    keys = {job: evaluation_key(work / job[1], *job[::2], args) for job in jobs}
+    stored = {job: work / job[1] / "evaluation" / f"{job[0]}_{job[2]}.json" for job in jobs}
+
+    def report(protocol: str, arm: str, level: str, kept: bool = False) -> None:
+        r = out[protocol][arm][level]
+        print(f"  {arm:>18} {protocol:>5} {level:>13}: {r['success']:5.1f} % success, "
+              f"{r['progress']['lift_percent']:5.1f} % lifted, median closest approach "
+              f"{r['progress']['median_reach_cm']:.1f} cm over {args.episodes} episodes"
+              + (" (kept from a stopped run)" if kept else ""), flush=True)  # fmt: skip
+
+    for job in jobs:
+        old = read_json_object(stored[job])
+        if old.get("key") == keys[job] and isinstance(old.get("record"), dict):
+            out[job[0]][job[1]][job[2]] = old["record"]
+            report(*job, kept=True)
+    todo = [job for job in jobs if job[2] not in out[job[0]][job[1]]]
     with ProcessPoolExecutor(args.eval_jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
-        futures = {job: pool.submit(evaluate_level, work / job[1], *job[::2], args) for job in jobs}
-        out: dict = {protocol: {arm: {} for arm in arms} for protocol in PROTOCOLS}
+        futures = {job: pool.submit(evaluate_level, work / job[1], *job[::2], args) for job in todo}
         for (protocol, arm, level), future in futures.items():
-            r = out[protocol][arm][level] = future.result()
-            print(f"  {arm:>18} {protocol:>5} {level:>13}: {r['success']:5.1f} % success, "
-                  f"{r['progress']['lift_percent']:5.1f} % lifted, median closest approach "
-                  f"{r['progress']['median_reach_cm']:.1f} cm over {args.episodes} episodes", flush=True)  # fmt: skip
+            out[protocol][arm][level] = future.result()
+            atomic_write_json(stored[protocol, arm, level], {"key": keys[protocol, arm, level],
+                                                             "record": out[protocol][arm][level]})  # fmt: skip
+            report(protocol, arm, level)
     return out
 
 

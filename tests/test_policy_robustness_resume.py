@@ -1,0 +1,78 @@
+"""benchmarks/policy_robustness.py resumes a stopped run: a training from its last checkpoint
+(a real lerobot-train), an evaluation at the levels it had not finished."""
+
+from __future__ import annotations
+
+import json
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import pytest
+
+import gensplat_transforms.sim  # noqa: F401  (selects the headless GL backend before MuJoCo loads)
+
+pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
+pytest.importorskip("mujoco", reason="recording needs the 'sim' extra (mujoco)")
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import policy_robustness as pr
+
+from gensplat_transforms.sim.record import RecordConfig, record
+from gensplat_transforms.sim.world import WorldConfig
+
+
+def test_a_stopped_training_resumes_from_its_last_checkpoint(tmp_path, monkeypatch):
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    monkeypatch.setattr(pr, "CHECKPOINT_EVERY", 2)
+    quick = ["--quick", "--size", "48", "--work", str(tmp_path)]
+    args = pr.parse_args([*quick, "--steps", "4"])
+    root, out = tmp_path / "dataset", tmp_path / "baseline"
+    record(RecordConfig(root, args.task, args.demos, args.seed, use_videos=False, repo_id=pr.repo_id(args.task),
+                        world=WorldConfig(height=48, width=48)), progress=False)  # fmt: skip
+    assert pr.trained_steps(out) == 0
+    # a run stopped after its checkpoint at step 2: the training of a 2-step run
+    first = pr.train("baseline", root, out, pr.parse_args([*quick, "--steps", "2"]))
+    assert pr.trained_steps(out) == 2 and "resumed_from_step" not in first
+    (tmp_path / "train_baseline.json").unlink()
+    timing = pr.train("baseline", root, out, args)
+    assert pr.trained_steps(out) == 4 and timing["resumed_from_step"] == 2 and timing["s_per_step"] > 0
+    log = (tmp_path / "train_baseline.log").read_text()
+    assert "Resuming data order" in log and log.count("Output dir:") == 2  # both runs' output kept
+    assert sorted(p.name for p in (out / "checkpoints").iterdir()) == ["000004", "last"]  # the final one kept
+    assert json.loads((tmp_path / "train_baseline.json").read_text()) == timing
+    assert pr.train("baseline", root, out, args) == timing  # finished: not trained again
+
+
+def fake_level(checkpoint: Path, protocol: str, level: str, args) -> dict:
+    """An evaluate_level stand-in that records its calls."""
+    fake_level.calls.append((checkpoint.name, protocol, level))
+    return {"success": 50.0, "progress": {"lift_percent": 0.0, "median_reach_cm": 1.0}, "episodes": [],
+            "seconds": 1.0, "steps": 10}  # fmt: skip
+
+
+def test_a_stopped_evaluation_resumes_at_the_levels_it_had_not_finished(tmp_path, monkeypatch):
+    monkeypatch.setattr(pr, "evaluate_level", fake_level)
+    monkeypatch.setattr(pr, "ProcessPoolExecutor", lambda jobs, mp_context: ThreadPoolExecutor(jobs))
+    model = tmp_path / "gensplat" / "checkpoints" / "last" / "pretrained_model"
+    model.mkdir(parents=True)
+    (model / "config.json").write_text("{}")
+    (model / "model.safetensors").write_bytes(b"weights")
+    levels = [(p, lv) for p, lvs in pr.PROTOCOLS.items() for lv in lvs]
+
+    def run(*argv: str) -> list:
+        """The levels evaluated (not kept) by one evaluate_all."""
+        fake_level.calls = []
+        out = pr.evaluate_all(tmp_path, ("gensplat",), pr.parse_args(["--episodes", "3", *argv]))
+        assert {(p, lv) for p, lvs in out.items() for lv in lvs["gensplat"]} == set(levels)
+        return sorted(fake_level.calls)
+
+    assert run() == sorted(("gensplat", p, lv) for p, lv in levels)
+    assert run() == []  # every level kept
+    stored = tmp_path / "gensplat" / "evaluation"
+    (stored / "vista_arc_90deg.json").unlink()  # stopped before this level finished
+    (stored / "paper_none.json").write_text('{"key": ')  # cut short
+    assert run() == [("gensplat", "paper", "none"), ("gensplat", "vista", "arc_90deg")]
+    assert len(run("--max-steps", "7")) == len(levels)  # another evaluation setting
+    (model / "model.safetensors").write_bytes(b"retrained")
+    assert len(run()) == len(levels)  # another checkpoint
+    assert json.loads((stored / "fov_zoom.json").read_text())["record"]["success"] == 50.0
