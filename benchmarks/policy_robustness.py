@@ -98,8 +98,9 @@ the episodes per level; checked, and the arms whose settings differ are named an
 under the protocols its file evaluated it (it is left out of the others' tables);
 ``settings["reused"]`` names the file of each reused arm. Within one ``--work``, a trained
 checkpoint is not trained again (its augmentation is checked), so adding an arm later trains
-only that arm. ``--table RESULT.json`` prints a result's tables in Markdown (benchmarks/README.md's), and
-the training range of each arm against its success (``range_markdown``).
+only that arm. ``--table RESULT.json`` prints a result's tables in Markdown (benchmarks/README.md's), the
+training range of each arm against its success (``range_markdown``) and the success against
+the size of the move within the wider levels (``move_markdown``).
 ``--quick`` (a few minutes): 2 demos, 4 steps at batch 4, a smaller U-Net, 2 episodes per
 level of at most 20 steps: it checks the pipeline end to end, its success rates mean nothing.
 
@@ -677,6 +678,41 @@ def range_markdown(result: dict, motion: dict) -> str:
                       "|---" * len(head) + "|", *lines, ""])  # fmt: skip
 
 
+#: How large a move of a level is, per episode record, and the bin edges ``move_markdown``
+#: splits the level's episodes at: {(protocol, level): (what is measured, value of a record, edges)}.
+MOVE_SIZES = {
+    ("vista", "small_perturb"): ("rotation (deg)", lambda e: abs(np.degrees(e["angle_rad"])), (0, 3, 6, 90)),
+    ("vista", "arc_90deg"): ("azimuth (deg)", lambda e: abs(e["azimuth_deg"]), (0, 15, 30, 45)),
+    ("fov", "zoom"): ("focal length scale", lambda e: e["focal_scale"], (0.8, 0.9, 1.0, 1.1, 1.25)),
+}
+
+
+def move_markdown(result: dict) -> str:
+    """Success against the size of the move within the wider levels (``MOVE_SIZES``): per level a
+    table with a row per arm and a column per bin of the move's size (the last bin closed),
+    each cell the success % over the episodes in the bin (their count in the header); "" when
+    the result evaluated none of those levels."""
+    lines = []
+    for (protocol, level), (measure, size, edges) in MOVE_SIZES.items():
+        part = protocol_part(result, protocol)
+        if part is None or level not in part["levels"] or not part["arms"]:
+            continue
+        records = [e for e in part["episodes"][next(iter(part["arms"]))] if e["level"] == level]
+        # the bin of each episode (the same move for every arm); the last bin holds its upper edge
+        index = {e["episode"]: min(int(np.searchsorted(edges, size(e), side="right")) - 1, len(edges) - 2)
+                 for e in records}  # fmt: skip
+        cells = {arm: [[e["success"] for e in part["episodes"][arm] if e["level"] == level and index[e["episode"]] == i]
+                       for i in range(len(edges) - 1)] for arm in part["arms"]}  # fmt: skip
+        counts = [sum(i == j for i in index.values()) for j in range(len(edges) - 1)]
+        head = [f"{lo:g}-{hi:g} ({n} ep.)" for lo, hi, n in zip(edges[:-1], edges[1:], counts)]
+        lines += [f"{protocol} {level}, success % by {measure}:", "", f"| arm | {' | '.join(head)} |",
+                  "|---" * len(edges) + "|"]  # fmt: skip
+        for arm, per_bin in cells.items():
+            lines.append(f"| {arm} | " + " | ".join(f"{100 * np.mean(c):.0f}" if c else "" for c in per_bin) + " |")
+        lines.append("")
+    return "\n".join(lines)
+
+
 def _points(diff: dict) -> str:
     return f"{diff['points']:+.0f} [{diff['ci95'][0]:+.0f}, {diff['ci95'][1]:+.0f}]"
 
@@ -763,6 +799,7 @@ def main() -> None:
         print(markdown(result))
         if MOTION.is_file():
             print(range_markdown(result, json.loads(MOTION.read_text())))
+        print(move_markdown(result))
         return
     arms, work = args.arms, args.work
     root = work / "dataset"

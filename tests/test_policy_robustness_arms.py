@@ -370,3 +370,30 @@ def test_link_dataset_shares_everything_but_the_gensplat_settings(tmp_path):
     assert sorted(p.name for p in linked.iterdir()) == ["meta", "notes.txt"]
     assert (linked / "meta").is_symlink() and (linked / "meta" / "info.json").read_text() == "{}"
     assert (linked / "notes.txt").resolve() == (root / "notes.txt").resolve()
+
+
+def test_move_table_splits_each_wider_level_by_the_size_of_its_moves():
+    evaluated = evaluation({"baseline": 2, "gensplat": 4}, 6)
+    moves = {"small_perturb": [{"angle_rad": a} for a in (0.01, -0.04, 0.07, -0.08, 0.2, 0.0)],
+             "arc_90deg": [{"azimuth_deg": a} for a in (-44.0, 45.0, 3.0, -15.0, 29.9, 0.0)],
+             "zoom": [{"focal_scale": f} for f in (0.8, 1.25, 0.95, 1.0, 1.1, 0.85)]}  # fmt: skip
+    for protocol in ("vista", "fov"):
+        for per_level in evaluated[protocol].values():
+            for level, record in per_level.items():
+                for e in record["episodes"]:
+                    e |= moves[level][e["episode"]]
+    result = pr.build_result(evaluated, 6, False, pr.result_settings(pr.parse_args(["--episodes", "6"])), {})
+    tables = pr.move_markdown(result).split("\n\n")
+    rows = lambda i: [line.split(" | ") for line in tables[i].splitlines() if line.startswith("| ")]
+    assert tables[0] == "vista small_perturb, success % by rotation (deg):"
+    # rotations 0.6, 2.3 | 4.0, 4.6 | 11.5, 0.0 deg: the baseline solves episodes 0-1, gensplat 0-3
+    assert rows(1) == [["| arm", "0-3 (3 ep.)", "3-6 (2 ep.)", "6-90 (1 ep.) |"], ["| baseline", "67", "0", "0 |"],
+                       ["| gensplat", "67", "100", "0 |"]]  # fmt: skip
+    # |azimuth| 44, 45 (the closed last bin), 3, 15, 29.9, 0
+    assert rows(3)[0][1:] == ["0-15 (2 ep.)", "15-30 (2 ep.)", "30-45 (2 ep.) |"]
+    assert rows(3)[1][1:] == ["0", "0", "100 |"] and rows(3)[2][1:] == ["50", "50", "100 |"]
+    # focal scales 0.8, 1.25, 0.95, 1.0, 1.1, 0.85
+    assert rows(5)[0][1:] == ["0.8-0.9 (2 ep.)", "0.9-1 (1 ep.)", "1-1.1 (1 ep.)", "1.1-1.25 (2 ep.) |"]
+    assert rows(5)[2][1:] == ["50", "100", "100", "50 |"]
+    del result["protocols"]["fov"]  # a result from before the fov protocol: no zoom table
+    assert "fov zoom" not in pr.move_markdown(result) and "arc_90deg" in pr.move_markdown(result)
