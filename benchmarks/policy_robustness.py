@@ -338,12 +338,16 @@ CHECKPOINT_EVERY = 500
 
 def trained_steps(out: Path) -> int:
     """The step of the last checkpoint in the training folder ``out`` (0 without one). LeRobot
-    points ``checkpoints/last`` at a checkpoint only once it is written whole."""
+    points ``checkpoints/last`` at a checkpoint only once it is written whole; a step file
+    without a step raises SystemExit (the run is not thrown away)."""
     last = out / "checkpoints" / "last"
     state = last / "training_state" / "training_step.json"
     if not (state.is_file() and (last / "pretrained_model" / "train_config.json").is_file()):
         return 0
-    return int(json.loads(state.read_text())["step"])
+    step = read_json_object(state).get("step")
+    if not isinstance(step, int) or step < 0:
+        raise SystemExit(f"{state}: no step count in it; repair it or delete {out} to train the arm again")
+    return step
 
 
 def train(arm: str, root: Path, out: Path, args) -> dict:
@@ -423,6 +427,10 @@ def evaluation_key(checkpoint: Path, protocol: str, level: str, args) -> dict:
             "device": args.device}  # fmt: skip
 
 
+#: What a stored evaluation record must hold to be kept.
+RECORD_KEYS = {"success", "progress", "episodes", "seconds", "steps"}
+
+
 def evaluate_all(work: Path, arms: tuple[str, ...], args) -> dict:
     """{protocol: {arm: {level: evaluate_level(...)}}}, ``args.eval_jobs`` (protocol, arm,
     level) jobs at a time in separate processes. Each level's record is kept in
@@ -442,7 +450,7 @@ def evaluate_all(work: Path, arms: tuple[str, ...], args) -> dict:
 
     for job in jobs:
         old = read_json_object(stored[job])
-        if old.get("key") == keys[job] and isinstance(old.get("record"), dict):
+        if old.get("key") == keys[job] and RECORD_KEYS <= set(old.get("record") or ()):
             out[job[0]][job[1]][job[2]] = old["record"]
             report(*job, kept=True)
     todo = [job for job in jobs if job[2] not in out[job[0]][job[1]]]

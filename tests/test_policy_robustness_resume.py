@@ -43,6 +43,20 @@ def test_a_stopped_training_resumes_from_its_last_checkpoint(tmp_path, monkeypat
     assert pr.train("baseline", root, out, args) == timing  # finished: not trained again
 
 
+def test_a_damaged_checkpoint_step_is_reported_not_retrained(tmp_path):
+    last = tmp_path / "checkpoints" / "last"
+    (last / "pretrained_model").mkdir(parents=True)
+    (last / "training_state").mkdir()
+    assert pr.trained_steps(tmp_path) == 0  # no train_config.json: no checkpoint
+    (last / "pretrained_model" / "train_config.json").write_text("{}")
+    for text in ('{"step": 1', '{"step": "500"}', "[]"):
+        (last / "training_state" / "training_step.json").write_text(text)
+        with pytest.raises(SystemExit, match="no step count"):
+            pr.trained_steps(tmp_path)
+    (last / "training_state" / "training_step.json").write_text('{"step": 500, "batch_size": 32}')
+    assert pr.trained_steps(tmp_path) == 500
+
+
 def fake_level(checkpoint: Path, protocol: str, level: str, args) -> dict:
     """An evaluate_level stand-in that records its calls."""
     fake_level.calls.append((checkpoint.name, protocol, level))
@@ -71,7 +85,10 @@ def test_a_stopped_evaluation_resumes_at_the_levels_it_had_not_finished(tmp_path
     stored = tmp_path / "gensplat" / "evaluation"
     (stored / "vista_arc_90deg.json").unlink()  # stopped before this level finished
     (stored / "paper_none.json").write_text('{"key": ')  # cut short
-    assert run() == [("gensplat", "paper", "none"), ("gensplat", "vista", "arc_90deg")]
+    record = json.loads((stored / "fov_zoom.json").read_text())
+    del record["record"]["episodes"]  # a record without its episodes
+    (stored / "fov_zoom.json").write_text(json.dumps(record))
+    assert run() == [("gensplat", "fov", "zoom"), ("gensplat", "paper", "none"), ("gensplat", "vista", "arc_90deg")]
     assert len(run("--max-steps", "7")) == len(levels)  # another evaluation setting
     (model / "model.safetensors").write_bytes(b"retrained")
     assert len(run()) == len(levels)  # another checkpoint
