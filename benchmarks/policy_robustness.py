@@ -415,16 +415,20 @@ def evaluate_level(checkpoint: Path, protocol: str, level: str, args) -> dict:
             "seconds": time.perf_counter() - t0, "steps": sum(result.steps)}  # fmt: skip
 
 
-def evaluation_key(checkpoint: Path, protocol: str, level: str, args) -> dict:
-    """What decides one level's evaluation of the checkpoint in the training folder
-    ``checkpoint``: the policy's weights and config (a digest), the level and the evaluation
-    settings. The evaluation is seeded, so the same key gives the same episodes."""
+def checkpoint_digest(checkpoint: Path) -> str:
+    """SHA-256 of the policy's config and weights in the training folder ``checkpoint``."""
     model, digest = checkpoint / "checkpoints" / "last" / "pretrained_model", hashlib.sha256()
     for name in ("config.json", "model.safetensors"):
         digest.update((model / name).read_bytes())
-    return {"checkpoint": digest.hexdigest(), "protocol": protocol, "level": level, "task": args.task,
-            "episodes": args.episodes, "max_steps": args.max_steps, "seed": args.seed, "size": args.size,
-            "device": args.device}  # fmt: skip
+    return digest.hexdigest()
+
+
+def evaluation_key(digest: str, protocol: str, level: str, args) -> dict:
+    """What decides one level's evaluation of the checkpoint whose :func:`checkpoint_digest` is
+    ``digest``: the checkpoint, the level and the evaluation settings. The evaluation is seeded,
+    so the same key gives the same episodes."""
+    return {"checkpoint": digest, "protocol": protocol, "level": level, "task": args.task, "episodes": args.episodes,
+            "max_steps": args.max_steps, "seed": args.seed, "size": args.size, "device": args.device}  # fmt: skip
 
 
 #: What a stored evaluation record must hold to be kept.
@@ -438,7 +442,8 @@ def evaluate_all(work: Path, arms: tuple[str, ...], args) -> dict:
     stopped evaluation resumes at the levels it had not finished."""
     jobs = [(protocol, arm, level) for protocol, levels in PROTOCOLS.items() for arm in arms for level in levels]
     out: dict = {protocol: {arm: {} for arm in arms} for protocol in PROTOCOLS}
-    keys = {job: evaluation_key(work / job[1], *job[::2], args) for job in jobs}
+    digests = {arm: checkpoint_digest(work / arm) for arm in arms}
+    keys = {job: evaluation_key(digests[job[1]], *job[::2], args) for job in jobs}
     stored = {job: work / job[1] / "evaluation" / f"{job[0]}_{job[2]}.json" for job in jobs}
 
     def report(protocol: str, arm: str, level: str, kept: bool = False) -> None:
