@@ -127,6 +127,7 @@ the cube's centre (to the reach goal in a reach).
 from __future__ import annotations
 
 import argparse
+import fcntl
 import hashlib
 import json
 import multiprocessing
@@ -317,6 +318,20 @@ def check_work(work: Path, arms: tuple[str, ...], args) -> None:
         augment = {**before, **augment}
     work.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps({**settings, "augmentation": augment}, indent=2) + "\n")
+
+
+def lock_work(work: Path) -> int:
+    """Hold ``work/.lock`` for as long as this process lives (the descriptor returned), or raise
+    SystemExit when another run holds it: two runs would train into the same folders."""
+    work.mkdir(parents=True, exist_ok=True)
+    fd = os.open(work / ".lock", os.O_CREAT | os.O_RDWR, 0o666)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        raise SystemExit(f"{work} is in use by another policy_robustness.py run: wait for it or pass another "
+                         "--work") from None  # fmt: skip
+    return fd
 
 
 def policy_config(work: Path, args) -> Path:
@@ -822,6 +837,7 @@ def main() -> None:
         settings["reused"] = sources
     to_run = tuple(a for a in arms if a not in sources)
     if to_run:
+        lock = lock_work(work)  # noqa: F841  (held until the run ends)
         check_work(work, to_run, args)
     t_start = time.perf_counter()
 

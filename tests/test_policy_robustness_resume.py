@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -55,6 +56,19 @@ def test_a_damaged_checkpoint_step_is_reported_not_retrained(tmp_path):
             pr.trained_steps(tmp_path)
     (last / "training_state" / "training_step.json").write_text('{"step": 500, "batch_size": 32}')
     assert pr.trained_steps(tmp_path) == 500
+
+
+def test_a_work_folder_takes_one_run_at_a_time(tmp_path, monkeypatch):
+    fd = pr.lock_work(tmp_path / "work")
+    with pytest.raises(SystemExit, match="in use by another"):
+        pr.lock_work(tmp_path / "work")
+    argv = ["policy_robustness.py", "--arms", "baseline", "--work", str(tmp_path / "work"), "--out", str(tmp_path / "r.json")]
+    monkeypatch.setattr(sys, "argv", argv)
+    with pytest.raises(SystemExit, match="in use by another"):  # before it records or trains anything
+        pr.main()
+    assert sorted(p.name for p in (tmp_path / "work").iterdir()) == [".lock"]
+    os.close(fd)
+    os.close(pr.lock_work(tmp_path / "work"))  # free again
 
 
 def fake_level(checkpoint: Path, protocol: str, level: str, args) -> dict:
