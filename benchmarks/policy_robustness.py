@@ -351,11 +351,16 @@ def policy_config(work: Path, args) -> Path:
 CHECKPOINT_EVERY = 500
 
 
+def last_checkpoint(out: Path) -> Path:
+    """The checkpoint LeRobot names ``last`` in the training folder ``out`` (a link to the newest)."""
+    return out / "checkpoints" / "last"
+
+
 def trained_steps(out: Path) -> int:
     """The step of the last checkpoint in the training folder ``out`` (0 without one). LeRobot
     points ``checkpoints/last`` at a checkpoint only once it is written whole; a step file
     without a step raises SystemExit (the run is not thrown away)."""
-    last = out / "checkpoints" / "last"
+    last = last_checkpoint(out)
     state = last / "training_state" / "training_step.json"
     if not (state.is_file() and (last / "pretrained_model" / "train_config.json").is_file()):
         return 0
@@ -380,7 +385,7 @@ def train(arm: str, root: Path, out: Path, args) -> dict:
         shutil.rmtree(out, ignore_errors=True)  # no checkpoint: lerobot-train refuses existing folders
     out.parent.mkdir(parents=True, exist_ok=True)
     if done:
-        config = out / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
+        config = last_checkpoint(out) / "pretrained_model" / "train_config.json"
         cmd = [*train_command(arm, root, out, config, args), "--resume=true"]
         print(f"resuming {arm} from step {done}", flush=True)
     else:
@@ -400,7 +405,7 @@ def train(arm: str, root: Path, out: Path, args) -> dict:
     print(f"trained {arm} in {seconds:.0f} s, last logged loss {losses[-1] if losses else '?'}", flush=True)
     timing = {"seconds": round(seconds, 1), "s_per_step": round(seconds / (args.steps - done), 2),
               "last_loss": float(losses[-1]) if losses else None} | ({"resumed_from_step": done} if done else {})  # fmt: skip
-    final = (out / "checkpoints" / "last").resolve()
+    final = last_checkpoint(out).resolve()
     for checkpoint in (out / "checkpoints").iterdir():
         if checkpoint.name != "last" and checkpoint.resolve() != final:
             shutil.rmtree(checkpoint)
@@ -432,7 +437,7 @@ def evaluate_level(checkpoint: Path, protocol: str, level: str, args) -> dict:
 
 def checkpoint_digest(checkpoint: Path) -> str:
     """SHA-256 of the policy's config and weights in the training folder ``checkpoint``."""
-    model, digest = checkpoint / "checkpoints" / "last" / "pretrained_model", hashlib.sha256()
+    model, digest = last_checkpoint(checkpoint) / "pretrained_model", hashlib.sha256()
     for name in ("config.json", "model.safetensors"):
         digest.update((model / name).read_bytes())
     return digest.hexdigest()
