@@ -677,13 +677,25 @@ def markdown(result: dict) -> str:
     return "\n".join(lines)
 
 
+def moved_share(augmentation: dict | None) -> str:
+    """The share of training samples whose camera an arm's ``augmentation`` (its entry in a
+    result's settings) moves, as a percentage; "" when unknown."""
+    if augmentation is None:
+        return ""
+    if "gensplat" in augmentation:
+        return f"{100 * augmentation['gensplat']['probability']:.0f} %"
+    perspective = augmentation.get("image_transforms", {}).get("tfs", {}).get("perspective")
+    return f"{100 * perspective['kwargs']['p']:.0f} %" if perspective else "0 %"
+
+
 def range_markdown(result: dict, motion: dict) -> str:
     """What a training range costs and gains: a row per arm of ``result`` whose training draws
     ``motion`` (``camera_motion.py``'s result) measured (``train/<arm>``, ``gensplat``'s for
-    ``gensplat+color``; the baseline's range is 0), with the median (95th percentile) image shift and view change of its draws, and its
-    success % at the training camera, the paper's large level and each VISTA and ``fov``
-    level its file evaluated (blank where it did not); "" when no arm has draws measured (nor
-    is the baseline)."""
+    ``gensplat+color``; the baseline's range is 0), with the share of training samples whose
+    camera is moved (blank where the result's settings do not say), the median (95th
+    percentile) image shift and view change of its draws, and its success % at the training
+    camera, the paper's large level and each VISTA and ``fov`` level its file evaluated (blank
+    where it did not); "" when no arm has draws measured (nor is the baseline)."""
     columns = [("paper", "none"), ("paper", "large")] + [
         (protocol, level) for protocol in ("vista", "fov") for level in PROTOCOLS[protocol]
     ]
@@ -699,12 +711,13 @@ def range_markdown(result: dict, motion: dict) -> str:
         for protocol, level in columns:
             rates = ((protocol_part(result, protocol) or {}).get("arms") or {}).get(arm, {})
             cells.append(f"{rates[level]:.0f}" if level in rates else "")
-        ranges = ["-" if draws[f"{k}_median"] is None else f"{draws[f'{k}_median']:.1f} ({draws[f'{k}_p95']:.1f})"
+        ranges = [moved_share(result.get("settings", {}).get("augmentation", {}).get(arm))]
+        ranges += ["-" if draws[f"{k}_median"] is None else f"{draws[f'{k}_median']:.1f} ({draws[f'{k}_p95']:.1f})"
                   for k in ("shift_pct", "view_change_deg")]  # an image warp has no view change
         lines.append(f"| {arm} | " + " | ".join(ranges + cells) + " |")
     if not lines:
         return ""
-    head = ["arm", "training shift % of width", "training view change (deg)"]
+    head = ["arm", "samples moved", "training shift % of width", "training view change (deg)"]
     head += [f"{protocol} {level}" for protocol, level in columns]
     title = "Training range against success % (range: median (95th percentile) of the arm's training draws):"
     return "\n".join([title, "", "| " + " | ".join(head) + " |",

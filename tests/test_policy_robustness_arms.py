@@ -345,15 +345,19 @@ def test_range_table_puts_each_arms_training_draws_beside_its_success(tmp_path):
     rows = {line.split(" | ")[0].strip("| "): line.strip("|").split("|") for line in table.splitlines()
             if line.startswith("| ") and not line.startswith("| arm")}  # fmt: skip
     assert list(rows) == ["baseline", "perspective", "gensplat", "gensplat+color", "gensplat-arc", "gensplat-arc-p0.5"]
-    assert rows["gensplat+color"][1:3] == rows["gensplat"][1:3]  # the same camera moves
-    assert rows["gensplat-arc-p0.5"][1:3] == rows["gensplat-arc"][1:3] != rows["gensplat"][1:3]
+    assert rows["gensplat+color"][1:4] == rows["gensplat"][1:4]  # the same camera moves, as often
+    assert rows["gensplat-arc-p0.5"][2:4] == rows["gensplat-arc"][2:4] != rows["gensplat"][2:4]
+    assert [rows[arm][1].strip() for arm in ("gensplat-arc", "gensplat-arc-p0.5")] == ["25 %", "50 %"]
     rates = lambda arm, protocol, level: f"{pr.protocol_part(result, protocol)['arms'][arm][level]:.0f}"
     assert [c.strip() for c in rows["gensplat"][1:]] == [
-        "3.8 (7.8)", "12.5 (24.3)", rates("gensplat", "paper", "none"), rates("gensplat", "paper", "large"),
+        "25 %", "3.8 (7.8)", "12.5 (24.3)", rates("gensplat", "paper", "none"), rates("gensplat", "paper", "large"),
         rates("gensplat", "vista", "small_perturb"), rates("gensplat", "vista", "arc_90deg"), ""]  # fmt: skip
-    assert [c.strip() for c in rows["baseline"][1:3]] == ["0.0 (0.0)", "0.0 (0.0)"]
+    assert [c.strip() for c in rows["baseline"][1:4]] == ["0 %", "0.0 (0.0)", "0.0 (0.0)"]
     assert rows["baseline"][-1].strip() == rates("baseline", "fov", "zoom")
-    assert rows["perspective"][2].strip() == "-"  # an image warp moves no camera
+    assert [c.strip() for c in rows["perspective"][1:4:2]] == ["25 %", "-"]  # an image warp moves no camera
+    del result["settings"]["augmentation"]  # a result that does not say: the share is blank
+    unsaid = [r for r in pr.range_markdown(result, {"rows": {}}).splitlines() if r.startswith("| baseline")]
+    assert len(unsaid) == 1 and unsaid[0].split("|")[2].strip() == ""
     only_baseline = [r for r in pr.range_markdown(result, {"rows": {}}).splitlines() if r.startswith("| ")]
     assert [r.split(" | ")[0] for r in only_baseline] == ["| arm", "| baseline"]  # draws not measured: left out
 
