@@ -45,22 +45,22 @@ def _check_intrinsics(K: np.ndarray) -> None:
         )
 
 
-def _check_rigid(T: np.ndarray) -> None:
+def _check_rigid(T: np.ndarray, tolerance: float = RIGID_TOLERANCE) -> None:
     """Raise ``ValueError`` unless every (4, 4) of c2w (float64) is a rigid transform within
-    ``RIGID_TOLERANCE``: bottom row [0, 0, 0, 1], rotation orthonormal with determinant +1."""
-    bad = (np.abs(T[:, 3] - np.array([0.0, 0.0, 0.0, 1.0])) > RIGID_TOLERANCE).any(-1)
+    ``tolerance``: bottom row [0, 0, 0, 1], rotation orthonormal with determinant +1."""
+    bad = ~(np.abs(T[:, 3] - np.array([0.0, 0.0, 0.0, 1.0])) <= tolerance).all(-1)
     if bad.any():
         i = int(bad.nonzero()[0][0])
         raise ValueError(f"Cameras.c2w: bottom row must be [0, 0, 0, 1], got {T[i, 3].tolist()} (camera {i})")
     R = T[:, :3, :3]
     error = np.maximum(np.abs(R.transpose(0, 2, 1) @ R - np.eye(3)).max((1, 2), initial=0.0),
                        np.abs(np.linalg.det(R) - 1))  # fmt: skip
-    bad = error > RIGID_TOLERANCE
+    bad = ~(error <= tolerance)
     if bad.any():
         i = int(bad.nonzero()[0][0])
         raise ValueError(
             f"Cameras.c2w: rotation is not orthonormal with det +1 (max error {float(error[i]):.3g} > "
-            f"{RIGID_TOLERANCE:g}, camera {i}): a camera-to-world matrix has no scale, shear or mirroring"
+            f"{tolerance:g}, camera {i}): a camera-to-world matrix has no scale, shear or mirroring"
         )
 
 

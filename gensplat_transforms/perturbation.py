@@ -32,6 +32,8 @@ Example: the named levels
 from __future__ import annotations
 
 import math
+import operator
+import sys
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
 
@@ -39,7 +41,7 @@ import numpy as np
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
-from .cameras import Cameras
+from .cameras import RIGID_TOLERANCE, Cameras, _check_rigid
 
 #: world axes a move can turn about by name; the paper's levels use x and y (``PAPER_AXES``)
 AXES = ("x", "y", "z")
@@ -51,6 +53,51 @@ SAMPLERS = ("paper", "tilt", "arc", "mix")
 ROW = 10
 #: where a move's rotation turns the camera about (:attr:`Perturbation.about`)
 ABOUT = ("pivot", "camera")
+
+
+def _real(name: str, value) -> float:
+    """``value`` as a float, or ``TypeError`` naming ``name`` unless it is a number (a bool or a
+    string is not)."""
+    if not isinstance(value, (bool, str, bytes)):
+        try:
+            return float(value)
+        except (TypeError, ValueError):
+            pass
+    raise TypeError(f"{name} must be a number, got {value!r}")
+
+
+def _integer(name: str, value) -> int:
+    """``value`` as an int, or ``TypeError`` naming ``name`` unless it is an integer (Python,
+    NumPy or torch) or a float without a fractional part."""
+    if not isinstance(value, (bool, str, bytes)):
+        try:
+            return operator.index(value)
+        except TypeError:
+            if isinstance(value, float) and value.is_integer():
+                return int(value)
+    raise TypeError(f"{name} must be an integer, got {value!r}")
+
+
+def _numbers(name: str, value, n: int, what: str = "") -> Sequence:
+    """``value``, or ``TypeError`` naming ``name`` (and ``what`` it must be) unless it is a
+    sequence of ``n`` items (not a string)."""
+    if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != n:
+        raise TypeError(f"{name} must be {what or f'{n} numbers'}, got {value!r}")
+    return value
+
+
+def _pair(name: str, value) -> tuple[float, float]:
+    """``value`` as (low, high) floats, or ``TypeError`` naming ``name`` unless it is two numbers."""
+    lo, hi = _numbers(name, value, 2, "(low, high), two numbers")
+    return _real(name, lo), _real(name, hi)
+
+
+def _focal_range(name: str, value) -> tuple[float, float]:
+    """``value`` as (low, high) floats, or an error naming ``name`` unless 0 < low <= high < inf."""
+    lo, hi = _pair(name, value)
+    if not 0 < lo <= hi < math.inf:
+        raise ValueError(f"{name}: need 0 < low <= high, got {(lo, hi)}")
+    return lo, hi
 
 
 @dataclass(frozen=True)
@@ -76,9 +123,11 @@ class PerturbationRange:
 
     def __post_init__(self) -> None:
         for name in ("theta_deg", "mu_m"):
-            lo, hi = getattr(self, name)
-            if not (math.isfinite(lo) and math.isfinite(hi)) or lo > hi:
-                raise ValueError(f"PerturbationRange.{name}: need finite low <= high, got {(lo, hi)}")
+            lo, hi = _pair(f"PerturbationRange.{name}", getattr(self, name))
+            if not math.isfinite(hi - lo) or lo > hi:  # a finite width: one to draw from
+                raise ValueError(f"PerturbationRange.{name}: need finite low <= high, a finite width apart, got "
+                                 f"{(lo, hi)}")  # fmt: skip
+            object.__setattr__(self, name, (lo, hi))
         if self.random_sign and self.theta_deg[0] < 0:
             raise ValueError(
                 "PerturbationRange.theta_deg: with random_sign=True it is a magnitude range and "
@@ -136,15 +185,17 @@ class Perturbation:
             if self.axis not in AXES:
                 raise ValueError(f"Perturbation.axis must be one of {AXES} or a direction (x, y, z), got {self.axis!r}")
         else:
-            v = tuple(float(a) for a in self.axis)
-            norm = math.sqrt(sum(a * a for a in v))
-            if len(v) != 3 or not (math.isfinite(norm) and norm > 0):
+            v = tuple(_real("Perturbation.axis", a) for a in _numbers("Perturbation.axis", self.axis, 3))
+            norm = math.hypot(*v)  # no overflow or underflow of the squares
+            if not (math.isfinite(norm) and norm > 0):
                 raise ValueError(f"Perturbation.axis: a direction needs 3 finite values, not all 0, got {self.axis}")
             object.__setattr__(self, "axis", tuple(a / norm for a in v))
-        shift = tuple(float(a) for a in self.shift_m)
-        if len(shift) != 3 or not all(math.isfinite(a) for a in shift):
+        shift = tuple(_real("Perturbation.shift_m", a) for a in _numbers("Perturbation.shift_m", self.shift_m, 3))
+        if not all(math.isfinite(a) for a in shift):
             raise ValueError(f"Perturbation.shift_m must be 3 finite metres, got {self.shift_m}")
         object.__setattr__(self, "shift_m", shift)
+        for name in ("theta_deg", "mu_m", "focal_scale"):
+            object.__setattr__(self, name, _real(f"Perturbation.{name}", getattr(self, name)))
         if not (math.isfinite(self.theta_deg) and math.isfinite(self.mu_m)):
             raise ValueError(f"Perturbation: theta and mu must be finite, got {self.theta_deg}, {self.mu_m}")
         if not (math.isfinite(self.focal_scale) and self.focal_scale > 0):
@@ -163,18 +214,20 @@ class Perturbation:
         return tuple(float(k == i) for k in range(3))
 
     def apply(self, c2w: torch.Tensor, pivot: torch.Tensor) -> torch.Tensor:
-        """Moved (..., 4, 4) camera-to-world (the focal length aside); see :func:`perturb_pose`."""
+        """Moved (..., 4, 4) camera-to-world (the focal length aside); see :func:`perturb_pose`,
+        which checks the result."""
         return perturb_pose(c2w, pivot, torch.tensor(self.direction), self.theta_deg, self.mu_m,
                             torch.tensor(self.shift_m), float(self.about == "pivot"))  # fmt: skip
 
     def move(self, cameras: Cameras, index: int = 0, pivot_depth: float | None = None) -> Cameras:
         """Camera ``index`` of a rig, moved about the rig's pivot (:func:`rig_pivot`: of its
         cameras 0 and 1, or ``pivot_depth`` along the axis of a rig's one camera), its focal
-        length scaled (:func:`scale_focal`)."""
+        length scaled (:func:`scale_focal`). The move is taken in float64 (as the batch path's
+        rows), whatever the cameras' dtype."""
         if not 0 <= index < len(cameras):
             raise IndexError(f"Perturbation.move: camera index {index} outside 0..{len(cameras) - 1}")
-        move = torch.tensor([self.as_row()], dtype=cameras.c2w.dtype)
-        c2w = move_rig(cameras.c2w, move, [index], pivot_depth)  # a rigid motion of a checked pose
+        move = torch.tensor([self.as_row()], dtype=torch.float64)
+        c2w = _move_rig(cameras.c2w, move, [index], pivot_depth)  # a rigid motion of a checked pose
         return cameras._derive(scale_focal(cameras.K[index : index + 1], move[:, 8]), c2w)
 
     def as_row(self) -> list[float]:
@@ -198,9 +251,17 @@ class Perturbation:
 
 def scale_focal(K: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
     """(..., 3, 3) intrinsics with their focal lengths (and skew) multiplied by (...) ``scale``,
-    the principal point kept."""
+    the principal point kept; ValueError where a focal length so scaled is not a finite positive
+    number of K's dtype."""
     out = K.clone()
     out[..., :2, :2] = K[..., :2, :2] * scale.to(K)[..., None, None]
+    focal = out[..., [0, 1], [0, 1]]
+    bad = ~(torch.isfinite(focal) & (focal > 0)).all(-1)
+    if bad.any():
+        i = tuple(int(j) for j in bad.nonzero()[0])
+        raise ValueError(f"scale_focal: focal_scale {float(scale.expand(bad.shape)[i])} gives focal lengths "
+                         f"{focal[i].tolist()} (of {K[i].diagonal()[:2].tolist()}), not finite positive "
+                         f"{K.dtype} numbers")  # fmt: skip
     return out
 
 
@@ -208,14 +269,16 @@ def axis_rotation(axis: str | torch.Tensor, theta_deg: float | torch.Tensor, dty
                   device=None) -> torch.Tensor:
     """(..., 3, 3) rotations by ``theta_deg`` (degrees, float or (...)) about world axes
     (right-handed): ``axis`` is "x", "y" or "z", or (..., 3) unit directions. Kornia's
-    axis-angle formula, element by element (a batch gives each element's own bits)."""
+    axis-angle formula, element by element (a batch gives each element's own bits), of the angle
+    modulo 360 deg (so that any finite angle is a rotation, in any dtype)."""
     if isinstance(axis, str):
         if axis not in AXES:
             raise ValueError(f"axis must be one of {AXES}, got {axis!r}")
         axis = torch.eye(3, dtype=dtype, device=device)[AXES.index(axis)]
     elif axis.shape[-1:] != (3,):
         raise ValueError(f"axis directions must be (..., 3), got {tuple(axis.shape)}")
-    theta = (torch.as_tensor(theta_deg, dtype=torch.float64, device=device) * (math.pi / 180)).to(dtype)
+    theta_deg = torch.fmod(torch.as_tensor(theta_deg, dtype=torch.float64, device=device), 360.0)  # exact
+    theta = (theta_deg * (math.pi / 180)).to(dtype)
     axis = axis.to(dtype=dtype, device=theta.device)
     axis_angle = torch.where(axis == 0, torch.zeros((), dtype=dtype, device=theta.device), axis * theta[..., None])
     shape = axis_angle.shape[:-1]
@@ -232,7 +295,19 @@ def perturb_pose(c2w: torch.Tensor, pivot: torch.Tensor, axis: str | torch.Tenso
     camera's centre c for s = 0; ``axis`` (see :func:`axis_rotation`), ``theta_deg``, ``mu_m``,
     ``shift_m`` ((3,) or (..., 3), default none) and ``pivot_share`` are one move or (...)
     moves, one per pose.
+
+    Raises ``TypeError`` for poses that are not floating point, ``ValueError`` where a moved pose
+    is not a finite rigid transform (:func:`_rigid`: a pose that was not one, or a move that is
+    not finite in the poses' dtype).
     """
+    _floating("perturb_pose", c2w)
+    return _rigid("perturb_pose", _perturb_pose(c2w, pivot, axis, theta_deg, mu_m, shift_m, pivot_share))
+
+
+def _perturb_pose(c2w: torch.Tensor, pivot: torch.Tensor, axis: str | torch.Tensor, theta_deg: float | torch.Tensor,
+                  mu_m: float | torch.Tensor, shift_m: torch.Tensor | None = None,
+                  pivot_share: float | torch.Tensor = 1.0) -> torch.Tensor:  # fmt: skip
+    """:func:`perturb_pose`, unchecked."""
     Ra = axis_rotation(axis, theta_deg, c2w.dtype, c2w.device)
     p = torch.as_tensor(pivot, dtype=c2w.dtype, device=c2w.device)
     mu = torch.as_tensor(mu_m, dtype=c2w.dtype, device=c2w.device)
@@ -261,12 +336,42 @@ def move_rig(c2w: torch.Tensor, moves: torch.Tensor, views: Sequence[int], pivot
         >>> rig = torch.stack([look_at((1.0, 0.3, 0.5), (0, 0, 0)), look_at((1.0, -0.3, 0.5), (0, 0, 0))])
         >>> move_rig(rig, torch.tensor([Perturbation("x", 5.0).as_row()], dtype=torch.float64), [0]).shape
         torch.Size([1, 4, 4])
+
+    Raises as :func:`perturb_pose` does.
     """
     if moves.shape[-1] != ROW:
         raise ValueError(f"move_rig: moves must be (..., R, {ROW}) rows (Perturbation.as_row), got {tuple(moves.shape)}")
+    _floating("move_rig", c2w)
+    return _rigid("move_rig", _move_rig(c2w, moves, views, pivot_depth))
+
+
+def _move_rig(c2w: torch.Tensor, moves: torch.Tensor, views: Sequence[int], pivot_depth: float | None = None
+              ) -> torch.Tensor:  # fmt: skip
+    """:func:`move_rig`, unchecked."""
     pivot = rig_pivot(c2w, pivot_depth)[..., None, :]  # (..., 1, 3)
-    return perturb_pose(c2w[..., list(views), :, :], pivot, moves[..., :3], moves[..., 3], moves[..., 4],
-                        moves[..., 5:8], moves[..., 9])  # fmt: skip
+    return _perturb_pose(c2w[..., list(views), :, :], pivot, moves[..., :3], moves[..., 3], moves[..., 4],
+                         moves[..., 5:8], moves[..., 9])  # fmt: skip
+
+
+def _floating(name: str, c2w: torch.Tensor) -> None:
+    """Raise ``TypeError`` naming ``name`` unless the poses ``c2w`` are floating point."""
+    if not c2w.is_floating_point():
+        raise TypeError(f"{name}: poses must be floating point, got {c2w.dtype}")
+
+
+def _rigid(name: str, c2w: torch.Tensor) -> torch.Tensor:
+    """The (..., 4, 4) moved poses ``c2w``, or ``ValueError`` naming ``name`` unless each is a
+    finite rigid transform (:func:`.cameras._check_rigid`, with 8 epsilons of a dtype coarser
+    than float32 as the tolerance)."""
+    T = c2w.detach().reshape(-1, 4, 4).to("cpu", torch.float64).numpy()
+    try:
+        if not np.isfinite(T).all():
+            raise ValueError("not finite")
+        _check_rigid(T, max(RIGID_TOLERANCE, 8 * torch.finfo(c2w.dtype).eps))
+    except ValueError as e:
+        raise ValueError(f"{name}: the moved poses are not finite rigid transforms ({e}): the poses must be "
+                         f"rigid and the moves finite in {c2w.dtype}") from None  # fmt: skip
+    return c2w
 
 
 def _closest(c2w_a: torch.Tensor, c2w_b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -336,15 +441,16 @@ class _Sampler:
     def __init__(self, mode: str = "episode", seed: int = 0, focal_scale: tuple[float, float] = (1.0, 1.0)) -> None:
         if mode not in ("episode", "frame"):
             raise ValueError(f"{type(self).__name__}.mode must be 'episode' or 'frame', got {mode!r}")
-        if int(seed) < 0:
+        seed = _integer(f"{type(self).__name__}.seed", seed)
+        if seed < 0:
             raise ValueError(f"{type(self).__name__}.seed must be >= 0, got {seed}")
-        lo, hi = (float(v) for v in focal_scale)
-        if not (0 < lo <= hi < math.inf):
-            raise ValueError(f"{type(self).__name__}.focal_scale: need 0 < low <= high, got {tuple(focal_scale)}")
-        self.mode, self.seed, self.focal_scale = mode, int(seed), (lo, hi)
+        self.mode, self.seed = mode, seed
+        self.focal_scale = _focal_range(f"{type(self).__name__}.focal_scale", focal_scale)
 
     def sample(self, episode_index: int, frame_index: int = 0, view: int = 0) -> Perturbation:
-        key = [self.seed, int(episode_index), int(frame_index) if self.mode == "frame" else 0, int(view)]
+        name = f"{type(self).__name__}.sample: "
+        key = [self.seed, _integer(name + "episode_index", episode_index),
+               _integer(name + "frame_index", frame_index) if self.mode == "frame" else 0, _integer(name + "view", view)]
         if min(key) < 0:
             raise ValueError(f"{type(self).__name__}.sample: episode/frame/view indices must be >= 0, got {key[1:]}")
         rng = np.random.default_rng(key if self.salt is None else [*key, self.salt])
@@ -458,19 +564,26 @@ class MixSampler(_Sampler):
     def __init__(self, samplers: Sequence[_Sampler], mode: str = "episode", seed: int = 0,
                  focal_scale: tuple[float, float] = (1.0, 1.0)) -> None:  # fmt: skip
         super().__init__(mode, seed, focal_scale)
-        if not samplers:
-            raise ValueError("MixSampler: needs at least one sampler")
         self.samplers = tuple(samplers)
+        if not self.samplers:
+            raise ValueError("MixSampler: needs at least one sampler")
+        wrong = [type(s).__name__ for s in self.samplers if not isinstance(s, _Sampler)]
+        if wrong:
+            raise TypeError(f"MixSampler: samplers must be samplers (PerturbationSampler, TiltSampler, ...), got {wrong}")
 
     def _draw(self, rng: np.random.Generator) -> Perturbation:
         return self.samplers[int(rng.integers(len(self.samplers)))]._draw(rng)
 
 
 def _non_negative(name: str, value: float, most: float = math.inf) -> float:
-    """``value`` as a float, or ValueError naming ``name`` unless it is finite and in [0, most]."""
-    value = float(value)
+    """``value`` as a float, or an error naming ``name`` unless it is a finite number in [0,
+    most] that can be drawn from [-value, value]."""
+    value = _real(name, value)
     if not (math.isfinite(value) and 0 <= value <= most):
         raise ValueError(f"{name} must be a finite number in [0, {most:g}], got {value}")
+    if not math.isfinite(2 * value):
+        raise ValueError(f"{name} must be at most {sys.float_info.max / 2:g} (to draw from [-{name}, {name}]), "
+                         f"got {value}")  # fmt: skip
     return value
 
 
@@ -482,9 +595,7 @@ def make_sampler(kind: str = "paper", level: str | PerturbationRange = "train", 
     ``shift_m``, "mix" from one of the three per move; every kind adds ``focal_scale``. Every
     setting is checked, under its own name, whichever kind uses it."""
     _non_negative("tilt_deg", tilt_deg, 180.0), _non_negative("arc_deg", arc_deg, 180.0)
-    _non_negative("shift_m", shift_m)
-    if not 0 < float(focal_scale[0]) <= float(focal_scale[1]) < math.inf:
-        raise ValueError(f"focal_scale: need 0 < low <= high, got {tuple(focal_scale)}")
+    _non_negative("shift_m", shift_m), _focal_range("focal_scale", focal_scale)
     if kind == "paper":
         return PerturbationSampler(level, mode, seed, focal_scale=focal_scale)
     if kind == "tilt":

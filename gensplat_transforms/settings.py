@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import numbers
 from dataclasses import asdict, dataclass, field, fields
 
 from .perturbation import SAMPLERS, PerturbationRange, make_sampler
@@ -147,6 +148,8 @@ class GenSplatConfig:
             raise ValueError(f"GenSplatConfig.replace: {unknown} are not reconstructed cameras {self.cameras}")
         if not 0 <= self.probability <= 1:
             raise ValueError(f"GenSplatConfig.probability must be in [0, 1], got {self.probability}")
+        if isinstance(self.views_per_source, bool) or not isinstance(self.views_per_source, numbers.Integral):
+            raise TypeError(f"GenSplatConfig.views_per_source must be an integer, got {self.views_per_source!r}")
         if self.views_per_source < 1:
             raise ValueError(f"GenSplatConfig.views_per_source must be >= 1, got {self.views_per_source}")
         if self.backend not in (*BACKENDS, "auto"):
@@ -156,8 +159,8 @@ class GenSplatConfig:
             raise ValueError(f"GenSplatConfig.render_scale must be in (0, 1], got {self.render_scale}")
         if self.render_in not in RENDER_IN:
             raise ValueError(f"GenSplatConfig.render_in must be one of {RENDER_IN}, got {self.render_in!r}")
-        self.focal_scale = tuple(float(v) for v in self.focal_scale)
         self.perturbations()  # checks the sampler's settings
+        self.focal_scale = tuple(float(v) for v in self.focal_scale)
         if self.depth_unit not in DEPTH_UNITS:
             raise ValueError(f"GenSplatConfig.depth_unit must be one of {tuple(DEPTH_UNITS)}, got {self.depth_unit!r}")
 

@@ -25,7 +25,7 @@ from gensplat_lerobot import (
     save_settings,
     video_backend,
 )
-from gensplat_lerobot.dataset import dataset_cache, make_reconstructor
+from gensplat_lerobot.dataset import dataset_cache, make_reconstructor, settings_path
 from gensplat_lerobot.scene_dataset import record_scene_dataset
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from safetensors.torch import save_file
@@ -133,6 +133,16 @@ def test_settings_round_trip(tmp_path):
     config = GenSplatConfig(cameras=("left", "right"), replace=("left",), level=PerturbationRange((2.0, 4.0), (0.0, 0.0)))
     save_settings(tmp_path, config, {"name": "geometry", "model": "weights"})
     assert load_settings(tmp_path) == (config, {"name": "geometry", "model": "weights"})
+
+
+@pytest.mark.parametrize("text", ["{", "[]", '{"transform": {}}', '{"transform": {"tilt_deg": "10"}, "reconstructor": {}}',
+                                  '{"transform": {"colour": 1}, "reconstructor": {}}', '{"transform": {}, "reconstructor": 3}'])  # fmt: skip
+def test_damaged_settings_are_reported_naming_the_file(tmp_path, text):
+    save_settings(tmp_path, GenSplatConfig(), {"name": "rgbd"})
+    path = settings_path(tmp_path)
+    path.write_text(text)
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(path))}: not GenSplat settings .*gensplat cache --root"):
+        load_settings(tmp_path)
 
 
 def test_enable_gensplat_renders_external_views_only(dataset_root):

@@ -62,15 +62,20 @@ def save_settings(root: str | Path, config: GenSplatConfig, reconstructor: dict,
 
 
 def load_settings(root: str | Path, repo_id: str | None = None) -> tuple[GenSplatConfig, dict]:
-    """The settings :func:`save_settings` stored (``repo_id`` only completes the error message)."""
+    """The settings :func:`save_settings` stored (``repo_id`` only completes the error message);
+    ``ValueError`` naming the file and its fault where they are not such settings."""
     path = settings_path(root)
     if not path.exists():
         raise FileNotFoundError(
             f"GenSplat is enabled but {path} does not exist: run `{cache_command(root, repo_id)}` once to write "
             "the settings and build the Gaussian cache"
         )
-    data = json.loads(path.read_text())
-    return GenSplatConfig.from_dict(data["transform"]), data["reconstructor"]
+    try:
+        data = json.loads(path.read_text())
+        return GenSplatConfig.from_dict(data["transform"]), dict(data["reconstructor"])
+    except (ValueError, TypeError, KeyError, AttributeError) as e:  # not JSON, a key or field missing or wrong
+        raise ValueError(f"{path}: not GenSplat settings ({type(e).__name__}: {e}); rewrite them with "
+                         f"`{cache_command(root, repo_id)}`") from e  # fmt: skip
 
 
 def default_reconstructor(source: LeRobotSource) -> dict:

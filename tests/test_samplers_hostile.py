@@ -1,0 +1,130 @@
+"""The wider samplers and the focal-length change against hostile settings, values and poses."""
+
+import math
+
+import pytest
+import torch
+
+from gensplat_transforms.cameras import Cameras, look_at
+from gensplat_transforms.perturbation import (
+    ROW,
+    SAMPLERS,
+    MixSampler,
+    Perturbation,
+    PerturbationRange,
+    TiltSampler,
+    make_sampler,
+    move_rig,
+    perturb_pose,
+    scale_focal,
+)
+from gensplat_transforms.settings import GenSplatConfig
+
+F64 = torch.float64
+RIG = torch.stack([look_at((1.05, 0.4, 0.5), (0.45, 0.0, 0.12)), look_at((1.05, -0.4, 0.5), (0.45, 0.0, 0.12))])
+CAMS = Cameras.from_intrinsics(100.0, 90.0, 48.0, 40.0, RIG, 96, 80)
+
+
+def rigid_error(c2w: torch.Tensor) -> float:
+    R = c2w[..., :3, :3].to(F64)
+    return max(float((R.mT @ R - torch.eye(3, dtype=F64)).abs().max()), float((torch.linalg.det(R) - 1).abs().max()))
+
+
+@pytest.mark.parametrize(
+    ("make", "match"),
+    [
+        (lambda: make_sampler("tilt", focal_scale="12"), r"^focal_scale must be \(low, high\), two numbers, got '12'"),
+        (lambda: GenSplatConfig(focal_scale=(0.8,)), r"^focal_scale must be \(low, high\)"),
+        (lambda: GenSplatConfig.from_dict({"focal_scale": None}), r"^focal_scale must be \(low, high\)"),
+        (lambda: TiltSampler(10.0, focal_scale=(1.0, 1.0, 2.0)), r"^TiltSampler.focal_scale must be \(low, high\)"),
+        (lambda: GenSplatConfig(tilt_deg="10"), r"^tilt_deg must be a number, got '10'"),
+        (lambda: GenSplatConfig(shift_m=None), r"^shift_m must be a number, got None"),
+        (lambda: GenSplatConfig(arc_deg=[45.0]), r"^arc_deg must be a number, got \[45.0\]"),
+        (lambda: GenSplatConfig(seed=1.5), r"seed must be an integer, got 1.5"),
+        (lambda: GenSplatConfig(seed="7"), r"seed must be an integer, got '7'"),
+        (lambda: GenSplatConfig(views_per_source=math.nan), r"^GenSplatConfig.views_per_source must be an integer"),
+        (lambda: GenSplatConfig(views_per_source="3"), r"^GenSplatConfig.views_per_source must be an integer"),
+        (lambda: TiltSampler(10.0).sample(1.5), r"^TiltSampler.sample: episode_index must be an integer, got 1.5"),
+        (lambda: Perturbation(shift_m="123"), r"^Perturbation.shift_m must be 3 numbers"),
+        (lambda: Perturbation(focal_scale=True), r"^Perturbation.focal_scale must be a number, got True"),
+        (lambda: PerturbationRange((1.0, 2.0, 3.0), (0.0, 0.0)), r"^PerturbationRange.theta_deg must be \(low, high\)"),
+        (lambda: MixSampler(["paper"]), r"^MixSampler: samplers must be samplers .*, got \['str'\]"),
+    ],
+)
+def test_settings_of_the_wrong_type_raise_type_errors_naming_them(make, match):
+    with pytest.raises(TypeError, match=match):
+        make()
+
+
+def test_ranges_too_wide_to_draw_from_are_refused_when_set():
+    for make, match in [(lambda: TiltSampler(10.0, shift_m=1e308), r"^TiltSampler.shift_m must be at most"),
+                        (lambda: make_sampler("arc", shift_m=1e308), r"^shift_m must be at most"),
+                        (lambda: PerturbationRange((-1e308, 1e308), (0.0, 0.0), random_sign=False),
+                         r"^PerturbationRange.theta_deg: need finite low <= high"),
+                        (lambda: MixSampler(s for s in ()), "needs at least one sampler")]:  # fmt: skip
+        with pytest.raises(ValueError, match=match):
+            make()
+    move = make_sampler("mix", shift_m=1e300, arc_deg=180.0, tilt_deg=180.0, focal_scale=(1e-6, 1e6)).sample(3)
+    assert all(math.isfinite(v) for v in move.as_row())
+
+
+@pytest.mark.parametrize(("scale", "dtype"), [(1e307, F64), (1e300, torch.float32), (1e-300, torch.float32),
+                                              (1e-9, torch.float16)])  # fmt: skip
+def test_a_focal_change_out_of_the_dtypes_range_raises_instead_of_inf_or_zero_focal_lengths(scale, dtype):
+    cameras = CAMS.to(dtype=dtype)
+    with pytest.raises(ValueError, match=r"focal_scale"):
+        Perturbation(focal_scale=scale).move(cameras, 0)
+    with pytest.raises(ValueError, match=r"^scale_focal: .*focal_scale"):
+        scale_focal(cameras.K, torch.tensor([scale, 1.0], dtype=F64))
+
+
+@pytest.mark.parametrize(("theta", "dtype"), [(1e300, F64), (-1e200, F64), (2e4, torch.float16), (1e39, torch.float32)])
+def test_any_finite_turn_gives_a_finite_rigid_pose(theta, dtype):
+    cameras = CAMS.to(dtype=dtype)
+    moved = Perturbation((0.3, -0.2, 0.9), theta, 0.01).move(cameras, 0).c2w
+    same = Perturbation((0.3, -0.2, 0.9), math.fmod(theta, 360.0), 0.01).apply(cameras.c2w[:1], moved.new_zeros(3))
+    assert torch.isfinite(moved).all() and rigid_error(moved) < (1e-6 if dtype == F64 else 8 * torch.finfo(dtype).eps)
+    assert torch.equal(Perturbation((0.3, -0.2, 0.9), theta, 0.01).apply(cameras.c2w[:1], moved.new_zeros(3)), same)
+
+
+def test_poses_that_are_not_rigid_float_transforms_or_moves_that_are_not_finite_are_refused():
+    row = torch.tensor([Perturbation("x", 10.0, 0.01).as_row()], dtype=F64)
+    with pytest.raises(TypeError, match=r"^perturb_pose: poses must be floating point, got torch.int64"):
+        perturb_pose(torch.eye(4, dtype=torch.long), torch.zeros(3), "x", 10.0, 0.0)
+    with pytest.raises(TypeError, match=r"^move_rig: poses must be floating point"):
+        move_rig(RIG.long(), row, [0])
+    scaled, mirrored, nan = RIG.clone(), RIG.clone(), RIG.clone()
+    scaled[0, :3, :3] *= 1.01
+    mirrored[0, :3, 0] *= -1
+    nan[0, 0, 3] = math.nan
+    for rig in (scaled, mirrored, nan):
+        with pytest.raises(ValueError, match=r"^move_rig: the moved poses are not finite rigid transforms"):
+            move_rig(rig, row, [0])
+        with pytest.raises(ValueError, match=r"^perturb_pose: the moved poses are not finite rigid transforms"):
+            Perturbation("x", 10.0).apply(rig[0], torch.zeros(3))
+    with pytest.raises(ValueError, match=r"^move_rig: the moved poses are not finite rigid transforms"):
+        move_rig(RIG, torch.full((1, ROW), math.nan, dtype=F64), [0])
+
+
+def test_an_axis_of_tiny_or_huge_length_is_a_direction():
+    assert Perturbation(axis=(1e-200, 0.0, 0.0)).axis == (1.0, 0.0, 0.0)
+    assert Perturbation(axis=(1e200, -1e200, 0.0)).axis == pytest.approx((0.5**0.5, -(0.5**0.5), 0.0), abs=1e-15)
+
+
+@pytest.mark.parametrize("dtype", [F64, torch.float32, torch.float16])
+def test_a_batch_through_move_rig_is_perturbation_move_one_at_a_time(dtype):
+    cameras = CAMS.to(dtype=dtype)
+    moves = [make_sampler(k, seed=2**63, focal_scale=(1e-3, 1e3), mode="frame").sample(2**63, 2**62, view=v)
+             for k in SAMPLERS for v in range(2)]  # fmt: skip
+    assert moves == [make_sampler(k, seed=2**63, focal_scale=(1e-3, 1e3), mode="frame").sample(2**63, 2**62, view=v)
+                     for k in SAMPLERS for v in range(2)]  # fmt: skip
+    rows = torch.tensor([m.as_row() for m in moves], dtype=F64).reshape(-1, 2, ROW)
+    c2w = move_rig(cameras.c2w.expand(len(rows), 2, 4, 4), rows, [0, 1])
+    K = scale_focal(cameras.K.expand(len(rows), 2, 3, 3), rows[..., 8])
+    assert c2w.dtype == K.dtype == dtype and rigid_error(c2w) < (1e-6 if dtype == F64 else 8 * torch.finfo(dtype).eps)
+    for i, move in enumerate(moves):
+        one = move.move(cameras, i % 2)
+        assert torch.equal(one.c2w[0], c2w[i // 2, i % 2]) and torch.equal(one.K[0], K[i // 2, i % 2])
+        assert (one.width, one.height) == (96, 80) and torch.equal(one.K[0, :, 2], cameras.K[i % 2, :, 2])
+    centre = RIG[0, :3, 3]
+    assert torch.equal(perturb_pose(RIG[0], centre, "z", 30.0, 0.0)[:3, 3], centre)  # a pivot at the camera centre
