@@ -550,8 +550,9 @@ class ArcSampler(_Turns):
 
 
 class MixSampler(_Sampler):
-    """Each move from one of ``samplers`` chosen uniformly (their own settings; the focal
-    change is this sampler's): a training mix of the paper's moves, tilts and arcs.
+    """Each move from one of ``samplers`` chosen uniformly, drawn from that sampler's ranges
+    with this sampler's seed, mode and focal change (those of ``samplers`` are not used): a
+    training mix of the paper's moves, tilts and arcs.
 
     Example:
         >>> s = MixSampler((PerturbationSampler("train"), TiltSampler(10.0), ArcSampler(45.0)), seed=0)
