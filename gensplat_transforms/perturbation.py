@@ -46,8 +46,11 @@ from .cameras import RIGID_TOLERANCE, Cameras, _check_rigid
 #: world axes a move can turn about by name; the paper's levels use x and y (``PAPER_AXES``)
 AXES = ("x", "y", "z")
 PAPER_AXES = ("x", "y")
-#: the samplers :func:`make_sampler` makes
-SAMPLERS = ("paper", "tilt", "arc", "mix")
+#: the kinds of move a sampler draws
+KINDS = ("paper", "tilt", "arc")
+#: the samplers :func:`make_sampler` makes by name ("mix": one of :data:`KINDS` per move); it
+#: also takes several kinds separated by commas (one of them per move, e.g. "tilt,arc")
+SAMPLERS = (*KINDS, "mix")
 #: width of a move's row (:meth:`Perturbation.as_row`): axis (3), theta_deg, mu_m, shift_m (3), focal_scale,
 #: pivot share (1: the rotation is about the pivot, 0: about the camera's centre)
 ROW = 10
@@ -588,22 +591,35 @@ def _non_negative(name: str, value: float, most: float = math.inf) -> float:
     return value
 
 
+def sampler_kinds(kind: str) -> tuple[str, ...]:
+    """The kinds of move (of :data:`KINDS`) the sampler ``kind`` draws (see :func:`make_sampler`),
+    or ValueError naming it unless it is one of :data:`SAMPLERS` or kinds separated by commas."""
+    kinds = KINDS if kind == "mix" else tuple(k.strip() for k in kind.split(",")) if isinstance(kind, str) else ()
+    if not kinds or not set(kinds) <= set(KINDS) or len(set(kinds)) < len(kinds):
+        raise ValueError(f"unknown perturbation sampler {kind!r}; choose one of {SAMPLERS}, or several of {KINDS} "
+                         f"separated by commas, each once (e.g. 'tilt,arc')")  # fmt: skip
+    return kinds
+
+
 def make_sampler(kind: str = "paper", level: str | PerturbationRange = "train", mode: str = "episode", seed: int = 0,
                  tilt_deg: float = 10.0, arc_deg: float = 45.0, shift_m: float = 0.03,
                  focal_scale: tuple[float, float] = (1.0, 1.0)) -> _Sampler:  # fmt: skip
-    """The sampler ``kind`` (one of :data:`SAMPLERS`) with its settings: "paper" draws from
-    ``level``, "tilt" from ``tilt_deg`` and ``shift_m``, "arc" from ``arc_deg`` and
-    ``shift_m``, "mix" from one of the three per move; every kind adds ``focal_scale``. Every
-    setting is checked, under its own name, whichever kind uses it."""
+    """The sampler ``kind`` with its settings: "paper" draws from ``level``, "tilt" from
+    ``tilt_deg`` and ``shift_m``, "arc" from ``arc_deg`` and ``shift_m``; "mix", or several
+    kinds separated by commas ("tilt,arc"), one of those kinds per move (:class:`MixSampler`;
+    "mix" is "paper,tilt,arc"); every kind adds ``focal_scale``. Every setting is checked,
+    under its own name, whichever kind uses it.
+
+    Example:
+        >>> sorted({make_sampler("tilt,arc", seed=1).sample(ep).about for ep in range(20)})
+        ['camera', 'pivot']
+    """
     _non_negative("tilt_deg", tilt_deg, 180.0), _non_negative("arc_deg", arc_deg, 180.0)
     _non_negative("shift_m", shift_m), _focal_range("focal_scale", focal_scale)
-    if kind == "paper":
-        return PerturbationSampler(level, mode, seed, focal_scale=focal_scale)
-    if kind == "tilt":
-        return TiltSampler(tilt_deg, shift_m, mode, seed, focal_scale)
-    if kind == "arc":
-        return ArcSampler(arc_deg, shift_m, mode, seed, focal_scale)
-    if kind == "mix":
-        return MixSampler((PerturbationSampler(level), TiltSampler(tilt_deg, shift_m), ArcSampler(arc_deg, shift_m)),
-                          mode, seed, focal_scale)  # fmt: skip
-    raise ValueError(f"unknown perturbation sampler {kind!r}; choose one of {SAMPLERS}")
+    kinds = sampler_kinds(kind)
+    make = {"paper": lambda **kw: PerturbationSampler(level, **kw), "tilt": lambda **kw: TiltSampler(tilt_deg, shift_m, **kw),
+            "arc": lambda **kw: ArcSampler(arc_deg, shift_m, **kw)}  # fmt: skip
+    settings = {"mode": mode, "seed": seed, "focal_scale": focal_scale}
+    if len(kinds) == 1:
+        return make[kinds[0]](**settings)
+    return MixSampler([make[k]() for k in kinds], **settings)

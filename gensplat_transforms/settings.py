@@ -7,7 +7,7 @@ import math
 import numbers
 from dataclasses import asdict, dataclass, field, fields
 
-from .perturbation import SAMPLERS, PerturbationRange, make_sampler
+from .perturbation import SAMPLERS, PerturbationRange, make_sampler, sampler_kinds
 from .rendering import BACKENDS
 
 RENDER_IN = ("auto", "worker", "batch")
@@ -20,6 +20,15 @@ def _cli(help: str, **argparse_options) -> dict:
     argparse options (the flag defaults to ``--<field-name>``; type and default come from the
     field, see :func:`add_config_arguments`)."""
     return {"cli": {"help": help, **argparse_options}}
+
+
+def _sampler_argument(text: str) -> str:
+    """``--sampler``'s value, checked (:func:`.perturbation.sampler_kinds`)."""
+    try:
+        sampler_kinds(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+    return text
 
 
 @dataclass
@@ -38,7 +47,8 @@ class GenSplatConfig:
             "tilt", the camera turned about a random axis through its own centre by up to
             ``tilt_deg`` and a world shift up to ``shift_m`` per axis; "arc", a turn about the world's vertical through the pivot by
             up to ``arc_deg`` and a step up to ``shift_m`` along the viewing axis; "mix", one of
-            the three per move.
+            the three per move; or several kinds separated by commas ("tilt,arc"), one of
+            those per move.
         level: a named level (see ``perturbation.LEVELS``) or a ``PerturbationRange`` (the
             "paper" sampler's).
         tilt_deg, arc_deg, shift_m: the "tilt" and "arc" samplers' ranges.
@@ -98,9 +108,9 @@ class GenSplatConfig:
     probability: float = field(default=0.5, metadata=_cli("chance a training sample is augmented"))
     sampler: str = field(default="paper", metadata=_cli(
         "paper: the paper's --level moves; tilt: random-axis turns about the camera and shifts; "
-        "arc: turns about the vertical; "
-        "mix: one of the three per move",
-        choices=SAMPLERS))  # fmt: skip
+        "arc: turns about the vertical; mix: one of the three per move; or several of them separated by "
+        "commas, one of those per move (e.g. tilt,arc)", metavar="{" + ",".join(SAMPLERS) + "}",
+        type=_sampler_argument))  # fmt: skip
     level: str | PerturbationRange = field(default="train", metadata=_cli("perturbation level of the paper sampler"))
     tilt_deg: float = field(default=10.0, metadata=_cli("tilt sampler: largest rotation, degrees"))
     arc_deg: float = field(default=45.0, metadata=_cli("arc sampler: largest turn either way, degrees"))

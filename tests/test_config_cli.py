@@ -37,10 +37,12 @@ def test_each_field_with_a_flag_is_on_the_parser_with_its_default():
     assert vars(parser.parse_args([])) == flagged
     zoom = vars(parser.parse_args(["--sampler", "arc", "--focal-scale", "0.8", "1.25"]))
     assert GenSplatConfig(**zoom).focal_scale == (0.8, 1.25) and GenSplatConfig(**zoom).sampler == "arc"
+    assert GenSplatConfig(**vars(parser.parse_args(["--sampler", "tilt,arc"]))).sampler == "tilt,arc"
 
 
 def test_a_bad_choice_or_type_is_a_usage_error():
     for bad in (["--mode", "sometimes"], ["--probability", "half"], ["--render-in", "gpu"], ["--sampler", "orbit"],
+                ["--sampler", "tilt,tilt"],
                 ["--focal-scale", "0.8"]):  # fmt: skip
         with pytest.raises(SystemExit):
             build_parser().parse_args([*BASE, *bad])

@@ -482,6 +482,24 @@ def test_the_mix_sampler_draws_each_kind_about_equally():
     assert s.sample(7) == make_sampler("mix", seed=4, shift_m=0.02).sample(7) != s.sample(8)
 
 
+def test_a_list_of_kinds_draws_one_of_them_per_move():
+    from gensplat_transforms.settings import GenSplatConfig
+
+    kind = lambda m: "tilt" if not isinstance(m.axis, str) else "arc" if m.axis == "z" else "paper"
+    s = make_sampler("tilt,arc", seed=4, shift_m=0.02, focal_scale=(0.9, 1.1))
+    kinds = [kind(m) for m in (s.sample(ep) for ep in range(600))]
+    assert set(kinds) == {"tilt", "arc"} and 250 < kinds.count("tilt") < 350
+    assert all(0.9 <= s.sample(ep).focal_scale <= 1.1 for ep in range(50))
+    assert s.sample(7) == make_sampler(" tilt , arc", seed=4, shift_m=0.02, focal_scale=(0.9, 1.1)).sample(7)
+    assert [make_sampler("paper,tilt,arc", seed=4).sample(ep) for ep in range(20)] == [
+        make_sampler("mix", seed=4).sample(ep) for ep in range(20)]  # "mix" names all three
+    for bad in ("tilt,tilt", "", "tilt,zoom", ",", "arc,", "Tilt", None):
+        with pytest.raises(ValueError, match=r"^unknown perturbation sampler .*separated by commas"):
+            make_sampler(bad)
+    assert GenSplatConfig.from_dict(GenSplatConfig(sampler="tilt,arc").to_dict()).perturbations().sample(3) == (
+        make_sampler("tilt,arc").sample(3))
+
+
 def test_a_turn_about_the_camera_keeps_its_centre_and_moves_the_image():
     """``about="camera"``: the orientation turns, the centre stays (then the shift applies);
     the pivot, which a turn about the pivot keeps at the same image point, leaves the image
