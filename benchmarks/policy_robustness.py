@@ -54,7 +54,10 @@ refused):
      under its VISTA protocol and costs at the training camera;
    * ``gensplat-fov-p0.5``, ``gensplat-arc-p0.5``: ``gensplat-fov`` and ``gensplat-arc`` with
      GenSplat replacing the camera with probability 0.5 (``MORE_OFTEN``), whatever
-     ``--probability`` says.
+     ``--probability`` says;
+   * ``gensplat-tiltarc``: the tilts and the arcs (sampler ``tilt,arc``: one of them per
+     camera) with probability 0.5, so that each kind moves a quarter of the samples, as in
+     ``gensplat-tilt`` and ``gensplat-arc``: the candidate for both VISTA protocols at once.
 
    The wider arms train on their own dataset roots (``work/dataset_<arm>``, links to
    ``work/dataset`` beside their own ``gensplat`` settings and cache), since LeRobot's
@@ -167,14 +170,17 @@ LEVELS = ("none", "small", "medium", "large")
 #: The evaluation protocols and their levels (``PerturbedCameraEnv``'s ``protocol``).
 PROTOCOLS = {"paper": LEVELS, "vista": SAMPLERS, "fov": ("zoom",)}
 ARMS = ("baseline", "lerobot2d", "perspective", "gensplat", "gensplat+lerobot2d", "gensplat+color", "gensplat-wide",
-        "gensplat-fov", "gensplat-tilt", "gensplat-arc", "gensplat-fov-p0.5", "gensplat-arc-p0.5")  # fmt: skip
+        "gensplat-fov", "gensplat-tilt", "gensplat-arc", "gensplat-fov-p0.5", "gensplat-arc-p0.5",
+        "gensplat-tiltarc")  # fmt: skip
 TWO_D_ARMS = ("lerobot2d", "perspective")
 GENSPLAT_ARMS = ARMS[ARMS.index("gensplat"):]
 #: The GenSplat settings the wider arms change (the others draw the paper's moves).
 SAMPLER_ARMS = {"gensplat-wide": {"sampler": "mix", "tilt_deg": 10.0, "arc_deg": 45.0, "shift_m": 0.03},
                 "gensplat-fov": {"focal_scale": FOV_RANGE},
                 "gensplat-tilt": {"sampler": "tilt", "tilt_deg": 10.0, "shift_m": 0.03},
-                "gensplat-arc": {"sampler": "arc", "arc_deg": 45.0, "shift_m": 0.03}}  # fmt: skip
+                "gensplat-arc": {"sampler": "arc", "arc_deg": 45.0, "shift_m": 0.03},
+                "gensplat-tiltarc": {"sampler": "tilt,arc", "tilt_deg": 10.0, "arc_deg": 45.0, "shift_m": 0.03,
+                                     "probability": 0.5}}  # fmt: skip
 #: Arms that draw another arm's moves, more often: {arm: (that arm, the chance GenSplat replaces a camera)}.
 MORE_OFTEN = {"gensplat-fov-p0.5": ("gensplat-fov", 0.5), "gensplat-arc-p0.5": ("gensplat-arc", 0.5)}
 SAMPLER_ARMS |= {arm: {**SAMPLER_ARMS[like], "probability": p} for arm, (like, p) in MORE_OFTEN.items()}
@@ -608,7 +614,7 @@ COLOURS = {"baseline": (214, 39, 40), "lerobot2d": (31, 119, 180), "perspective"
            "gensplat": (44, 160, 44), "gensplat+lerobot2d": (255, 127, 14), "gensplat+color": (140, 86, 75),
            "gensplat-wide": (23, 190, 207), "gensplat-fov": (227, 119, 194), "gensplat-tilt": (188, 189, 34),
            "gensplat-arc": (127, 127, 127), "gensplat-fov-p0.5": (247, 182, 210),
-           "gensplat-arc-p0.5": (199, 199, 199)}  # fmt: skip
+           "gensplat-arc-p0.5": (199, 199, 199), "gensplat-tiltarc": (219, 219, 141)}  # fmt: skip
 
 
 def plot(result: dict, path: Path) -> None:
