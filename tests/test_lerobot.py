@@ -69,11 +69,14 @@ def record_and_cache(root: Path, height: int, width: int, frames: int | None = N
     from gensplat_transforms.sim.record import RecordConfig, record
     from gensplat_transforms.sim.world import WorldConfig
 
+    scheduling = os.sched_getscheduler(0), os.sched_getparam(0)
     if frames is None:
         main(["record", "--out", str(root), "--episodes", "1", "--height", str(height), "--width", str(width)])
     else:  # a short clip: the command records whole demonstrations
         world = WorldConfig(height=height, width=width)
         record(RecordConfig(root, episodes=1, max_frames=frames, world=world), progress=False)
+    # run by root, the AV1 encoder makes its thread real-time: recording gives the old policy back
+    assert (os.sched_getscheduler(0), os.sched_getparam(0)) == scheduling
     main(["cache", "--root", str(root), "--repo-id", SIM_REPO, "--probability", "1"])
     return root
 

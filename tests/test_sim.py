@@ -313,3 +313,22 @@ def test_paired_difference():
     assert paired_difference(b, a)["points"] == -40
     with pytest.raises(ValueError, match="equal"):
         paired_difference([True], [True, False])
+
+
+def test_kept_scheduling_gives_the_thread_its_policy_back(monkeypatch):
+    """What the AV1 encoder does to a thread of root's (SCHED_FIFO, priority 99) is undone."""
+    import os
+
+    from gensplat_transforms.sim.record import kept_scheduling
+
+    state = {"policy": 0, "param": os.sched_param(0)}
+    monkeypatch.setattr(os, "sched_getscheduler", lambda pid: state["policy"])
+    monkeypatch.setattr(os, "sched_getparam", lambda pid: state["param"])
+    monkeypatch.setattr(os, "sched_setscheduler", lambda pid, policy, param: state.update(policy=policy, param=param))
+    with kept_scheduling():
+        state.update(policy=1, param=os.sched_param(99))  # what the encoder does
+    assert state == {"policy": 0, "param": os.sched_param(0)}
+    with pytest.raises(RuntimeError), kept_scheduling():  # also when the block fails
+        state.update(policy=1, param=os.sched_param(99))
+        raise RuntimeError
+    assert state["policy"] == 0

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import os
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -135,6 +136,23 @@ def record(config: RecordConfig, progress: bool = True) -> RecordResult:
         return _record(config, root, progress)
 
 
+@contextmanager
+def kept_scheduling():
+    """Run the block, then give the calling thread back the scheduling policy and priority it
+    had. LeRobot's AV1 encoder (SVT-AV1) run by root makes the thread that encodes a real-time
+    (``SCHED_FIFO``, priority 99) thread, which would then starve every other process of the
+    machine for the rest of the run."""
+    if not hasattr(os, "sched_getscheduler"):  # not on this platform
+        yield
+        return
+    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    try:
+        yield
+    finally:
+        if (os.sched_getscheduler(0), os.sched_getparam(0)) != (policy, param):
+            os.sched_setscheduler(0, policy, param)  # lowering a priority needs no privilege
+
+
 def _record(config: RecordConfig, root: Path, progress: bool) -> RecordResult:
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     os.environ.setdefault("SVT_LOG", "1")  # AV1 encoder: errors only
@@ -182,7 +200,8 @@ def _record(config: RecordConfig, root: Path, progress: bool) -> RecordResult:
                     if config.sensor_depth is not None:
                         z = sensor_depth(z, rgb.permute(2, 0, 1) / 255.0, K, config.sensor_depth, noise)
                     depth[name].append(z)
-            dataset.save_episode(parallel_encoding=False)  # no fork() of this multi-threaded GL process
+            with kept_scheduling():
+                dataset.save_episode(parallel_encoding=False)  # no fork() of this multi-threaded GL process
             for name in EXTERNAL_CAMERAS:
                 save_depth(root, name, saved, torch.stack(depth[name]))
             save_sim_episode(root, saved, episode, states)
@@ -196,7 +215,8 @@ def _record(config: RecordConfig, root: Path, progress: bool) -> RecordResult:
             )
     finally:
         bar.close()
-        dataset.finalize()
+        with kept_scheduling():
+            dataset.finalize()
         world.close()
     if saved < config.episodes:
         raise RuntimeError(f"only {saved} of {config.episodes} episodes succeeded in {attempts} attempts")
