@@ -57,7 +57,9 @@ refused):
      ``--probability`` says;
    * ``gensplat-tiltarc``: the tilts and the arcs (sampler ``tilt,arc``: one of them per
      camera) with probability 0.5, so that each kind moves a quarter of the samples, as in
-     ``gensplat-tilt`` and ``gensplat-arc``: the candidate for both VISTA protocols at once.
+     ``gensplat-tilt`` and ``gensplat-arc``: the candidate for both VISTA protocols at once;
+   * ``gensplat-zoom``: ``gensplat-fov``'s focal lengths alone, the camera in place (a tilt
+     sampler with no turn and no shift): only the effect the ``fov`` protocol calls for.
 
    The wider arms train on their own dataset roots (``work/dataset_<arm>``, links to
    ``work/dataset`` beside their own ``gensplat`` settings and cache), since LeRobot's
@@ -171,7 +173,7 @@ LEVELS = ("none", "small", "medium", "large")
 PROTOCOLS = {"paper": LEVELS, "vista": SAMPLERS, "fov": ("zoom",)}
 ARMS = ("baseline", "lerobot2d", "perspective", "gensplat", "gensplat+lerobot2d", "gensplat+color", "gensplat-wide",
         "gensplat-fov", "gensplat-tilt", "gensplat-arc", "gensplat-fov-p0.5", "gensplat-arc-p0.5",
-        "gensplat-tiltarc")  # fmt: skip
+        "gensplat-tiltarc", "gensplat-zoom")  # fmt: skip
 TWO_D_ARMS = ("lerobot2d", "perspective")
 GENSPLAT_ARMS = ARMS[ARMS.index("gensplat"):]
 #: The GenSplat settings the wider arms change (the others draw the paper's moves).
@@ -180,7 +182,8 @@ SAMPLER_ARMS = {"gensplat-wide": {"sampler": "mix", "tilt_deg": 10.0, "arc_deg":
                 "gensplat-tilt": {"sampler": "tilt", "tilt_deg": 10.0, "shift_m": 0.03},
                 "gensplat-arc": {"sampler": "arc", "arc_deg": 45.0, "shift_m": 0.03},
                 "gensplat-tiltarc": {"sampler": "tilt,arc", "tilt_deg": 10.0, "arc_deg": 45.0, "shift_m": 0.03,
-                                     "probability": 0.5}}  # fmt: skip
+                                     "probability": 0.5},
+                "gensplat-zoom": {"sampler": "tilt", "tilt_deg": 0.0, "shift_m": 0.0, "focal_scale": FOV_RANGE}}  # fmt: skip
 #: Arms that draw another arm's moves, more often: {arm: (that arm, the chance GenSplat replaces a camera)}.
 MORE_OFTEN = {"gensplat-fov-p0.5": ("gensplat-fov", 0.5), "gensplat-arc-p0.5": ("gensplat-arc", 0.5)}
 SAMPLER_ARMS |= {arm: {**SAMPLER_ARMS[like], "probability": p} for arm, (like, p) in MORE_OFTEN.items()}
@@ -614,7 +617,8 @@ COLOURS = {"baseline": (214, 39, 40), "lerobot2d": (31, 119, 180), "perspective"
            "gensplat": (44, 160, 44), "gensplat+lerobot2d": (255, 127, 14), "gensplat+color": (140, 86, 75),
            "gensplat-wide": (23, 190, 207), "gensplat-fov": (227, 119, 194), "gensplat-tilt": (188, 189, 34),
            "gensplat-arc": (127, 127, 127), "gensplat-fov-p0.5": (247, 182, 210),
-           "gensplat-arc-p0.5": (199, 199, 199), "gensplat-tiltarc": (219, 219, 141)}  # fmt: skip
+           "gensplat-arc-p0.5": (199, 199, 199), "gensplat-tiltarc": (219, 219, 141),
+           "gensplat-zoom": (158, 218, 229)}  # fmt: skip
 
 
 def plot(result: dict, path: Path) -> None:
