@@ -22,7 +22,8 @@ from .checked import tensors_state
 # OpenGL / nerfstudio / MuJoCo cameras look along -z with y up: flip y and z.
 _GL_TO_CV = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
 #: largest accepted |R^T R - I| entry, |det R - 1| and bottom-row error of a c2w (float32
-#: round-off of composed poses stays far below; a scale, shear or mirror is far above)
+#: round-off of composed poses stays far below; a scale, shear or mirror is far above); poses
+#: in a coarser dtype get :func:`rigid_tolerance`
 RIGID_TOLERANCE = 1e-3
 _K_TOLERANCE = 1e-6  # on K's fixed entries: skew, K[1, 0], K[2, :2] (0) and K[2, 2] (1)
 
@@ -43,6 +44,12 @@ def _check_intrinsics(K: np.ndarray) -> None:
             f"Cameras.K: must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew, K[2, 2] = 1), "
             f"got {K[i].tolist()} (camera {i})"
         )
+
+
+def rigid_tolerance(dtype: torch.dtype) -> float:
+    """The rigidity tolerance of poses held in ``dtype``: :data:`RIGID_TOLERANCE`, or 8
+    epsilons of a dtype coarser than float32 (float16 rounds a rotation by up to ~1e-3)."""
+    return max(RIGID_TOLERANCE, 8 * torch.finfo(dtype).eps) if dtype.is_floating_point else RIGID_TOLERANCE
 
 
 def _check_rigid(T: np.ndarray, tolerance: float = RIGID_TOLERANCE) -> None:
@@ -76,8 +83,8 @@ class Cameras:
     Construction raises ``ValueError`` naming the field for anything that is not such a
     camera: wrong shapes, NaN or Inf, focal lengths <= 0, skew or K[2, 2] != 1 (beyond
     1e-6), a c2w rotation that is not orthonormal with determinant +1 (beyond
-    ``RIGID_TOLERANCE``: no scale, shear or mirroring), a c2w bottom row other than
-    [0, 0, 0, 1] (same tolerance). Cameras the library derives from checked ones (indexing,
+    ``RIGID_TOLERANCE``, 8 epsilons for float16 and bfloat16 poses: no scale, shear or
+    mirroring), a c2w bottom row other than [0, 0, 0, 1] (same tolerance). Cameras the library derives from checked ones (indexing,
     ``Perturbation.move``) are not checked again, unless a tensor of the cameras they come
     from was replaced or changed in place through torch since its check (its version counter
     moved; writes through ``.data`` or a NumPy view go unseen there).
@@ -118,7 +125,7 @@ class Cameras:
             if not np.isfinite(values).all():
                 raise ValueError(f"Cameras.{name}: contains NaN or Inf")
         _check_intrinsics(K)
-        _check_rigid(c2w)
+        _check_rigid(c2w, rigid_tolerance(self.c2w.dtype))
         self._checked = self._state()
 
     def _state(self) -> tuple | None:

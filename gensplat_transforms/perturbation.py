@@ -41,7 +41,7 @@ import numpy as np
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
-from .cameras import RIGID_TOLERANCE, Cameras, _check_rigid
+from .cameras import Cameras, _check_rigid, rigid_tolerance
 
 #: world axes a move can turn about by name; the paper's levels use x and y (``PAPER_AXES``)
 AXES = ("x", "y", "z")
@@ -364,13 +364,12 @@ def _floating(name: str, c2w: torch.Tensor) -> None:
 
 def _rigid(name: str, c2w: torch.Tensor) -> torch.Tensor:
     """The (..., 4, 4) moved poses ``c2w``, or ``ValueError`` naming ``name`` unless each is a
-    finite rigid transform (:func:`.cameras._check_rigid`, with 8 epsilons of a dtype coarser
-    than float32 as the tolerance)."""
+    finite rigid transform (:func:`.cameras._check_rigid`, to :func:`.cameras.rigid_tolerance`)."""
     T = c2w.detach().reshape(-1, 4, 4).to("cpu", torch.float64).numpy()
     try:
         if not np.isfinite(T).all():
             raise ValueError("not finite")
-        _check_rigid(T, max(RIGID_TOLERANCE, 8 * torch.finfo(c2w.dtype).eps))
+        _check_rigid(T, rigid_tolerance(c2w.dtype))
     except ValueError as e:
         raise ValueError(f"{name}: the moved poses are not finite rigid transforms ({e}): the poses must be "
                          f"rigid and the moves finite in {c2w.dtype}") from None  # fmt: skip

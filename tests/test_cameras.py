@@ -405,7 +405,7 @@ def test_cameras_derived_from_checked_ones_are_not_checked_again(cams, monkeypat
     """Indexing checked cameras costs no second check; editing their tensors in place
     through torch or replacing one brings the checks back."""
     calls = []
-    monkeypatch.setattr(cameras_module, "_check_rigid", lambda c2w: calls.append(len(c2w)))
+    monkeypatch.setattr(cameras_module, "_check_rigid", lambda c2w, tolerance: calls.append(len(c2w)))
     one = cams[1]
     assert len(one[0]) == 1 and calls == []
     torch.testing.assert_close(one.c2w, cams.c2w[1:2])
@@ -426,7 +426,7 @@ def test_cameras_of_inference_mode_tensors_are_checked_every_time(cams, monkeypa
     with torch.inference_mode():
         frozen = Cameras(cams.K.clone(), cams.c2w.clone(), W, H)
         calls = []
-        monkeypatch.setattr(cameras_module, "_check_rigid", lambda c2w: calls.append(len(c2w)))
+        monkeypatch.setattr(cameras_module, "_check_rigid", lambda c2w, tolerance: calls.append(len(c2w)))
         torch.testing.assert_close(frozen[2].c2w, cams.c2w[2:])
     assert calls == [1]
 

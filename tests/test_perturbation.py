@@ -348,7 +348,7 @@ def test_move_checks_the_moved_pose_only_for_overflow(monkeypatch):
     from gensplat_transforms.scenes import default_cameras
 
     cams = default_cameras(32, 32)
-    monkeypatch.setattr(cameras_module, "_check_rigid", lambda c2w: pytest.fail("checked again"))
+    monkeypatch.setattr(cameras_module, "_check_rigid", lambda c2w, tolerance: pytest.fail("checked again"))
     Perturbation("y", -20.0, 0.05).move(cams, 0)
     monkeypatch.undo()
     far = cams.c2w.clone()

@@ -128,3 +128,15 @@ def test_a_batch_through_move_rig_is_perturbation_move_one_at_a_time(dtype):
         assert (one.width, one.height) == (96, 80) and torch.equal(one.K[0, :, 2], cameras.K[i % 2, :, 2])
     centre = RIG[0, :3, 3]
     assert torch.equal(perturb_pose(RIG[0], centre, "z", 30.0, 0.0)[:3, 3], centre)  # a pivot at the camera centre
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_moved_half_precision_cameras_are_cameras_again_and_scaled_ones_are_not(dtype):
+    cameras = CAMS.to(dtype=dtype)
+    for seed in range(200):  # float16 rounds some moved rotations by more than RIGID_TOLERANCE
+        moved = make_sampler("tilt", seed=seed).sample(0).move(cameras, seed % 2)
+        assert Cameras(moved.K, moved.c2w, 96, 80).c2w.dtype == dtype
+    scaled = CAMS.c2w.clone()
+    scaled[0, :3, :3] *= 1.1
+    with pytest.raises(ValueError, match=r"^Cameras.c2w: rotation is not orthonormal"):
+        Cameras(CAMS.K.to(dtype), scaled.to(dtype), 96, 80)
