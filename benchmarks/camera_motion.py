@@ -11,8 +11,9 @@ and 20 cm) are projected with the nominal camera and with each moved one. Rows:
   those ``PerturbedCameraEnv`` (seed 0) gives the robustness study's policies;
 * ``train/gensplat``: GenSplat's training moves (level ``train``, seed 0, episodes 0..N-1,
   views 0-2), about the pivot of the external cameras, as the transform draws them;
-  ``train/gensplat-wide``, ``train/gensplat-fov``, ``train/gensplat-tilt``, ``train/gensplat-arc``: those of
-  the wider arms (``SAMPLER_ARMS``; the arms that draw one of them more often have its row);
+  ``train/gensplat-wide``, ``train/gensplat-fov``, ``train/gensplat-tilt`` and the other
+  ``train/gensplat-<arm>`` rows: those of the wider arms (``SAMPLER_ARMS``; the arms that
+  draw one of them more often have its row);
 * ``train/perspective``: the perspective arm's warps, torchvision's
   ``RandomPerspective(distortion_scale)`` corner draws (seeded) applied to the image points.
 
