@@ -59,7 +59,10 @@ refused):
      camera) with probability 0.5, so that each kind moves a quarter of the samples, as in
      ``gensplat-tilt`` and ``gensplat-arc``: the candidate for both VISTA protocols at once;
    * ``gensplat-zoom``: ``gensplat-fov``'s focal lengths alone, the camera in place (a tilt
-     sampler with no turn and no shift): only the effect the ``fov`` protocol calls for.
+     sampler with no turn and no shift): only the effect the ``fov`` protocol calls for;
+   * ``gensplat-unmoved``: a control, the camera rendered where it is (no move, no zoom) on
+     half the samples: what replacing real images with renders costs the policy, apart from
+     any move (the arms moving half the samples pay 14-19 points at the training camera).
 
    The wider arms train on their own dataset roots (``work/dataset_<arm>``, links to
    ``work/dataset`` beside their own ``gensplat`` settings and cache), since LeRobot's
@@ -173,7 +176,7 @@ LEVELS = ("none", "small", "medium", "large")
 PROTOCOLS = {"paper": LEVELS, "vista": SAMPLERS, "fov": ("zoom",)}
 ARMS = ("baseline", "lerobot2d", "perspective", "gensplat", "gensplat+lerobot2d", "gensplat+color", "gensplat-wide",
         "gensplat-fov", "gensplat-tilt", "gensplat-arc", "gensplat-fov-p0.5", "gensplat-arc-p0.5",
-        "gensplat-tiltarc", "gensplat-zoom")  # fmt: skip
+        "gensplat-tiltarc", "gensplat-zoom", "gensplat-unmoved")  # fmt: skip
 TWO_D_ARMS = ("lerobot2d", "perspective")
 GENSPLAT_ARMS = ARMS[ARMS.index("gensplat"):]
 #: The GenSplat settings the wider arms change (the others draw the paper's moves).
@@ -183,7 +186,8 @@ SAMPLER_ARMS = {"gensplat-wide": {"sampler": "mix", "tilt_deg": 10.0, "arc_deg":
                 "gensplat-arc": {"sampler": "arc", "arc_deg": 45.0, "shift_m": 0.03},
                 "gensplat-tiltarc": {"sampler": "tilt,arc", "tilt_deg": 10.0, "arc_deg": 45.0, "shift_m": 0.03,
                                      "probability": 0.5},
-                "gensplat-zoom": {"sampler": "tilt", "tilt_deg": 0.0, "shift_m": 0.0, "focal_scale": FOV_RANGE}}  # fmt: skip
+                "gensplat-zoom": {"sampler": "tilt", "tilt_deg": 0.0, "shift_m": 0.0, "focal_scale": FOV_RANGE},
+                "gensplat-unmoved": {"sampler": "tilt", "tilt_deg": 0.0, "shift_m": 0.0, "probability": 0.5}}  # fmt: skip
 #: Arms that draw another arm's moves, more often: {arm: (that arm, the chance GenSplat replaces a camera)}.
 MORE_OFTEN = {"gensplat-fov-p0.5": ("gensplat-fov", 0.5), "gensplat-arc-p0.5": ("gensplat-arc", 0.5)}
 SAMPLER_ARMS |= {arm: {**SAMPLER_ARMS[like], "probability": p} for arm, (like, p) in MORE_OFTEN.items()}
@@ -618,7 +622,7 @@ COLOURS = {"baseline": (214, 39, 40), "lerobot2d": (31, 119, 180), "perspective"
            "gensplat-wide": (23, 190, 207), "gensplat-fov": (227, 119, 194), "gensplat-tilt": (188, 189, 34),
            "gensplat-arc": (127, 127, 127), "gensplat-fov-p0.5": (247, 182, 210),
            "gensplat-arc-p0.5": (199, 199, 199), "gensplat-tiltarc": (219, 219, 141),
-           "gensplat-zoom": (158, 218, 229)}  # fmt: skip
+           "gensplat-zoom": (158, 218, 229), "gensplat-unmoved": (0, 0, 0)}  # fmt: skip
 
 
 def plot(result: dict, path: Path) -> None:
@@ -687,9 +691,9 @@ def markdown(result: dict) -> str:
     return "\n".join(lines)
 
 
-def moved_share(augmentation: dict | None) -> str:
-    """The share of training samples whose camera an arm's ``augmentation`` (its entry in a
-    result's settings) moves, as a percentage; "" when unknown."""
+def augmented_share(augmentation: dict | None) -> str:
+    """The share of training samples whose image an arm's ``augmentation`` (its entry in a
+    result's settings) replaces with a render or a warp, as a percentage; "" when unknown."""
     if augmentation is None:
         return ""
     if "gensplat" in augmentation:
@@ -721,13 +725,13 @@ def range_markdown(result: dict, motion: dict) -> str:
         for protocol, level in columns:
             rates = ((protocol_part(result, protocol) or {}).get("arms") or {}).get(arm, {})
             cells.append(f"{rates[level]:.0f}" if level in rates else "")
-        ranges = [moved_share(result.get("settings", {}).get("augmentation", {}).get(arm))]
+        ranges = [augmented_share(result.get("settings", {}).get("augmentation", {}).get(arm))]
         ranges += ["-" if draws[f"{k}_median"] is None else f"{draws[f'{k}_median']:.1f} ({draws[f'{k}_p95']:.1f})"
                   for k in ("shift_pct", "view_change_deg")]  # an image warp has no view change
         lines.append(f"| {arm} | " + " | ".join(ranges + cells) + " |")
     if not lines:
         return ""
-    head = ["arm", "samples moved", "training shift % of width", "training view change (deg)"]
+    head = ["arm", "samples augmented", "training shift % of width", "training view change (deg)"]
     head += [f"{protocol} {level}" for protocol, level in columns]
     title = "Training range against success % (range: median (95th percentile) of the arm's training draws):"
     return "\n".join([title, "", "| " + " | ".join(head) + " |",

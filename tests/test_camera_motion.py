@@ -41,13 +41,14 @@ def test_a_small_run_orders_the_paper_levels():
     assert set(rows) == {"paper/none", "paper/small", "paper/medium", "paper/large", "vista/small_perturb",
                          "vista/arc_90deg", "fov/zoom", "train/gensplat", "train/gensplat-wide",
                          "train/gensplat-fov", "train/gensplat-tilt", "train/gensplat-arc", "train/gensplat-tiltarc", "train/gensplat-zoom",
-                         "train/perspective"}  # fmt: skip
+                         "train/gensplat-unmoved", "train/perspective"}  # fmt: skip
     # arcs change the viewpoint beyond the paper's moves; tilts turn the camera about its own centre
     assert rows["train/gensplat-arc"]["view_change_deg_p95"] > rows["train/gensplat"]["view_change_deg_p95"]
     assert rows["train/gensplat-tilt"]["view_change_deg_median"] < rows["train/gensplat"]["view_change_deg_median"]
     # a zoom moves the image points, not the camera
     assert rows["fov/zoom"]["shift_pct_median"] > 1.0 and rows["fov/zoom"]["view_change_deg_p95"] == 0.0
     assert rows["train/gensplat-zoom"]["shift_pct_median"] > 1.0 and rows["train/gensplat-zoom"]["view_change_deg_p95"] == 0.0
+    assert rows["train/gensplat-unmoved"]["shift_pct_p95"] == rows["train/gensplat-unmoved"]["view_change_deg_p95"] == 0.0
     assert rows["train/gensplat-fov"]["shift_pct_median"] > rows["train/gensplat"]["shift_pct_median"]
     # the wide arm's tilts turn the camera about its own centre: they move the image more
     assert rows["train/gensplat-wide"]["shift_pct_p95"] > rows["train/gensplat"]["shift_pct_p95"]

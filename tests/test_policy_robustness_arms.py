@@ -159,7 +159,7 @@ def evaluation(solved: dict[str, int], episodes: int) -> dict:
 def test_result_compares_every_arm_under_both_protocols(tmp_path, capsys):
     solved = {"baseline": 2, "lerobot2d": 4, "perspective": 6, "gensplat": 9, "gensplat+lerobot2d": 7, "gensplat+color": 8,
               "gensplat-wide": 5, "gensplat-fov": 3, "gensplat-tilt": 4, "gensplat-arc": 6, "gensplat-fov-p0.5": 4,
-              "gensplat-arc-p0.5": 5, "gensplat-tiltarc": 6, "gensplat-zoom": 7}  # fmt: skip
+              "gensplat-arc-p0.5": 5, "gensplat-tiltarc": 6, "gensplat-zoom": 7, "gensplat-unmoved": 5}  # fmt: skip
     args = pr.parse_args(["--episodes", "10"])
     result = pr.build_result(evaluation(solved, 10), 10, False, pr.result_settings(args), {})
     assert list(result["protocols"]) == ["vista", "fov"] and result["episodes_per_level"] == 10
