@@ -84,8 +84,8 @@ class Cameras:
     camera: wrong shapes, NaN or Inf, focal lengths <= 0, skew or K[2, 2] != 1 (beyond
     1e-6), a c2w rotation that is not orthonormal with determinant +1 (beyond
     ``RIGID_TOLERANCE``, 8 epsilons for float16 and bfloat16 poses: no scale, shear or
-    mirroring), a c2w bottom row other than [0, 0, 0, 1] (same tolerance). Cameras the library derives from checked ones (indexing,
-    ``Perturbation.move``) are not checked again, unless a tensor of the cameras they come
+    mirroring), a c2w bottom row other than [0, 0, 0, 1] (same tolerance). Cameras the
+    library derives from checked ones (indexing, ``Perturbation.move``) are not checked again, unless a tensor of the cameras they come
     from was replaced or changed in place through torch since its check (its version counter
     moved; writes through ``.data`` or a NumPy view go unseen there).
 
