@@ -85,9 +85,10 @@ class Cameras:
     1e-6), a c2w rotation that is not orthonormal with determinant +1 (beyond
     ``RIGID_TOLERANCE``, 8 epsilons for float16 and bfloat16 poses: no scale, shear or
     mirroring), a c2w bottom row other than [0, 0, 0, 1] (same tolerance). Cameras the
-    library derives from checked ones (indexing, ``Perturbation.move``) are not checked again, unless a tensor of the cameras they come
-    from was replaced or changed in place through torch since its check (its version counter
-    moved; writes through ``.data`` or a NumPy view go unseen there).
+    library derives from checked ones (indexing, ``Perturbation.move``) are not checked
+    again, unless a tensor of the cameras they come from was replaced or changed in place
+    through torch since its check (its version counter moved; writes through ``.data`` or a
+    NumPy view go unseen there).
 
     Example:
         >>> c2w = look_at(eye=(1.0, 0.0, 0.5), target=(0.0, 0.0, 0.0))
