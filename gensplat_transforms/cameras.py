@@ -52,7 +52,7 @@ def rigid_tolerance(dtype: torch.dtype) -> float:
     return max(RIGID_TOLERANCE, 8 * torch.finfo(dtype).eps) if dtype.is_floating_point else RIGID_TOLERANCE
 
 
-def _check_rigid(T: np.ndarray, tolerance: float = RIGID_TOLERANCE) -> None:
+def _check_rigid(T: np.ndarray, tolerance: float) -> None:
     """Raise ``ValueError`` unless every (4, 4) of c2w (float64) is a rigid transform within
     ``tolerance``: bottom row [0, 0, 0, 1], rotation orthonormal with determinant +1."""
     bad = ~(np.abs(T[:, 3] - np.array([0.0, 0.0, 0.0, 1.0])) <= tolerance).all(-1)
