@@ -154,4 +154,15 @@ def test_preview_labels_name_each_move_and_where_it_turns():
     label = _label(item, frame=3, view=0, cameras=("left", "right", "top"))
     assert label.splitlines()[:3] == ["frame 3, view 1", "left: x +5.0 deg", "  mu 2.0 cm"]
     assert "right: -7.5 deg\n  about +0.0,+0.6,+0.8\n  through the camera\n  mu 0.0 cm\n  shift +1.0,+0.0,+0.0 cm" in label
-    assert label.count("through the camera") == 1 and label.endswith("top: z +30.0 deg\n  mu 0.0 cm\n  focal x1.20")
+    assert label.count("through the camera") == 1 and label.endswith("top: z +30.0 deg\n  mu 0.0 cm\n  focal x1.2")
+
+
+@pytest.mark.parametrize(("scale", "text"), [(0.8123, "0.812"), (1e-30, "1e-30"), (3.7e30, "3.7e+30")])
+def test_preview_labels_give_any_focal_change_in_three_digits(scale, text):
+    from gensplat_lerobot.training_preview import _label
+
+    from gensplat_transforms.perturbation import Perturbation
+
+    item = {"gensplat.axis": torch.tensor([0]), "gensplat.move": torch.tensor([Perturbation(focal_scale=scale).as_row()],
+                                                                                 dtype=torch.float64)}  # fmt: skip
+    assert _label(item, frame=0, view=0, cameras=("left",)).endswith(f"focal x{text}")

@@ -137,5 +137,5 @@ def _label(item: dict, frame: int, view: int, cameras: Sequence[str]) -> str:
         if bool(move[5:8].any()):
             lines.append("  shift {:+.1f},{:+.1f},{:+.1f} cm".format(*(move[5:8] * 100).tolist()))
         if float(move[8]) != 1.0:
-            lines.append(f"  focal x{float(move[8]):.2f}")
+            lines.append(f"  focal x{float(move[8]):.3g}")  # 1.2, 0.812, 1e+30: any scale readable
     return "\n".join(lines)
