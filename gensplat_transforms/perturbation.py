@@ -56,6 +56,9 @@ SAMPLERS = (*KINDS, "mix")
 ROW = 10
 #: where a move's rotation turns the camera about (:attr:`Perturbation.about`)
 ABOUT = ("pivot", "camera")
+#: the focal-length factors a move may have (a 1000x zoom either way): beyond them a float32
+#: projection overflows and a render comes back empty, which no lens calls for
+FOCAL_SCALE_LIMITS = (1e-3, 1e3)
 
 
 def _real(name: str, value) -> float:
@@ -96,10 +99,14 @@ def _pair(name: str, value) -> tuple[float, float]:
 
 
 def _focal_range(name: str, value) -> tuple[float, float]:
-    """``value`` as (low, high) floats, or an error naming ``name`` unless 0 < low <= high < inf."""
+    """``value`` as (low, high) floats, or an error naming ``name`` unless 0 < low <= high and
+    both lie in :data:`FOCAL_SCALE_LIMITS`."""
     lo, hi = _pair(name, value)
     if not 0 < lo <= hi < math.inf:
         raise ValueError(f"{name}: need 0 < low <= high, got {(lo, hi)}")
+    if not FOCAL_SCALE_LIMITS[0] <= lo <= hi <= FOCAL_SCALE_LIMITS[1]:
+        raise ValueError(f"{name}: {(lo, hi)} reaches outside the focal-length factors "
+                         f"{FOCAL_SCALE_LIMITS[0]:g} to {FOCAL_SCALE_LIMITS[1]:g} a render can show")  # fmt: skip
     return lo, hi
 
 
@@ -201,8 +208,9 @@ class Perturbation:
             object.__setattr__(self, name, _real(f"Perturbation.{name}", getattr(self, name)))
         if not (math.isfinite(self.theta_deg) and math.isfinite(self.mu_m)):
             raise ValueError(f"Perturbation: theta and mu must be finite, got {self.theta_deg}, {self.mu_m}")
-        if not (math.isfinite(self.focal_scale) and self.focal_scale > 0):
-            raise ValueError(f"Perturbation.focal_scale must be a positive number, got {self.focal_scale}")
+        lo, hi = FOCAL_SCALE_LIMITS
+        if not lo <= self.focal_scale <= hi:
+            raise ValueError(f"Perturbation.focal_scale must be a factor from {lo:g} to {hi:g}, got {self.focal_scale}")
 
     @property
     def is_identity(self) -> bool:
@@ -254,8 +262,13 @@ class Perturbation:
 
 def scale_focal(K: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
     """(..., 3, 3) intrinsics with their focal lengths (and skew) multiplied by (...) ``scale``,
-    the principal point kept; ValueError where a focal length so scaled is not a finite positive
-    number of K's dtype."""
+    the principal point kept; ValueError where a factor lies outside :data:`FOCAL_SCALE_LIMITS`
+    or a focal length so scaled is not a finite positive number of K's dtype."""
+    lo, hi = FOCAL_SCALE_LIMITS
+    outside = ~((scale >= lo) & (scale <= hi))  # NaN included
+    if outside.any():
+        raise ValueError(f"scale_focal: focal_scale {float(scale[outside][0])} outside the factors "
+                         f"{lo:g} to {hi:g} a render can show")  # fmt: skip
     out = K.clone()
     out[..., :2, :2] = K[..., :2, :2] * scale.to(K)[..., None, None]
     focal = out[..., [0, 1], [0, 1]]

@@ -53,8 +53,8 @@ class GenSplatConfig:
             "paper" sampler's).
         tilt_deg, arc_deg, shift_m: the "tilt" and "arc" samplers' ranges.
         focal_scale: (low, high) range of a focal-length change drawn log-uniformly for every
-            move (principal point and image size kept; holes the wider view reveals are
-            filled); (1, 1), the default, changes nothing.
+            move, within ``perturbation.FOCAL_SCALE_LIMITS`` (principal point and image size
+            kept; holes the wider view reveals are filled); (1, 1), the default, changes nothing.
         mode: "episode" (one perturbation per trajectory, the paper's default) or "frame".
         views_per_source: distinct perturbed cameras per trajectory (the paper: ~3).
         seed: fixes the set of perturbations; which one a sample gets is drawn from torch's
@@ -116,7 +116,7 @@ class GenSplatConfig:
     arc_deg: float = field(default=45.0, metadata=_cli("arc sampler: largest turn either way, degrees"))
     shift_m: float = field(default=0.03, metadata=_cli("tilt and arc samplers: largest shift, metres"))
     focal_scale: tuple[float, float] = field(default=(1.0, 1.0), metadata=_cli(
-        "range of focal-length factors drawn for every move, e.g. 0.8 1.25", nargs=2, type=float,
+        "range of focal-length factors drawn for every move (0.001 to 1000), e.g. 0.8 1.25", nargs=2, type=float,
         metavar=("LOW", "HIGH")))  # fmt: skip
     mode: str = field(default="episode", metadata=_cli(
         "episode: one perturbation per trajectory and view; frame: a new one every frame", choices=MODES))

@@ -5,8 +5,11 @@ import math
 import pytest
 import torch
 
+from gensplat_transforms.cache import GaussianCache
 from gensplat_transforms.cameras import Cameras, look_at
+from gensplat_transforms.episodes import SceneEpisodes, build_cache
 from gensplat_transforms.perturbation import (
+    FOCAL_SCALE_LIMITS,
     ROW,
     SAMPLERS,
     MixSampler,
@@ -18,11 +21,22 @@ from gensplat_transforms.perturbation import (
     perturb_pose,
     scale_focal,
 )
+from gensplat_transforms.reconstruction import RGBDReconstructor
 from gensplat_transforms.settings import GenSplatConfig
+from gensplat_transforms.view_output import render_view
 
 F64 = torch.float64
 RIG = torch.stack([look_at((1.05, 0.4, 0.5), (0.45, 0.0, 0.12)), look_at((1.05, -0.4, 0.5), (0.45, 0.0, 0.12))])
 CAMS = Cameras.from_intrinsics(100.0, 90.0, 48.0, 40.0, RIG, 96, 80)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """One cached reconstruction of the procedural scene (24x24) and the transform's settings."""
+    source = SceneEpisodes(num_episodes=1, num_frames=1, size=24)
+    cache = GaussianCache(tmp_path_factory.mktemp("cache"), RGBDReconstructor(), source.fingerprint)
+    build_cache(cache, source, range(1), progress=False)
+    return cache.read(0, 0, source.views(0, 0).images), GenSplatConfig()
 
 
 def rigid_error(c2w: torch.Tensor) -> float:
@@ -64,18 +78,38 @@ def test_ranges_too_wide_to_draw_from_are_refused_when_set():
                         (lambda: MixSampler(s for s in ()), "needs at least one sampler")]:  # fmt: skip
         with pytest.raises(ValueError, match=match):
             make()
-    move = make_sampler("mix", shift_m=1e300, arc_deg=180.0, tilt_deg=180.0, focal_scale=(1e-6, 1e6)).sample(3)
+    move = make_sampler("mix", shift_m=1e300, arc_deg=180.0, tilt_deg=180.0, focal_scale=FOCAL_SCALE_LIMITS).sample(3)
     assert all(math.isfinite(v) for v in move.as_row())
 
 
-@pytest.mark.parametrize(("scale", "dtype"), [(1e307, F64), (1e300, torch.float32), (1e-300, torch.float32),
-                                              (1e-9, torch.float16)])  # fmt: skip
-def test_a_focal_change_out_of_the_dtypes_range_raises_instead_of_inf_or_zero_focal_lengths(scale, dtype):
-    cameras = CAMS.to(dtype=dtype)
-    with pytest.raises(ValueError, match=r"focal_scale"):
-        Perturbation(focal_scale=scale).move(cameras, 0)
-    with pytest.raises(ValueError, match=r"^scale_focal: .*focal_scale"):
-        scale_focal(cameras.K, torch.tensor([scale, 1.0], dtype=F64))
+@pytest.mark.parametrize("scale", [1e307, 1e20, 1000.001, 9.99e-4, 1e-300, math.inf, math.nan])
+def test_a_focal_change_beyond_the_limits_is_refused_by_the_move_the_sampler_and_the_batch_rows(scale):
+    """Beyond a 1000x zoom either way a float32 projection overflows and the render would come
+    back empty: the move, a sampler's range and scale_focal's rows all refuse it."""
+    with pytest.raises(ValueError, match=r"^Perturbation.focal_scale must be a factor from 0.001 to 1000, got"):
+        Perturbation(focal_scale=scale)
+    if math.isfinite(scale):  # (a NaN or Inf range is refused as such)
+        with pytest.raises(ValueError, match=r"^focal_scale: .* outside the focal-length factors 0.001 to 1000"):
+            make_sampler("arc", focal_scale=sorted((scale, 1.0)))
+    with pytest.raises(ValueError, match=r"^scale_focal: focal_scale .* outside the factors 0.001 to 1000"):
+        scale_focal(CAMS.K, torch.tensor([1.0, scale], dtype=F64))
+
+
+def test_a_focal_change_out_of_the_dtypes_range_raises_instead_of_inf_focal_lengths():
+    cameras = CAMS.to(dtype=torch.float16)  # fx 100 x 1000 is beyond float16's 65504
+    with pytest.raises(ValueError, match=r"^scale_focal: focal_scale 1000.0 gives focal lengths .*torch.float16"):
+        Perturbation(focal_scale=1e3).move(cameras, 0)
+
+
+@pytest.mark.parametrize("scale", FOCAL_SCALE_LIMITS)
+def test_a_render_at_the_focal_limits_is_finite_and_a_full_zoom_in_still_sees_the_scene(scale, scene):
+    rec, config = scene
+    out = render_view(rec, Perturbation(focal_scale=scale).move(rec.cameras, 0), config)
+    assert all(bool(torch.isfinite(t).all()) for t in (out.rgb, out.alpha))
+    if scale > 1:  # 1000x in: every pixel sees the scene
+        assert float(out.alpha.min()) > 0.5
+    else:  # 1000x out: the scene shrinks to a speck, still drawn
+        assert 0 < float(out.alpha.mean()) < 0.1
 
 
 @pytest.mark.parametrize(("theta", "dtype"), [(1e300, F64), (-1e200, F64), (2e4, torch.float16), (1e39, torch.float32)])
