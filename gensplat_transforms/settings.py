@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import argparse
 import math
-import numbers
 from dataclasses import asdict, dataclass, field, fields
 
-from .perturbation import SAMPLERS, PerturbationRange, make_sampler, sampler_kinds
+from .perturbation import SAMPLERS, PerturbationRange, _integer, make_sampler, sampler_kinds
 from .rendering import BACKENDS
 
 RENDER_IN = ("auto", "worker", "batch")
@@ -158,8 +157,7 @@ class GenSplatConfig:
             raise ValueError(f"GenSplatConfig.replace: {unknown} are not reconstructed cameras {self.cameras}")
         if not 0 <= self.probability <= 1:
             raise ValueError(f"GenSplatConfig.probability must be in [0, 1], got {self.probability}")
-        if isinstance(self.views_per_source, bool) or not isinstance(self.views_per_source, numbers.Integral):
-            raise TypeError(f"GenSplatConfig.views_per_source must be an integer, got {self.views_per_source!r}")
+        self.views_per_source = _integer("GenSplatConfig.views_per_source", self.views_per_source)
         if self.views_per_source < 1:
             raise ValueError(f"GenSplatConfig.views_per_source must be >= 1, got {self.views_per_source}")
         if self.backend not in (*BACKENDS, "auto"):

@@ -1,7 +1,9 @@
 """The wider samplers and the focal-length change against hostile settings, values and poses."""
 
+import json
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -58,6 +60,7 @@ def rigid_error(c2w: torch.Tensor) -> float:
         (lambda: GenSplatConfig(seed="7"), r"seed must be an integer, got '7'"),
         (lambda: GenSplatConfig(views_per_source=math.nan), r"^GenSplatConfig.views_per_source must be an integer"),
         (lambda: GenSplatConfig(views_per_source="3"), r"^GenSplatConfig.views_per_source must be an integer"),
+        (lambda: GenSplatConfig(views_per_source=True), r"^GenSplatConfig.views_per_source must be an integer"),
         (lambda: TiltSampler(10.0).sample(1.5), r"^TiltSampler.sample: episode_index must be an integer, got 1.5"),
         (lambda: Perturbation(shift_m="123"), r"^Perturbation.shift_m must be 3 numbers"),
         (lambda: Perturbation(focal_scale=True), r"^Perturbation.focal_scale must be a number, got True"),
@@ -68,6 +71,13 @@ def rigid_error(c2w: torch.Tensor) -> float:
 def test_settings_of_the_wrong_type_raise_type_errors_naming_them(make, match):
     with pytest.raises(TypeError, match=match):
         make()
+
+
+@pytest.mark.parametrize("value", [3, 3.0, torch.tensor(3), np.int64(3)])
+def test_an_integer_count_of_views_of_any_type_is_kept_as_a_python_int(value):
+    config = GenSplatConfig(views_per_source=value)
+    assert type(config.views_per_source) is int and config.views_per_source == 3
+    assert GenSplatConfig.from_dict(json.loads(json.dumps(config.to_dict()))) == config
 
 
 def test_ranges_too_wide_to_draw_from_are_refused_when_set():
