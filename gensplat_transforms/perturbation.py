@@ -473,7 +473,8 @@ class _Sampler:
         if self.focal_scale == (1.0, 1.0):
             return move
         lo, hi = self.focal_scale
-        return replace(move, focal_scale=float(math.exp(rng.uniform(math.log(lo), math.log(hi)))))
+        scale = math.exp(rng.uniform(math.log(lo), math.log(hi)))
+        return replace(move, focal_scale=min(max(scale, lo), hi))  # exp(log(x)) may round past x
 
     def _draw(self, rng: np.random.Generator) -> Perturbation:
         raise NotImplementedError

@@ -105,6 +105,14 @@ def test_a_focal_change_beyond_the_limits_is_refused_by_the_move_the_sampler_and
         scale_focal(CAMS.K, torch.tensor([1.0, scale], dtype=F64))
 
 
+@pytest.mark.parametrize("limits", [FOCAL_SCALE_LIMITS, (3.0, 3.0), (5.0, 5.0), (0.9, 1.1)])
+def test_drawn_focal_factors_stay_in_the_range_set_even_where_exp_of_log_rounds_past_it(limits):
+    lo, hi = limits
+    assert math.exp(math.log(3.0)) > 3.0 and math.exp(math.log(5.0)) < 5.0  # the rounding guarded against
+    drawn = [make_sampler("tilt", focal_scale=limits).sample(i).focal_scale for i in range(300)]
+    assert all(lo <= f <= hi for f in drawn)
+
+
 def test_a_focal_change_out_of_the_dtypes_range_raises_instead_of_inf_focal_lengths():
     cameras = CAMS.to(dtype=torch.float16)  # fx 100 x 1000 is beyond float16's 65504
     with pytest.raises(ValueError, match=r"^scale_focal: focal_scale 1000.0 gives focal lengths .*torch.float16"):
