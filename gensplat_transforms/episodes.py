@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import logging
 from collections.abc import Iterable
 
 import torch
@@ -18,8 +19,11 @@ from tqdm.auto import tqdm
 
 from .cache import CacheStats, EpisodeSource, GaussianCache
 from .distributed import Shard
+from .perturbation import pivot_point
 from .reconstruction import Views
 from .scenes import TabletopScene, default_cameras
+
+logger = logging.getLogger(__name__)
 
 
 def build_cache(
@@ -58,6 +62,11 @@ def build_cache(
             for ep in tqdm(episodes, desc=desc, unit="episode", disable=not progress)}  # fmt: skip
 
 
+#: how far (a factor either way) the pivot of two cameras' crossing axes may lie from the
+#: scene's depth along camera 0's axis before :func:`pivot_depth` places it at that depth
+PIVOT_TOLERANCE = 3.0
+
+
 def scene_depth(reconstructor, source: EpisodeSource, episodes: Iterable[int], samples: int = 8) -> float:
     """Median depth (metres) along camera 0's optical axis of the Gaussians that
     ``reconstructor`` makes of ``source``: over ``samples`` timesteps (the first and middle
@@ -70,22 +79,69 @@ def scene_depth(reconstructor, source: EpisodeSource, episodes: Iterable[int], s
         >>> 0.3 < scene_depth(RGBDReconstructor(), source, range(2)) < 3.0
         True
     """
+    return _scene_depth(_timesteps(reconstructor, source, episodes, samples), source)
+
+
+def pivot_depth(reconstructor, source: EpisodeSource, episodes: Iterable[int], samples: int = 8) -> float | None:
+    """The ``GenSplatConfig.pivot_depth`` that ``source`` needs (what ``gensplat cache`` stores).
+
+    One camera: the scene's depth along its axis (:func:`scene_depth`). Two or more: None, the
+    pivot where the optical axes of cameras 0 and 1 pass closest
+    (:func:`.perturbation.pivot_point`), when that point lies in front of both and within a
+    factor :data:`PIVOT_TOLERANCE` of the scene's depth along camera 0's axis (medians over the
+    sampled timesteps); else (axes nearly parallel, diverging or crossing by the lenses) the
+    scene's depth, with a warning: the paper's turns about a pivot metres beyond the scene, or
+    behind the cameras, would swing the camera away from what it sees.
+
+    Example: the built-in scene's cameras look at the middle of the table
+        >>> from gensplat_transforms import RGBDReconstructor
+        >>> print(pivot_depth(RGBDReconstructor(), SceneEpisodes(num_episodes=1, num_frames=2, size=16), [0]))
+        None
+    """
+    timesteps = _timesteps(reconstructor, source, episodes, samples)
+    depth = _scene_depth(timesteps, source)
+    if len(source.camera_names) == 1:
+        return depth
+    c2w = torch.stack([c2w for _, c2w in timesteps])[:, :2]  # (S, 2, 4, 4)
+    pivot = pivot_point(c2w[:, 0], c2w[:, 1])  # (S, 3)
+    axes = c2w[..., :3, 2] / c2w[..., :3, 2].norm(dim=-1, keepdim=True)
+    ahead = ((pivot[:, None] - c2w[..., :3, 3]) * axes).sum(-1).median(0).values  # (2,): along each axis
+    if bool((ahead > 0).all()) and depth / PIVOT_TOLERANCE <= float(ahead[0]) <= depth * PIVOT_TOLERANCE:
+        return None
+    a, b = source.camera_names[:2]
+    logger.warning("cameras %r and %r: their optical axes pass closest %.3g m along %r's axis and %.3g m along "
+                   "%r's, while the scene lies %.3g m in front of %r (nearly parallel, diverging or crossing "
+                   "axes): the pivot is placed on %r's axis at the scene's depth (pivot_depth %.3g)",
+                   a, b, float(ahead[0]), a, float(ahead[1]), b, depth, a, a, depth)  # fmt: skip
+    return depth
+
+
+def _timesteps(reconstructor, source: EpisodeSource, episodes: Iterable[int], samples: int
+               ) -> list[tuple[torch.Tensor | None, torch.Tensor]]:  # fmt: skip
+    """Per sampled timestep (the first and middle frames of up to ``samples // 2`` evenly spaced
+    ``episodes``): the median depth along camera 0's axis of the opaque Gaussians in front of
+    it (None where there are none) and the rig's (V, 4, 4) camera-to-world poses."""
     episodes = list(episodes)
     chosen = [episodes[round(i * (len(episodes) - 1) / max(samples // 2 - 1, 1))]
               for i in range(min(len(episodes), max(samples // 2, 1)))]  # fmt: skip
-    medians = []
+    out = []
     for ep in dict.fromkeys(chosen):
         for frame in dict.fromkeys((0, source.num_frames(ep) // 2)):
             rec = reconstructor.reconstruct(source.views(ep, frame))
-            c2w = rec.cameras.c2w[0]
-            axis = c2w[:3, 2] / c2w[:3, 2].norm()
-            z = (rec.gaussians.means.to(c2w) - c2w[:3, 3]) @ axis
+            c2w = rec.cameras.c2w
+            axis = c2w[0, :3, 2] / c2w[0, :3, 2].norm()
+            z = (rec.gaussians.means.to(c2w) - c2w[0, :3, 3]) @ axis
             z = z[(z > 0) & (rec.gaussians.opacities.to(c2w) > 0.5)]
-            if len(z):
-                medians.append(z.median())
+            out.append((z.median() if len(z) else None, c2w))
+    return out
+
+
+def _scene_depth(timesteps: list[tuple[torch.Tensor | None, torch.Tensor]], source: EpisodeSource) -> float:
+    """The median of the timesteps' median depths (:func:`_timesteps`)."""
+    medians = [m for m, _ in timesteps if m is not None]
     if not medians:
-        raise ValueError(f"no reconstructed point in front of camera {source.camera_names[0]!r} in {len(chosen)} "
-                         "sampled timesteps: the pivot of a one-camera rig cannot be placed")  # fmt: skip
+        raise ValueError(f"no reconstructed point in front of camera {source.camera_names[0]!r} in {len(timesteps)} "
+                         "sampled timesteps: the pivot cannot be placed at the scene's depth")  # fmt: skip
     return float(torch.stack(medians).median())
 
 

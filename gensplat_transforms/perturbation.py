@@ -413,17 +413,18 @@ def closest_points_between_axes(
 
 def rig_pivot(c2w: torch.Tensor, pivot_depth: float | None = None) -> torch.Tensor:
     """(..., 3) pivot of rigs of (..., V, 4, 4) camera poses: :func:`pivot_point` of cameras 0
-    and 1, or with one camera (V = 1) the point ``pivot_depth`` metres along its optical axis.
+    and 1, or, with ``pivot_depth`` (a rig of one camera needs it), the point ``pivot_depth``
+    metres along camera 0's optical axis.
 
     Example: one camera at the origin looking along +z
         >>> rig_pivot(torch.eye(4, dtype=torch.float64)[None], pivot_depth=0.8)
         tensor([0.0000, 0.0000, 0.8000], dtype=torch.float64)
     """
-    if c2w.shape[-3] > 1:
+    if pivot_depth is None and c2w.shape[-3] > 1:
         return pivot_point(c2w[..., 0, :, :], c2w[..., 1, :, :])
     if pivot_depth is None or not (math.isfinite(pivot_depth) and pivot_depth > 0):
-        raise ValueError(f"a rig of one external camera needs a positive pivot_depth (metres along its optical "
-                         f"axis), got {pivot_depth}")  # fmt: skip
+        raise ValueError(f"rig_pivot: pivot_depth must be a positive distance in metres along camera 0's optical "
+                         f"axis (a rig of one external camera needs one), got {pivot_depth}")  # fmt: skip
     axis = c2w[..., 0, :3, 2]
     return c2w[..., 0, :3, 3] + pivot_depth * axis / axis.norm(dim=-1, keepdim=True)
 

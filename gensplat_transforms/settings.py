@@ -89,9 +89,11 @@ class GenSplatConfig:
             item, which renders a whole batch at once after collation (on the training GPU).
             "auto": batch where the LeRobot plugin trains on CUDA, else worker (a transform
             used on its own renders in the worker).
-        pivot_depth: with one reconstructed camera, the distance in metres along its optical
-            axis to the pivot (see :mod:`.perturbation`), needed by the transform; ``gensplat
-            cache`` measures it (:func:`.episodes.scene_depth`). None with two or more cameras.
+        pivot_depth: the distance in metres along camera 0's optical axis to the pivot (see
+            :mod:`.perturbation`). One reconstructed camera needs it; with two or more, None
+            puts the pivot where the axes of cameras 0 and 1 cross. ``gensplat cache`` sets it
+            (:func:`.episodes.pivot_depth`): the scene's depth for one camera, or for two
+            whose axes do not cross in front of both near the scene.
 
     Example:
         >>> config = GenSplatConfig(cameras=("left", "right"), replace=("left",), level="small")
@@ -149,9 +151,8 @@ class GenSplatConfig:
         self.replace = tuple(self.cameras if self.replace is None else self.replace)
         if not self.cameras:
             raise ValueError("GenSplatConfig.cameras: need at least one external camera")
-        if self.pivot_depth is not None and (len(self.cameras) > 1 or not 0 < self.pivot_depth < math.inf):
-            raise ValueError("GenSplatConfig.pivot_depth: a positive distance in metres for one reconstructed "
-                             f"camera (two or more define the pivot); got {self.pivot_depth} for {self.cameras}")  # fmt: skip
+        if self.pivot_depth is not None and not 0 < self.pivot_depth < math.inf:
+            raise ValueError(f"GenSplatConfig.pivot_depth: a positive distance in metres, got {self.pivot_depth}")
         unknown = [c for c in self.replace if c not in self.cameras]
         if unknown:
             raise ValueError(f"GenSplatConfig.replace: {unknown} are not reconstructed cameras {self.cameras}")

@@ -238,7 +238,7 @@ def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructo
     it does not change the cache). Returns per-episode
     :class:`~gensplat_transforms.cache.CacheStats` of this process's episodes (None when the
     episode was already cached)."""
-    from gensplat_transforms.episodes import build_cache, scene_depth
+    from gensplat_transforms.episodes import build_cache, pivot_depth
 
     shard = shard or Shard()
     source = LeRobotSource(root, repo_id, config.cameras)
@@ -253,10 +253,10 @@ def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructo
         rec = make_reconstructor({**reconstructor, "options": options}, shard.device)
     else:
         rec = make_reconstructor(reconstructor)
-    if len(config.cameras) == 1 and config.pivot_depth is None:  # the pivot on the one camera's axis
-        config = replace(config, pivot_depth=scene_depth(rec, source, episodes))
     gensplat_folder(root)
     if shard.rank == 0:
+        if config.pivot_depth is None:  # one camera, or two whose axes do not cross at the scene
+            config = replace(config, pivot_depth=pivot_depth(rec, source, episodes))
         save_settings(root, config, reconstructor, link_depth)
         record = {"fingerprint": source.fingerprint, "content": source.content}
         licence = weights_licence_of(reconstructor)
