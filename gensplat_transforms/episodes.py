@@ -99,15 +99,17 @@ def pivot_depth(reconstructor, source: EpisodeSource, episodes: Iterable[int], s
         None
     """
     timesteps = _timesteps(reconstructor, source, episodes, samples)
-    depth = _scene_depth(timesteps, source)
     if len(source.camera_names) == 1:
-        return depth
+        return _scene_depth(timesteps, source)
     c2w = torch.stack([c2w for _, c2w in timesteps])[:, :2]  # (S, 2, 4, 4)
     pivot = pivot_point(c2w[:, 0], c2w[:, 1])  # (S, 3)
     axes = c2w[..., :3, 2] / c2w[..., :3, 2].norm(dim=-1, keepdim=True)
     ahead = ((pivot[:, None] - c2w[..., :3, 3]) * axes).sum(-1).median(0).values  # (2,): along each axis
-    if bool((ahead > 0).all()) and depth / PIVOT_TOLERANCE <= float(ahead[0]) <= depth * PIVOT_TOLERANCE:
+    medians = [m for m, _ in timesteps if m is not None]
+    seen = float(torch.stack(medians).median()) if medians else None  # None: no depth to check against
+    if bool((ahead > 0).all()) and (seen is None or seen / PIVOT_TOLERANCE <= float(ahead[0]) <= seen * PIVOT_TOLERANCE):
         return None
+    depth = _scene_depth(timesteps, source)  # raises where no depth is seen
     a, b = source.camera_names[:2]
     logger.warning("cameras %r and %r: their optical axes pass closest %.3g m along %r's axis and %.3g m along "
                    "%r's, while the scene lies %.3g m in front of %r (nearly parallel, diverging or crossing "

@@ -2,6 +2,7 @@
 the scene, else a point on camera 0's axis at the scene's depth (nearly parallel, diverging or
 crossing axes), chosen once by ``gensplat cache`` (``episodes.pivot_depth``)."""
 
+import dataclasses
 import json
 import logging
 
@@ -10,6 +11,7 @@ import torch
 
 from gensplat_transforms.cameras import Cameras, look_at
 from gensplat_transforms.episodes import PIVOT_TOLERANCE, SceneEpisodes, pivot_depth, scene_depth
+from gensplat_transforms.gaussians import Gaussians
 from gensplat_transforms.perturbation import Perturbation, move_rig, rig_pivot
 from gensplat_transforms.reconstruction import RGBDReconstructor
 from gensplat_transforms.scenes import DEFAULT_VIEWS, WORKSPACE_CENTER
@@ -60,6 +62,21 @@ def test_a_pivot_far_from_the_scene_moves_onto_camera_0s_axis_at_its_depth_with_
         assert pivot_depth(RGBDReconstructor(), source, range(2)) == depth
     assert "cameras 'left' and 'right': their optical axes pass closest" in caplog.text
     assert f"on 'left''s axis at the scene's depth (pivot_depth {depth:.3g})" in caplog.text
+
+
+class Faint:
+    """The RGB-D reconstruction with every Gaussian at opacity 0.1: no scene depth to be seen."""
+
+    def reconstruct(self, views):
+        rec = RGBDReconstructor().reconstruct(views)
+        g = rec.gaussians
+        return dataclasses.replace(rec, gaussians=Gaussians(g.means, g.quats, g.scales, torch.full_like(g.opacities, 0.1), g.sh))
+
+
+def test_without_a_scene_depth_a_crossing_in_front_stands_and_one_elsewhere_is_an_error():
+    assert pivot_depth(Faint(), SceneEpisodes(num_episodes=1, num_frames=2, size=16), [0]) is None
+    with pytest.raises(ValueError, match=r"no reconstructed point in front of camera 'left' in 2 sampled timesteps"):
+        pivot_depth(Faint(), beside_left(-0.1), range(1))
 
 
 def test_a_pivot_depth_puts_the_pivot_of_any_rig_on_camera_0s_axis_in_both_paths():
