@@ -82,7 +82,8 @@ def scene_depth(reconstructor, source: EpisodeSource, episodes: Iterable[int], s
     return _scene_depth(_timesteps(reconstructor, source, episodes, samples), source)
 
 
-def pivot_depth(reconstructor, source: EpisodeSource, episodes: Iterable[int], samples: int = 8) -> float | None:
+def pivot_depth(reconstructor, source: EpisodeSource, episodes: Iterable[int], samples: int = 8,
+                progress: bool = False) -> float | None:  # fmt: skip
     """The ``GenSplatConfig.pivot_depth`` that ``source`` needs (what ``gensplat cache`` stores).
 
     One camera: the scene's depth along its axis (:func:`scene_depth`). Two or more: None, the
@@ -91,14 +92,15 @@ def pivot_depth(reconstructor, source: EpisodeSource, episodes: Iterable[int], s
     factor :data:`PIVOT_TOLERANCE` of the scene's depth along camera 0's axis (medians over the
     sampled timesteps); else (axes nearly parallel, diverging or crossing by the lenses) the
     scene's depth, with a warning: the paper's turns about a pivot metres beyond the scene, or
-    behind the cameras, would swing the camera away from what it sees.
+    behind the cameras, would swing the camera away from what it sees. ``progress`` shows a
+    bar over the sampled timesteps' reconstructions.
 
     Example: the built-in scene's cameras look at the middle of the table
         >>> from gensplat_transforms import RGBDReconstructor
         >>> print(pivot_depth(RGBDReconstructor(), SceneEpisodes(num_episodes=1, num_frames=2, size=16), [0]))
         None
     """
-    timesteps = _timesteps(reconstructor, source, episodes, samples)
+    timesteps = _timesteps(reconstructor, source, episodes, samples, progress)
     if len(source.camera_names) == 1:
         return _scene_depth(timesteps, source)
     c2w = torch.stack([c2w for _, c2w in timesteps])[:, :2]  # (S, 2, 4, 4)
@@ -118,7 +120,7 @@ def pivot_depth(reconstructor, source: EpisodeSource, episodes: Iterable[int], s
     return depth
 
 
-def _timesteps(reconstructor, source: EpisodeSource, episodes: Iterable[int], samples: int
+def _timesteps(reconstructor, source: EpisodeSource, episodes: Iterable[int], samples: int, progress: bool = False
                ) -> list[tuple[torch.Tensor | None, torch.Tensor]]:  # fmt: skip
     """Per sampled timestep (the first and middle frames of up to ``samples // 2`` evenly spaced
     ``episodes``): the median depth along camera 0's axis of the opaque Gaussians in front of
@@ -126,15 +128,15 @@ def _timesteps(reconstructor, source: EpisodeSource, episodes: Iterable[int], sa
     episodes = list(episodes)
     chosen = [episodes[round(i * (len(episodes) - 1) / max(samples // 2 - 1, 1))]
               for i in range(min(len(episodes), max(samples // 2, 1)))]  # fmt: skip
+    picked = [(ep, frame) for ep in dict.fromkeys(chosen) for frame in dict.fromkeys((0, source.num_frames(ep) // 2))]
     out = []
-    for ep in dict.fromkeys(chosen):
-        for frame in dict.fromkeys((0, source.num_frames(ep) // 2)):
-            rec = reconstructor.reconstruct(source.views(ep, frame))
-            c2w = rec.cameras.c2w
-            axis = c2w[0, :3, 2] / c2w[0, :3, 2].norm()
-            z = (rec.gaussians.means.to(c2w) - c2w[0, :3, 3]) @ axis
-            z = z[(z > 0) & (rec.gaussians.opacities.to(c2w) > 0.5)]
-            out.append((z.median() if len(z) else None, c2w))
+    for ep, frame in tqdm(picked, desc="placing the pivot", unit="timestep", disable=not progress):
+        rec = reconstructor.reconstruct(source.views(ep, frame))
+        c2w = rec.cameras.c2w
+        axis = c2w[0, :3, 2] / c2w[0, :3, 2].norm()
+        z = (rec.gaussians.means.to(c2w) - c2w[0, :3, 3]) @ axis
+        z = z[(z > 0) & (rec.gaussians.opacities.to(c2w) > 0.5)]
+        out.append((z.median() if len(z) else None, c2w))
     return out
 
 

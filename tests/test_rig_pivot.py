@@ -37,11 +37,12 @@ def beside_left(offset_y: float, toe_in_m: float = 0.0) -> SceneEpisodes:
     return episodes_seen_by((eye + shift).tolist(), (target + shift * (1 - toe_in_m / abs(offset_y))).tolist())
 
 
-def test_cameras_whose_axes_cross_at_the_scene_keep_their_crossing_as_the_pivot(caplog):
+def test_cameras_whose_axes_cross_at_the_scene_keep_their_crossing_as_the_pivot(caplog, capsys):
     source = SceneEpisodes(num_episodes=2, num_frames=2, size=24)
     with caplog.at_level(logging.WARNING):
-        assert pivot_depth(RGBDReconstructor(), source, range(2)) is None
+        assert pivot_depth(RGBDReconstructor(), source, range(2), progress=True) is None
     assert not caplog.records
+    assert "placing the pivot" in capsys.readouterr().err  # the sampled reconstructions' progress bar
     pivot = rig_pivot(source.cameras.c2w[:2])
     torch.testing.assert_close(pivot, torch.tensor(WORKSPACE_CENTER, dtype=pivot.dtype))
 

@@ -256,7 +256,7 @@ def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructo
     gensplat_folder(root)
     if shard.rank == 0:
         if config.pivot_depth is None:  # one camera, or two whose axes do not cross at the scene
-            config = replace(config, pivot_depth=pivot_depth(rec, source, episodes))
+            config = replace(config, pivot_depth=pivot_depth(rec, source, episodes, progress=progress))
         save_settings(root, config, reconstructor, link_depth)
         record = {"fingerprint": source.fingerprint, "content": source.content}
         licence = weights_licence_of(reconstructor)
