@@ -123,7 +123,10 @@ class GenSplatConfig:
         "episode: one perturbation per trajectory and view; frame: a new one every frame", choices=MODES))
     views_per_source: int = field(default=3, metadata=_cli("distinct perturbed cameras per trajectory"))
     seed: int = field(default=0, metadata=_cli("seed fixing the set of perturbations"))
-    pivot_depth: float | None = None
+    pivot_depth: float | None = field(default=None, metadata=_cli(
+        "metres along the first camera's axis to the point the moves turn about; unset, gensplat cache places it "
+        "where the first two cameras' axes cross at the scene, else at the scene's median depth", type=float,
+        metavar="M"))  # fmt: skip
     # the item's layout
     frame_offsets: tuple[int, ...] | None = None
     depth_unit: str | None = field(default=None, metadata=_cli(

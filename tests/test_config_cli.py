@@ -33,7 +33,7 @@ def test_each_field_with_a_flag_is_on_the_parser_with_its_default():
     parser = argparse.ArgumentParser()
     add_config_arguments(parser)
     flagged = {f.name: f.default for f in fields(GenSplatConfig) if "cli" in f.metadata}
-    assert len(flagged) == 16
+    assert len(flagged) == 17
     assert vars(parser.parse_args([])) == flagged
     zoom = vars(parser.parse_args(["--sampler", "arc", "--focal-scale", "0.8", "1.25"]))
     assert GenSplatConfig(**zoom).focal_scale == (0.8, 1.25) and GenSplatConfig(**zoom).sampler == "arc"

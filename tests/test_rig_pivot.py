@@ -98,7 +98,7 @@ def test_a_pivot_depth_puts_the_pivot_of_any_rig_on_camera_0s_axis_in_both_paths
             GenSplatConfig(pivot_depth=bad)
 
 
-def test_gensplat_cache_stores_the_pivot_on_camera_0s_axis_for_a_rig_whose_axes_do_not_cross(tmp_path, caplog):
+def test_gensplat_cache_stores_the_pivot_on_camera_0s_axis_for_a_rig_whose_axes_do_not_cross(tmp_path, caplog, capsys):
     pytest.importorskip("lerobot", reason="the LeRobot commands need the lerobot extra")
     from gensplat_lerobot.scene_dataset import record_scene_dataset
 
@@ -113,3 +113,13 @@ def test_gensplat_cache_stores_the_pivot_on_camera_0s_axis_for_a_rig_whose_axes_
     stored = json.loads((root / "gensplat" / "config.json").read_text())["transform"]
     assert stored["cameras"] == ["left", "right"]
     assert stored["pivot_depth"] == pytest.approx(scene_depth(RGBDReconstructor(), source, range(2)), rel=0.05)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):  # a distance given is taken as it is, unchecked
+        assert main(["cache", "--root", str(root), "--repo-id", repo, "--pivot-depth", "0.6"]) == 0
+    assert "optical axes" not in caplog.text
+    assert json.loads((root / "gensplat" / "config.json").read_text())["transform"]["pivot_depth"] == 0.6
+    with pytest.raises(SystemExit):
+        main(["cache", "--root", str(root), "--repo-id", repo, "--pivot-depth", "far"])
+    capsys.readouterr()
+    assert main(["cache", "--root", str(root), "--repo-id", repo, "--pivot-depth", "-1"]) == 2
+    assert "GenSplatConfig.pivot_depth: a positive distance in metres, got -1.0" in capsys.readouterr().err
