@@ -26,16 +26,20 @@ _GL_TO_CV = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64)
 #: in a coarser dtype get :func:`rigid_tolerance`
 RIGID_TOLERANCE = 1e-3
 _K_TOLERANCE = 1e-6  # on K's fixed entries: skew, K[1, 0], K[2, :2] (0) and K[2, 2] (1)
+#: largest accepted focal length in pixels: a field of view of about a nanoradian on a
+#: 1000-pixel image; the renderers' float32 projection overflows near 1e20 px (an empty image)
+FOCAL_MAX_PX = 1e12
 
 
 def _check_intrinsics(K: np.ndarray) -> None:
     """Raise ``ValueError`` unless every (3, 3) of K (float64) is [[fx, 0, cx], [0, fy, cy],
-    [0, 0, 1]] with fx, fy > 0."""
+    [0, 0, 1]] with 0 < fx, fy <= :data:`FOCAL_MAX_PX`."""
     focal = K[:, [0, 1], [0, 1]]
-    bad = ~(focal > 0).all(-1)
+    bad = ~((focal > 0) & (focal <= FOCAL_MAX_PX)).all(-1)
     if bad.any():
         i = int(bad.nonzero()[0][0])
-        raise ValueError(f"Cameras.K: focal lengths must be > 0, got fx, fy = {focal[i].tolist()} (camera {i})")
+        raise ValueError(f"Cameras.K: focal lengths must be > 0 and at most {FOCAL_MAX_PX:g} px, got fx, fy = "
+                         f"{focal[i].tolist()} (camera {i})")
     fixed = K[:, [0, 1, 2, 2, 2], [1, 0, 0, 1, 2]] - np.array([0.0, 0.0, 0.0, 0.0, 1.0])
     bad = (np.abs(fixed) > _K_TOLERANCE).any(-1)
     if bad.any():
@@ -81,8 +85,8 @@ class Cameras:
         width, height: image size in pixels.
 
     Construction raises ``ValueError`` naming the field for anything that is not such a
-    camera: wrong shapes, NaN or Inf, focal lengths <= 0, skew or K[2, 2] != 1 (beyond
-    1e-6), a c2w rotation that is not orthonormal with determinant +1 (beyond
+    camera: wrong shapes, NaN or Inf, focal lengths <= 0 or above :data:`FOCAL_MAX_PX`, skew
+    or K[2, 2] != 1 (beyond 1e-6), a c2w rotation that is not orthonormal with determinant +1 (beyond
     ``RIGID_TOLERANCE``, 8 epsilons for float16 and bfloat16 poses: no scale, shear or
     mirroring), a c2w bottom row other than [0, 0, 0, 1] (same tolerance). Cameras the
     library derives from checked ones (indexing, ``Perturbation.move``) are not checked

@@ -370,9 +370,10 @@ _MIRROR = _POSE @ torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0], dtype=DTYPE))
 @pytest.mark.parametrize(
     ("K", "c2w", "match"),
     [
-        (_edit(_GOOD_K, (0, 0), 0.0), _GOOD_C2W, r"Cameras.K: focal lengths must be > 0, got fx, fy = \[0.0, 1.0\]"),
+        (_edit(_GOOD_K, (0, 0), 0.0), _GOOD_C2W, r"Cameras.K: focal lengths must be > 0 and at most 1e\+12 px, got fx, fy = \[0.0, 1.0\]"),
         (_edit(_GOOD_K, (1, 1), 0.0), _GOOD_C2W, "Cameras.K: focal lengths must be > 0"),
         (_edit(_GOOD_K, (0, 0), -50.0), _GOOD_C2W, "Cameras.K: focal lengths must be > 0"),
+        (_edit(_GOOD_K, (1, 1), 1e20), _GOOD_C2W, r"Cameras.K: focal lengths must be > 0 and at most 1e\+12 px"),
         (_edit(_GOOD_K, (0, 1), 0.5), _GOOD_C2W, r"Cameras.K: must be .* \(no skew, K\[2, 2\] = 1\)"),
         (_edit(_GOOD_K, (2, 2), 2.0), _GOOD_C2W, r"Cameras.K: must be .*K\[2, 2\] = 1"),
         (_edit(_GOOD_K, (2, 0), 0.1), _GOOD_C2W, "Cameras.K: must be"),

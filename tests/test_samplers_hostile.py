@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from gensplat_transforms.cache import GaussianCache
-from gensplat_transforms.cameras import Cameras, look_at
+from gensplat_transforms.cameras import FOCAL_MAX_PX, Cameras, look_at
 from gensplat_transforms.episodes import SceneEpisodes, build_cache
 from gensplat_transforms.perturbation import (
     FOCAL_SCALE_LIMITS,
@@ -128,6 +128,21 @@ def test_a_render_at_the_focal_limits_is_finite_and_a_full_zoom_in_still_sees_th
         assert float(out.alpha.min()) > 0.5
     else:  # 1000x out: the scene shrinks to a speck, still drawn
         assert 0 < float(out.alpha.mean()) < 0.1
+
+
+def test_the_largest_zoom_of_the_longest_accepted_focal_length_still_renders_the_scene(scene):
+    rec, config = scene
+    cameras = rec.cameras
+
+    def with_focal(focal: float) -> Cameras:
+        K = cameras.K.clone()
+        K[:, 0, 0] = K[:, 1, 1] = focal
+        return Cameras(K, cameras.c2w, cameras.width, cameras.height)
+
+    out = render_view(rec, Perturbation(focal_scale=FOCAL_SCALE_LIMITS[1]).move(with_focal(FOCAL_MAX_PX), 0), config)
+    assert bool(torch.isfinite(out.rgb).all()) and float(out.alpha.min()) > 0.5
+    with pytest.raises(ValueError, match=r"Cameras.K: focal lengths must be > 0 and at most 1e\+12 px"):
+        with_focal(2 * FOCAL_MAX_PX)
 
 
 @pytest.mark.parametrize(("theta", "dtype"), [(1e300, F64), (-1e200, F64), (2e4, torch.float16), (1e39, torch.float32)])
