@@ -308,6 +308,7 @@ def test_none_and_extreme_levels_are_fixed():
         (lambda: Perturbation(shift_m=(0.0, math.inf, 0.0)), "shift_m must be 3 finite metres"),
         (lambda: Perturbation(focal_scale=0.0), "focal_scale must be a factor from 0.001 to 1000"),
         (lambda: TiltSampler(limit_deg=-1.0), r"TiltSampler.limit_deg must be a finite number in \[0, 180\]"),
+        (lambda: ArcSampler(limit_deg=180.5), r"ArcSampler.limit_deg must be a finite number in \[0, 180\]"),
         (lambda: ArcSampler(45.0, shift_m=math.nan), r"ArcSampler.shift_m must be a finite number in"),
         (lambda: TiltSampler(10.0, shift_m=math.inf), r"TiltSampler.shift_m must be a finite number in \[0, inf\]"),
         (lambda: ArcSampler(45.0, focal_scale=(1.2, 0.8)), r"ArcSampler.focal_scale: need 0 < low <= high"),
