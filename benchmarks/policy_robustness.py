@@ -64,7 +64,13 @@ refused):
      half the samples: what replacing real images with renders costs the policy, apart from
      any move (the arms moving half the samples pay 14-19 points at the training camera).
 
-   The wider arms train on their own dataset roots (``work/dataset_<arm>``, links to
+   A replicate ``<arm>@s<N>`` (N >= 1, e.g. ``gensplat-zoom@s1``, ``baseline@s1``) trains
+   ``<arm>``'s augmentation again with the training seed ``--seed + N`` (LeRobot's, and the
+   GenSplat settings' seed, which draws its moves); recording and evaluation keep ``--seed``,
+   so a replicate meets the same episodes and is paired with every arm like any other: the
+   difference between an arm and its replicate is what retraining alone moves.
+
+   The wider arms and the GenSplat replicates train on their own dataset roots (``work/dataset_<arm>``, links to
    ``work/dataset`` beside their own ``gensplat`` settings and cache), since LeRobot's
    GenSplat line reads the settings from the dataset root;
 
@@ -191,6 +197,31 @@ SAMPLER_ARMS = {"gensplat-wide": {"sampler": "mix", "tilt_deg": 10.0, "arc_deg":
 #: Arms that draw another arm's moves, more often: {arm: (that arm, the chance GenSplat replaces a camera)}.
 MORE_OFTEN = {"gensplat-fov-p0.5": ("gensplat-fov", 0.5), "gensplat-arc-p0.5": ("gensplat-arc", 0.5)}
 SAMPLER_ARMS |= {arm: {**SAMPLER_ARMS[like], "probability": p} for arm, (like, p) in MORE_OFTEN.items()}
+#: A replicate of an arm: ``<arm>@s<N>``, trained with the seed ``--seed + N`` (module docstring).
+REPLICATE = re.compile(r"^(?P<arm>.+)@s(?P<n>[1-9][0-9]*)$")
+
+
+def arm_kind(arm: str) -> str:
+    """The arm (of ``ARMS``) whose augmentation ``arm`` trains: itself, or a replicate's arm."""
+    m = REPLICATE.match(arm)
+    return m["arm"] if m else arm
+
+
+def train_seed(arm: str, args) -> int:
+    """The seed ``arm`` trains with: ``--seed``, plus N for a replicate ``<arm>@s<N>``."""
+    m = REPLICATE.match(arm)
+    return args.seed + (int(m["n"]) if m else 0)
+
+
+def ordered(arms) -> tuple[str, ...]:
+    """``arms`` in ``ARMS`` order, each arm's replicates after it by N (arms of no known kind last)."""
+    def key(arm: str) -> tuple[int, int]:
+        kind = arm_kind(arm)
+        return (ARMS.index(kind) if kind in ARMS else len(ARMS), int(REPLICATE.match(arm)["n"]) if kind != arm else 0)
+
+    return tuple(sorted(dict.fromkeys(arms), key=key))
+
+
 #: RandomPerspective's distortion_scale of the perspective arm (see the module docstring).
 PERSPECTIVE_DISTORTION = 0.25
 ROOT = Path(__file__).resolve().parents[1]
@@ -248,15 +279,18 @@ def gensplat_config(args, arm: str = "gensplat") -> GenSplatConfig:
     """The GenSplat settings of the GenSplat arm ``arm`` (written beside its dataset root)."""
     replace = tuple(c for c in args.cameras if c in EXTERNAL_CAMERAS)
     common = {"replace": replace, "views_per_source": args.views_per_source, "probability": args.probability,
-              "fill_holes": args.fill_holes, "backend": "fast", "seed": args.seed}  # fmt: skip
-    return GenSplatConfig(**common | SAMPLER_ARMS.get(arm, {}))
+              "fill_holes": args.fill_holes, "backend": "fast", "seed": train_seed(arm, args)}  # fmt: skip
+    return GenSplatConfig(**common | SAMPLER_ARMS.get(arm_kind(arm), {}))
 
 
 def dataset_root(work: Path, arm: str) -> Path:
     """The dataset root ``arm`` trains on: ``work/dataset``, or for an arm with its own GenSplat
-    settings (``SAMPLER_ARMS``) ``work/dataset_<arm>``, whose entries link to ``work/dataset``'s
-    but for its own ``gensplat`` folder (LeRobot's plugin reads the settings from the root)."""
-    return work / "dataset" if arm not in SAMPLER_ARMS else work / f"dataset_{arm}"
+    settings (``SAMPLER_ARMS``, a GenSplat replicate's seed) ``work/dataset_<arm>``, whose entries
+    link to ``work/dataset``'s but for its own ``gensplat`` folder (LeRobot's plugin reads the
+    settings from the root)."""
+    kind = arm_kind(arm)
+    own = kind in SAMPLER_ARMS or (kind != arm and kind in GENSPLAT_ARMS)
+    return work / f"dataset_{arm}" if own else work / "dataset"
 
 
 def link_dataset(root: Path, linked: Path) -> None:
@@ -269,19 +303,21 @@ def link_dataset(root: Path, linked: Path) -> None:
 
 def augmentation(arm: str, args) -> dict:
     """What ``arm`` adds to the baseline's training, as plain values: ``gensplat`` (the GenSplat
-    settings) and ``image_transforms`` (LeRobot's), each only where the arm has it."""
-    out = {}
-    if arm in GENSPLAT_ARMS:
+    settings), ``image_transforms`` (LeRobot's) and a replicate's ``train_seed``, each only where
+    the arm has it."""
+    kind = arm_kind(arm)
+    out = {"train_seed": train_seed(arm, args)} if kind != arm else {}
+    if kind in GENSPLAT_ARMS:
         g = gensplat_config(args, arm)
         out["gensplat"] = {"cameras": list(g.cameras), "replace": list(g.replace), "probability": g.probability,
                            "level": g.level, "mode": g.mode, "views_per_source": g.views_per_source,
                            "fill_holes": g.fill_holes}  # fmt: skip
-        out["gensplat"] |= {k: list(v) if isinstance(v, tuple) else v for k, v in SAMPLER_ARMS.get(arm, {}).items()}
-    if arm.endswith("lerobot2d"):
+        out["gensplat"] |= {k: list(v) if isinstance(v, tuple) else v for k, v in SAMPLER_ARMS.get(kind, {}).items()}
+    if kind.endswith("lerobot2d"):
         out["image_transforms"] = lerobot2d_transforms(args.size)
-    elif arm == "gensplat+color":
+    elif kind == "gensplat+color":
         out["image_transforms"] = lerobot2d_transforms(args.size, geometric=False)
-    elif arm == "perspective":
+    elif kind == "perspective":
         out["image_transforms"] = perspective_transforms(args.probability)
     return out
 
@@ -306,7 +342,7 @@ def train_command(arm: str, root: Path, out: Path, config: Path, args) -> list[s
         "bash", str(ROOT / "policies" / "train.sh"), str(config), mode,
         f"--dataset.repo_id={repo_id(args.task)}", f"--dataset.root={root}", f"--output_dir={out}",
         f"--steps={args.steps}", f"--batch_size={args.batch_size}", f"--num_workers={args.workers}",
-        f"--seed={args.seed}", f"--save_freq={min(CHECKPOINT_EVERY, args.steps)}", f"--log_freq={max(1, args.steps // 50)}",
+        f"--seed={train_seed(arm, args)}", f"--save_freq={min(CHECKPOINT_EVERY, args.steps)}", f"--log_freq={max(1, args.steps // 50)}",
         f"--policy.down_dims=[{args.down_dims}]", f"--policy.n_obs_steps={args.n_obs_steps}",
         "--policy.noise_scheduler_type=DDIM", f"--policy.num_inference_steps={args.inference_steps}",
         f"--policy.scheduler_warmup_steps={min(500, args.steps // 10)}",
@@ -588,8 +624,9 @@ def comparisons(evaluated: dict) -> dict:
 
     out = {}
     if "baseline" in evaluated:
-        out["vs_baseline"] = against("baseline", ARMS)
-    two_d = {reference: against(reference, GENSPLAT_ARMS) for reference in TWO_D_ARMS if reference in evaluated}
+        out["vs_baseline"] = against("baseline", evaluated)
+    gensplat = [arm for arm in evaluated if arm_kind(arm) in GENSPLAT_ARMS]
+    two_d = {reference: against(reference, gensplat) for reference in TWO_D_ARMS if reference in evaluated}
     if two_d:
         out["vs_2d"] = two_d
     return out
@@ -625,11 +662,17 @@ COLOURS = {"baseline": (214, 39, 40), "lerobot2d": (31, 119, 180), "perspective"
            "gensplat-zoom": (158, 218, 229), "gensplat-unmoved": (0, 0, 0)}  # fmt: skip
 
 
+def colour(arm: str) -> tuple[int, int, int]:
+    """``arm``'s line colour: its kind's (``COLOURS``), halfway to white for a replicate."""
+    rgb = COLOURS[arm_kind(arm)]
+    return rgb if arm_kind(arm) == arm else tuple((c + 255) // 2 for c in rgb)
+
+
 def plot(result: dict, path: Path) -> None:
     """Two panels per protocol, a line per arm it evaluated: success % and the median closest
     approach (cm) against the level."""
     parts = {protocol: protocol_part(result, protocol) for protocol in PROTOCOLS}
-    arms = [a for a in ARMS if any(a in part["arms"] for part in parts.values())]
+    arms = ordered(a for part in parts.values() if part for a in part["arms"])
     panels = []
     for metric in ("success", "reach"):
         for protocol in PROTOCOLS:
@@ -648,7 +691,7 @@ def plot(result: dict, path: Path) -> None:
     s = result["settings"]
     note = (f"{s['task']}, Diffusion Policy, {s['steps']} steps at batch {s['batch_size']}, "
             f"{result['episodes_per_level']} episodes per level, left camera perturbed")  # fmt: skip
-    line_panels(path, panels, {a: COLOURS[a] for a in arms}, note, panel_size=(360, 300), legend_columns=len(arms))
+    line_panels(path, panels, {a: colour(a) for a in arms}, note, panel_size=(360, 300), legend_columns=len(arms))
 
 
 def print_summary(result: dict) -> None:
@@ -716,9 +759,10 @@ def range_markdown(result: dict, motion: dict) -> str:
     zero = {f"{k}_{q}": 0.0 for k in ("shift_pct", "view_change_deg") for q in ("median", "p95")}
     lines = []
     for arm in protocol_part(result, "paper")["arms"]:
-        # colour jitter on top moves nothing, a higher probability draws the same moves
-        like = MORE_OFTEN[arm][0] if arm in MORE_OFTEN else arm.removesuffix("+color")
-        draws = zero if arm == "baseline" else motion["rows"].get(f"train/{like}")
+        # colour jitter on top moves nothing, a higher probability or another seed draws the same moves
+        kind = arm_kind(arm)
+        like = MORE_OFTEN[kind][0] if kind in MORE_OFTEN else kind.removesuffix("+color")
+        draws = zero if kind == "baseline" else motion["rows"].get(f"train/{like}")
         if draws is None:
             continue
         cells = []
@@ -785,7 +829,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument(
         "--work", type=Path, help="dataset, checkpoints, logs (default outputs/policy_robustness[_quick])"
     )
-    parser.add_argument("--arms", default=",".join(ARMS), help=f"comma-separated arms (default all: {','.join(ARMS)})")
+    parser.add_argument("--arms", default=",".join(ARMS),
+                        help=f"comma-separated arms, or replicates <arm>@s<N> (default all: {','.join(ARMS)})")  # fmt: skip
     parser.add_argument("--task", default="reach_solo", choices=sorted(TASKS), help="default reach_solo")
     parser.add_argument("--cameras", default="left",
                         help="comma-separated cameras the policy sees (default left; all: left,right,wrist)")  # fmt: skip
@@ -827,11 +872,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     args.cameras = tuple(args.cameras.split(","))
     if not args.cameras or any(c not in CAMERA_NAMES for c in args.cameras):
         parser.error(f"--cameras: choose from {CAMERA_NAMES}, got {args.cameras}")
-    unknown = [a for a in args.arms.split(",") if a not in ARMS]
+    unknown = [a for a in args.arms.split(",") if arm_kind(a) not in ARMS]
     if unknown:
-        parser.error(f"--arms: unknown {unknown}; choose from {ARMS}")
-    args.arms = tuple(a for a in ARMS if a in args.arms.split(","))
-    if "perspective" in args.arms and "wrist" in args.cameras:
+        parser.error(f"--arms: unknown {unknown}; choose from {ARMS}, or a replicate <arm>@s<N> with N >= 1")
+    args.arms = ordered(args.arms.split(","))
+    if "perspective" in map(arm_kind, args.arms) and "wrist" in args.cameras:
         parser.error("the perspective arm warps every camera LeRobot loads, the wrist camera too: "
                      "give it a policy that sees external cameras only")  # fmt: skip
     args.max_steps = args.max_steps or TASKS[args.task].max_steps
@@ -880,7 +925,7 @@ def main() -> None:
         print(
             f"recorded {res.episodes} demonstrations, {res.frames} frames, in {res.seconds:.0f} s", flush=True
         )
-    for arm in (a for a in to_run if a in GENSPLAT_ARMS):
+    for arm in (a for a in to_run if arm_kind(a) in GENSPLAT_ARMS):
         if dataset_root(work, arm) != root:
             link_dataset(root, dataset_root(work, arm))
         prepare(dataset_root(work, arm), repo_id(args.task), gensplat_config(args, arm), progress=False)

@@ -362,6 +362,42 @@ def test_range_table_puts_each_arms_training_draws_beside_its_success(tmp_path):
     assert [r.split(" | ")[0] for r in only_baseline] == ["| arm", "| baseline"]  # draws not measured: left out
 
 
+def test_a_replicate_trains_its_arm_again_with_another_seed_and_is_paired_like_any_arm(tmp_path):
+    args = pr.parse_args(["--arms", "gensplat-zoom@s2,baseline@s1,gensplat-zoom,baseline", "--seed", "3"])
+    assert args.arms == ("baseline", "baseline@s1", "gensplat-zoom", "gensplat-zoom@s2")
+    for arm, n in (("baseline@s1", 1), ("gensplat-zoom@s2", 2)):  # the same training but for the seed
+        kind = pr.arm_kind(arm)
+        cmd, base = (pr.train_command(a, ROOT, OUT, CONFIG, args) for a in (arm, kind))
+        assert [a for a in cmd if a not in base] == ["--seed=%d" % (3 + n)] and len(cmd) == len(base)
+        assert pr.augmentation(arm, args) == {**pr.augmentation(kind, args), "train_seed": 3 + n}
+    zoom, again = pr.gensplat_config(args, "gensplat-zoom"), pr.gensplat_config(args, "gensplat-zoom@s2")
+    assert (zoom.seed, again.seed) == (3, 5) and replace(again, seed=3) == zoom  # GenSplat draws other moves
+    work = Path("work")
+    assert pr.dataset_root(work, "baseline@s1") == work / "dataset"
+    assert pr.dataset_root(work, "gensplat@s1") == work / "dataset_gensplat@s1"  # its own GenSplat settings
+    for bad in ("gensplat@s0", "gensplat@s", "gensplat@1", "gensplat@s-1", "mixup@s1", "gensplat@s1@s1"):
+        with pytest.raises(SystemExit):
+            pr.parse_args(["--arms", bad])
+    arms = ("baseline", "baseline@s1", "perspective", "gensplat", "gensplat@s1")
+    args = pr.parse_args(["--arms", ",".join(arms), "--episodes", "10"])
+    solved = {"baseline": 2, "baseline@s1": 3, "perspective": 1, "gensplat": 5, "gensplat@s1": 4}
+    result = pr.build_result(evaluation(solved, 10), 10, False, pr.result_settings(args), {})
+    diff = result["difference"]
+    assert list(result["arms"]) == list(arms) and set(diff["vs_baseline"]) == set(arms[1:])
+    assert set(diff["vs_2d"]["perspective"]) == {"gensplat", "gensplat@s1"}
+    assert all(diff["vs_baseline"]["baseline@s1"][lv]["points"] == 10.0 for lv in pr.LEVELS)
+    assert "| gensplat@s1 | 40 (+20 [" in pr.markdown(result)
+    table = pr.range_markdown(result, {"rows": {"train/gensplat": {k: 1.0 for k in (
+        "shift_pct_median", "shift_pct_p95", "view_change_deg_median", "view_change_deg_p95")}}})  # fmt: skip
+    rows = [line.split(" | ")[1:4] for line in table.splitlines() if line.startswith("| gensplat")]
+    assert len(rows) == 2 and rows[0] == rows[1]  # the replicate draws its arm's moves
+    pr.plot(result, tmp_path / "plot.png")  # a replicate's line in its arm's colour, halfway to white
+    image = np.asarray(Image.open(tmp_path / "plot.png").convert("RGB")).astype(int)
+    assert pr.colour("gensplat@s1") == tuple((c + 255) // 2 for c in pr.COLOURS["gensplat"])
+    for arm in arms:
+        assert (np.abs(image - pr.colour(arm)).sum(-1) < 10).sum() > 50, arm
+
+
 def test_link_dataset_shares_everything_but_the_gensplat_settings(tmp_path):
     root, linked = tmp_path / "dataset", tmp_path / "dataset_gensplat-wide"
     (root / "meta").mkdir(parents=True)
