@@ -12,7 +12,7 @@ refused):
    ``--seed``; lossless PNG frames, calibration and depth sidecars);
 2. when a GenSplat arm is trained: write the GenSplat settings beside the dataset and build
    its Gaussian cache (RGB-D reconstruction of the left + right cameras);
-3. train Diffusion Policy once per arm (``--arms``, default all twelve) with LeRobot's stock
+3. train Diffusion Policy once per arm (``--arms``, default all) with LeRobot's stock
    trainer through ``policies/train.sh``: same data, seed, steps, batch and policy settings;
    the policy sees ``--cameras`` and the robot state. The arms differ only in the training
    augmentation (``augmentation`` and ``train_command`` give what each passes):
@@ -62,7 +62,11 @@ refused):
      sampler with no turn and no shift): only the effect the ``fov`` protocol calls for;
    * ``gensplat-unmoved``: a control, the camera rendered where it is (no move, no zoom) on
      half the samples: what replacing real images with renders costs the policy, apart from
-     any move (the arms moving half the samples pay 14-19 points at the training camera).
+     any move (the arms moving half the samples pay 14-19 points at the training camera);
+   * ``gensplat-wide-p0.5``: ``gensplat-wide``'s moves (the paper's, tilts and arcs, one kind
+     per camera) on half the samples: trained for twice the steps (``--steps 5000``), each
+     kind moves more samples than it did in the arm that gained with it alone at 2500 steps,
+     and the real camera is seen in as many samples as the baseline's at 2500.
 
    A replicate ``<arm>@s<N>`` (N >= 1, e.g. ``gensplat-zoom@s1``, ``baseline@s1``) trains
    ``<arm>``'s augmentation again with the training seed ``--seed + N`` (LeRobot's, and the
@@ -182,7 +186,7 @@ LEVELS = ("none", "small", "medium", "large")
 PROTOCOLS = {"paper": LEVELS, "vista": SAMPLERS, "fov": ("zoom",)}
 ARMS = ("baseline", "lerobot2d", "perspective", "gensplat", "gensplat+lerobot2d", "gensplat+color", "gensplat-wide",
         "gensplat-fov", "gensplat-tilt", "gensplat-arc", "gensplat-fov-p0.5", "gensplat-arc-p0.5",
-        "gensplat-tiltarc", "gensplat-zoom", "gensplat-unmoved")  # fmt: skip
+        "gensplat-tiltarc", "gensplat-zoom", "gensplat-unmoved", "gensplat-wide-p0.5")  # fmt: skip
 TWO_D_ARMS = ("lerobot2d", "perspective")
 GENSPLAT_ARMS = ARMS[ARMS.index("gensplat"):]
 #: The GenSplat settings the wider arms change (the others draw the paper's moves).
@@ -195,7 +199,8 @@ SAMPLER_ARMS = {"gensplat-wide": {"sampler": "mix", "tilt_deg": 10.0, "arc_deg":
                 "gensplat-zoom": {"sampler": "tilt", "tilt_deg": 0.0, "shift_m": 0.0, "focal_scale": FOV_RANGE},
                 "gensplat-unmoved": {"sampler": "tilt", "tilt_deg": 0.0, "shift_m": 0.0, "probability": 0.5}}  # fmt: skip
 #: Arms that draw another arm's moves, more often: {arm: (that arm, the chance GenSplat replaces a camera)}.
-MORE_OFTEN = {"gensplat-fov-p0.5": ("gensplat-fov", 0.5), "gensplat-arc-p0.5": ("gensplat-arc", 0.5)}
+MORE_OFTEN = {"gensplat-fov-p0.5": ("gensplat-fov", 0.5), "gensplat-arc-p0.5": ("gensplat-arc", 0.5),
+              "gensplat-wide-p0.5": ("gensplat-wide", 0.5)}  # fmt: skip
 SAMPLER_ARMS |= {arm: {**SAMPLER_ARMS[like], "probability": p} for arm, (like, p) in MORE_OFTEN.items()}
 #: A replicate of an arm: ``<arm>@s<N>``, trained with the seed ``--seed + N`` (module docstring).
 REPLICATE = re.compile(r"^(?P<arm>.+)@s(?P<n>[1-9][0-9]*)$")
@@ -659,7 +664,8 @@ COLOURS = {"baseline": (214, 39, 40), "lerobot2d": (31, 119, 180), "perspective"
            "gensplat-wide": (23, 190, 207), "gensplat-fov": (227, 119, 194), "gensplat-tilt": (188, 189, 34),
            "gensplat-arc": (127, 127, 127), "gensplat-fov-p0.5": (247, 182, 210),
            "gensplat-arc-p0.5": (199, 199, 199), "gensplat-tiltarc": (219, 219, 141),
-           "gensplat-zoom": (158, 218, 229), "gensplat-unmoved": (0, 0, 0)}  # fmt: skip
+           "gensplat-zoom": (158, 218, 229), "gensplat-unmoved": (0, 0, 0),
+           "gensplat-wide-p0.5": (255, 187, 120)}  # fmt: skip
 
 
 def colour(arm: str) -> tuple[int, int, int]:

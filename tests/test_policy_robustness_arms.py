@@ -159,7 +159,8 @@ def evaluation(solved: dict[str, int], episodes: int) -> dict:
 def test_result_compares_every_arm_under_both_protocols(tmp_path, capsys):
     solved = {"baseline": 2, "lerobot2d": 4, "perspective": 6, "gensplat": 9, "gensplat+lerobot2d": 7, "gensplat+color": 8,
               "gensplat-wide": 5, "gensplat-fov": 3, "gensplat-tilt": 4, "gensplat-arc": 6, "gensplat-fov-p0.5": 4,
-              "gensplat-arc-p0.5": 5, "gensplat-tiltarc": 6, "gensplat-zoom": 7, "gensplat-unmoved": 5}  # fmt: skip
+              "gensplat-arc-p0.5": 5, "gensplat-tiltarc": 6, "gensplat-zoom": 7, "gensplat-unmoved": 5,
+              "gensplat-wide-p0.5": 6}  # fmt: skip
     args = pr.parse_args(["--episodes", "10"])
     result = pr.build_result(evaluation(solved, 10), 10, False, pr.result_settings(args), {})
     assert list(result["protocols"]) == ["vista", "fov"] and result["episodes_per_level"] == 10
@@ -368,7 +369,7 @@ def test_a_replicate_trains_its_arm_again_with_another_seed_and_is_paired_like_a
     for arm, n in (("baseline@s1", 1), ("gensplat-zoom@s2", 2)):  # the same training but for the seed
         kind = pr.arm_kind(arm)
         cmd, base = (pr.train_command(a, ROOT, OUT, CONFIG, args) for a in (arm, kind))
-        assert [a for a in cmd if a not in base] == ["--seed=%d" % (3 + n)] and len(cmd) == len(base)
+        assert [a for a in cmd if a not in base] == [f"--seed={3 + n}"] and len(cmd) == len(base)
         assert pr.augmentation(arm, args) == {**pr.augmentation(kind, args), "train_seed": 3 + n}
     zoom, again = pr.gensplat_config(args, "gensplat-zoom"), pr.gensplat_config(args, "gensplat-zoom@s2")
     assert (zoom.seed, again.seed) == (3, 5) and replace(again, seed=3) == zoom  # GenSplat draws other moves
