@@ -199,7 +199,8 @@ class Perturbation:
             norm = math.hypot(*v)  # no overflow or underflow of the squares
             if not (math.isfinite(norm) and norm > 0):
                 raise ValueError(f"Perturbation.axis: a direction needs 3 finite values, not all 0, got {self.axis}")
-            object.__setattr__(self, "axis", tuple(a / norm for a in v))
+            # a unit direction is kept as it is: normalising it again could change its last bits
+            object.__setattr__(self, "axis", v if abs(norm - 1.0) <= 1e-15 else tuple(a / norm for a in v))
         shift = tuple(_real("Perturbation.shift_m", a) for a in _numbers("Perturbation.shift_m", self.shift_m, 3))
         if not all(math.isfinite(a) for a in shift):
             raise ValueError(f"Perturbation.shift_m must be 3 finite metres, got {self.shift_m}")
@@ -227,8 +228,8 @@ class Perturbation:
     def apply(self, c2w: torch.Tensor, pivot: torch.Tensor) -> torch.Tensor:
         """Moved (..., 4, 4) camera-to-world (the focal length aside); see :func:`perturb_pose`,
         which checks the result."""
-        return perturb_pose(c2w, pivot, torch.tensor(self.direction), self.theta_deg, self.mu_m,
-                            torch.tensor(self.shift_m), float(self.about == "pivot"))  # fmt: skip
+        return perturb_pose(c2w, pivot, torch.tensor(self.direction, dtype=torch.float64), self.theta_deg, self.mu_m,
+                            torch.tensor(self.shift_m, dtype=torch.float64), float(self.about == "pivot"))  # fmt: skip
 
     def move(self, cameras: Cameras, index: int = 0, pivot_depth: float | None = None) -> Cameras:
         """Camera ``index`` of a rig, moved about the rig's pivot (:func:`rig_pivot`: of its
@@ -363,10 +364,12 @@ def move_rig(c2w: torch.Tensor, moves: torch.Tensor, views: Sequence[int], pivot
 
 def _move_rig(c2w: torch.Tensor, moves: torch.Tensor, views: Sequence[int], pivot_depth: float | None = None
               ) -> torch.Tensor:  # fmt: skip
-    """:func:`move_rig`, unchecked."""
-    pivot = rig_pivot(c2w, pivot_depth)[..., None, :]  # (..., 1, 3)
-    return _perturb_pose(c2w[..., list(views), :, :], pivot, moves[..., :3], moves[..., 3], moves[..., 4],
-                         moves[..., 5:8], moves[..., 9])  # fmt: skip
+    """:func:`move_rig`, unchecked: the pivot and the moves in float64 (the pivot of nearly
+    parallel axes loses digits in a coarser dtype), the poses returned in ``c2w``'s dtype."""
+    pose = c2w.to(torch.float64)
+    pivot = rig_pivot(pose, pivot_depth)[..., None, :]  # (..., 1, 3)
+    return _perturb_pose(pose[..., list(views), :, :], pivot, moves[..., :3], moves[..., 3], moves[..., 4],
+                         moves[..., 5:8], moves[..., 9]).to(c2w.dtype)  # fmt: skip
 
 
 def _floating(name: str, c2w: torch.Tensor) -> None:
@@ -446,6 +449,11 @@ def pivot_point(c2w_a: torch.Tensor, c2w_b: torch.Tensor, parallel_tol: float = 
     return torch.where(parallel, 0.5 * (c2w_a[..., :3, 3] + c2w_b[..., :3, 3]), 0.5 * (pa + pb))
 
 
+#: Seeds and indices of a draw lie below 2**32: NumPy splits a larger integer of a seed's key
+#: into 32-bit words, so (2**32, 5) would draw what (0, 1, 5) draws.
+KEY_LIMIT = 2**32
+
+
 class _Sampler:
     """Seeded draws per (episode, frame, view): ``mode="episode"`` gives every frame of an
     episode the same move, ``"frame"`` a new one per frame; ``focal_scale`` (low, high) adds a
@@ -458,8 +466,8 @@ class _Sampler:
         if mode not in ("episode", "frame"):
             raise ValueError(f"{type(self).__name__}.mode must be 'episode' or 'frame', got {mode!r}")
         seed = _integer(f"{type(self).__name__}.seed", seed)
-        if seed < 0:
-            raise ValueError(f"{type(self).__name__}.seed must be >= 0, got {seed}")
+        if not 0 <= seed < KEY_LIMIT:
+            raise ValueError(f"{type(self).__name__}.seed must be in [0, 2**32), got {seed}")
         self.mode, self.seed = mode, seed
         self.focal_scale = _focal_range(f"{type(self).__name__}.focal_scale", focal_scale)
 
@@ -467,8 +475,9 @@ class _Sampler:
         name = f"{type(self).__name__}.sample: "
         key = [self.seed, _integer(name + "episode_index", episode_index),
                _integer(name + "frame_index", frame_index) if self.mode == "frame" else 0, _integer(name + "view", view)]
-        if min(key) < 0:
-            raise ValueError(f"{type(self).__name__}.sample: episode/frame/view indices must be >= 0, got {key[1:]}")
+        if not 0 <= min(key) <= max(key) < KEY_LIMIT:
+            raise ValueError(f"{type(self).__name__}.sample: episode/frame/view indices must be in [0, 2**32), "
+                             f"got {key[1:]}")  # fmt: skip
         rng = np.random.default_rng(key if self.salt is None else [*key, self.salt])
         move = self._draw(rng)
         if self.focal_scale == (1.0, 1.0):

@@ -12,12 +12,15 @@ from gensplat_transforms.cameras import FOCAL_MAX_PX, Cameras, look_at
 from gensplat_transforms.episodes import SceneEpisodes, build_cache
 from gensplat_transforms.perturbation import (
     FOCAL_SCALE_LIMITS,
+    KEY_LIMIT,
     ROW,
     SAMPLERS,
     MixSampler,
     Perturbation,
     PerturbationRange,
+    PerturbationSampler,
     TiltSampler,
+    _move_rig,
     make_sampler,
     move_rig,
     perturb_pose,
@@ -181,9 +184,10 @@ def test_an_axis_of_tiny_or_huge_length_is_a_direction():
 @pytest.mark.parametrize("dtype", [F64, torch.float32, torch.float16])
 def test_a_batch_through_move_rig_is_perturbation_move_one_at_a_time(dtype):
     cameras = CAMS.to(dtype=dtype)
-    moves = [make_sampler(k, seed=2**63, focal_scale=(1e-3, 1e3), mode="frame").sample(2**63, 2**62, view=v)
+    top = KEY_LIMIT - 1  # the largest seed and indices a draw takes
+    moves = [make_sampler(k, seed=top, focal_scale=(1e-3, 1e3), mode="frame").sample(top, top - 1, view=v)
              for k in SAMPLERS for v in range(2)]  # fmt: skip
-    assert moves == [make_sampler(k, seed=2**63, focal_scale=(1e-3, 1e3), mode="frame").sample(2**63, 2**62, view=v)
+    assert moves == [make_sampler(k, seed=top, focal_scale=(1e-3, 1e3), mode="frame").sample(top, top - 1, view=v)
                      for k in SAMPLERS for v in range(2)]  # fmt: skip
     rows = torch.tensor([m.as_row() for m in moves], dtype=F64).reshape(-1, 2, ROW)
     c2w = move_rig(cameras.c2w.expand(len(rows), 2, 4, 4), rows, [0, 1])
@@ -195,6 +199,33 @@ def test_a_batch_through_move_rig_is_perturbation_move_one_at_a_time(dtype):
         assert (one.width, one.height) == (96, 80) and torch.equal(one.K[0, :, 2], cameras.K[i % 2, :, 2])
     centre = RIG[0, :3, 3]
     assert torch.equal(perturb_pose(RIG[0], centre, "z", 30.0, 0.0)[:3, 3], centre)  # a pivot at the camera centre
+
+
+def test_seeds_and_indices_from_2_to_the_32_are_refused_rather_than_drawn_like_smaller_ones():
+    # NumPy splits a key integer into 32-bit words: (2**32, 5, 0, 1) would be the key (0, 1, 5, 0, 1)
+    for make in (lambda: PerturbationSampler("large", seed=KEY_LIMIT), lambda: GenSplatConfig(seed=2**63),
+                 lambda: PerturbationSampler("large").sample(KEY_LIMIT), lambda: TiltSampler(10.0).sample(0, view=2**40),
+                 lambda: TiltSampler(10.0, mode="frame").sample(0, KEY_LIMIT)):  # fmt: skip
+        with pytest.raises(ValueError, match=r"must be in \[0, 2\*\*32\)"):
+            make()
+
+
+def test_a_drawn_move_is_its_own_fields_again_and_a_focal_range_keeps_its_turn():
+    plain, zoom = TiltSampler(10.0, seed=1), TiltSampler(10.0, seed=1, focal_scale=(0.8, 1.25))
+    for ep in range(200):  # a unit axis is not normalised again (its last bits would change)
+        move = plain.sample(ep)
+        assert Perturbation(**move.as_dict()) == move and zoom.sample(ep).axis == move.axis
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_a_pivot_of_nearly_parallel_axes_is_found_in_float64_whatever_the_poses_dtype(dtype):
+    # cameras 10 cm apart, each toed in 3 deg: axes cross 0.95 m out, where 1 - cos^2 of their angle is 1e-2
+    rig = torch.stack([look_at((0.0, y, 0.0), (0.954, 0.0, 0.0)) for y in (0.05, -0.05)]).to(dtype)
+    cameras = Cameras(CAMS.K.to(dtype), rig, 96, 80)
+    move = Perturbation("z", 20.0, 0.02)
+    moved = move.move(cameras, 0).c2w
+    exact = _move_rig(rig.double(), torch.tensor([move.as_row()], dtype=F64), [0])  # the same poses in float64
+    assert moved.dtype == dtype and float((moved.double() - exact).abs().max()) < 8 * torch.finfo(dtype).eps
 
 
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
