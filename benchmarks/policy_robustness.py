@@ -74,9 +74,9 @@ refused):
    so a replicate meets the same episodes and is paired with every arm like any other: the
    difference between an arm and its replicate is what retraining alone moves.
 
-   The wider arms and the GenSplat replicates train on their own dataset roots (``work/dataset_<arm>``, links to
-   ``work/dataset`` beside their own ``gensplat`` settings and cache), since LeRobot's
-   GenSplat line reads the settings from the dataset root;
+   The wider arms and the GenSplat replicates train on their own dataset roots
+   (``work/dataset_<arm>``, links to ``work/dataset`` beside their own ``gensplat`` settings
+   and cache), since LeRobot's GenSplat line reads the settings from the dataset root;
 
 4. evaluate every arm's checkpoint in ``PerturbedCameraEnv`` with the left external camera
    moved once per episode, under three protocols (``PROTOCOLS``): ``paper`` (the paper's:
