@@ -167,6 +167,7 @@ from gensplat_lerobot import prepare
 from plotting import Panel, line_panels
 
 from gensplat_transforms.atomic import atomic_write_json, read_json_object
+from gensplat_transforms.perturbation import KEY_LIMIT
 from gensplat_transforms.sim.evaluate import (
     FOV_RANGE,
     EvalConfig,
@@ -882,6 +883,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if unknown:
         parser.error(f"--arms: unknown {unknown}; choose from {ARMS}, or a replicate <arm>@s<N> with N >= 1")
     args.arms = ordered(args.arms.split(","))
+    seeds = {arm: train_seed(arm, args) for arm in args.arms}
+    if not all(0 <= seed < KEY_LIMIT for seed in seeds.values()):
+        parser.error(f"--seed and --arms: training seeds must be in [0, 2**32), got {seeds}")
     if "perspective" in map(arm_kind, args.arms) and "wrist" in args.cameras:
         parser.error("the perspective arm warps every camera LeRobot loads, the wrist camera too: "
                      "give it a policy that sees external cameras only")  # fmt: skip

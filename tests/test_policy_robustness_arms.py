@@ -376,9 +376,12 @@ def test_a_replicate_trains_its_arm_again_with_another_seed_and_is_paired_like_a
     work = Path("work")
     assert pr.dataset_root(work, "baseline@s1") == work / "dataset"
     assert pr.dataset_root(work, "gensplat@s1") == work / "dataset_gensplat@s1"  # its own GenSplat settings
-    for bad in ("gensplat@s0", "gensplat@s", "gensplat@1", "gensplat@s-1", "mixup@s1", "gensplat@s1@s1"):
+    for bad in ("gensplat@s0", "gensplat@s", "gensplat@1", "gensplat@s-1", "mixup@s1", "gensplat@s1@s1",
+                "gensplat@s4294967296"):  # a seed GenSplat's sampler refuses: 2**32
         with pytest.raises(SystemExit):
             pr.parse_args(["--arms", bad])
+    with pytest.raises(SystemExit):
+        pr.parse_args(["--arms", "baseline", "--seed", "-1"])
     arms = ("baseline", "baseline@s1", "perspective", "gensplat", "gensplat@s1")
     args = pr.parse_args(["--arms", ",".join(arms), "--episodes", "10"])
     solved = {"baseline": 2, "baseline@s1": 3, "perspective": 1, "gensplat": 5, "gensplat@s1": 4}
