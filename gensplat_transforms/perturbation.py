@@ -233,9 +233,9 @@ class Perturbation:
 
     def move(self, cameras: Cameras, index: int = 0, pivot_depth: float | None = None) -> Cameras:
         """Camera ``index`` of a rig, moved about the rig's pivot (:func:`rig_pivot`: of its
-        cameras 0 and 1, or ``pivot_depth`` along the axis of a rig's one camera), its focal
-        length scaled (:func:`scale_focal`). The move is taken in float64 (as the batch path's
-        rows), whatever the cameras' dtype."""
+        cameras 0 and 1, or ``pivot_depth`` along the axis of a rig's one camera; a move about
+        the camera's own centre needs no pivot), its focal length scaled (:func:`scale_focal`).
+        The move is taken in float64 (as the batch path's rows), whatever the cameras' dtype."""
         if not 0 <= index < len(cameras):
             raise IndexError(f"Perturbation.move: camera index {index} outside 0..{len(cameras) - 1}")
         move = torch.tensor([self.as_row()], dtype=torch.float64)
@@ -365,9 +365,16 @@ def move_rig(c2w: torch.Tensor, moves: torch.Tensor, views: Sequence[int], pivot
 def _move_rig(c2w: torch.Tensor, moves: torch.Tensor, views: Sequence[int], pivot_depth: float | None = None
               ) -> torch.Tensor:  # fmt: skip
     """:func:`move_rig`, unchecked: the pivot and the moves in float64 (the pivot of nearly
-    parallel axes loses digits in a coarser dtype), the poses returned in ``c2w``'s dtype."""
+    parallel axes loses digits in a coarser dtype), the poses returned in ``c2w``'s dtype. The
+    pivot is found only when a move turns about it: moves about the cameras' own centres need
+    none (so a one-camera rig needs no ``pivot_depth`` for them; a given one is still checked)."""
     pose = c2w.to(torch.float64)
-    pivot = rig_pivot(pose, pivot_depth)[..., None, :]  # (..., 1, 3)
+    if pivot_depth is not None:
+        _check_pivot_depth(pivot_depth)
+    if bool((moves[..., 9] == 0).all()):
+        pivot = pose[..., list(views), :3, 3]  # (..., R, 3): each camera's own centre
+    else:
+        pivot = rig_pivot(pose, pivot_depth)[..., None, :]  # (..., 1, 3)
     return _perturb_pose(pose[..., list(views), :, :], pivot, moves[..., :3], moves[..., 3], moves[..., 4],
                          moves[..., 5:8], moves[..., 9]).to(c2w.dtype)  # fmt: skip
 
@@ -425,11 +432,16 @@ def rig_pivot(c2w: torch.Tensor, pivot_depth: float | None = None) -> torch.Tens
     """
     if pivot_depth is None and c2w.shape[-3] > 1:
         return pivot_point(c2w[..., 0, :, :], c2w[..., 1, :, :])
+    _check_pivot_depth(pivot_depth)
+    axis = c2w[..., 0, :3, 2]
+    return c2w[..., 0, :3, 3] + pivot_depth * axis / axis.norm(dim=-1, keepdim=True)
+
+
+def _check_pivot_depth(pivot_depth: float | None) -> None:
+    """Raise ``ValueError`` unless ``pivot_depth`` is a finite positive distance."""
     if pivot_depth is None or not (math.isfinite(pivot_depth) and pivot_depth > 0):
         raise ValueError(f"rig_pivot: pivot_depth must be a positive distance in metres along camera 0's optical "
                          f"axis (a rig of one external camera needs one), got {pivot_depth}")  # fmt: skip
-    axis = c2w[..., 0, :3, 2]
-    return c2w[..., 0, :3, 3] + pivot_depth * axis / axis.norm(dim=-1, keepdim=True)
 
 
 def pivot_point(c2w_a: torch.Tensor, c2w_b: torch.Tensor, parallel_tol: float = 1e-6) -> torch.Tensor:

@@ -16,7 +16,7 @@ from gensplat_transforms.batched import render_batch
 from gensplat_transforms.cache import GaussianCache
 from gensplat_transforms.cameras import look_at
 from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache, scene_depth
-from gensplat_transforms.perturbation import Perturbation, rig_pivot
+from gensplat_transforms.perturbation import Perturbation, move_rig, rig_pivot
 from gensplat_transforms.reconstruction import RGBDReconstructor, Views
 from gensplat_transforms.scenes import default_cameras
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
@@ -70,6 +70,22 @@ def test_a_move_of_one_camera_turns_it_about_its_pivot():
     torch.testing.assert_close(along, torch.tensor(0.8, dtype=torch.float64))
     with pytest.raises(ValueError, match="pivot_depth"):
         p.move(cams, 0)
+
+
+def test_a_move_about_the_camera_needs_no_pivot():
+    cams = default_cameras(16, 16)[:1]
+    tilt = Perturbation((0.6, 0.0, 0.8), theta_deg=7.0, shift_m=(0.01, 0.0, -0.02), about="camera")
+    moved = tilt.move(cams, 0)  # no pivot_depth: the turn is about the camera's own centre
+    torch.testing.assert_close(moved.c2w, tilt.move(cams, 0, pivot_depth=0.8).c2w, rtol=0, atol=1e-12)
+    torch.testing.assert_close(moved.c2w[0, :3, 3], cams.c2w[0, :3, 3] + torch.tensor(tilt.shift_m, dtype=torch.float64))
+    rows = torch.tensor([[tilt.as_row()], [Perturbation("y", 0.0, about="camera").as_row()]], dtype=torch.float64)
+    assert move_rig(torch.stack([cams.c2w, cams.c2w]), rows, [0]).shape == (2, 1, 4, 4)
+    for bad in (0.0, -1.0, float("nan")):  # a given pivot_depth is still checked
+        with pytest.raises(ValueError, match="pivot_depth must be a positive distance"):
+            tilt.move(cams, 0, pivot_depth=bad)
+    mixed = torch.tensor([tilt.as_row(), Perturbation("y", 5.0).as_row()], dtype=torch.float64)
+    with pytest.raises(ValueError, match="pivot_depth"):  # a move about the pivot needs it
+        move_rig(cams.c2w, mixed, [0, 0])
 
 
 def test_config_and_transform_check_the_pivot_depth(one):
