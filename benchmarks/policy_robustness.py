@@ -64,9 +64,10 @@ refused):
      half the samples: what replacing real images with renders costs the policy, apart from
      any move (the arms moving half the samples pay 14-19 points at the training camera);
    * ``gensplat-wide-p0.5``: ``gensplat-wide``'s moves (the paper's, tilts and arcs, one kind
-     per camera) on half the samples: trained for twice the steps (``--steps 5000``), each
-     kind moves more samples than it did in the arm that gained with it alone at 2500 steps,
-     and the real camera is seen in as many samples as the baseline's at 2500.
+     per camera) on half the samples, so each kind moves a sixth of them; trained for twice
+     the steps (``--steps 5000``), each kind moves more samples than it did in the arm that
+     gained with it alone at 2500 steps, and the real camera is seen in as many samples as the
+     baseline's at 2500.
 
    A replicate ``<arm>@s<N>`` (N >= 1, e.g. ``gensplat-zoom@s1``, ``baseline@s1``) trains
    ``<arm>``'s augmentation again with the training seed ``--seed + N`` (LeRobot's, and the
