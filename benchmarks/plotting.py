@@ -8,6 +8,8 @@ from pathlib import Path
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
+from gensplat_transforms.atomic import atomic_write
+
 RGB = tuple[int, int, int]
 
 
@@ -35,7 +37,7 @@ def line_panels(path: Path, panels: list[Panel], colours: dict[str, RGB], note: 
                 panel_size: tuple[int, int] = (420, 300), legend_columns: int = 4) -> None:  # fmt: skip
     """Draw ``panels`` side by side with one legend (a line per series name in ``colours``,
     ``legend_columns`` to a row) and an optional ``note`` under it; save the PNG to ``path``
-    (``panel_size`` in pixels at 100 dpi)."""
+    (``panel_size`` in pixels at 100 dpi), whole or not at all (a stopped save keeps the old file)."""
     dpi = 100
     fig = Figure(figsize=(len(panels) * panel_size[0] / dpi, (panel_size[1] + 110) / dpi), dpi=dpi)
     axes = fig.subplots(1, len(panels), squeeze=False)
@@ -58,4 +60,4 @@ def line_panels(path: Path, panels: list[Panel], colours: dict[str, RGB], note: 
     if note:
         fig.text(0.01, 0.01, note, fontsize=8)
     fig.tight_layout(rect=(0, 0.08 + 0.05 * (-(-len(colours) // legend_columns)), 1, 1))
-    fig.savefig(path)
+    atomic_write(path, lambda tmp: fig.savefig(tmp, format=Path(path).suffix.lstrip(".")))

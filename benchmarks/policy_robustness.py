@@ -373,7 +373,7 @@ def check_work(work: Path, arms: tuple[str, ...], args) -> None:
                              "pass a new --work or delete it")  # fmt: skip
         augment = {**before, **augment}
     work.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps({**settings, "augmentation": augment}, indent=2) + "\n")
+    atomic_write_json(path, {**settings, "augmentation": augment})
 
 
 def lock_work(work: Path) -> int:
@@ -399,8 +399,7 @@ def policy_config(work: Path, args) -> Path:
     features["observation.state"] = {"type": "STATE", "shape": [len(STATE_NAMES)]}
     config["policy"]["input_features"] = features
     path = work / "diffusion.json"
-    path.write_text(json.dumps(config, indent=2) + "\n")
-    return path
+    return atomic_write_json(path, config)
 
 
 #: Training steps between checkpoints: a stopped training resumes from its last one.
@@ -465,7 +464,7 @@ def train(arm: str, root: Path, out: Path, args) -> dict:
     for checkpoint in (out / "checkpoints").iterdir():
         if checkpoint.name != "last" and checkpoint.resolve() != final:
             shutil.rmtree(checkpoint)
-    record.write_text(json.dumps(timing))
+    atomic_write_json(record, timing)
     return timing
 
 
@@ -674,6 +673,13 @@ def colour(arm: str) -> tuple[int, int, int]:
     """``arm``'s line colour: its kind's (``COLOURS``), halfway to white for a replicate."""
     rgb = COLOURS[arm_kind(arm)]
     return rgb if arm_kind(arm) == arm else tuple((c + 255) // 2 for c in rgb)
+
+
+def write_result(result: dict, out: Path) -> None:
+    """Write ``result`` to ``out`` and its plot beside it, each whole or not at all: a stopped
+    write keeps the old file (which ``--reuse-from`` may have read)."""
+    atomic_write_json(out, result)
+    plot(result, out.with_suffix(".png"))
 
 
 def plot(result: dict, path: Path) -> None:
@@ -957,9 +963,7 @@ def main() -> None:
     timing["total_seconds"] = round(time.perf_counter() - t_start, 1)
     evaluated = {p: {arm: r[arm] for arm in arms if arm in (r := {**reused[p], **evaluated[p]})} for p in PROTOCOLS}
     result = build_result(evaluated, args.episodes, args.quick, settings, timing)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
-    plot(result, args.out.with_suffix(".png"))
+    write_result(result, args.out)
     print_summary(result)
     print(
         f"wrote {args.out} ({timing['total_seconds']:.0f} s{', QUICK: not a result' if args.quick else ''})"

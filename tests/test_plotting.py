@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from PIL import Image
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
@@ -25,3 +26,17 @@ def test_line_panels_draws_every_series_in_its_colour(tmp_path):
     assert image.shape[1] == 600 and image.shape[0] > 200
     for rgb in colours.values():
         assert (np.abs(image - rgb).sum(-1) < 10).sum() > 50, rgb  # lines, markers and legend
+
+
+def test_a_stopped_save_keeps_the_old_chart(tmp_path, monkeypatch):
+    path = tmp_path / "chart.png"
+    path.write_bytes(b"old chart")
+
+    def stopped(self, fname, *args, **kwargs):
+        Path(fname).write_bytes(b"\x89PNG half")  # the start of the file, then the process stops
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("matplotlib.figure.Figure.savefig", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        line_panels(path, [Panel("p", {"a": [(0, 1, "")]}, (0, 1), (0, 2))], {"a": (0, 0, 0)})
+    assert path.read_bytes() == b"old chart" and [p.name for p in tmp_path.iterdir()] == ["chart.png"]

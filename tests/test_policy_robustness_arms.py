@@ -299,6 +299,28 @@ def test_a_run_of_reused_arms_only_trains_and_evaluates_nothing(tmp_path, monkey
     assert set(result["difference"]) == {"vs_baseline"} and out.with_suffix(".png").is_file()
 
 
+def test_a_stopped_result_write_keeps_the_file_it_reused(tmp_path, monkeypatch):
+    args = pr.parse_args(["--episodes", "4"])
+    old = earlier_result(tmp_path / "old.json", args, ("baseline", "gensplat"), 4)
+    before = old.read_text()
+    argv = ["--episodes", "4", "--arms", "baseline,gensplat", "--reuse-from", str(old), "--out", str(old),
+            "--work", str(tmp_path / "work")]  # fmt: skip
+    monkeypatch.setattr(sys, "argv", ["policy_robustness.py", *argv])
+    write_text = Path.write_text
+
+    def stopped(self, text, *a, **k):
+        write_text(self, text[: len(text) // 2])  # half the file, then the process stops
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as m:
+        m.setattr(Path, "write_text", stopped)
+        with pytest.raises(KeyboardInterrupt):
+            pr.main()
+    assert old.read_text() == before and sorted(p.name for p in tmp_path.iterdir()) == ["old.json"]
+    pr.main()  # the same command, not stopped: the file it read, written again whole
+    assert list(json.loads(old.read_text())["arms"]) == ["baseline", "gensplat"]
+
+
 def test_work_refuses_another_augmentation(tmp_path, monkeypatch):
     args = pr.parse_args(["--work", str(tmp_path)])
     pr.check_work(tmp_path, ("baseline", "perspective"), args)
