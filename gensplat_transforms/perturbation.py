@@ -473,6 +473,9 @@ class _Sampler:
 
     #: salt of the seed, so that samplers of one seed draw apart (None: the paper's, unsalted)
     salt: int | None = None
+    #: whether its moves turn about the rig's pivot (False: about each camera's own centre,
+    #: so a one-camera rig needs no ``pivot_depth`` for them)
+    about_pivot: bool = True
 
     def __init__(self, mode: str = "episode", seed: int = 0, focal_scale: tuple[float, float] = (1.0, 1.0)) -> None:
         if mode not in ("episode", "frame"):
@@ -559,6 +562,7 @@ class TiltSampler(_Turns):
     """
 
     salt = 1
+    about_pivot = False
 
     def _draw(self, rng: np.random.Generator) -> Perturbation:
         axis = rng.normal(size=3)  # a normalised isotropic Gaussian: uniform on the sphere
@@ -609,6 +613,11 @@ class MixSampler(_Sampler):
         wrong = [type(s).__name__ for s in self.samplers if not isinstance(s, _Sampler)]
         if wrong:
             raise TypeError(f"MixSampler: samplers must be samplers (PerturbationSampler, TiltSampler, ...), got {wrong}")
+
+    @property
+    def about_pivot(self) -> bool:
+        """Whether any of its samplers turns about the rig's pivot."""
+        return any(s.about_pivot for s in self.samplers)
 
     def _draw(self, rng: np.random.Generator) -> Perturbation:
         return self.samplers[int(rng.integers(len(self.samplers)))]._draw(rng)

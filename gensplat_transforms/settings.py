@@ -36,7 +36,8 @@ class GenSplatConfig:
 
     Attributes:
         cameras: the reconstructed (external) cameras, in the order the cache stores them.
-            The first two define the pivot; one camera alone needs ``pivot_depth``. A wrist
+            The first two define the pivot; one camera alone needs ``pivot_depth`` (unless
+            ``sampler`` is "tilt", whose moves turn about the camera's own centre). A wrist
             camera never belongs here.
         replace: cameras whose image is replaced (default: all of ``cameras``).
         image_key: item key of a camera's image; ``{name}`` is replaced by the camera name.
@@ -90,10 +91,11 @@ class GenSplatConfig:
             "auto": batch where the LeRobot plugin trains on CUDA, else worker (a transform
             used on its own renders in the worker).
         pivot_depth: the distance in metres along camera 0's optical axis to the pivot (see
-            :mod:`.perturbation`). One reconstructed camera needs it; with two or more, None
-            puts the pivot where the axes of cameras 0 and 1 cross. ``gensplat cache`` sets it
-            (:func:`.episodes.pivot_depth`): the scene's depth for one camera, or for two
-            whose axes do not cross in front of both near the scene.
+            :mod:`.perturbation`). One reconstructed camera needs it (for any sampler but
+            "tilt"); with two or more, None puts the pivot where the axes of cameras 0 and 1
+            cross. ``gensplat cache`` sets it (:func:`.episodes.pivot_depth`): the scene's
+            depth for one camera, or for two whose axes do not cross in front of both near
+            the scene.
 
     Example:
         >>> config = GenSplatConfig(cameras=("left", "right"), replace=("left",), level="small")

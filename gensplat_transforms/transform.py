@@ -68,14 +68,14 @@ class GenSplatTransform:
                 f"GenSplatTransform: the source reconstructs {tuple(source.camera_names)}, "
                 f"the config names {config.cameras}"
             )
-        if len(config.cameras) == 1 and config.pivot_depth is None:
+        self.sampler = config.perturbations()
+        if len(config.cameras) == 1 and config.pivot_depth is None and self.sampler.about_pivot:
             raise ValueError(f"GenSplatTransform: one reconstructed camera ({config.cameras[0]}) needs "
                              "GenSplatConfig.pivot_depth, the distance to the pivot along its axis (gensplat cache "
-                             "measures it)")  # fmt: skip
+                             f"measures it), for the moves of sampler {config.sampler!r}")  # fmt: skip
         if config.render_in == "batch" and not self.reader.batchable:
             raise ValueError(f"GenSplatTransform: render_in='batch' needs a depth cache (RGB-D or geometry "
                              f"reconstructor); {self.reader} stores Gaussians: use render_in='worker'")  # fmt: skip
-        self.sampler = config.perturbations()
         #: set to count every item (augmented or not) and its time across workers
         self.counters: SampleCounters | None = None
 

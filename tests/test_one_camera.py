@@ -95,8 +95,9 @@ def test_config_and_transform_check_the_pivot_depth(one):
             GenSplatConfig(cameras=("left",), pivot_depth=bad)
     with pytest.raises(ValueError, match="needs a calibrated|at least one external camera"):
         GenSplatConfig(cameras=())
-    with pytest.raises(ValueError, match=r"one reconstructed camera \(left\) needs GenSplatConfig.pivot_depth"):
-        GenSplatTransform(GenSplatConfig(cameras=("left",)), cache)
+    for sampler in ("paper", "arc", "mix", "tilt,arc"):  # moves about the pivot
+        with pytest.raises(ValueError, match=r"one reconstructed camera \(left\) needs GenSplatConfig.pivot_depth"):
+            GenSplatTransform(GenSplatConfig(cameras=("left",), sampler=sampler), cache)
 
 
 def test_scene_depth_is_the_median_depth_on_the_axis(one):
@@ -107,10 +108,12 @@ def test_scene_depth_is_the_median_depth_on_the_axis(one):
     assert abs(depth - float(truth.median(1).values.median())) < 0.02
 
 
-def test_one_camera_worker_and_batch_paths_render_the_same(one):
+@pytest.mark.parametrize("settings", [{"pivot_depth": 0.9, "level": "large"},
+                                      {"sampler": "tilt"}])  # tilts turn about the camera: no pivot_depth
+def test_one_camera_worker_and_batch_paths_render_the_same(one, settings):
     _, cache, ds = one
     items = [ds[i] for i in range(6)]
-    cfg = GenSplatConfig(cameras=("left",), pivot_depth=0.9, level="large", probability=1.0, report=True)
+    cfg = GenSplatConfig(cameras=("left",), probability=1.0, report=True, **settings)
     worker = GenSplatTransform(cfg, cache)
     batch = GenSplatTransform(GenSplatConfig(**{**cfg.to_dict(), "render_in": "batch"}), cache)
     torch.manual_seed(3)
