@@ -49,6 +49,9 @@ IMAGE_KEY_PREFIX = "observation.images."
 CALIBRATION_FORMAT = "gensplat-calibration"
 #: beside the dataset, never inside it: ``<root>/<GENSPLAT_DIR>/`` holds settings, cache, calibration
 GENSPLAT_DIR = "gensplat"
+#: What GenSplat keeps in ``<root>/gensplat/``: its settings, the dataset's content record, the
+#: calibration, the folders' digests and the cache; no output a user names may replace them.
+GENSPLAT_OWNED = ("config.json", "dataset.json", "calibration.json", "digests.json", "cache")
 
 
 @dataclass

@@ -193,3 +193,68 @@ def test_record_leaves_no_partial_dataset_when_it_fails(tmp_path, monkeypatch, f
         sim_record.record(config, progress=False)
     assert {"meta", "videos"} <= set(written)
     assert not (tmp_path / "ds").exists()
+
+
+def dataset_snapshot(root):
+    """Every entry under ``root`` outside ``gensplat/``, links not followed: {relative path:
+    sha256 of a file, the target of a link, or "dir"}."""
+    out = {}
+    for folder, dirs, files in os.walk(root):
+        rel = os.path.relpath(folder, root)
+        if rel.split(os.sep)[0] == "gensplat":
+            continue
+        for name in dirs + files:
+            path = os.path.join(folder, name)
+            key = os.path.normpath(os.path.join(rel, name))
+            if os.path.islink(path):
+                out[key] = "-> " + os.readlink(path)
+            elif os.path.isdir(path):
+                out[key] = "dir"
+            else:
+                with open(path, "rb") as f:
+                    out[key] = hashlib.sha256(f.read()).hexdigest()
+    return out
+
+
+@pytest.mark.parametrize("linked", ["cache", "cache/id"])
+@pytest.mark.parametrize("target", ["meta", "data"])
+def test_cache_folders_linked_into_the_dataset_are_refused(cached, tmp_path, capsys, linked, target):
+    """``<root>/gensplat/cache`` (or the cache of one reconstructor) a link to one of the dataset's
+    own folders: ``gensplat cache`` refuses it and no byte of the dataset changes."""
+    root = tmp_path / "ds"
+    shutil.copytree(cached, root, ignore=shutil.ignore_patterns("cache"))
+    if linked == "cache":
+        (root / "gensplat" / "cache").symlink_to(root / target)
+    else:
+        (identity,) = [p.name for p in (cached / "gensplat" / "cache").iterdir() if p.is_dir()]
+        (root / "gensplat" / "cache").mkdir()
+        (root / "gensplat" / "cache" / identity).symlink_to(root / target)
+    before = dataset_snapshot(root)
+    err = refused(capsys, ["cache", "--root", str(root), "--repo-id", REPO], "outside GenSplat's folder")
+    assert "symbolic link" in err
+    assert dataset_snapshot(root) == before
+    refused(capsys, ply_args(root, tmp_path / "t.ply"), "outside GenSplat's folder")  # reading it too
+    assert dataset_snapshot(root) == before
+
+
+@pytest.mark.parametrize("owned", ["calibration.json", "config.json", "dataset.json", "cache/x.ply"])
+def test_outputs_never_replace_gensplat_s_own_files(cached, tmp_path, capsys, owned):
+    root = tmp_path / "ds"
+    shutil.copytree(cached, root)
+    before = {p: p.read_bytes() for p in (root / "gensplat").glob("*.json")}
+    refused(capsys, ply_args(root, root / "gensplat" / owned), "GenSplat's own")
+    (tmp_path / "own").symlink_to(root / "gensplat")  # the same files through a link
+    refused(capsys, ply_args(root, tmp_path / "own" / owned), "GenSplat's own")
+    refused(capsys, ["preview", "--root", str(root), "--repo-id", REPO, "--draws", "1", "--out",
+                     str(root / "gensplat" / "cache")], "GenSplat's own")  # fmt: skip
+    assert {p: p.read_bytes() for p in (root / "gensplat").glob("*.json")} == before
+    assert main(ply_args(root, root / "gensplat" / "t.ply")) == 0  # a file of the user's own stays allowed
+
+
+def test_every_file_gensplat_keeps_is_listed_as_its_own(tmp_path):
+    from gensplat_lerobot.dataset import content_path, settings_path
+
+    from gensplat_transforms.dataset_format import GENSPLAT_OWNED, calibration_path, digests_path
+
+    for path in (f(tmp_path) for f in (content_path, settings_path, calibration_path, digests_path)):
+        assert path.parent == tmp_path / "gensplat" and path.name in GENSPLAT_OWNED

@@ -14,7 +14,7 @@ from gensplat_transforms.atomic import atomic_write_json, read_json_object
 from gensplat_transforms.cache import GaussianCache, StaleCacheError
 from gensplat_transforms.dataset_format import GENSPLAT_DIR
 from gensplat_transforms.distributed import OnDevice, Shard
-from gensplat_transforms.outputs import gensplat_folder
+from gensplat_transforms.outputs import gensplat_subfolder
 from gensplat_transforms.perturbation import get_range
 from gensplat_transforms.reconstruction import make_reconstructor
 from gensplat_transforms.rendering.gsplat_backend import check_gsplat
@@ -87,12 +87,13 @@ def default_reconstructor(source: LeRobotSource) -> dict:
 
 def dataset_cache(root: str | Path, reconstructor, source: LeRobotSource, link_depth: bool | None = None
                   ) -> GaussianCache:  # fmt: skip
-    """The cache of a dataset: ``<root>/gensplat/cache/<reconstructor identity>/``; it links the
+    """The cache of a dataset: ``<root>/gensplat/cache/<reconstructor identity>/`` (refused with
+    ``ValueError`` where a symbolic link leads it out of ``gensplat/``); it links the
     depth sidecars unless ``link_depth`` is False (None: as ``gensplat cache`` stored it, so that
     episodes built later, e.g. by training, are stored as the others)."""
     if link_depth is None:
         link_depth = read_json_object(settings_path(root)).get("link_depth", True) is not False
-    return GaussianCache(Path(root) / GENSPLAT_DIR / "cache" / reconstructor.identity(), reconstructor,
+    return GaussianCache(gensplat_subfolder(root, "cache", reconstructor.identity()), reconstructor,
                          source.fingerprint, link_depth=link_depth)  # fmt: skip
 
 
@@ -253,7 +254,7 @@ def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructo
         rec = make_reconstructor({**reconstructor, "options": options}, shard.device)
     else:
         rec = make_reconstructor(reconstructor)
-    gensplat_folder(root)
+    gensplat_subfolder(root, "cache", rec.identity())  # before anything is written or measured
     if shard.rank == 0:
         if config.pivot_depth is None:  # one camera, or two whose axes do not cross at the scene
             config = replace(config, pivot_depth=pivot_depth(rec, source, episodes, progress=progress))
