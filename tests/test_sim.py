@@ -332,3 +332,24 @@ def test_kept_scheduling_gives_the_thread_its_policy_back(monkeypatch):
         state.update(policy=1, param=os.sched_param(99))
         raise RuntimeError
     assert state["policy"] == 0
+
+
+def test_reach_marked_reaches_the_red_cube_beside_a_decoy_of_another_colour():
+    task = TASKS["reach_marked"]
+    episodes = [task.sample(seed) for seed in range(100)]
+    assert all(e.placements["cube"].color == "red" and e.placements["decoy"].color != "red" for e in episodes)
+    assert {e.placements["decoy"].color for e in episodes} == set(task.colors) - {"red"}
+    assert all(e.instruction == "reach the red cube" for e in episodes)
+    sides = {e.placements["cube"].y > e.placements["decoy"].y for e in episodes}
+    assert sides == {True, False}  # either cube may stand left of the other
+    w = SimWorld("reach_marked", small_config())
+    w.reset(episode_seed(0, 1))
+    _, _, actions, success = run_expert(w, episode_seed(0, 1))
+    w.close()
+    assert success and 10 <= len(actions) <= 40
+
+
+def test_tasks_without_a_marked_colour_draw_as_before():
+    """``pick_color`` changes nothing for the other tasks: their layouts and colours are kept."""
+    assert TASKS["reach_solo"].sample(11).placements["cube"].color == "red"
+    assert [p.color for p in TASKS["reach"].sample(4).placements.values()] == ["yellow", "red", "green"]

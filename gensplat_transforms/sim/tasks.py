@@ -10,7 +10,10 @@ The tasks (all but ``reach_solo`` with distractors on the table):
   (demonstrations of 15-18 steps), meant for small training budgets;
 * ``reach_solo``: the same with a single 5 cm cube in a colour that stands out from the
   wooden table and no distractors: the policy only has to find the one object in view. This is
-  the task a from-scratch image encoder learns on a CPU budget.
+  the task a from-scratch image encoder learns on a CPU budget;
+* ``reach_marked``: two 5 cm cubes placed at random, the one to reach always red, the other
+  in another contrasting colour: the policy must tell which cube is marked from the image, so
+  its success depends on what the external camera shows.
 
 Per episode the object positions, yaws and colours are drawn from the episode seed; colours
 come from a named palette, so the instruction can name them ("put the red cube on the blue
@@ -104,6 +107,8 @@ class Task:
             reach, how far the pinch point may lie from its goal.
         max_steps: step budget of an evaluation episode (control steps at 10 Hz).
         colors: the palette names objects are coloured from (default all of :data:`PALETTE`).
+        pick_color: the colour the ``pick`` object always has (the others never), or None
+            (drawn like the others).
     """
 
     name: str
@@ -115,6 +120,7 @@ class Task:
     place_tolerance: float
     max_steps: int = 150
     colors: tuple[str, ...] = tuple(PALETTE)
+    pick_color: str | None = None
 
     def object(self, name: str) -> ObjectSpec:
         return next(o for o in self.objects if o.name == name)
@@ -122,7 +128,12 @@ class Task:
     def sample(self, seed: int) -> EpisodeSpec:
         """Draw colours and a collision-free layout from ``seed``."""
         rng = np.random.default_rng([int(seed), 7919])
-        colors = rng.choice(list(self.colors), size=len(self.objects), replace=False)
+        if self.pick_color is None:
+            colors = rng.choice(list(self.colors), size=len(self.objects), replace=False)
+        else:
+            others = iter(rng.choice([c for c in self.colors if c != self.pick_color], size=len(self.objects) - 1,
+                                     replace=False))  # fmt: skip
+            colors = [self.pick_color if o.name == self.pick else next(others) for o in self.objects]
         placed: list[tuple[float, float, float]] = []  # x, y, footprint radius
         placements = {}
         for obj, color in zip(self.objects, colors):
@@ -207,6 +218,12 @@ TASKS: dict[str, Task] = {
     "reach": _reach("reach", (_CUBE, _PLATE, _CAN)),
     "reach_solo": _reach(
         "reach_solo", (ObjectSpec("cube", "box", (0.025, 0.025, 0.025), 0.1),), colors=_CONTRAST
+    ),
+    "reach_marked": _reach(
+        "reach_marked",
+        (ObjectSpec("cube", "box", (0.025, 0.025, 0.025), 0.1), ObjectSpec("decoy", "box", (0.025, 0.025, 0.025), 0.1)),
+        colors=_CONTRAST,
+        pick_color="red",
     ),
 }
 
