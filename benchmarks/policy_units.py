@@ -1,0 +1,344 @@
+"""The policy robustness study as units that finish: each unit (task x arm x training seed)
+is trained, evaluated and written to its own file, so a stopped run loses only the unit in
+flight.
+
+    python benchmarks/policy_units.py run [--tasks T,..] [--arms A,..] [--seeds 0,1,2] [--commit]
+    python benchmarks/policy_units.py status     # each unit: done, stale, unreadable or to run
+    python benchmarks/policy_units.py summary    # summary.json, plot and README table from the unit files
+
+A unit trains Diffusion Policy on one task with one arm's augmentation and one training seed,
+then evaluates it under every protocol of ``policy_robustness.py`` (the paper's four levels,
+VISTA's ``small_perturb`` and ``arc_90deg``, ``fov`` ``zoom``) on the same evaluation episodes
+as every other unit of its task (the evaluation seed is fixed; seed N > 0 trains the
+replicate ``<arm>@s<N>``). Training and evaluation are ``policy_robustness.py``'s own
+(``STUDY`` holds its settings per task), run in ``outputs/policy_units/<task>``, where the
+recorded dataset, the checkpoints and the evaluated levels stay between runs.
+
+The result of a unit is ``benchmarks/results/policy/<task>/<arm>@s<seed>.json``: the unit, the
+settings that shape it, the commit it ran on, success % per protocol and level, the
+per-episode records, the training and evaluation times and the unit's wall time (the sum of
+its stages; evaluated levels kept from a stopped run count their process time shared by the
+evaluation processes). ``run`` skips a unit whose file holds the current settings, and with ``--commit``
+commits each file the moment its unit ends (that file only). ``summary`` reads the unit files
+alone: per arm the success over its seeds, and each arm against the baseline and against the
+best 2D arm, paired on the same seeds and episodes, with a bootstrap 95 % interval over seeds
+and episodes; it writes ``summary.json`` and ``summary.png`` per task, and the tables in
+benchmarks/README.md between the ``policy-units`` markers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import policy_robustness as pr
+from machine import cpu_model
+from plotting import Panel, line_panels
+
+from gensplat_transforms.atomic import atomic_write, atomic_write_json, read_json_object
+
+#: policy_robustness.py's settings per task (what its command line would say).
+STUDY = {
+    "reach_solo": ["--steps", "5000", "--episodes", "50"],
+    "reach_marked": ["--steps", "5000", "--episodes", "50"],
+}
+#: The arms of the study: the baseline, the best 2D arm, the paper's GenSplat arm and a wider sampler.
+ARMS = ("baseline", "perspective", "gensplat", "gensplat-tilt")
+SEEDS = (0, 1, 2)
+UNITS = pr.ROOT / "benchmarks" / "results" / "policy"
+WORK = pr.ROOT / "outputs" / "policy_units"
+README = pr.ROOT / "benchmarks" / "README.md"
+MARKERS = ("<!-- policy-units:begin -->", "<!-- policy-units:end -->")
+#: Bootstrap resamples of the summary's intervals.
+RESAMPLES = 2000
+#: A unit's wall-time limit (s): recorded against each unit in the summary.
+UNIT_LIMIT_S = 3600
+
+
+@dataclass(frozen=True)
+class Unit:
+    task: str
+    arm: str
+    seed: int
+
+    @property
+    def name(self) -> str:
+        """The arm as policy_robustness.py names it: ``<arm>``, or the replicate ``<arm>@s<seed>``."""
+        return self.arm if self.seed == 0 else f"{self.arm}@s{self.seed}"
+
+    def path(self, units: Path = UNITS) -> Path:
+        return units / self.task / f"{self.arm}@s{self.seed}.json"
+
+
+def unit_args(unit: Unit, work: Path = WORK, extra: tuple[str, ...] = ()):
+    """policy_robustness.py's parsed arguments for ``unit`` (``STUDY`` and ``extra`` on top)."""
+    return pr.parse_args(["--task", unit.task, "--arms", unit.name, "--work", str(work / unit.task),
+                          *STUDY[unit.task], *extra])  # fmt: skip
+
+
+def unit_settings(unit: Unit, args) -> dict:
+    """What shapes a unit's result: the study's settings, its augmentation and its evaluation."""
+    settings = pr.result_settings(args)
+    return {**{k: settings[k] for k in pr.ARM_SETTINGS}, "augmentation": settings["augmentation"][unit.name],
+            "episodes": args.episodes, "protocols": settings["protocols"]}  # fmt: skip
+
+
+def state(unit: Unit, settings: dict, units: Path = UNITS) -> str:
+    """``done`` (its file holds ``settings``), ``stale`` (other settings), ``unreadable`` or ``missing``."""
+    path = unit.path(units)
+    if not path.exists():
+        return "missing"
+    data = read_json_object(path)
+    if not {"unit", "settings", "success", "episodes"} <= data.keys():
+        return "unreadable"
+    return "done" if data["settings"] == settings else "stale"
+
+
+def head_commit() -> str:
+    """The commit this code runs on, ``+changes`` when the work tree differs from it."""
+    def git(*a: str) -> str:
+        return subprocess.run(["git", "-C", str(pr.ROOT), *a], check=False, capture_output=True, text=True).stdout.strip()
+
+    commit = git("rev-parse", "HEAD") or "unknown"
+    return commit + ("+changes" if git("status", "--porcelain", "--untracked-files=no") else "")
+
+
+def run_unit(unit: Unit, args) -> dict:
+    """Record (once per task), prepare, train and evaluate ``unit``; its result (see the module docstring)."""
+    work, name = args.work, unit.name
+    lock = pr.lock_work(work)  # noqa: F841  (held until the unit ends)
+    pr.check_work(work, (name,), args)
+    stages, root = {}, work / "dataset"
+    t0 = time.perf_counter()
+    if not (root / "meta" / "info.json").is_file():
+        shutil.rmtree(root, ignore_errors=True)
+        pr.record(pr.RecordConfig(root, args.task, args.demos, args.seed, use_videos=False, repo_id=pr.repo_id(args.task),
+                                  world=pr.WorldConfig(height=args.size, width=args.size)), progress=False)  # fmt: skip
+    stages["record_seconds"] = round(time.perf_counter() - t0, 1)
+    t0 = time.perf_counter()
+    if pr.arm_kind(name) in pr.GENSPLAT_ARMS:
+        if pr.dataset_root(work, name) != root:
+            pr.link_dataset(root, pr.dataset_root(work, name))
+        pr.prepare(pr.dataset_root(work, name), pr.repo_id(args.task), pr.gensplat_config(args, name), progress=False)
+    stages["prepare_seconds"] = round(time.perf_counter() - t0, 1)
+    train = pr.train(name, pr.dataset_root(work, name), work / name, args)
+    t0 = time.perf_counter()
+    evaluated = pr.evaluate_all(work, (name,), args)
+    stages["eval_seconds"] = round(time.perf_counter() - t0, 1)
+    records = [r for per_arm in evaluated.values() for r in per_arm[name].values()]
+    stages["eval_process_seconds"] = round(sum(r["seconds"] for r in records), 1)
+    # levels kept from a stopped run count their process time shared by the evaluation processes
+    evaluation = max(stages["eval_seconds"], stages["eval_process_seconds"] / args.eval_jobs)
+    wall = stages["record_seconds"] + stages["prepare_seconds"] + train.get("seconds", 0.0) + evaluation
+    return {
+        "unit": {"task": unit.task, "arm": unit.arm, "seed": unit.seed, "name": name},
+        "settings": unit_settings(unit, args), "commit": head_commit(), "machine": cpu_model(),
+        "success": {p: {lv: r["success"] for lv, r in evaluated[p][name].items()} for p in pr.PROTOCOLS},
+        "progress": {p: {lv: r["progress"] for lv, r in evaluated[p][name].items()} for p in pr.PROTOCOLS},
+        "timing": {"train": train, **stages, "wall_seconds": round(wall, 1)},
+        "episodes": {p: [e for r in evaluated[p][name].values() for e in r["episodes"]] for p in pr.PROTOCOLS},
+    }  # fmt: skip
+
+
+def commit_file(path: Path, message: str) -> None:
+    """Commit ``path`` alone on the branch of the repository that holds it (retried while another
+    git command holds the index)."""
+    for attempt in range(10):
+        git = ["git", "-C", str(path.parent)]
+        add = subprocess.run([*git, "add", "--", str(path)], check=False, capture_output=True, text=True)
+        run = subprocess.run([*git, "commit", "-q", "-m", message, "--", str(path)],
+                             check=False, capture_output=True, text=True) if add.returncode == 0 else add  # fmt: skip
+        if run.returncode == 0:
+            return
+        time.sleep(2 + attempt)
+    print(f"could not commit {path}: {run.stderr.strip()}", flush=True)
+
+
+# ---------------------------------------------------------------- summary
+
+
+def successes(unit_file: dict, protocol: str, level: str) -> np.ndarray:
+    """(episodes,) bool of a unit's successes at one level, ordered by episode."""
+    eps = sorted((e for e in unit_file["episodes"][protocol] if e["level"] == level), key=lambda e: e["episode"])
+    return np.array([e["success"] for e in eps], dtype=bool)
+
+
+def paired(a: dict[int, np.ndarray], b: dict[int, np.ndarray], rng: np.random.Generator,
+           resamples: int = RESAMPLES) -> dict | None:  # fmt: skip
+    """``a`` minus ``b`` in points, each {seed: (episodes,) successes}, paired on the seeds both
+    hold and on the episodes: the mean difference and a bootstrap 95 % interval that resamples
+    the seeds, then the episodes within each (None without a common seed)."""
+    seeds = sorted(set(a) & set(b))
+    if not seeds:
+        return None
+    diff = np.stack([a[s].astype(float) - b[s].astype(float) for s in seeds])  # (seeds, episodes)
+    n_seeds, n_eps = diff.shape
+    pick_seeds = rng.integers(0, n_seeds, (resamples, n_seeds))
+    pick_eps = rng.integers(0, n_eps, (resamples, n_seeds, n_eps))
+    means = diff[pick_seeds[..., None], pick_eps].mean(axis=(1, 2))
+    lo, hi = np.percentile(means, [2.5, 97.5])
+    return {"points": round(100 * float(diff.mean()), 2), "ci95": [round(100 * float(lo), 2), round(100 * float(hi), 2)],
+            "seeds": seeds}  # fmt: skip
+
+
+def load_units(task: str, units: Path = UNITS) -> dict[str, dict[int, dict]]:
+    """{arm: {seed: unit file}} of the readable unit files of ``task``."""
+    out: dict[str, dict[int, dict]] = {}
+    for path in sorted((units / task).glob("*@s*.json")):
+        data = read_json_object(path)
+        if {"unit", "settings", "success", "episodes"} <= data.keys():
+            out.setdefault(data["unit"]["arm"], {})[int(data["unit"]["seed"])] = data
+    return out
+
+
+def summarise(task: str, units: Path = UNITS, seed: int = 0) -> dict:
+    """The summary of ``task``'s unit files (see the module docstring); ``seed`` seeds the bootstrap."""
+    found = load_units(task, units)
+    arms = list(pr.ordered(found))
+    rng = np.random.default_rng(seed)
+    success = {arm: {p: {lv: {"mean": round(float(np.mean([f["success"][p][lv] for f in found[arm].values()])), 2),
+                                 "per_seed": {s: f["success"][p][lv] for s, f in sorted(found[arm].items())}}
+                             for lv in levels} for p, levels in pr.PROTOCOLS.items()} for arm in arms}  # fmt: skip
+    per_level = {arm: {(p, lv): {s: successes(f, p, lv) for s, f in found[arm].items()}
+                       for p, levels in pr.PROTOCOLS.items() for lv in levels} for arm in arms}  # fmt: skip
+    perturbed = [(p, lv) for p, levels in pr.PROTOCOLS.items() for lv in levels if lv != "none"]
+    two_d = [a for a in pr.TWO_D_ARMS if a in found]
+    best_2d = max(two_d, key=lambda a: np.mean([success[a][p][lv]["mean"] for p, lv in perturbed])) if two_d else None
+
+    def against(reference: str | None) -> dict:
+        if reference is None:
+            return {}
+        return {arm: {p: {lv: paired(per_level[arm][p, lv], per_level[reference][p, lv], rng) for lv in levels}
+                      for p, levels in pr.PROTOCOLS.items()} for arm in arms if arm != reference}  # fmt: skip
+
+    walls = {f"{arm}@s{s}": f["timing"]["wall_seconds"] for arm in arms for s, f in sorted(found[arm].items())}
+    return {
+        "task": task, "arms": arms, "success": success, "best_2d": best_2d,
+        "difference": {"vs_baseline": against("baseline" if "baseline" in found else None),
+                       "vs_best_2d": against(best_2d)},
+        "units": {name: {"wall_seconds": w, "within_limit": w <= UNIT_LIMIT_S} for name, w in walls.items()},
+        "commits": sorted({f["commit"] for arm in arms for f in found[arm].values()}),
+        "episodes_per_level": sorted({f["settings"]["episodes"] for arm in arms for f in found[arm].values()}),
+    }  # fmt: skip
+
+
+def cell(summary: dict, arm: str, protocol: str, level: str) -> str:
+    """A table cell: mean success % over the arm's seeds, and its paired difference from the baseline."""
+    text = f"{summary['success'][arm][protocol][level]['mean']:.0f}"
+    d = summary["difference"]["vs_baseline"].get(arm, {}).get(protocol, {}).get(level)
+    return text + (f" ({d['points']:+.0f} [{d['ci95'][0]:+.0f}, {d['ci95'][1]:+.0f}])" if d else "")
+
+
+def markdown(summary: dict) -> str:
+    """The task's table: a row per arm (with its seeds), a column per level of every protocol."""
+    columns = [(p, lv) for p, levels in pr.PROTOCOLS.items() for lv in levels]
+    title = (f"`{summary['task']}`: success % (mean over seeds; in brackets the paired difference from the "
+             "baseline in points, bootstrap 95 % interval over seeds and episodes):")
+    lines = [title, "",
+             "| arm | seeds | " + " | ".join(lv for _, lv in columns) + " |", "|---" * (len(columns) + 2) + "|"]  # fmt: skip
+    for arm in summary["arms"]:
+        seeds = ",".join(str(s) for s in summary["success"][arm]["paper"]["none"]["per_seed"])
+        lines.append(f"| {arm} | {seeds} | " + " | ".join(cell(summary, arm, p, lv) for p, lv in columns) + " |")
+    best = summary["best_2d"]
+    for arm, diffs in summary["difference"]["vs_best_2d"].items():
+        if pr.arm_kind(arm) in pr.GENSPLAT_ARMS:
+            row = [diffs[p][lv] for p, lv in columns]
+            lines.append(f"| {arm} - {best} | | " + " | ".join(
+                f"{d['points']:+.0f} [{d['ci95'][0]:+.0f}, {d['ci95'][1]:+.0f}]" if d else "" for d in row) + " |")  # fmt: skip
+    walls = summary["units"]
+    if walls:
+        longest = max(walls.values(), key=lambda u: u["wall_seconds"])["wall_seconds"]
+        over = sum(not u["within_limit"] for u in walls.values())
+        lines += ["", f"{len(walls)} units; the longest took {longest / 60:.0f} min ({over} over {UNIT_LIMIT_S // 60} min)."]
+    return "\n".join(lines) + "\n"
+
+
+def plot(summary: dict, path: Path) -> None:
+    """Success % against the level, a panel per protocol, a line per arm (mean over its seeds)."""
+    panels = []
+    for p, levels in pr.PROTOCOLS.items():
+        ticks = list(enumerate(levels))
+        series = {a: [(j, summary["success"][a][p][lv]["mean"], "") for j, lv in ticks] for a in summary["arms"]}
+        panels.append(Panel(f"success (%), {p}", series, (-0.5, len(levels) - 0.5), (0, 100), ticks,
+                            [(t, str(t)) for t in range(0, 101, 20)]))  # fmt: skip
+    line_panels(path, panels, {a: pr.colour(a) for a in summary["arms"]},
+                f"{summary['task']}, Diffusion Policy, mean over seeds", panel_size=(360, 300))  # fmt: skip
+
+
+def write_readme(tables: str, readme: Path = README) -> None:
+    """Replace the text between ``MARKERS`` in ``readme`` with ``tables``."""
+    text = readme.read_text()
+    begin, end = (text.index(m) for m in MARKERS)
+    atomic_write(readme, lambda tmp: Path(tmp).write_text(text[: begin + len(MARKERS[0])] + "\n" + tables + text[end:]))
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("command", choices=("run", "status", "summary"))
+    parser.add_argument("--tasks", default=",".join(STUDY), help=f"comma-separated (default {','.join(STUDY)})")
+    parser.add_argument("--arms", default=",".join(ARMS), help=f"comma-separated (default {','.join(ARMS)})")
+    parser.add_argument("--seeds", default=",".join(map(str, SEEDS)), help="training seeds (default 0,1,2)")
+    parser.add_argument("--commit", action="store_true", help="commit each unit's file when the unit ends")
+    parser.add_argument("--results", type=Path, default=UNITS,
+                        help="folder of the unit files (default benchmarks/results/policy; another checkout's "
+                        "when this one runs from a worktree)")  # fmt: skip
+    parser.add_argument("--work", type=Path, default=WORK, help="datasets and checkpoints (default outputs/policy_units)")
+    args = parser.parse_args(argv)
+    args.tasks = tuple(args.tasks.split(","))
+    args.arms = tuple(args.arms.split(","))
+    for task in args.tasks:
+        if task not in STUDY:
+            parser.error(f"--tasks: unknown {task!r}; choose from {tuple(STUDY)}")
+    for arm in args.arms:
+        if arm not in pr.ARMS:
+            parser.error(f"--arms: unknown {arm!r}; choose from {pr.ARMS}")
+    try:
+        args.seeds = tuple(int(s) for s in args.seeds.split(","))
+    except ValueError:
+        parser.error(f"--seeds: integers, got {args.seeds!r}")
+    if not all(0 <= s < 100 for s in args.seeds):
+        parser.error(f"--seeds: each in 0-99, got {args.seeds}")
+    return args
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parse_args(argv)
+    if args.command == "summary":
+        tables = []
+        for task in STUDY:
+            summary = summarise(task, args.results)
+            if not summary["arms"]:
+                continue
+            atomic_write_json(args.results / task / "summary.json", summary)
+            plot(summary, args.results / task / "summary.png")
+            tables.append(markdown(summary))
+            print(tables[-1])
+        write_readme("\n".join(tables))
+        return
+    units = [Unit(t, a, s) for t in args.tasks for s in args.seeds for a in args.arms]
+    for unit in units:
+        u_args = unit_args(unit, args.work)
+        status = state(unit, unit_settings(unit, u_args), args.results)
+        print(f"{unit.task:>13} {unit.name:>18}: {status}", flush=True)
+        if args.command == "status" or status == "done":
+            continue
+        t0 = time.perf_counter()
+        result = run_unit(unit, u_args)
+        path = atomic_write_json(unit.path(args.results), result)
+        s = result["success"]
+        print(f"{unit.task} {unit.name}: none {s['paper']['none']:.0f} %, large {s['paper']['large']:.0f} %, "
+              f"unit {result['timing']['wall_seconds'] / 60:.0f} min ({(time.perf_counter() - t0) / 60:.0f} min in this "
+              f"run); wrote {path}", flush=True)  # fmt: skip
+        if args.commit:
+            commit_file(path, f"policy unit {unit.task} {unit.arm} seed {unit.seed}: none "
+                        f"{s['paper']['none']:.0f} %, large {s['paper']['large']:.0f} %")  # fmt: skip
+
+
+if __name__ == "__main__":
+    sys.exit(main())
