@@ -48,7 +48,7 @@ import torch
 from standard_scene import standard_scene
 
 from gensplat_transforms import render
-from gensplat_transforms.rendering import project
+from gensplat_transforms.rendering import DILATION, project
 from gensplat_transforms.rendering.fast import render_fast
 
 RESULTS = Path(__file__).resolve().parent / "results" / "render_speed.json"
@@ -81,7 +81,7 @@ def _backend_split(scene, threads: int, repeats: int) -> dict:
         t = {}
         start = time.perf_counter()
         render_fast(scene.gaussians, scene.target, background=bg, near=0.01, sh_degree=None,
-                    out_dtype=torch.float32, return_depth=True, threads=threads, timings=t)  # fmt: skip
+                    out_dtype=torch.float32, return_depth=True, dilation=DILATION, threads=threads, timings=t)  # fmt: skip
         t["total"] = (time.perf_counter() - start) * 1e3
         rows.append(t)
     return {k: statistics.median(r[k] for r in rows) for k in ("projection", "binning", "raster", "total")}

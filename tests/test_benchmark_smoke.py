@@ -32,3 +32,11 @@ def test_training_step_quick():
     result = json.loads(out.read_text())
     (row,) = result["rows"]
     assert row["fast_rows"] and row["item_ms"] > 0 and row["updt_s"] > 0 and row["s_per_step"] > 0
+
+
+def test_render_speed_quick(tmp_path):
+    out = tmp_path / "render_speed.json"
+    smoke("render_speed.py", "--quick", "--out", str(out))
+    result = json.loads(out.read_text())
+    assert result["ms_1thread"] > 0 and result["psnr_vs_reference_db"] > 30  # the fast backend agrees
+    assert set(result["time_split_ms"]["1thread"]) == {"projection", "binning", "raster", "total"}
