@@ -62,6 +62,7 @@ from .dataset_format import (
     DepthSensor,
     calibration_path,
     camera_info,
+    distinct_cameras,
     image_sizes,
 )
 from .outputs import gensplat_folder
@@ -113,7 +114,7 @@ def calibrate_from_features(root: str | Path, intrinsics: str | Path | None = No
     info = _info(root)
     features, sizes = info["features"], image_sizes(info["features"])
     posed = [n for n in sizes if POSE_FEATURE + n in features]
-    names = list(cameras or [n for n in posed if "wrist" not in n])
+    names = list(distinct_cameras(cameras or [n for n in posed if "wrist" not in n]))
     if not names or any(n not in posed for n in names):
         raise ValueError(f"{root}: camera(s) {[n for n in names if n not in posed] or names} have no "
                          f"{POSE_FEATURE}<camera> feature of x, y, z, roll, pitch, yaw (cameras with one: {posed})")  # fmt: skip
@@ -190,6 +191,7 @@ def _given_intrinsics(names, sizes: dict[str, tuple[int, int]], path, fov: float
 def _feature_poses(root: Path, keys: list[str]) -> dict[str, dict[int, np.ndarray]]:
     """Per feature key, each episode's (6,) value at its first frame, from the dataset's
     ``data/**/*.parquet``; raises when a value changes within an episode."""
+    import pyarrow.compute as pc
     import pyarrow.parquet as pq
 
     files = sorted((root / "data").rglob("*.parquet"))
@@ -202,7 +204,18 @@ def _feature_poses(root: Path, keys: list[str]) -> dict[str, dict[int, np.ndarra
         order = np.lexsort((frame, episode))  # by episode, then frame
         episodes, starts = np.unique(episode[order], return_index=True)
         for k in keys:
-            values = table[k].combine_chunks().flatten().to_numpy().astype(np.float64).reshape(-1, 6)[order]
+            column = table[k].combine_chunks()
+            sizes = pc.fill_null(pc.list_value_length(column), 0).to_numpy()
+            if (sizes != 6).any():
+                i = int(np.flatnonzero(sizes != 6)[0])
+                raise ValueError(f"{file}: {k} holds {sizes[i]} values at episode {episode[i]}, frame {frame[i]}; "
+                                 "a pose is 6: x, y, z, roll, pitch, yaw")  # fmt: skip
+            values = column.flatten().to_numpy().astype(np.float64).reshape(-1, 6)
+            if not np.isfinite(values).all():
+                i = int(np.flatnonzero(~np.isfinite(values).all(axis=1))[0])
+                raise ValueError(f"{file}: {k} is not a finite pose at episode {episode[i]}, frame {frame[i]} "
+                                 f"({values[i].tolist()}): repair the dataset or leave the camera out with --cameras")  # fmt: skip
+            values = values[order]
             lows, highs = np.minimum.reduceat(values, starts), np.maximum.reduceat(values, starts)
             for e, start, lo, hi in zip(episodes.tolist(), starts, lows, highs):
                 if e not in first[k] or frame[order[start]] < first[k][e][0]:

@@ -110,6 +110,21 @@ def camera_info(K: torch.Tensor, c2w: torch.Tensor | None, mount: str, depth: De
     return info
 
 
+def distinct_cameras(names) -> tuple[str, ...]:
+    """``names`` as a tuple, or ``ValueError`` naming the cameras given more than once (a camera
+    estimated against itself, a feature read twice).
+
+    Example:
+        >>> distinct_cameras(["left", "right"])
+        ('left', 'right')
+    """
+    names = tuple(names)
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise ValueError(f"--cameras names {twice} more than once: name each camera once")
+    return names
+
+
 def digests_path(root: str | Path) -> Path:
     """``<root>/gensplat/digests.json``: digests of the dataset's folders, with the file stats
     they were computed for (see ``gensplat_lerobot.source.files_digest``)."""

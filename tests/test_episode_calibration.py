@@ -3,6 +3,7 @@
 fingerprint, the cache and the transform's renders."""
 
 import json
+import math
 import os
 import re
 import shutil
@@ -285,4 +286,42 @@ def test_droid_features_errors(case, message, tmp_path, capsys):
     assert main(["calibrate", "--root", str(root), "--from-features", *args]) == 2
     err = capsys.readouterr().err
     assert re.search(message, err) and err.startswith("gensplat: error: ") and err.count("\n") == 1
+    assert not calibration_path(root).exists()
+
+
+def _rewrite_rows(root: Path, key: str, change) -> None:
+    """Replace the ``key`` column of the dataset's parquet files: ``change(episode, frame, row)``
+    gives each row's new list of values."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    for file in sorted((root / "data").rglob("*.parquet")):
+        table = pq.read_table(file)
+        rows = [change(e, f, r) for e, f, r in zip(*(table[c].to_pylist() for c in ("episode_index", "frame_index", key)))]
+        column = pa.array(rows, type=pa.list_(pa.float32()))
+        pq.write_table(table.set_column(table.schema.get_field_index(key), key, column), file)
+
+
+@pytest.mark.parametrize("case, message", [
+    ("nan", r"camera_extrinsics.exterior_1_left is not a finite pose at episode 1, frame 2 \(\[nan, "),
+    ("nan_and_moving", r"camera_extrinsics.exterior_1_left is not a finite pose at episode 0, frame 1"),
+    ("five", r"camera_extrinsics.exterior_1_left holds 5 values at episode 0, frame 0; a pose is 6"),
+    ("twice", r"--cameras names \['exterior_1_left'\] more than once"),
+])  # fmt: skip
+def test_feature_poses_that_are_not_poses_are_named(case, message, tmp_path, capsys):
+    """One NaN frame no longer hides a camera that moves 1 m in its episode; rows of the wrong
+    length and a camera named twice are clear errors, not IndexError or KeyError."""
+    root = droid_like(tmp_path / "droid", DROID_POSES, drift=1.0 if case == "nan_and_moving" else 0.0)
+    key = "camera_extrinsics.exterior_1_left"
+    if case == "nan":
+        _rewrite_rows(root, key, lambda e, f, r: [math.nan] * 6 if (e, f) == (1, 2) else r)
+    elif case == "nan_and_moving":
+        _rewrite_rows(root, key, lambda e, f, r: [math.nan, *r[1:]] if (e, f) == (0, 1) else r)
+    elif case == "five":
+        _rewrite_rows(root, key, lambda e, f, r: r[:5])
+    cameras = ["--cameras", "exterior_1_left", "exterior_1_left"] if case == "twice" else []
+    capsys.readouterr()
+    assert main(["calibrate", "--root", str(root), "--from-features", "--fov", "60", *cameras]) == 2
+    err = capsys.readouterr().err
+    assert re.search(message, err) and err.startswith("gensplat: error: ") and err.count("\n") == 1, err
     assert not calibration_path(root).exists()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import re
@@ -471,14 +472,67 @@ def test_estimate_refuses_what_it_cannot_do(simulated, tmp_path, capsys):
     assert "not colour image features" in error(root, "--cameras", "left", "nope")
     assert "--timesteps must be at least 2" in error(root, "--timesteps", "1")
     assert "depth gives the scale: leave out --baseline" in error(root, "--baseline", "0.8")
-    for option, value in (("--baseline", "0"), ("--baseline", "-1"), ("--table-distance", "nan"), ("--fov", "180")):
-        assert f"{option} must be a positive number" in error(root, option, value)
+    assert "--fov must be a positive number" in error(root, "--fov", "180")
+    for option, value in (("--baseline", "0"), ("--baseline", "-1"), ("--table-distance", "nan")):
+        assert f"{option} is a distance in metres" in error(root, option, value)
     assert "cameras ['left', 'right'] have depth, from which the estimate takes" in error(root, "--model")
     shutil.rmtree(root / "depth" / "right")  # one camera without depth: RGB only, which needs more
     assert "needs the cameras' focal length (--fov or --focal) and one distance" in error(root)
     assert "give one of --fov, --focal and --model" in error(root, "--model", "--fov", "60")
     assert "--model /nonexistent: cannot load a geometry model from it" in error(root, "--model", "/nonexistent")
     assert not calibration_path(root).exists()
+
+
+def test_estimate_never_writes_what_the_readers_refuse(simulated, tmp_path, capsys):
+    """A camera named twice, distances past physics and focal lengths whose calibration the
+    readers refuse end in one error line, and the good calibration in place is kept."""
+    root = tmp_path / "rgb"
+    shutil.copytree(simulated, root, ignore=shutil.ignore_patterns("gensplat", "depth"))
+    _strip_calibration(root)
+    args = ["calibrate", "--root", str(root), "--estimate", "--repo-id", REPO, "--timesteps", "4"]
+    assert main([*args, "--fov", "69", "--baseline", "0.8"]) == 0
+    good = calibration_path(root).read_bytes()
+    capsys.readouterr()
+
+    def error(*extra):
+        assert main([*args, *extra]) == 2
+        err = capsys.readouterr().err
+        assert err.splitlines()[-1].startswith("gensplat: error: ") and "Traceback" not in err
+        assert calibration_path(root).read_bytes() == good
+        return err
+
+    assert "--cameras names ['left'] more than once" in error("--cameras", "left", "left", "--fov", "69", "--baseline", "0.8")
+    for option in ("--baseline", "--table-distance"):
+        assert "0.001 to 100 m, got 1e+300" in error("--fov", "69", option, "1e300")
+    for focal in (("--fov", "0.5"), ("--fov", "179.5"), ("--focal", "0.2"), ("--focal", "1e+09")):
+        err = error(*focal, "--baseline", "0.8")
+        assert f"{' '.join(focal)} gives camera 'left' (320x240)" in err and "1 to 179 degrees" in err, err
+        assert "matching" not in err  # refused before any work
+    import gensplat_lerobot.estimate
+
+    real_estimate = gensplat_lerobot.estimate.estimate_rig
+
+    def wide(*a, **k):  # an estimate whose focal length the readers refuse (a 0.05 px lens)
+        rig = real_estimate(*a, **k)
+        K = rig.K.clone()
+        K[0, 0, 0] = K[0, 1, 1] = 0.05
+        return dataclasses.replace(rig, K=K)
+
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(gensplat_lerobot.estimate, "estimate_rig", wide)
+        err = error("--fov", "69", "--baseline", "0.8")
+    assert "the estimate is not written" in err and "1 to 179 degrees" in err
+    assert main(["cache", "--root", str(root), "--repo-id", REPO, "--episodes", "0"]) == 0  # the kept file serves
+
+
+def test_sampled_timesteps_are_bounded_by_the_frames():
+    """A count past the dataset's frames reads every frame once, at once (it ran until killed)."""
+    from gensplat_lerobot.estimate import sample_timesteps
+
+    every = [(e, f) for e in range(3) for f in range(n)] if (n := 7) else []
+    assert sample_timesteps([7, 7, 7], 10**12) == every
+    assert sample_timesteps([7], 10**12) == [(0, f) for f in range(7)]
+    assert sample_timesteps([7, 7, 7], 4) == [(0, 0), (0, 6), (2, 0), (2, 6)]
 
 
 @pytest.fixture(scope="module")

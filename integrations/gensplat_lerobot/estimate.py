@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from gensplat_transforms.atomic import atomic_write_json
+from gensplat_transforms.calibration import FOV_RANGE, stored_cameras
 from gensplat_transforms.cameras import focal_from_fov
 from gensplat_transforms.dataset_format import (
     CALIBRATION_FORMAT,
@@ -20,6 +21,7 @@ from gensplat_transforms.dataset_format import (
     calibration_path,
     camera_info,
     depth_path,
+    distinct_cameras,
     load_depth,
 )
 from gensplat_transforms.outputs import gensplat_folder
@@ -46,6 +48,10 @@ def assumptions(rig: RigEstimate) -> str:
         return ASSUMPTIONS
     given = ", ".join(f"{n} ({float(rig.K[i, 0, 2]):g}, {float(rig.K[i, 1, 2]):g})" for i, n in enumerate(rig.names))
     return ASSUMPTIONS.replace("principal point at the image centre", f"principal point given: {given} px")
+
+
+#: The distances (m) ``--baseline`` and ``--table-distance`` may give: a millimetre to 100 m.
+DISTANCE_RANGE_M = (1e-3, 100.0)
 
 
 def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...] | None = None,
@@ -76,7 +82,7 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
     features = read_info(root)["features"]
     colour = [k[len(IMAGE_KEY_PREFIX) :] for k, ft in features.items()
               if k.startswith(IMAGE_KEY_PREFIX) and not _is_depth_map(ft)]  # fmt: skip
-    names = tuple(cameras) if cameras else tuple(n for n in colour if "wrist" not in n)
+    names = distinct_cameras(cameras) if cameras else tuple(n for n in colour if "wrist" not in n)
     unknown = [n for n in names if n not in colour]
     if unknown:
         raise ValueError(f"{root}: camera(s) {unknown} are not colour image features of the dataset ({colour})")
@@ -84,11 +90,14 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
         raise ValueError(f"{root}: no external camera to estimate among {colour} (choose them with --cameras)")
     if timesteps < 2:
         raise ValueError(f"--timesteps must be at least 2, got {timesteps}")
-    for option, value in (("--fov", fov_deg), ("--focal", focal_px), ("--baseline", baseline_m),
-                          ("--table-distance", table_m)):  # fmt: skip
+    for option, value in (("--fov", fov_deg), ("--focal", focal_px)):
         if value is not None and not (0 < value < math.inf and (option != "--fov" or value < 180)):
             raise ValueError(f"{option} must be a positive number{' below 180 degrees' if option == '--fov' else ''}, "
                              f"got {value}")  # fmt: skip
+    for option, value in (("--baseline", baseline_m), ("--table-distance", table_m)):
+        if value is not None and not DISTANCE_RANGE_M[0] <= value <= DISTANCE_RANGE_M[1]:
+            raise ValueError(f"{option} is a distance in metres between a camera and another camera or the table: "
+                             f"{DISTANCE_RANGE_M[0]:g} to {DISTANCE_RANGE_M[1]:g} m, got {value:g}")  # fmt: skip
     if sum(v is not None for v in (fov_deg, focal_px, model)) > 1 or baseline_m is not None and table_m is not None:
         raise ValueError("give one of --fov, --focal and --model, and one of --baseline and --table-distance")
     sizes = [(features[IMAGE_KEY_PREFIX + n]["shape"][1], features[IMAGE_KEY_PREFIX + n]["shape"][0]) for n in names]
@@ -117,6 +126,12 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
     focals = None
     if fov_deg is not None or focal_px is not None:
         focals = [focal_px or focal_from_fov(fov_deg, w) for w, _ in sizes]
+        for n, f, (w, h) in zip(names, focals, sizes):
+            fov = [math.degrees(2 * math.atan(side / 2 / f)) for side in (w, h)]
+            if not all(FOV_RANGE[0] <= a <= FOV_RANGE[1] for a in fov):
+                given = f"--fov {fov_deg:g}" if fov_deg is not None else f"--focal {focal_px:g}"
+                raise ValueError(f"{given} gives camera {n!r} ({w}x{h}) a field of view of {fov[0]:.3g} x {fov[1]:.3g} "
+                                 f"degrees; calibrations hold {FOV_RANGE[0]:g} to {FOV_RANGE[1]:g} degrees")  # fmt: skip
     scale = ("baseline", baseline_m) if baseline_m is not None else ("table", table_m) if table_m is not None else None
     table = episode_table(dataset.meta)
 
@@ -221,8 +236,9 @@ def sample_timesteps(lengths: list[int], count: int) -> list[tuple[int, int]]:
     """
     episodes = min(len(lengths), max(1, count // 2))
     chosen = sorted({round(i * (len(lengths) - 1) / max(episodes - 1, 1)) for i in range(episodes)})
-    per = max(1, count // len(chosen))
-    return [(e, f) for e in chosen for f in sorted({round(k * (lengths[e] - 1) / max(per - 1, 1)) for k in range(per)})]
+    per = {e: min(max(1, count // len(chosen)), int(lengths[e])) for e in chosen}  # at most every frame
+    return [(e, f) for e in chosen
+            for f in sorted({round(k * (lengths[e] - 1) / max(per[e] - 1, 1)) for k in range(per[e])})]  # fmt: skip
 
 
 def write_estimate(root: Path, rig: RigEstimate) -> Path:
@@ -242,6 +258,10 @@ def write_estimate(root: Path, rig: RigEstimate) -> Path:
                          "assumptions": assumptions(rig), "reference": rig.names[0], "levelled": rig.levelled,
                          "per_episode": rig.episodes is not None,
                          "cameras": spread}}  # fmt: skip
+    try:  # what the readers refuse is not written, and the file in place is kept
+        stored_cameras(calibration_path(root), data["cameras"], dict(zip(rig.names, rig.sizes)))
+    except ValueError as e:
+        raise ValueError(f"the estimate is not written ({calibration_path(root)} is kept as it is): {e}") from None
     gensplat_folder(root)
     return atomic_write_json(calibration_path(root), data)
 
