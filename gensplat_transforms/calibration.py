@@ -302,8 +302,41 @@ def _detect(data: dict) -> str:
     return "opencv-w2c" if any(isinstance(p, dict) and ("R" in p or "rvec" in p) for p in poses) else "gensplat"
 
 
+class _RepeatedKey(ValueError):
+    """A mapping of a calibration file gives one key twice (a parser would keep the last silently)."""
+
+
+def _unique_pairs(pairs: list[tuple]) -> dict:
+    """A JSON object's pairs as a dict, or :class:`_RepeatedKey` naming a key given twice."""
+    out = {}
+    for key, value in pairs:
+        if key in out:
+            raise _RepeatedKey(f"key {key!r} appears twice in one mapping: keep one")
+        out[key] = value
+    return out
+
+
+def _yaml_loader():
+    """PyYAML's safe loader, refusing a key given twice in one mapping (:class:`_RepeatedKey`)."""
+    import yaml
+
+    class Loader(yaml.SafeLoader):
+        def construct_mapping(self, node, deep=False):
+            seen = set()
+            for key_node, _ in node.value:
+                key = self.construct_object(key_node, deep=deep)
+                if key in seen:
+                    raise _RepeatedKey(f"key {key!r} appears twice in one mapping (line {key_node.start_mark.line + 1}): "
+                                       "keep one")  # fmt: skip
+                seen.add(key)
+            return super().construct_mapping(node, deep)
+
+    return Loader
+
+
 def _load(path: Path):
-    """The parsed file: at most MAX_FILE_BYTES of UTF-8 JSON, or YAML without aliases."""
+    """The parsed file: at most MAX_FILE_BYTES of UTF-8 JSON, or YAML without aliases; a key
+    given twice in one mapping is refused."""
     size = path.stat().st_size
     if size > MAX_FILE_BYTES:
         raise ValueError(f"{path}: {size} bytes; a calibration file is at most {MAX_FILE_BYTES} bytes")
@@ -318,11 +351,15 @@ def _load(path: Path):
             if any(isinstance(e, yaml.AliasEvent) for e in yaml.parse(text, Loader=yaml.SafeLoader)):
                 raise ValueError(f"{path}: YAML aliases (*name) are not allowed in a calibration file; "
                                  "write the values out")  # fmt: skip
-            return yaml.safe_load(text)
+            return yaml.load(text, Loader=_yaml_loader())  # a SafeLoader that refuses repeated keys
+        except _RepeatedKey as e:
+            raise ValueError(f"{path}: {e}") from None
         except (yaml.YAMLError, RecursionError) as e:
             raise ValueError(f"{path}: not valid YAML ({e})") from None
     try:
-        return json.loads(text)
+        return json.loads(text, object_pairs_hook=_unique_pairs)
+    except _RepeatedKey as e:
+        raise ValueError(f"{path}: {e}") from None
     except (ValueError, RecursionError) as e:  # invalid JSON, an integer of over 4300 digits, deep nesting
         raise ValueError(f"{path}: not valid JSON ({e}); YAML files must end in .yaml or .yml") from None
 

@@ -37,11 +37,28 @@ def test_yaml_aliases_are_refused_before_they_are_expanded(tmp_path, monkeypatch
         raise AssertionError("the file was loaded: its aliases expand")
 
     monkeypatch.setattr(yaml, "safe_load", expand)
+    monkeypatch.setattr(yaml, "load", expand)
     start = time.perf_counter()
     with pytest.raises(ValueError, match=r"calibration.yaml: YAML aliases \(\*name\) are not allowed"):
         calibrate(root, source)
     assert time.perf_counter() - start < 10  # a loose bound: the refusal comes before any expansion
     assert not calibration_path(root).exists()
+
+
+@pytest.mark.parametrize("suffix", ["json", "yaml"])
+def test_a_key_given_twice_is_refused_naming_it(truth, tmp_path, suffix):
+    """The same camera (or episode) given twice: a parser keeps the last silently; refused."""
+    root = tmp_path / "ds"
+    write_info(root)
+    cameras = entry(truth)
+    name = next(iter(cameras))
+    pairs = [*cameras.items(), (name, cameras[name])]
+    source = tmp_path / f"calibration.{suffix}"
+    source.write_text("{" + ", ".join(f"{json.dumps(n)}: {json.dumps(c)}" for n, c in pairs) + "}")  # YAML too
+    with pytest.raises(ValueError, match=rf"calibration.{suffix}: key '{name}' appears twice in one mapping"):
+        calibrate(root, source)
+    source.write_text("{" + ", ".join(f"{json.dumps(n)}: {json.dumps(c)}" for n, c in cameras.items()) + "}")
+    assert set(calibrate(root, source)) == set(cameras)  # the same file without the repeat
 
 
 def test_a_file_over_the_size_limit_is_refused_unread(truth, tmp_path):
