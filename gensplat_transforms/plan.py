@@ -9,9 +9,11 @@ batch with the same function (:func:`.perturbation.move_rig`).
 
 from __future__ import annotations
 
+import operator
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
+import numpy as np
 import torch
 
 from .perturbation import Perturbation
@@ -66,11 +68,23 @@ class ViewPlan:
         which of ``config.views_per_source`` moves (torch's RNG, which DataLoader seeds per
         worker; ``view`` picks one, 0 .. views_per_source - 1), each replaced camera's move
         from ``sampler`` (``GenSplatConfig.perturbations``)."""
-        if view is not None and not (isinstance(view, int) and 0 <= view < config.views_per_source):
-            raise ValueError(f"ViewPlan.draw: view must be an int in 0..{config.views_per_source - 1} "
-                             f"(views_per_source), got {view!r}")  # fmt: skip
+        if view is not None:
+            view = _view_index(view, config.views_per_source)
         applied = bool(torch.rand(()) < config.probability)
         view = int(torch.randint(config.views_per_source, ())) if view is None else view
         R = len(config.replace)
         return cls(applied, tuple(sampler.sample(episode, frame, view=view * R + ci) if applied else Perturbation()
                                   for ci in range(R)))  # fmt: skip
+
+
+def _view_index(view, views: int) -> int:
+    """``view`` as an int in 0 .. ``views`` - 1: any integer type (Python, NumPy, a 0-d integer
+    tensor), never a boolean; else ``ValueError``."""
+    boolean = isinstance(view, (bool, np.bool_)) or (isinstance(view, torch.Tensor) and view.dtype == torch.bool)
+    try:
+        index = None if boolean else operator.index(view)
+    except TypeError:
+        index = None
+    if index is None or not 0 <= index < views:
+        raise ValueError(f"ViewPlan.draw: view must be an integer in 0..{views - 1} (views_per_source), got {view!r}")
+    return index

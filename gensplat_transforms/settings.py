@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import math
 from dataclasses import asdict, dataclass, field, fields
 
-from .perturbation import SAMPLERS, PerturbationRange, _integer, make_sampler, sampler_kinds
+from .perturbation import SAMPLERS, PerturbationRange, _integer, get_range, make_sampler, sampler_kinds
 from .rendering import BACKENDS
 
 RENDER_IN = ("auto", "worker", "batch")
@@ -14,6 +13,13 @@ RENDER_IN = ("auto", "worker", "batch")
 MODES = ("episode", "frame")
 #: ``GenSplatConfig.depth_unit`` values: metres per unit of the item's depth maps, or None
 DEPTH_UNITS = {None: None, "keep": None, "m": 1.0, "mm": 1e-3}
+#: Bounds of the move settings, past which no augmented image shows the scene (docs/transform.md):
+#: a camera shift (``shift_m``, a level's forward move ``mu_m``) of at most 1 m, a pivot at most
+#: 100 m along camera 0's axis, and at most 1000 distinct cameras per trajectory (the paper's
+#: gains saturate at about 3; each view's draws must stay below ``perturbation.KEY_LIMIT``).
+MAX_SHIFT_M = 1.0
+MAX_PIVOT_DEPTH_M = 100.0
+MAX_VIEWS_PER_SOURCE = 1000
 def _cli(help: str, **argparse_options) -> dict:
     """A field's metadata giving it a command-line flag (``gensplat cache``): ``help`` and
     argparse options (the flag defaults to ``--<field-name>``; type and default come from the
@@ -156,16 +162,18 @@ class GenSplatConfig:
         self.replace = tuple(self.cameras if self.replace is None else self.replace)
         if not self.cameras:
             raise ValueError("GenSplatConfig.cameras: need at least one external camera")
-        if self.pivot_depth is not None and not 0 < self.pivot_depth < math.inf:
-            raise ValueError(f"GenSplatConfig.pivot_depth: a positive distance in metres, got {self.pivot_depth}")
+        if self.pivot_depth is not None and not 0 < self.pivot_depth <= MAX_PIVOT_DEPTH_M:
+            raise ValueError(f"GenSplatConfig.pivot_depth: a positive distance in metres, at most {MAX_PIVOT_DEPTH_M:g}, "
+                             f"got {self.pivot_depth}")  # fmt: skip
         unknown = [c for c in self.replace if c not in self.cameras]
         if unknown:
             raise ValueError(f"GenSplatConfig.replace: {unknown} are not reconstructed cameras {self.cameras}")
         if not 0 <= self.probability <= 1:
             raise ValueError(f"GenSplatConfig.probability must be in [0, 1], got {self.probability}")
         self.views_per_source = _integer("GenSplatConfig.views_per_source", self.views_per_source)
-        if self.views_per_source < 1:
-            raise ValueError(f"GenSplatConfig.views_per_source must be >= 1, got {self.views_per_source}")
+        if not 1 <= self.views_per_source <= MAX_VIEWS_PER_SOURCE:
+            raise ValueError(f"GenSplatConfig.views_per_source must be in 1..{MAX_VIEWS_PER_SOURCE}, "
+                             f"got {self.views_per_source}")  # fmt: skip
         if self.backend not in (*BACKENDS, "auto"):
             raise ValueError(f"GenSplatConfig.backend: unknown {self.backend!r}; available {sorted(BACKENDS)} "
                              "or 'auto'")
@@ -174,6 +182,10 @@ class GenSplatConfig:
         if self.render_in not in RENDER_IN:
             raise ValueError(f"GenSplatConfig.render_in must be one of {RENDER_IN}, got {self.render_in!r}")
         self.perturbations()  # checks the sampler's settings
+        shifts = {"shift_m": abs(self.shift_m), "level mu_m": max(map(abs, get_range(self.level).mu_m))}
+        for name, value in shifts.items():
+            if value > MAX_SHIFT_M:
+                raise ValueError(f"GenSplatConfig.{name}: a camera moves at most {MAX_SHIFT_M:g} m, got {value:g}")
         self.focal_scale = tuple(float(v) for v in self.focal_scale)
         if self.depth_unit not in DEPTH_UNITS:
             raise ValueError(f"GenSplatConfig.depth_unit must be one of {tuple(DEPTH_UNITS)}, got {self.depth_unit!r}")

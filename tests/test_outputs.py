@@ -258,3 +258,20 @@ def test_every_file_gensplat_keeps_is_listed_as_its_own(tmp_path):
 
     for path in (f(tmp_path) for f in (content_path, settings_path, calibration_path, digests_path)):
         assert path.parent == tmp_path / "gensplat" and path.name in GENSPLAT_OWNED
+
+
+@pytest.mark.parametrize("args, message", [
+    (["cache", "--sampler", "tilt", "--shift-m", "1000"], "GenSplatConfig.shift_m: a camera moves at most 1 m"),
+    (["cache", "--pivot-depth", "1e300"], "GenSplatConfig.pivot_depth: a positive distance in metres, at most 100"),
+    (["cache", "--sampler", "arc", "--pivot-depth", "1e6"], "at most 100"),
+    (["cache", "--views-per-source", str(2**40)], "views_per_source must be in 1..1000"),
+    (["preview", "--draws", "1000000000"], "draws must be in 1..32"),
+])  # fmt: skip
+def test_settings_that_render_no_picture_are_refused_at_the_command(cached, tmp_path, capsys, args, message):
+    """The command refuses them in one line, before the settings in place are replaced."""
+    root = tmp_path / "ds"
+    shutil.copytree(cached, root)
+    settings = (root / "gensplat" / "config.json").read_bytes()
+    out = ["--out", str(tmp_path / "preview")] if args[0] == "preview" else []
+    refused(capsys, [args[0], "--root", str(root), "--repo-id", REPO, *args[1:], *out], message)
+    assert (root / "gensplat" / "config.json").read_bytes() == settings

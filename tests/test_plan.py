@@ -1,6 +1,7 @@
 """One plan per item: drawn once by the transform, replayed by transform(item, plan), and the
 same moves in the worker path and the batch path (render_batch)."""
 
+import numpy as np
 import pytest
 import torch
 from torch.utils.data import default_collate
@@ -54,9 +55,11 @@ def test_a_chosen_view_is_one_of_the_drawn_ones(setup):
         torch.manual_seed(seed)
         drawn.add(tf.plan(item).rows)
     assert drawn == {plan.rows for plan in chosen}
-    for bad in (3, -1, 1.0):
-        with pytest.raises(ValueError, match=r"view must be an int in 0..2"):
+    for bad in (3, -1, 1.0, True, np.True_, torch.tensor(True), np.int64(3), "1"):
+        with pytest.raises(ValueError, match=r"view must be an integer in 0..2"):
             tf.plan(item, bad)
+    for same in (np.int64(1), np.int32(1), torch.tensor(1)):  # any integer type is view 1
+        assert tf.plan(item, same).rows == chosen[1].rows
 
 
 def test_a_hand_made_plan_renders_its_moves_and_no_plan_keeps_the_images(setup):

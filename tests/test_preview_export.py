@@ -83,7 +83,7 @@ def test_preview_items_are_what_enable_gensplat_gives_for_the_same_draws(cached,
     # a frame's rows show the episode's three views: three distinct moves
     moves = {tuple(item["gensplat.move"].flatten().tolist()) for item in preview.items[:3]}
     assert len(moves) == 3 and moves == {tuple(item["gensplat.move"].flatten().tolist()) for item in preview.items[3:]}
-    with pytest.raises(ValueError, match=r"view must be an int in 0..2"):
+    with pytest.raises(ValueError, match=r"view must be an integer in 0..2"):
         dataset.augmented(preview.indices[0], view=3)
 
 

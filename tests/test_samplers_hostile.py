@@ -238,3 +238,22 @@ def test_moved_half_precision_cameras_are_cameras_again_and_scaled_ones_are_not(
     scaled[0, :3, :3] *= 1.1
     with pytest.raises(ValueError, match=r"^Cameras.c2w: rotation is not orthonormal"):
         Cameras(CAMS.K.to(dtype), scaled.to(dtype), 96, 80)
+
+
+@pytest.mark.parametrize("settings, match", [
+    ({"shift_m": 1000.0}, r"GenSplatConfig.shift_m: a camera moves at most 1 m, got 1000"),
+    ({"shift_m": 1e300}, r"GenSplatConfig.shift_m: a camera moves at most 1 m"),
+    ({"level": PerturbationRange((0.0, 5.0), (0.5, 2.0))}, r"GenSplatConfig.level mu_m: a camera moves at most 1 m, got 2"),
+    ({"pivot_depth": 1e300}, r"GenSplatConfig.pivot_depth: a positive distance in metres, at most 100"),
+    ({"sampler": "arc", "pivot_depth": 1e6}, r"GenSplatConfig.pivot_depth: .* at most 100, got 1000000"),
+    ({"views_per_source": 2**40}, r"GenSplatConfig.views_per_source must be in 1..1000, got 1099511627776"),
+    ({"views_per_source": 10**20}, r"views_per_source must be in 1..1000"),
+])  # fmt: skip
+def test_move_settings_that_render_no_picture_are_refused(settings, match):
+    """Shifts and pivots past what shows the scene, and view counts whose draws run out of keys:
+    refused when set, not at the first training item."""
+    with pytest.raises(ValueError, match=match):
+        GenSplatConfig(**settings)
+    edge = {"shift_m": 1.0, "level": PerturbationRange((0.0, 5.0), (-1.0, 1.0)), "pivot_depth": 100.0,
+            "views_per_source": 1000}  # fmt: skip
+    GenSplatConfig(**{k: edge[k] for k in settings if k in edge})  # the bounds themselves are taken

@@ -56,6 +56,10 @@ def open_dataset(root: str | Path, repo_id: str, image_transforms: bool = False)
                           return_uint8=True)  # fmt: skip
 
 
+#: The most draws (grid rows) per frame a preview shows.
+MAX_DRAWS = 32
+
+
 def write_lerobot_preview(
     root: str | Path,
     repo_id: str,
@@ -78,8 +82,8 @@ def write_lerobot_preview(
     generator seeded with ``seed`` (the caller's generator state is restored afterwards), in
     the order of :attr:`Preview.indices`, then the video's frames.
     """
-    if draws < 1:
-        raise ValueError(f"gensplat preview: draws must be at least 1, got {draws}")
+    if not 1 <= draws <= MAX_DRAWS:
+        raise ValueError(f"gensplat preview: draws must be in 1..{MAX_DRAWS} (rows per frame of the grid), got {draws}")
     if not 0 <= seed < 2**64:
         raise ValueError(f"gensplat preview: seed must be in [0, 2**64) (a torch seed), got {seed}")
     out_dir = check_output(out_dir, root, folder=True)
