@@ -10,12 +10,13 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import pytest
 import torch
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load_file, save_file, save_model
 
-from gensplat_transforms.model.da3 import DA3Config, DepthAnything3, pose_encoding_to_cameras, unproject
+from gensplat_transforms.model.da3 import TIED, DA3Config, DepthAnything3, pose_encoding_to_cameras, unproject
 
 #: a subset of the published DA3-Small state dict: first and last keys of each block
 SMALL_KEYS = {
@@ -107,7 +108,7 @@ def test_state_dict_matches_the_published_layout(name, expected):
 def test_save_and_load_round_trip_bit_identical(small, tmp_path):
     small.save_pretrained(tmp_path)
     assert json.loads((tmp_path / "config.json").read_text()) == {"model_name": "da3-small"}
-    assert load_file(str(tmp_path / "model.safetensors")).keys() == small.state_dict().keys()
+    assert load_file(str(tmp_path / "model.safetensors")).keys() == small.state_dict().keys() - TIED.keys()
     loaded = DepthAnything3.from_pretrained(tmp_path)
     assert not loaded.training
     for key, value in small.state_dict().items():
@@ -116,6 +117,24 @@ def test_save_and_load_round_trip_bit_identical(small, tmp_path):
     with torch.no_grad():
         a, b = small(images), loaded(images)
     assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_a_checkpoint_saved_as_the_hub_saves_it_loads(small, tmp_path):
+    """The hub's files hold 437 tensors: ``save_model`` drops the three tied copies of the aux
+    LayerNorm (weight and bias); the loader fills them from level 0, and refuses ties that differ."""
+    save_model(small, str(tmp_path / "model.safetensors"))  # the hub's way: tied tensors once
+    (tmp_path / "config.json").write_text(json.dumps({"model_name": "da3-small"}))
+    saved = load_file(str(tmp_path / "model.safetensors"))
+    assert len(saved) == len(small.state_dict()) - 6 and not TIED.keys() & saved.keys()
+    loaded = DepthAnything3.from_pretrained(tmp_path)
+    for key, value in small.state_dict().items():
+        assert torch.equal(loaded.state_dict()[key], value), key
+    state = {k: v.clone() for k, v in small.state_dict().items()}
+    name = next(iter(TIED))
+    state[name] += 1  # a file whose tied copies disagree
+    save_file(state, str(tmp_path / "model.safetensors"))
+    with pytest.raises(ValueError, match=rf"{re.escape(name)} differs from .*shares one LayerNorm"):
+        DepthAnything3.from_pretrained(tmp_path)
 
 
 @pytest.mark.parametrize("views", [1, 2, 3])

@@ -46,6 +46,11 @@ PRESETS = {
 }
 DEPTH, ALT_START, OUT_LAYERS = 12, 4, (5, 7, 9, 11)  # alt_start = qknorm_start = rope_start = 4
 POS_GRID = 37  # the learned position grid: 518 / 14
+#: Checkpoint names of the one LayerNorm DualDPT's four aux levels share -> the name it is saved
+#: under: the published files hold it once, under level 0 (safetensors' ``save_model`` drops
+#: tied tensors), so the loader fills the other three from it.
+TIED = {f"model.head.scratch.output_conv2_aux.{level}.2.{p}": f"model.head.scratch.output_conv2_aux.0.2.{p}"
+        for level in (1, 2, 3) for p in ("weight", "bias")}  # fmt: skip
 #: DA3's default inference size is a longest side of 504 pixels
 DA3_MAX_PIXELS = 504 * 504
 
@@ -249,8 +254,9 @@ class DualDPT(nn.Module):
         s.output_conv1 = nn.Conv2d(features, features // 2, 3, 1, 1)
         s.output_conv2 = nn.Sequential(nn.Conv2d(features // 2, 32, 3, 1, 1), nn.ReLU(), nn.Conv2d(32, 2, 1))
         s.output_conv1_aux = nn.ModuleList(_aux_out1(features) for _ in range(4))
+        norm = nn.LayerNorm(32)  # one LayerNorm for the four levels, as in DA3 (see TIED)
         s.output_conv2_aux = nn.ModuleList(
-            nn.Sequential(nn.Conv2d(features // 2, 32, 3, 1, 1), Permute(0, 2, 3, 1), nn.LayerNorm(32),
+            nn.Sequential(nn.Conv2d(features // 2, 32, 3, 1, 1), Permute(0, 2, 3, 1), norm,
                           Permute(0, 3, 1, 2), nn.ReLU(), nn.Conv2d(32, 7, 1))
             for _ in range(4)
         )  # fmt: skip
@@ -398,9 +404,10 @@ class DepthAnything3(nn.Module):
 
     # ------------------------------------------------------------------ checkpoints
     def save_pretrained(self, directory: str | Path) -> Path:
-        """Write the published layout: ``config.json`` (``{"model_name": ...}``) and ``model.safetensors``."""
+        """Write the published layout: ``config.json`` (``{"model_name": ...}``) and ``model.safetensors``
+        (the shared LayerNorm once, as the hub's files hold it: :data:`TIED`)."""
         directory = Path(directory)
-        state = {k: v.detach().contiguous().cpu() for k, v in self.state_dict().items()}
+        state = {k: v.detach().contiguous().cpu() for k, v in self.state_dict().items() if k not in TIED}
         atomic_write(directory / WEIGHTS_FILE, lambda tmp: save_file(state, tmp))
         atomic_write_json(directory / CONFIG_FILE, {"model_name": self.config.name})
         return directory
@@ -409,7 +416,8 @@ class DepthAnything3(nn.Module):
     def from_pretrained(cls, source: str | Path, device: str | torch.device = "cpu") -> DepthAnything3:
         """Load a DA3-Small / DA3-Base checkpoint: a directory with the published ``config.json``
         and ``model.safetensors``, or a hub id such as ``depth-anything/DA3-SMALL`` (needs
-        huggingface_hub). Every key must be present with its shape. Returns the model in eval mode."""
+        huggingface_hub). Every key must be present with its shape, but for the tied names of
+        :data:`TIED`, filled from the tensor they alias. Returns the model in eval mode."""
         path = resolve(source)
         config_file, weights_file = path / CONFIG_FILE, path / WEIGHTS_FILE
         for f in (config_file, weights_file):
@@ -422,6 +430,11 @@ class DepthAnything3(nn.Module):
             state = load_file(str(weights_file))
         except (SafetensorError, OSError) as e:
             raise ValueError(f"{weights_file}: not a readable safetensors file ({e})") from None
+        for name, alias in TIED.items():
+            if name not in state and alias in state:
+                state[name] = state[alias]
+            elif name in state and alias in state and not torch.equal(state[name], state[alias]):
+                raise ValueError(f"{weights_file}: {name} differs from {alias}; DA3 shares one LayerNorm there")
         own = model.state_dict()
         missing, unexpected = sorted(own.keys() - state.keys()), sorted(state.keys() - own.keys())
         wrong = [f"{k}: file {tuple(state[k].shape)} vs model {tuple(v.shape)}"
