@@ -339,3 +339,26 @@ def test_reconstructor_identity_tracks_the_weights():
     c = GenSplatReconstructor(tiny_model(seed=1))
     assert a.identity() == b.identity() != c.identity()
     assert len(a.config()["weights"]) == 16
+
+
+def test_a_foreign_checkpoint_is_refused_from_its_header_before_the_model_is_built(tmp_path, monkeypatch):
+    """Four tensors of another architecture under a Pi3-like config: refused naming what is
+    missing, before the (here: tiny) full-size model is allocated; a config that is a JSON list
+    is a clear error too."""
+    monkeypatch.setattr(ModelConfig, "full", classmethod(lambda cls: TINY))
+    save_file({f"other.layer{i}.weight": torch.zeros(3, 3) for i in range(4)}, str(tmp_path / "model.safetensors"))
+    (tmp_path / "config.json").write_text(json.dumps({"pos_type": "rope100", "decoder_size": "large"}))
+    built = []
+    real_init = GenSplatModel.__init__
+    monkeypatch.setattr(GenSplatModel, "__init__", lambda self, *a, **k: built.append(torch.empty(0).device.type)
+                        or real_init(self, *a, **k))  # fmt: skip
+    with pytest.raises(ValueError, match=r"model.safetensors: not a Pi3 checkpoint of this model .* tensors are missing"):
+        GenSplatModel.from_pretrained(tmp_path)
+    assert built == ["meta"]  # only the shapes were built, on the meta device
+    (tmp_path / "config.json").write_text("[1, 2]")
+    from gensplat_transforms.reconstruction.geometry import GeometryReconstructor, is_gensplat_checkpoint
+
+    with pytest.raises(ValueError, match=r"config.json: expected a JSON object, got list"):
+        is_gensplat_checkpoint(tmp_path)
+    with pytest.raises(ValueError, match=r"config.json: expected a JSON object, got list"):
+        GeometryReconstructor(tmp_path)

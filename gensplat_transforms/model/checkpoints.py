@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-from safetensors import SafetensorError
+from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file
 from torch import nn
 
@@ -74,6 +74,26 @@ def load_pi3_weights(model: nn.Module, path: str | Path) -> LoadReport:
         )
     result = model.load_state_dict(state, strict=False)
     return LoadReport(len(shared), list(result.missing_keys), list(result.unexpected_keys))
+
+
+def check_pi3_file(path: Path, shapes: dict[str, torch.Size]) -> None:
+    """Refuse (``ValueError`` naming the file) a weights file that is not a Pi3 checkpoint of a
+    model with these ``shapes`` (``state_dict`` shapes, e.g. of a model built on the meta device),
+    from its header alone, before a full-size model is allocated: every tensor outside the
+    Gaussian head must be there with its shape."""
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            found = {k: tuple(f.get_slice(k).get_shape()) for k in f.keys()}  # noqa: SIM118 (not a dict)
+    except (SafetensorError, OSError) as e:
+        raise ValueError(f"{path}: not a readable safetensors file ({e})") from None
+    needed = [k for k in shapes if not k.startswith(GAUSSIAN_PREFIX)]
+    missing = [k for k in needed if k not in found]
+    wrong = [f"{k}: file {found[k]} vs model {tuple(shapes[k])}" for k in needed if k in found
+             and found[k] != tuple(shapes[k])]  # fmt: skip
+    if missing or wrong:
+        what = (f"{len(missing)} of the model's {len(needed)} tensors are missing (e.g. {', '.join(missing[:3])})"
+                if missing else f"{len(wrong)} shape mismatches ({'; '.join(wrong[:3])})")  # fmt: skip
+        raise ValueError(f"{path}: not a Pi3 checkpoint of this model (another architecture or size?): {what}")
 
 
 def read_config(path: Path) -> dict:

@@ -23,6 +23,7 @@ from .checkpoints import (
     FORMAT_NAME,
     FORMAT_VERSION,
     WEIGHTS_FILE,
+    check_pi3_file,
     load_pi3_weights,
     read_config,
     read_weights,
@@ -178,6 +179,8 @@ class GenSplatModel(nn.Module):
             check_max_pixels(str(path / CONFIG_FILE), meta.get("max_pixels"))
             model.max_pixels = meta.get("max_pixels")
         elif meta.get("decoder_size", "large") == "large" and meta.get("pos_type", "rope100") == "rope100":
+            with torch.device("meta"):  # the shapes, checked against the file's header before 4 GB are allocated
+                check_pi3_file(path / WEIGHTS_FILE, {k: v.shape for k, v in cls(ModelConfig.full()).state_dict().items()})
             model = cls(ModelConfig.full())
             model.max_pixels = PI3_MAX_PIXELS
             report = load_pi3_weights(model, path / WEIGHTS_FILE)

@@ -32,7 +32,6 @@ timestep's result is :meth:`~GeometryReconstructor.predict_depth`'s.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
@@ -40,7 +39,7 @@ import torch
 
 from ..cameras import Cameras, rigid_inverse
 from ..model import GenSplatModel
-from ..model.checkpoints import CONFIG_FILE, FORMAT_NAME, resolve
+from ..model.checkpoints import CONFIG_FILE, FORMAT_NAME, read_config, resolve
 from ..model.config import check_max_pixels
 from ..model.da3 import DepthAnything3, is_da3_checkpoint
 from ..model.frames import align_similarity, estimate_focal, transform_poses
@@ -62,8 +61,7 @@ SCALES = ("auto", "metric", "fit")
 def is_gensplat_checkpoint(source: str | Path) -> bool:
     """Whether a checkpoint directory / hub id holds this project's format (metric depth)
     rather than an official Pi3 checkpoint (depth up to scale)."""
-    meta = json.loads((resolve(source) / CONFIG_FILE).read_text())
-    return meta.get("format") == FORMAT_NAME
+    return read_config(resolve(source) / CONFIG_FILE).get("format") == FORMAT_NAME
 
 
 def weights_licence(source: str | Path = DEFAULT_MODEL_DIR) -> str:
