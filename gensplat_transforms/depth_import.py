@@ -227,8 +227,8 @@ def _npy_member(path: Path):
             yield f
         return
     with zipfile.ZipFile(path) as z:
-        names = [n.removesuffix(".npy") for n in z.namelist()]
-        if "depth" not in names and len(names) != 1:
-            raise ValueError(f"holds {names}; expected one array or one named 'depth'")
-        with z.open(("depth" if "depth" in names else names[0]) + ".npy") as f:
+        members = {n.removesuffix(".npy"): n for n in z.namelist()}  # NumPy's suffix, or a member without it
+        if "depth" not in members and len(members) != 1:
+            raise ValueError(f"holds {sorted(members)}; expected one array or one named 'depth'")
+        with z.open(members["depth"] if "depth" in members else next(iter(members.values()))) as f:
             yield f

@@ -143,3 +143,22 @@ def test_existing_sidecars_are_kept_unless_damaged_or_overwritten(tmp_path, dept
     path.write_bytes(b"damaged")
     assert not run(tmp_path, tmp_path / "ep{episode}.npy")[0].skipped
     assert torch.allclose(load_depth(tmp_path / "ds", "left", 0)[:, 0], depth_m + 1, rtol=1e-3)
+
+
+def test_npz_members_named_without_the_npy_suffix_are_read(tmp_path, depth_m):
+    """An archive written by hand (zipfile) names its member 'depth', not NumPy's 'depth.npy': read,
+    not a raw KeyError; one that holds no array is a clear error."""
+    import io
+    import zipfile
+
+    buffer = io.BytesIO()
+    np.save(buffer, depth_m.numpy())
+    with zipfile.ZipFile(tmp_path / "ep0.npz", "w") as z:
+        z.writestr("depth", buffer.getvalue())
+        z.writestr("notes.txt", b"recorded by hand")
+    run(tmp_path, tmp_path / "ep{episode}.npz", {0: T})
+    assert torch.allclose(load_depth(tmp_path / "ds", "left", 0)[:, 0], depth_m, rtol=1e-3, atol=1e-4)
+    with zipfile.ZipFile(tmp_path / "ep1.npz", "w") as z:
+        z.writestr("readme", b"no array here")
+    with pytest.raises(ValueError, match=r"ep1.npz: unreadable depth array"):
+        run(tmp_path, tmp_path / "ep{episode}.npz", {1: T})
