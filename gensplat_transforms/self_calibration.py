@@ -207,7 +207,10 @@ def match_pair(image_a: np.ndarray, image_b: np.ndarray, depth_a: np.ndarray | N
         return _no_matches()
     pa = np.float64([kp_a[i].pt for i, _ in pairs]) + 0.5  # OpenCV puts pixel centres at integers
     pb = np.float64([kp_b[j].pt for _, j in pairs]) + 0.5
-    _, inlier = cv2.findFundamentalMat(pa, pb, cv2.USAC_MAGSAC, 1.0, 0.999, 10000)
+    try:
+        _, inlier = cv2.findFundamentalMat(pa, pb, cv2.USAC_MAGSAC, 1.0, 0.999, 10000)
+    except cv2.error:  # MAGSAC asserts when a few (degenerate) matches admit no model: small images
+        inlier = None
     if inlier is None:
         return _no_matches()
     keep = inlier.ravel().astype(bool)

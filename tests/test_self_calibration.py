@@ -252,6 +252,20 @@ def test_match_pair_of_blank_images_is_empty():
     assert len(match_pair(blank, blank, depth, depth)) == 0
 
 
+def test_match_pair_whose_few_matches_admit_no_model_is_empty(monkeypatch):
+    """On small images (64x64) MAGSAC finds no fundamental matrix in a handful of degenerate
+    matches and OpenCV asserts: no matches (the estimate then says what it needs), not cv2.error."""
+    cv2 = pytest.importorskip("cv2")
+    rng = np.random.default_rng(0)
+    texture = cv2.GaussianBlur((rng.random((240, 320, 3)) * 255).astype(np.uint8), (5, 5), 1.2)
+
+    def no_model(*args, **kwargs):
+        raise cv2.error("(-215:Assertion failed) !model.empty() in function 'setModelParameters'")
+
+    monkeypatch.setattr(cv2, "findFundamentalMat", no_model)
+    assert len(match_pair(texture, texture)) == 0
+
+
 def test_level_frame_puts_z_up_on_the_table_and_x_towards_the_cameras():
     """Points of a table (z = 0) and a wall (x = 0) seen by the rig, given in camera 0's frame:
     the levelled frame finds the table, not the wall, and reproduces the rig's world axes."""
