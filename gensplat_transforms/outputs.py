@@ -64,6 +64,9 @@ def gensplat_subfolder(dataset: str | Path, *parts: str) -> Path:
     if not real.is_relative_to(base) or real == base:
         raise ValueError(f"{path} leads through a symbolic link to {real}, outside GenSplat's folder {base}, "
                          "the only place GenSplat writes its files: remove the link")  # fmt: skip
+    for p in (path, *path.parents[: len(parts) - 1]):
+        if p.exists() and not p.is_dir():
+            raise ValueError(f"{p} is a file, not a folder: GenSplat keeps its own files there; move it away")
     return path
 
 

@@ -275,3 +275,16 @@ def test_settings_that_render_no_picture_are_refused_at_the_command(cached, tmp_
     out = ["--out", str(tmp_path / "preview")] if args[0] == "preview" else []
     refused(capsys, [args[0], "--root", str(root), "--repo-id", REPO, *args[1:], *out], message)
     assert (root / "gensplat" / "config.json").read_bytes() == settings
+
+
+@pytest.mark.parametrize("where", ["cache", "cache/id"])
+def test_a_file_where_the_cache_folder_belongs_is_a_clear_error(cached, tmp_path, capsys, where):
+    root = tmp_path / "ds"
+    shutil.copytree(cached, root, ignore=shutil.ignore_patterns("cache"))
+    if where == "cache":
+        (root / "gensplat" / "cache").write_text("a note")
+    else:
+        (identity,) = [p.name for p in (cached / "gensplat" / "cache").iterdir() if p.is_dir()]
+        (root / "gensplat" / "cache").mkdir()
+        (root / "gensplat" / "cache" / identity).write_text("a note")
+    refused(capsys, ["cache", "--root", str(root), "--repo-id", REPO], "is a file, not a folder")
