@@ -163,7 +163,7 @@ def heldout_dataset(size: int, episodes: int) -> Path:
 def load_model(path: Path) -> GenSplatReconstructor | str:
     """The feed-forward reconstructor, or why it is unavailable."""
     if not (path / "model.safetensors").is_file():
-        return f"no weights at {path} (train them with gensplat_transforms.model.train)"
+        return f"no weights at {path} (train them with gensplat_transforms.training)"
     return GenSplatReconstructor(path)
 
 

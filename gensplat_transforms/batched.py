@@ -31,7 +31,6 @@ from .reconstruction.base import nearest_pixels
 from .reconstruction.rgbd import RGBDReconstructor, dense_discs, grid_pixel_ids, own_saturation
 from .rendering import RenderOutput
 from .rendering.gsplat_backend import render_gsplat_batch
-from .settings import GenSplatConfig, render_size
 from .sh import num_sh_bases
 from .view_output import (
     as_cache_images,
@@ -40,12 +39,14 @@ from .view_output import (
     like_images,
     render_background,
     render_depth,
+    render_size,
     render_view,
     seen_depth,
 )
 from .views import Reconstruction, preferred_means, source_rays
 
 if TYPE_CHECKING:
+    from .settings import GenSplatConfig
     from .transform import GenSplatTransform
 
 

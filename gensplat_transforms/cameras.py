@@ -378,3 +378,34 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0), dtype=torch.float64) -> torch.Tenso
 def focal_from_fov(fov_deg: float, size: int) -> float:
     """Focal length in pixels for a field of view across ``size`` pixels."""
     return (size / 2) / math.tan(math.radians(fov_deg) / 2)
+
+
+def _closest(c2w_a: torch.Tensor, c2w_b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Closest points (..., 3) on the optical axes of (..., 4, 4) poses, and |d1 x d2|^2 (...)
+    (the points are not finite where it is 0: parallel axes)."""
+    o1, d1 = c2w_a[..., :3, 3], c2w_a[..., :3, 2] / c2w_a[..., :3, 2].norm(dim=-1, keepdim=True)
+    o2, d2 = c2w_b[..., :3, 3], c2w_b[..., :3, 2] / c2w_b[..., :3, 2].norm(dim=-1, keepdim=True)
+    w = o1 - o2
+    b = (d1 * d2).sum(-1)
+    denom = 1.0 - b * b  # |d1 x d2|^2 for unit directions
+    d, e = (d1 * w).sum(-1), (d2 * w).sum(-1)
+    s = (b * e - d) / denom
+    t = (e - b * d) / denom
+    return o1 + s[..., None] * d1, o2 + t[..., None] * d2, denom
+
+
+def pivot_point(c2w_a: torch.Tensor, c2w_b: torch.Tensor, parallel_tol: float = 1e-6) -> torch.Tensor:
+    """(..., 3) pivot of (..., 4, 4) camera pairs: midpoint of the shortest segment between
+    two cameras' optical axes.
+
+    Falls back to the midpoint of the camera centres when the axes are (near) parallel.
+
+    Example: two cameras looking at the origin
+        >>> from gensplat_transforms import look_at
+        >>> pivot = pivot_point(look_at((1.0, 0.5, 0.5), (0, 0, 0)), look_at((1.0, -0.5, 0.5), (0, 0, 0)))
+        >>> torch.allclose(pivot, torch.zeros(3, dtype=torch.float64))
+        True
+    """
+    pa, pb, denom = _closest(c2w_a, c2w_b)
+    parallel = (denom < parallel_tol)[..., None]
+    return torch.where(parallel, 0.5 * (c2w_a[..., :3, 3] + c2w_b[..., :3, 3]), 0.5 * (pa + pb))

@@ -417,8 +417,8 @@ def _train_model(args) -> None:
     from .model.data import ProceduralViews
     from .model.losses import LossWeights
     from .model.teacher import Pi3Teacher, TrueGeometryTeacher
-    from .model.train import LOG_FILE, TrainConfig, train
     from .outputs import check_output
+    from .training import LOG_FILE, TrainConfig, train
 
     check_output(args.out, args.root, folder=True)  # against the dataset of --data lerobot
     check_output(Path(args.out) / LOG_FILE, args.root)  # appended to; the other files are replaced atomically

@@ -21,7 +21,7 @@ A camera whose feature carries no calibration may take it from
 ``<root>/gensplat/calibration.json`` beside the dataset (written by ``gensplat calibrate``,
 :mod:`.calibration`): ``{"format": "gensplat-calibration", "cameras": {name: info}}`` with
 the same ``info`` entries, checked when read as ``gensplat calibrate`` checks its input. The
-feature's own ``info`` wins where both exist.
+feature's own ``info`` wins where both exist (:func:`.calibration.load_calibration` reads both).
 
 Metric depth of the external cameras is a sidecar beside the dataset (depth as a LeRobot
 image feature would be fed to the policy as an extra camera):
@@ -32,7 +32,6 @@ image feature would be fed to the policy as an extra camera):
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -125,61 +124,6 @@ def image_sizes(features: dict) -> dict[str, tuple[int, int]]:
     """Camera name -> (width, height) of the image features of LeRobot ``meta.features``."""
     return {k[len(IMAGE_KEY_PREFIX) :]: (ft["shape"][1], ft["shape"][0])
             for k, ft in features.items() if k.startswith(IMAGE_KEY_PREFIX)}  # fmt: skip
-
-
-def load_calibration(features: dict, root: str | Path | None = None,
-                     episodes: int | None = None) -> dict[str, CameraCalibration]:
-    """Calibrated cameras (name -> calibration, in feature order) from LeRobot ``meta.features``;
-    a camera whose feature has no calibration takes it from :func:`calibration_path` of ``root``
-    when given (its per-episode poses checked against ``episodes``, the dataset's episode count,
-    when given)."""
-    saved = saved_calibration(root, image_sizes(features), episodes) if root is not None else {}
-    out = {}
-    for key, ft in features.items():
-        if not key.startswith(IMAGE_KEY_PREFIX):
-            continue
-        name = key[len(IMAGE_KEY_PREFIX) :]
-        info = ft.get("info") or {}
-        if "camera.intrinsics" not in info:
-            if name in saved:
-                out[name] = saved[name]
-            continue
-        ext, sensor = info.get("camera.extrinsics"), info.get("camera.depth")
-        out[name] = CameraCalibration(
-            name=name,
-            K=torch.tensor(info["camera.intrinsics"], dtype=torch.float64),
-            c2w=None if ext is None else torch.tensor(ext, dtype=torch.float64),
-            mount=info.get("camera.mount", "external"),
-            depth=None if sensor is None else DepthSensor(
-                torch.tensor(sensor["intrinsics"], dtype=torch.float64), int(sensor["width"]), int(sensor["height"]),
-                torch.tensor(sensor["to_camera"], dtype=torch.float64)),
-            episodes={int(e): torch.tensor(m, dtype=torch.float64) for e, m in info.get("camera.episodes", {}).items()},
-        )  # fmt: skip
-    return out
-
-
-def saved_calibration(root: str | Path, sizes: dict[str, tuple[int, int]],
-                      episodes: int | None = None) -> dict[str, CameraCalibration]:
-    """The cameras of :func:`calibration_path` among ``sizes`` (name -> (width, height)), checked
-    as ``gensplat calibrate`` checks its input, per-episode poses against ``episodes`` (the
-    dataset's episode count) when given (empty when the file is absent). Raises ``ValueError``
-    naming the file, camera and field, and the fix."""
-    from .calibration import stored_cameras  # it imports this module
-
-    path = calibration_path(root)
-    if not path.is_file():
-        return {}
-    fix = f"write it again with `gensplat calibrate --root {root} --from FILE`"
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (ValueError, RecursionError) as e:  # not JSON, not UTF-8
-        raise ValueError(f"{path}: not valid JSON ({e}); {fix}") from None
-    if not isinstance(data, dict) or data.get("format") != CALIBRATION_FORMAT:
-        raise ValueError(f"{path}: not a GenSplat calibration file; {fix}")
-    try:
-        return stored_cameras(path, data.get("cameras"), sizes, episodes)
-    except ValueError as e:
-        raise ValueError(f"{e}; {fix}") from None
 
 
 def calibrated_cameras(calib: dict[str, CameraCalibration], names, width: int, height: int,

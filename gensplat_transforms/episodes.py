@@ -18,8 +18,8 @@ from torch.utils.data import Dataset
 from tqdm.auto import tqdm
 
 from .cache import CacheStats, EpisodeSource, GaussianCache
+from .cameras import pivot_point
 from .distributed import Shard
-from .perturbation import pivot_point
 from .reconstruction import Views
 from .scenes import TabletopScene, default_cameras
 
@@ -88,7 +88,7 @@ def pivot_depth(reconstructor, source: EpisodeSource, episodes: Iterable[int], s
 
     One camera: the scene's depth along its axis (:func:`scene_depth`). Two or more: None, the
     pivot where the optical axes of cameras 0 and 1 pass closest
-    (:func:`.perturbation.pivot_point`), when that point lies in front of both and within a
+    (:func:`.cameras.pivot_point`), when that point lies in front of both and within a
     factor :data:`PIVOT_TOLERANCE` of the scene's depth along camera 0's axis (medians over the
     sampled timesteps); else (axes nearly parallel, diverging or crossing by the lenses) the
     scene's depth, with a warning: the paper's turns about a pivot metres beyond the scene, or

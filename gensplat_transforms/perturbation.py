@@ -41,7 +41,7 @@ import numpy as np
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
-from .cameras import Cameras, _check_rigid, rigid_tolerance
+from .cameras import Cameras, _check_rigid, _closest, pivot_point, rigid_tolerance
 
 #: world axes a move can turn about by name; the paper's levels use x and y (``PAPER_AXES``)
 AXES = ("x", "y", "z")
@@ -399,20 +399,6 @@ def _rigid(name: str, c2w: torch.Tensor) -> torch.Tensor:
     return c2w
 
 
-def _closest(c2w_a: torch.Tensor, c2w_b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Closest points (..., 3) on the optical axes of (..., 4, 4) poses, and |d1 x d2|^2 (...)
-    (the points are not finite where it is 0: parallel axes)."""
-    o1, d1 = c2w_a[..., :3, 3], c2w_a[..., :3, 2] / c2w_a[..., :3, 2].norm(dim=-1, keepdim=True)
-    o2, d2 = c2w_b[..., :3, 3], c2w_b[..., :3, 2] / c2w_b[..., :3, 2].norm(dim=-1, keepdim=True)
-    w = o1 - o2
-    b = (d1 * d2).sum(-1)
-    denom = 1.0 - b * b  # |d1 x d2|^2 for unit directions
-    d, e = (d1 * w).sum(-1), (d2 * w).sum(-1)
-    s = (b * e - d) / denom
-    t = (e - b * d) / denom
-    return o1 + s[..., None] * d1, o2 + t[..., None] * d2, denom
-
-
 def closest_points_between_axes(
     c2w_a: torch.Tensor, c2w_b: torch.Tensor, parallel_tol: float = 1e-6
 ) -> tuple[torch.Tensor, torch.Tensor] | None:
@@ -442,23 +428,6 @@ def _check_pivot_depth(pivot_depth: float | None) -> None:
     if pivot_depth is None or not (math.isfinite(pivot_depth) and pivot_depth > 0):
         raise ValueError(f"rig_pivot: pivot_depth must be a positive distance in metres along camera 0's optical "
                          f"axis (a rig of one external camera needs one), got {pivot_depth}")  # fmt: skip
-
-
-def pivot_point(c2w_a: torch.Tensor, c2w_b: torch.Tensor, parallel_tol: float = 1e-6) -> torch.Tensor:
-    """(..., 3) pivot of (..., 4, 4) camera pairs: midpoint of the shortest segment between
-    two cameras' optical axes.
-
-    Falls back to the midpoint of the camera centres when the axes are (near) parallel.
-
-    Example: two cameras looking at the origin
-        >>> from gensplat_transforms import look_at
-        >>> pivot = pivot_point(look_at((1.0, 0.5, 0.5), (0, 0, 0)), look_at((1.0, -0.5, 0.5), (0, 0, 0)))
-        >>> torch.allclose(pivot, torch.zeros(3, dtype=torch.float64))
-        True
-    """
-    pa, pb, denom = _closest(c2w_a, c2w_b)
-    parallel = (denom < parallel_tol)[..., None]
-    return torch.where(parallel, 0.5 * (c2w_a[..., :3, 3] + c2w_b[..., :3, 3]), 0.5 * (pa + pb))
 
 
 #: Seeds and indices of a draw lie below 2**32: NumPy splits a larger integer of a seed's key

@@ -21,8 +21,8 @@ import numpy as np
 import torch
 
 from .cameras import Cameras
-from .reconstruction.base import MAX_VIEW_DEPTH
-from .rendering.fast import _jit
+from .jit import _jit
+from .views import MAX_VIEW_DEPTH
 
 #: colour pixels one depth pixel may fill along each axis (a footprint this wide or wider is
 #: cut to it: a surface at a grazing angle, or closer than the sensors' baseline)

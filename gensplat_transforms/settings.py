@@ -1,4 +1,4 @@
-"""The transform's settings (:class:`GenSplatConfig`) and the sizes that follow from them."""
+"""The transform's settings (:class:`GenSplatConfig`) and the command-line flags made from them."""
 
 from __future__ import annotations
 
@@ -8,12 +8,11 @@ from dataclasses import asdict, dataclass, field, fields
 
 from .perturbation import SAMPLERS, PerturbationRange, _integer, make_sampler, sampler_kinds
 from .rendering import BACKENDS
+from .view_output import DEPTH_UNITS
 
 RENDER_IN = ("auto", "worker", "batch")
 #: ``GenSplatConfig.mode`` values
 MODES = ("episode", "frame")
-#: ``GenSplatConfig.depth_unit`` values: metres per unit of the item's depth maps, or None
-DEPTH_UNITS = {None: None, "keep": None, "m": 1.0, "mm": 1e-3}
 def _cli(help: str, **argparse_options) -> dict:
     """A field's metadata giving it a command-line flag (``gensplat cache``): ``help`` and
     argparse options (the flag defaults to ``--<field-name>``; type and default come from the
@@ -72,7 +71,7 @@ class GenSplatConfig:
         report: add ``gensplat.*`` keys describing the perturbation to the item.
         render_scale: build and render the augmented views at this fraction of the item's
             image size, in (0, 1], then resize them to the image size (see
-            :func:`render_size`): about scale^2 of the render's time, for about 1 dB PSNR
+            :func:`.view_output.render_size`): about scale^2 of the render's time, for about 1 dB PSNR
             per halving of the side, also at the size a policy shrinks the frames to
             (``benchmarks/render_scale.py``: 640x480 frames seen at 224x168, 27.6 dB at 1,
             26.4 at 0.5, 25.3 at 0.35). Render no smaller than the policy reads. Cached
@@ -205,17 +204,6 @@ class GenSplatConfig:
 
 def _tuples(d: dict) -> dict:
     return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
-
-
-def render_size(width: int, height: int, scale: float) -> tuple[int, int]:
-    """(width, height) of the views rendered for ``width x height`` images at ``scale``
-    (``GenSplatConfig.render_scale``), at least one pixel each.
-
-    Example:
-        >>> render_size(640, 480, 0.35)
-        (224, 168)
-    """
-    return max(1, round(width * scale)), max(1, round(height * scale))
 
 
 def add_config_arguments(parser: argparse.ArgumentParser) -> None:

@@ -17,8 +17,8 @@ from .counters import SampleCounters
 from .dataset_format import DepthSensor
 from .perturbation import AXES, ROW
 from .plan import BATCH_KEYS, ViewPlan
-from .settings import GenSplatConfig, render_size
-from .view_output import as_cache_images, render_depth, render_view, render_views
+from .settings import GenSplatConfig
+from .view_output import as_cache_images, render_depth, render_size, render_view, render_views
 
 __all__ = ["BATCH_KEYS", "AugmentedDataset", "GenSplatConfig", "GenSplatTransform", "ViewPlan", "render_depth",
            "render_size", "render_view"]  # fmt: skip

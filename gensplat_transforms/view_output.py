@@ -14,14 +14,16 @@ import torch.nn.functional as F
 from .cameras import Cameras
 from .holes import fill_holes
 from .rendering import RenderOutput, render
-from .settings import DEPTH_UNITS, GenSplatConfig
 from .views import nearest_pixels
 
 if TYPE_CHECKING:
     from .dataset_format import DepthSensor
     from .perturbation import Perturbation
+    from .settings import GenSplatConfig
     from .views import Reconstruction
 
+#: ``GenSplatConfig.depth_unit`` values: metres per unit of the item's depth maps, or None
+DEPTH_UNITS = {None: None, "keep": None, "m": 1.0, "mm": 1e-3}
 #: a view's depth counts where its alpha reaches this (elsewhere it shows nothing: depth 0)
 DEPTH_MIN_ALPHA = 0.5
 
@@ -102,6 +104,17 @@ def filled(out: RenderOutput, config: GenSplatConfig) -> RenderOutput:
     if config.fill_holes:
         out.rgb = fill_holes(out.rgb, out.alpha, empty=config.background)
     return out
+
+
+def render_size(width: int, height: int, scale: float) -> tuple[int, int]:
+    """(width, height) of the views rendered for ``width x height`` images at ``scale``
+    (``GenSplatConfig.render_scale``), at least one pixel each.
+
+    Example:
+        >>> render_size(640, 480, 0.35)
+        (224, 168)
+    """
+    return max(1, round(width * scale)), max(1, round(height * scale))
 
 
 def as_cache_images(images: torch.Tensor, height: int, width: int) -> torch.Tensor:

@@ -13,7 +13,7 @@ import torch.nn.functional as F
 
 from .cameras import Cameras
 from .gaussians import Gaussians
-from .rendering.fast import _jit
+from .jit import _jit
 
 #: Depths beyond this (metres) mark pixels without depth, like zero, negative and non-finite
 #: ones: no sensor measures that far (such values are sentinels), and Gaussians built from

@@ -11,10 +11,10 @@ import torch
 import yaml
 from kornia.geometry.conversions import rotation_matrix_to_axis_angle
 
-from gensplat_transforms.calibration import calibrate
+from gensplat_transforms.calibration import calibrate, load_calibration
 from gensplat_transforms.cameras import opencv_to_opengl
 from gensplat_transforms.cli import main
-from gensplat_transforms.dataset_format import calibration_path, load_calibration
+from gensplat_transforms.dataset_format import calibration_path
 from gensplat_transforms.scenes import default_cameras
 
 WIDTH, HEIGHT = 64, 48

@@ -29,13 +29,23 @@ def _under(name: str, prefixes) -> bool:
     return any(name == p or name.startswith(p + ".") for p in prefixes)
 
 
+def _type_checking(node: ast.AST) -> bool:
+    """``if TYPE_CHECKING:`` (or ``typing.TYPE_CHECKING``): its imports never run."""
+    test = node.test if isinstance(node, ast.If) else None
+    return isinstance(test, ast.Name) and test.id == "TYPE_CHECKING" or (
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
+
+
 def _statements(tree: ast.Module, module_level: bool):
-    """Import statements anywhere, or only those that run on import (not inside functions)."""
+    """Import statements anywhere, or only those that run on import (not inside functions, nor
+    under ``if TYPE_CHECKING:``)."""
     todo = list(tree.body)
     while todo:
         node = todo.pop()
         if isinstance(node, (ast.Import, ast.ImportFrom)):
             yield node
+        elif module_level and _type_checking(node):
+            todo.extend(node.orelse)
         elif not (module_level and isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda))):
             todo.extend(ast.iter_child_nodes(node))
 

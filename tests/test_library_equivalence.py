@@ -21,9 +21,9 @@ from gensplat_transforms.images import save_grid, to_uint8
 from gensplat_transforms.metrics import ssim, ssim_map
 from gensplat_transforms.model.frames import quat_mul
 from gensplat_transforms.model.losses import LossWeights, rgb_loss
-from gensplat_transforms.model.train import ema_model
 from gensplat_transforms.perturbation import axis_rotation
 from gensplat_transforms.rotations import normalize_quat, quat_to_rotmat, rotmat_to_quat
+from gensplat_transforms.training import ema_model
 
 DATA = Path(__file__).parent / "data"
 

@@ -14,9 +14,9 @@ import pytest
 import torch
 import yaml
 
-from gensplat_transforms.calibration import calibrate
+from gensplat_transforms.calibration import calibrate, load_calibration
 from gensplat_transforms.cameras import Cameras
-from gensplat_transforms.dataset_format import DepthSensor, load_calibration, save_depth
+from gensplat_transforms.dataset_format import DepthSensor, save_depth
 from gensplat_transforms.depth_codec import depth_from_words
 from gensplat_transforms.registration import register_depth
 from gensplat_transforms.scenes import TabletopScene, default_cameras

@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 import torch
 
+from gensplat_transforms.calibration import load_calibration
 from gensplat_transforms.cameras import look_at
 from gensplat_transforms.cli import main
-from gensplat_transforms.dataset_format import calibration_path, load_calibration
+from gensplat_transforms.dataset_format import calibration_path
 from gensplat_transforms.perturbation import pivot_point
 from gensplat_transforms.self_calibration import (
     Matches,

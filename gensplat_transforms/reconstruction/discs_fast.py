@@ -29,7 +29,7 @@ import math
 import numpy as np
 import torch
 
-from ..rendering.fast import _jit
+from ..jit import _jit
 from ..sh import C0
 
 _F = np.float32

@@ -66,6 +66,7 @@ from numba import prange
 
 from ..cameras import Cameras
 from ..gaussians import Gaussians
+from ..jit import _jit
 from ..sh import sh_degree_from_bases
 from .projection import (
     ALPHA_MAX,
@@ -89,20 +90,6 @@ _BLOCK = 128  # Gaussians per block of the projection (see _project_range)
 _B_OPACITY, _B_GEOM, _B_BOX, _B_VISIBLE, _B_COLOR, _B_ROWS = 10, 11, 19, 23, 24, 27
 # above this opacity the box extent is the full 3 sigma: 2 ln(255 o) > 9 for o > 0.353
 _OPAC_FULL_EXTENT = 0.36
-
-
-def _jit(parallel: bool = False, inline: bool = False, fastmath=False):
-    """``njit`` with an on-disk cache; without a writable cache location, no cache."""
-    inline = "always" if inline else "never"
-    options = {"parallel": parallel, "fastmath": fastmath, "error_model": "numpy", "inline": inline}
-
-    def wrap(fn):
-        try:
-            return numba.njit(cache=True, **options)(fn)
-        except RuntimeError:  # numba found no writable cache directory
-            return numba.njit(cache=False, **options)(fn)
-
-    return wrap
 
 
 # --------------------------------------------------------------------------- projection

@@ -5,7 +5,8 @@ from __future__ import annotations
 from collections.abc import Iterable
 from pathlib import Path
 
-from gensplat_transforms.dataset_format import IMAGE_KEY_PREFIX, load_calibration
+from gensplat_transforms.calibration import load_calibration
+from gensplat_transforms.dataset_format import IMAGE_KEY_PREFIX
 from gensplat_transforms.depth_import import ImportedEpisode, import_depth
 
 from .source import episode_table, read_info

@@ -20,6 +20,7 @@ from torch.utils.data import Dataset
 from gensplat_transforms.atomic import atomic_write_json, read_json_object, stat_stamp
 from gensplat_transforms.cache import DepthFiles
 from gensplat_transforms.cache_format import check_sidecars
+from gensplat_transforms.calibration import load_calibration
 from gensplat_transforms.cameras import Cameras
 from gensplat_transforms.dataset_format import (
     IMAGE_KEY_PREFIX,
@@ -28,7 +29,6 @@ from gensplat_transforms.dataset_format import (
     camera_info,
     depth_path,
     digests_path,
-    load_calibration,
     load_depth,
     open_depth,
 )

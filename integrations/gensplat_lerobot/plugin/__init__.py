@@ -10,7 +10,8 @@ from dataclasses import replace
 
 from gensplat_transforms.cache import CacheError
 from gensplat_transforms.counters import SampleCounters
-from gensplat_transforms.settings import GenSplatConfig, render_size
+from gensplat_transforms.settings import GenSplatConfig
+from gensplat_transforms.view_output import render_size
 
 from .. import batch_mode
 from ..dataset import enable_gensplat, load_settings

@@ -2,7 +2,7 @@
 
     L = L_rgb + l_depth L_depth + l_3D L_3D + l_cam L_cam
 
-L_rgb (L1 + SSIM, or LPIPS; see ``losses``) and L_depth compare the *context* views rendered
+L_rgb (L1 + SSIM, or LPIPS; see ``model.losses``) and L_depth compare the *context* views rendered
 from the predicted Gaussians with the input images and with the predicted point maps' z. Each
 sample's Gaussians are rendered into its predicted source cameras (poses from the camera head;
 the calibrated intrinsics, or for uncalibrated data the focal the point maps imply, as
@@ -37,16 +37,16 @@ from torch.optim.swa_utils import AveragedModel
 from torch.utils.data import Dataset
 from tqdm.auto import tqdm
 
-from ..atomic import atomic_write, atomic_write_json
-from ..cameras import Cameras
-from ..rendering import render
-from ..views import Views
-from .checkpoints import GAUSSIAN_PREFIX, load_pi3_weights
-from .config import ModelConfig
-from .frames import estimate_focal
-from .gensplat import GenSplatModel, to_gaussians
-from .losses import LossWeights, camera_loss, depth_loss, points_loss, rgb_loss
-from .teacher import Teacher
+from .atomic import atomic_write, atomic_write_json
+from .cameras import Cameras
+from .model.checkpoints import GAUSSIAN_PREFIX, load_pi3_weights
+from .model.config import ModelConfig
+from .model.frames import estimate_focal
+from .model.gensplat import GenSplatModel, to_gaussians
+from .model.losses import LossWeights, camera_loss, depth_loss, points_loss, rgb_loss
+from .model.teacher import Teacher
+from .rendering import render
+from .views import Views
 
 CHECKPOINT_FILE = "checkpoint.pt"
 LOG_FILE = "log.jsonl"
