@@ -39,7 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import write_result
 from policy_robustness import MORE_OFTEN, PERSPECTIVE_DISTORTION, PROTOCOLS, SAMPLER_ARMS
 
-from gensplat_transforms.cameras import Cameras
+from gensplat_transforms.core.cameras import Cameras
 from gensplat_transforms.perturbation import PerturbationSampler, scale_focal
 from gensplat_transforms.sim.evaluate import EvalConfig, PerturbedCameraEnv
 from gensplat_transforms.sim.scene import WORKSPACE_HIGH, WORKSPACE_LOW

@@ -42,7 +42,7 @@ from machine import cpu_model, write_result
 from torch.utils.data import DataLoader, RandomSampler
 
 from gensplat_transforms.cache import GaussianCache
-from gensplat_transforms.metrics import psnr
+from gensplat_transforms.core.metrics import psnr
 from gensplat_transforms.perturbation import PerturbationSampler
 from gensplat_transforms.reconstruction import Reconstructor, RGBDReconstructor
 from gensplat_transforms.rendering import render

@@ -36,8 +36,8 @@ from pathlib import Path
 import torch
 from machine import cpu_model, write_result
 
-from gensplat_transforms.cameras import Cameras
-from gensplat_transforms.metrics import psnr
+from gensplat_transforms.core.cameras import Cameras
+from gensplat_transforms.core.metrics import psnr
 from gensplat_transforms.perturbation import PerturbationSampler
 from gensplat_transforms.reconstruction import RGBDReconstructor, Views
 from gensplat_transforms.registration import register_depth

@@ -42,7 +42,7 @@ from pathlib import Path
 
 import torch
 
-from gensplat_transforms.metrics import psnr
+from gensplat_transforms.core.metrics import psnr
 from gensplat_transforms.model import GenSplatModel
 from gensplat_transforms.model.losses import geodesic_angle, relative_poses
 from gensplat_transforms.model.teacher import camera_points

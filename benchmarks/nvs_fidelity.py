@@ -82,9 +82,9 @@ from gensplat_lerobot import LeRobotSource
 from plotting import Panel, line_panels
 from policy_robustness import SAMPLER_ARMS
 
-from gensplat_transforms.cameras import Cameras
+from gensplat_transforms.core.cameras import Cameras
+from gensplat_transforms.core.metrics import psnr, ssim
 from gensplat_transforms.holes import fill_holes
-from gensplat_transforms.metrics import psnr, ssim
 from gensplat_transforms.perturbation import EVAL_LEVELS, PerturbationSampler
 from gensplat_transforms.reconstruction import (
     GenSplatReconstructor,

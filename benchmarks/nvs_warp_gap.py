@@ -35,7 +35,7 @@ import torch.nn.functional as F
 from gensplat_lerobot import LeRobotSource
 from nvs_fidelity import PLAIN, _mean, draw, heldout_dataset, sampled_frames, sampling_parser, with_defaults
 
-from gensplat_transforms.metrics import psnr
+from gensplat_transforms.core.metrics import psnr
 from gensplat_transforms.perturbation import EVAL_LEVELS, PerturbationSampler
 from gensplat_transforms.reconstruction import RGBDReconstructor, Views
 from gensplat_transforms.sim.truth import GroundTruth

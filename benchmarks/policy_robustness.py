@@ -167,7 +167,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 from gensplat_lerobot import prepare
 from plotting import Panel, line_panels
 
-from gensplat_transforms.atomic import atomic_write_json, read_json_object
+from gensplat_transforms.core.atomic import atomic_write_json, read_json_object
 from gensplat_transforms.perturbation import KEY_LIMIT
 from gensplat_transforms.sim.evaluate import (
     FOV_RANGE,

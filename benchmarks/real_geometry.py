@@ -44,7 +44,7 @@ import torch.nn.functional as F
 from machine import cpu_model, write_result
 from PIL import Image
 
-from gensplat_transforms.cameras import Cameras
+from gensplat_transforms.core.cameras import Cameras
 from gensplat_transforms.reconstruction import Views
 from gensplat_transforms.reconstruction.geometry import GeometryReconstructor
 from gensplat_transforms.self_calibration import estimate_rig, rotation_angle_deg

@@ -21,7 +21,7 @@ external cameras replaced) runs on the same samples with the same draws at every
   320x240 (e.g. Diffusion Policy with ``resize_shape=(240, 320)``) and 224x168 (pi0 and pi0.5
   shrink 640x480 to fit 224x224, keeping the aspect). Every image is shrunk alike (bilinear,
   antialiased); mean PSNR and SSIM over views, ``sharpness`` (the view's detail over the true
-  image's, :func:`~gensplat_transforms.metrics.sharpness_ratio`: below 1 is blurrier, which
+  image's, :func:`~gensplat_transforms.core.metrics.sharpness_ratio`: below 1 is blurrier, which
   PSNR rewards) and ``psnr_vs_full``: PSNR against the scale-1 view (what the scale alone
   loses).
 
@@ -48,7 +48,7 @@ from gensplat_lerobot import enable_gensplat, prepare, video_backend
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from machine import cpu_model, write_result
 
-from gensplat_transforms.metrics import psnr, sharpness_ratio, ssim
+from gensplat_transforms.core.metrics import psnr, sharpness_ratio, ssim
 from gensplat_transforms.perturbation import AXES, Perturbation
 from gensplat_transforms.sim.record import RecordConfig, record
 from gensplat_transforms.sim.truth import GroundTruth

@@ -49,9 +49,10 @@ from gensplat_lerobot import LeRobotSource
 from gensplat_lerobot.estimate import estimate_calibration
 from machine import cpu_model, write_result
 
-from gensplat_transforms.cameras import Cameras
+from gensplat_transforms.core.cameras import Cameras
+from gensplat_transforms.core.metrics import psnr, ssim
+from gensplat_transforms.core.views import nearest_pixels
 from gensplat_transforms.dataset_format import load_depth, save_depth
-from gensplat_transforms.metrics import psnr, ssim
 from gensplat_transforms.perturbation import EVAL_LEVELS, PerturbationSampler, pivot_point
 from gensplat_transforms.reconstruction import GeometryReconstructor, RGBDReconstructor, Views
 from gensplat_transforms.rendering import render
@@ -60,7 +61,6 @@ from gensplat_transforms.sim.record import RecordConfig, record
 from gensplat_transforms.sim.sensor import SensorDepthConfig, sensor_depth
 from gensplat_transforms.sim.truth import GroundTruth
 from gensplat_transforms.sim.world import WorldConfig
-from gensplat_transforms.views import nearest_pixels
 from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 
 REPO = "gensplat/sim_pick_place_heldout"

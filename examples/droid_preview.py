@@ -38,8 +38,8 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
-from gensplat_transforms.cameras import Cameras
-from gensplat_transforms.images import save_grid
+from gensplat_transforms.core.cameras import Cameras
+from gensplat_transforms.core.images import save_grid
 from gensplat_transforms.perturbation import EVAL_LEVELS, PerturbationSampler, pivot_point
 from gensplat_transforms.reconstruction.base import Views
 from gensplat_transforms.reconstruction.geometry import GeometryReconstructor

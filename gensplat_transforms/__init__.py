@@ -23,9 +23,9 @@ Example: two calibrated RGB-D views of one timestep, seen from a camera moved at
 
 from .batched import render_batch
 from .cache import GaussianCache
-from .cameras import Cameras, look_at
+from .core.cameras import Cameras, look_at
+from .core.gaussians import Gaussians
 from .episodes import build_cache
-from .gaussians import Gaussians
 from .perturbation import LEVELS, Perturbation, PerturbationRange, PerturbationSampler, pivot_point
 from .reconstruction import (
     GenSplatReconstructor,

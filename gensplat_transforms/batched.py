@@ -21,9 +21,11 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from .cameras import Cameras
+from .core.cameras import Cameras
+from .core.gaussians import Gaussians
+from .core.sh import num_sh_bases
+from .core.views import Reconstruction, preferred_means, source_rays
 from .depth_codec import depth_from_words
-from .gaussians import Gaussians
 from .perturbation import move_rig, scale_focal
 from .plan import BATCH_KEYS
 from .reconstruction import Reconstructor
@@ -31,7 +33,6 @@ from .reconstruction.base import nearest_pixels
 from .reconstruction.rgbd import RGBDReconstructor, dense_discs, grid_pixel_ids, own_saturation
 from .rendering import RenderOutput
 from .rendering.gsplat_backend import render_gsplat_batch
-from .sh import num_sh_bases
 from .view_output import (
     as_cache_images,
     filled,
@@ -43,7 +44,6 @@ from .view_output import (
     render_view,
     seen_depth,
 )
-from .views import Reconstruction, preferred_means, source_rays
 
 if TYPE_CHECKING:
     from .settings import GenSplatConfig

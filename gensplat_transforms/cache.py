@@ -49,7 +49,6 @@ from typing import Protocol
 import torch
 from safetensors.torch import save
 
-from .atomic import atomic_write, read_json_object, stat_stamp
 from .cache_format import (
     FORMAT,
     FORMAT_VERSION,
@@ -69,7 +68,8 @@ from .cache_format import (
     quantize,
     tensor_crc,
 )
-from .cameras import Cameras
+from .core.atomic import atomic_write, read_json_object, stat_stamp
+from .core.cameras import Cameras
 from .reconstruction import DepthReconstructor, Reconstruction, Reconstructor, Views
 
 __all__ = ["CacheError", "CacheStats", "CorruptCacheError", "DepthFiles", "EpisodeSource", "GaussianCache",

@@ -22,12 +22,12 @@ import numpy as np
 import torch
 
 from . import depth_codec
-from .cameras import Cameras
+from .core.cameras import Cameras
+from .core.gaussians import Gaussians
+from .core.tensor_file import FileChangedError, TensorFile
 from .dataset_format import open_depth
-from .gaussians import Gaussians
 from .reconstruction import Reconstruction, Reconstructor, Views
 from .reconstruction.base import nearest_pixels
-from .tensor_file import FileChangedError, TensorFile
 
 FORMAT = "gensplat-cache"
 FORMAT_VERSION = "2"

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import torch
 
 from .cache import CorruptCacheError, EpisodeSource, GaussianCache
-from .views import Reconstruction, nearest_pixels
+from .core.views import Reconstruction, nearest_pixels
 
 logger = logging.getLogger(__name__)
 

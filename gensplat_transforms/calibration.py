@@ -56,8 +56,8 @@ import numpy as np
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
-from .atomic import atomic_write_json
-from .cameras import Cameras, focal_from_fov, opengl_to_opencv
+from .core.atomic import atomic_write_json
+from .core.cameras import Cameras, focal_from_fov, opengl_to_opencv
 from .dataset_format import (
     CALIBRATION_FORMAT,
     IMAGE_KEY_PREFIX,

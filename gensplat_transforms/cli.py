@@ -350,8 +350,8 @@ def _cache(args) -> None:
         from gensplat_lerobot.dataset import check_cameras, content_path, default_reconstructor
     except ImportError as e:
         raise SystemExit(f"gensplat cache needs the LeRobot extra: pip install 'gensplat-transforms[lerobot]' ({e})")
-    from .atomic import read_json_object
     from .cache import size_text
+    from .core.atomic import read_json_object
     from .dataset_format import GENSPLAT_DIR, depth_path
     from .distributed import Shard, gather
     from .settings import config_from_arguments

@@ -38,9 +38,9 @@ from pathlib import Path
 import torch
 from safetensors.torch import save_file
 
-from .atomic import atomic_write
-from .cameras import Cameras
-from .tensor_file import TensorFile
+from .core.atomic import atomic_write
+from .core.cameras import Cameras
+from .core.tensor_file import TensorFile
 
 DEPTH_FORMAT = "gensplat-depth"
 DEPTH_FORMAT_VERSION = "1"

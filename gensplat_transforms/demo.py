@@ -10,11 +10,11 @@ from pathlib import Path
 
 import torch
 
-from .atomic import atomic_write_json
 from .cache import size_text
+from .core.atomic import atomic_write_json
+from .core.images import save_grid
+from .core.metrics import psnr
 from .dataset_format import GENSPLAT_DIR
-from .images import save_grid
-from .metrics import psnr
 from .outputs import check_output
 from .perturbation import EVAL_LEVELS, PerturbationSampler
 from .preview import write_preview

@@ -18,7 +18,7 @@ from torch.utils.data import Dataset
 from tqdm.auto import tqdm
 
 from .cache import CacheStats, EpisodeSource, GaussianCache
-from .cameras import pivot_point
+from .core.cameras import pivot_point
 from .distributed import Shard
 from .reconstruction import Views
 from .scenes import TabletopScene, default_cameras

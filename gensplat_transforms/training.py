@@ -37,8 +37,9 @@ from torch.optim.swa_utils import AveragedModel
 from torch.utils.data import Dataset
 from tqdm.auto import tqdm
 
-from .atomic import atomic_write, atomic_write_json
-from .cameras import Cameras
+from .core.atomic import atomic_write, atomic_write_json
+from .core.cameras import Cameras
+from .core.views import Views
 from .model.checkpoints import GAUSSIAN_PREFIX, load_pi3_weights
 from .model.config import ModelConfig
 from .model.frames import estimate_focal
@@ -46,7 +47,6 @@ from .model.gensplat import GenSplatModel, to_gaussians
 from .model.losses import LossWeights, camera_loss, depth_loss, points_loss, rgb_loss
 from .model.teacher import Teacher
 from .rendering import render
-from .views import Views
 
 CHECKPOINT_FILE = "checkpoint.pt"
 LOG_FILE = "log.jsonl"

@@ -13,7 +13,7 @@ from torch.utils.data import Dataset
 
 from .cache import EpisodeSource, GaussianCache
 from .cache_reader import CacheReader
-from .counters import SampleCounters
+from .core.counters import SampleCounters
 from .dataset_format import DepthSensor
 from .perturbation import AXES, ROW
 from .plan import BATCH_KEYS, ViewPlan

@@ -11,16 +11,16 @@ from typing import TYPE_CHECKING
 import torch
 import torch.nn.functional as F
 
-from .cameras import Cameras
+from .core.cameras import Cameras
+from .core.views import nearest_pixels
 from .holes import fill_holes
 from .rendering import RenderOutput, render
-from .views import nearest_pixels
 
 if TYPE_CHECKING:
+    from .core.views import Reconstruction
     from .dataset_format import DepthSensor
     from .perturbation import Perturbation
     from .settings import GenSplatConfig
-    from .views import Reconstruction
 
 #: ``GenSplatConfig.depth_unit`` values: metres per unit of the item's depth maps, or None
 DEPTH_UNITS = {None: None, "keep": None, "m": 1.0, "mm": 1e-3}

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import torch
 
-from .cameras import Cameras
+from .core.cameras import Cameras
 from .reconstruction.base import valid_depth
 
 

@@ -16,9 +16,9 @@ from gensplat_transforms import cache as cache_module
 from gensplat_transforms import depth_codec as dc
 from gensplat_transforms import render
 from gensplat_transforms.cache import CorruptCacheError, GaussianCache, StaleCacheError, dequantize, quantize
+from gensplat_transforms.core.gaussians import Gaussians
+from gensplat_transforms.core.metrics import psnr
 from gensplat_transforms.episodes import SceneEpisodes, build_cache
-from gensplat_transforms.gaussians import Gaussians
-from gensplat_transforms.metrics import psnr
 from gensplat_transforms.reconstruction import Reconstruction, Reconstructor, RGBDReconstructor
 
 

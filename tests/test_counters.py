@@ -12,7 +12,7 @@ from gensplat_transforms import (
     GenSplatTransform,
     RGBDReconstructor,
 )
-from gensplat_transforms.counters import SampleCounters
+from gensplat_transforms.core.counters import SampleCounters
 from gensplat_transforms.episodes import SceneDataset, SceneEpisodes
 
 

@@ -22,7 +22,7 @@ import torch
 from hard_cases import HARD_CASES, MAGNITUDES, SCALABLE_FIELDS, scaled
 
 from gensplat_transforms import Cameras, Gaussians, render
-from gensplat_transforms.cameras import look_at
+from gensplat_transforms.core.cameras import look_at
 from gensplat_transforms.rendering import BACKENDS, fast
 from gensplat_transforms.rendering.projection import MAX_COLOR
 

@@ -9,8 +9,8 @@ import torch
 from hard_cases import HARD_CASES
 
 from gensplat_transforms import render
-from gensplat_transforms.cameras import Cameras, look_at
-from gensplat_transforms.gaussians import Gaussians
+from gensplat_transforms.core.cameras import Cameras, look_at
+from gensplat_transforms.core.gaussians import Gaussians
 from gensplat_transforms.rendering import BACKENDS
 
 needs_gsplat = pytest.mark.skipif(

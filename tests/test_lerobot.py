@@ -31,9 +31,9 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from safetensors.torch import save_file
 
 from gensplat_transforms.cache import StaleCacheError
+from gensplat_transforms.core.metrics import psnr
 from gensplat_transforms.dataset_format import DEPTH_FORMAT, depth_path, load_depth, save_depth
 from gensplat_transforms.episodes import SceneEpisodes
-from gensplat_transforms.metrics import psnr
 from gensplat_transforms.model import PATCH_SIZE
 from gensplat_transforms.perturbation import PerturbationRange
 from gensplat_transforms.transform import GenSplatConfig

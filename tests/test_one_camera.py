@@ -14,7 +14,7 @@ from torch.utils.data import default_collate
 
 from gensplat_transforms.batched import render_batch
 from gensplat_transforms.cache import GaussianCache
-from gensplat_transforms.cameras import look_at
+from gensplat_transforms.core.cameras import look_at
 from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache, scene_depth
 from gensplat_transforms.perturbation import Perturbation, move_rig, rig_pivot
 from gensplat_transforms.reconstruction import RGBDReconstructor, Views

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from gensplat_transforms.cameras import Cameras, look_at
+from gensplat_transforms.core.cameras import Cameras, look_at
 from gensplat_transforms.perturbation import (
     AXES,
     EVAL_LEVELS,
@@ -345,7 +345,7 @@ def test_move_perturbs_one_camera_of_a_rig_about_its_pivot():
 def test_move_checks_the_moved_pose_only_for_overflow(monkeypatch):
     """The move is a rigid motion of a checked pose, so the rotation checks are not repeated;
     a pose that overflows (cameras near float64's largest value) still raises."""
-    from gensplat_transforms import cameras as cameras_module
+    from gensplat_transforms.core import cameras as cameras_module
     from gensplat_transforms.scenes import default_cameras
 
     cams = default_cameras(32, 32)

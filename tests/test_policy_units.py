@@ -17,7 +17,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import policy_robustness as pr
 import policy_units as pu
 
-from gensplat_transforms.atomic import atomic_write_json
+from gensplat_transforms.core.atomic import atomic_write_json
 
 TASK = "reach_solo"
 LEVELS = [(p, lv) for p, levels in pr.PROTOCOLS.items() for lv in levels]

@@ -20,8 +20,8 @@ from gensplat_lerobot.scene_dataset import record_scene_dataset
 from gensplat_lerobot.training_preview import MIN_TILE_HEIGHT, open_dataset, write_lerobot_preview
 
 from gensplat_transforms.cli import main
+from gensplat_transforms.core.gaussians import Gaussians
 from gensplat_transforms.episodes import SceneEpisodes
-from gensplat_transforms.gaussians import Gaussians
 from gensplat_transforms.reconstruction import make_reconstructor
 
 REPO = "local/preview_scene"

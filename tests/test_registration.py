@@ -15,7 +15,7 @@ import torch
 import yaml
 
 from gensplat_transforms.calibration import calibrate, load_calibration
-from gensplat_transforms.cameras import Cameras
+from gensplat_transforms.core.cameras import Cameras
 from gensplat_transforms.dataset_format import DepthSensor, save_depth
 from gensplat_transforms.depth_codec import depth_from_words
 from gensplat_transforms.registration import register_depth
@@ -252,9 +252,9 @@ def test_random_rigs_never_write_outside_the_image_or_leave_non_finite_depth(tmp
     arrays, and every value out is finite and >= 0."""
     script = textwrap.dedent("""
         import torch
-        from gensplat_transforms.cameras import Cameras
+        from gensplat_transforms.core.cameras import Cameras
         from gensplat_transforms.registration import register_depth
-        from gensplat_transforms.rotations import quat_to_rotmat
+        from gensplat_transforms.core.rotations import quat_to_rotmat
         g = torch.Generator().manual_seed(0)
         def size():
             return int(torch.randint(1, 41, (1,), generator=g)), int(torch.randint(1, 31, (1,), generator=g))

@@ -12,8 +12,8 @@ from tiny_model import tiny_model
 
 from gensplat_transforms.cache import GaussianCache
 from gensplat_transforms.cli import main
+from gensplat_transforms.core.gaussians import Gaussians
 from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
-from gensplat_transforms.gaussians import Gaussians
 from gensplat_transforms.model import GenSplatModel
 from gensplat_transforms.reconstruction import RGBDReconstructor
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform

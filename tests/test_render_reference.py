@@ -10,7 +10,7 @@ from dense_renderer import dense_render
 from hard_cases import HARD_CASES, MAGNITUDES, SCALABLE_FIELDS, scaled
 
 from gensplat_transforms import Cameras, Gaussians, rendering
-from gensplat_transforms.sh import C0, eval_sh
+from gensplat_transforms.core.sh import C0, eval_sh
 
 render = partial(rendering.render, backend="reference")  # the backend these tests cover
 

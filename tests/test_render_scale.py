@@ -12,8 +12,8 @@ from torch.utils.data import default_collate
 from gensplat_transforms import view_output
 from gensplat_transforms.batched import render_batch
 from gensplat_transforms.cache import GaussianCache
+from gensplat_transforms.core.metrics import psnr
 from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
-from gensplat_transforms.metrics import psnr
 from gensplat_transforms.reconstruction import Reconstructor, RGBDReconstructor, Views
 from gensplat_transforms.reconstruction.base import nearest_pixels
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform, render_size

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from gensplat_transforms.cache import GaussianCache
-from gensplat_transforms.cameras import FOCAL_MAX_PX, Cameras, look_at
+from gensplat_transforms.core.cameras import FOCAL_MAX_PX, Cameras, look_at
 from gensplat_transforms.episodes import SceneEpisodes, build_cache
 from gensplat_transforms.perturbation import (
     FOCAL_SCALE_LIMITS,

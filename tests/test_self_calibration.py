@@ -12,8 +12,8 @@ import pytest
 import torch
 
 from gensplat_transforms.calibration import load_calibration
-from gensplat_transforms.cameras import look_at
 from gensplat_transforms.cli import main
+from gensplat_transforms.core.cameras import look_at
 from gensplat_transforms.dataset_format import calibration_path
 from gensplat_transforms.perturbation import pivot_point
 from gensplat_transforms.self_calibration import (
@@ -123,7 +123,7 @@ class _Model:
         self.focal, self.depth, self.seen = focal, depth, []
 
     def predict_depth(self, views):
-        from gensplat_transforms.cameras import Cameras
+        from gensplat_transforms.core.cameras import Cameras
         from gensplat_transforms.reconstruction import Views
 
         V = len(views.images)
@@ -184,7 +184,7 @@ def test_a_given_principal_point_removes_the_bias_of_off_centre_images(monkeypat
     benchmarks/real_geometry.py): assumed at the centres, the pose is 2.8-3.9 deg off and the
     depth-derived distance 29-31 % long (seeds 0-3); given, within 0.9 deg and 3 %."""
     import gensplat_transforms.self_calibration as selfcal
-    from gensplat_transforms.cameras import Cameras
+    from gensplat_transforms.core.cameras import Cameras
     from gensplat_transforms.scenes import TabletopScene
 
     w, h, f = 320, 240, 300.0

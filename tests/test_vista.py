@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from gensplat_transforms.cameras import look_at
+from gensplat_transforms.core.cameras import look_at
 from gensplat_transforms.perturbation import PerturbationSampler
 from gensplat_transforms.sim.vista import ArcMove, SmallPerturb, VistaSampler
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from gensplat_transforms.cameras import Cameras
+from gensplat_transforms.core.cameras import Cameras
 from gensplat_transforms.warp import forward_warp
 
 H, W, F = 24, 32, 40.0

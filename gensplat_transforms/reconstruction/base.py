@@ -7,7 +7,7 @@ import json
 from abc import ABC, abstractmethod
 from collections.abc import Iterable, Iterator
 
-from ..views import MAX_VIEW_DEPTH, Reconstruction, Views, nearest_pixels, valid_depth
+from ..core.views import MAX_VIEW_DEPTH, Reconstruction, Views, nearest_pixels, valid_depth
 
 __all__ = ["MAX_VIEW_DEPTH", "DepthReconstructor", "Reconstruction", "Reconstructor", "Views", "nearest_pixels",
            "valid_depth"]  # fmt: skip

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..jit import _jit
+from ..core.jit import _jit
 
 #: filled depth is put this much farther than the depth around it (see the module docstring)
 BEHIND = 1.03

@@ -29,8 +29,8 @@ import math
 import numpy as np
 import torch
 
-from ..jit import _jit
-from ..sh import C0
+from ..core.jit import _jit
+from ..core.sh import C0
 
 _F = np.float32
 _TINY = 1e-20  # as in rgbd._disc_shape

@@ -38,7 +38,7 @@ from pathlib import Path
 
 import torch
 
-from ..cameras import Cameras, rigid_inverse
+from ..core.cameras import Cameras, rigid_inverse
 from ..model import GenSplatModel
 from ..model.checkpoints import CONFIG_FILE, FORMAT_NAME, resolve
 from ..model.config import check_max_pixels

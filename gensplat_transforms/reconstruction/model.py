@@ -9,8 +9,8 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from ..cameras import Cameras, rigid_inverse
-from ..gaussians import Gaussians
+from ..core.cameras import Cameras, rigid_inverse
+from ..core.gaussians import Gaussians
 from ..model import PATCH_SIZE, GenSplatModel, to_gaussians
 from ..model.config import check_max_pixels
 from ..model.da3 import PRESETS as DA3_PRESETS

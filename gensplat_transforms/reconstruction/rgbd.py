@@ -47,9 +47,9 @@ from dataclasses import asdict, dataclass
 import torch
 import torch.nn.functional as F
 
-from ..gaussians import Gaussians
-from ..rotations import rotmat_to_quat
-from ..sh import num_sh_bases, rgb_to_sh_dc
+from ..core.gaussians import Gaussians
+from ..core.rotations import rotmat_to_quat
+from ..core.sh import num_sh_bases, rgb_to_sh_dc
 from . import discs_fast
 from .base import DepthReconstructor, Reconstruction, Views, valid_depth
 from .depth_fill import fill_depth

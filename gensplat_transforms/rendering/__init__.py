@@ -9,8 +9,8 @@ from dataclasses import dataclass
 
 import torch
 
-from ..cameras import Cameras
-from ..gaussians import Gaussians
+from ..core.cameras import Cameras
+from ..core.gaussians import Gaussians
 from .fast import render_fast
 from .gsplat_backend import render_gsplat
 from .projection import DILATION, Projected, precondition, project

@@ -64,10 +64,10 @@ import numpy as np
 import torch
 from numba import prange
 
-from ..cameras import Cameras
-from ..gaussians import Gaussians
-from ..jit import _jit
-from ..sh import sh_degree_from_bases
+from ..core.cameras import Cameras
+from ..core.gaussians import Gaussians
+from ..core.jit import _jit
+from ..core.sh import sh_degree_from_bases
 from .projection import (
     ALPHA_MAX,
     ALPHA_MIN,

@@ -39,10 +39,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..cameras import Cameras, rigid_inverse
-from ..gaussians import Gaussians
-from ..rotations import normalize_quat
-from ..sh import sh_degree_from_bases
+from ..core.cameras import Cameras, rigid_inverse
+from ..core.gaussians import Gaussians
+from ..core.rotations import normalize_quat
+from ..core.sh import sh_degree_from_bases
 from .projection import DILATION, MAX_SCALE
 
 _NEEDS = "gsplat backend needs CUDA and the gsplat package: "

@@ -23,10 +23,10 @@ from dataclasses import dataclass
 
 import torch
 
-from ..cameras import Cameras
-from ..gaussians import Gaussians
-from ..rotations import normalize_quat, quat_to_rotmat
-from ..sh import eval_sh
+from ..core.cameras import Cameras
+from ..core.gaussians import Gaussians
+from ..core.rotations import normalize_quat, quat_to_rotmat
+from ..core.sh import eval_sh
 
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99

@@ -30,8 +30,8 @@ import torch
 from safetensors import safe_open
 from safetensors.numpy import save_file
 
-from ..atomic import atomic_write, atomic_write_json
-from ..cameras import Cameras
+from ..core.atomic import atomic_write, atomic_write_json
+from ..core.cameras import Cameras
 from .sensor import SensorDepthConfig
 from .tasks import EpisodeSpec
 from .world import CAMERA_NAMES, SimState, SimWorld, WorldConfig

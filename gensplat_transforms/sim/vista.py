@@ -16,7 +16,7 @@ world whose +z is up; the centre is a (3,) tensor. A move is drawn once per epis
 reproducibly from (seed, episode index), as ``PerturbationSampler`` draws the paper's levels.
 
 Example:
-    >>> from gensplat_transforms.cameras import look_at
+    >>> from gensplat_transforms.core.cameras import look_at
     >>> nominal, centre = look_at((1.0, 0.4, 0.5), (0.45, 0.0, 0.12)), torch.tensor([0.45, 0.0, 0.12])
     >>> move = VistaSampler("arc_90deg", seed=0).sample(episode_index=3)
     >>> moved = move.apply(nominal, centre)
@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
-from ..cameras import look_at
+from ..core.cameras import look_at
 
 #: The samplers, in the order that salts their seeds.
 SAMPLERS = ("small_perturb", "arc_90deg")

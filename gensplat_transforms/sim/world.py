@@ -20,7 +20,7 @@ import mujoco
 import numpy as np
 import torch
 
-from ..cameras import Cameras
+from ..core.cameras import Cameras
 from .control import ArmController, yaw_of
 from .render import OffscreenRenderer
 from .scene import HOME_QPOS, CameraSpec, SceneConfig, build_model

@@ -10,8 +10,8 @@ from pathlib import Path
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from safetensors import SafetensorError, safe_open
 
-from gensplat_transforms.atomic import atomic_write_json, read_json_object
 from gensplat_transforms.cache import GaussianCache, StaleCacheError
+from gensplat_transforms.core.atomic import atomic_write_json, read_json_object
 from gensplat_transforms.dataset_format import GENSPLAT_DIR
 from gensplat_transforms.distributed import OnDevice, Shard
 from gensplat_transforms.outputs import gensplat_subfolder

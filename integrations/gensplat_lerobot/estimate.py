@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gensplat_transforms.atomic import atomic_write_json
-from gensplat_transforms.cameras import focal_from_fov
+from gensplat_transforms.core.atomic import atomic_write_json
+from gensplat_transforms.core.cameras import focal_from_fov
 from gensplat_transforms.dataset_format import (
     CALIBRATION_FORMAT,
     IMAGE_KEY_PREFIX,

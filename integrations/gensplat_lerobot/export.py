@@ -6,8 +6,8 @@ import logging
 from collections.abc import Iterable
 from pathlib import Path
 
-from gensplat_transforms.atomic import atomic_write
-from gensplat_transforms.gaussians import Gaussians
+from gensplat_transforms.core.atomic import atomic_write
+from gensplat_transforms.core.gaussians import Gaussians
 from gensplat_transforms.outputs import check_output
 from gensplat_transforms.reconstruction import make_reconstructor
 from gensplat_transforms.transform import render_size

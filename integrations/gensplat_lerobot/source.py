@@ -17,11 +17,11 @@ from pathlib import Path
 import torch
 from torch.utils.data import Dataset
 
-from gensplat_transforms.atomic import atomic_write_json, read_json_object, stat_stamp
 from gensplat_transforms.cache import DepthFiles
 from gensplat_transforms.cache_format import check_sidecars
 from gensplat_transforms.calibration import load_calibration
-from gensplat_transforms.cameras import Cameras
+from gensplat_transforms.core.atomic import atomic_write_json, read_json_object, stat_stamp
+from gensplat_transforms.core.cameras import Cameras
 from gensplat_transforms.dataset_format import (
     IMAGE_KEY_PREFIX,
     calibrated_cameras,

@@ -17,7 +17,7 @@ import torch.nn.functional as F
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.transforms import ImageTransforms, ImageTransformsConfig
 
-from gensplat_transforms.images import save_grid
+from gensplat_transforms.core.images import save_grid
 from gensplat_transforms.outputs import check_output
 from gensplat_transforms.perturbation import AXES
 from gensplat_transforms.preview import as_frame, save_video
