@@ -42,6 +42,7 @@ import torch
 from machine import cpu_model
 
 from gensplat_transforms.cache import GaussianCache
+from gensplat_transforms.data.scenes import default_cameras
 from gensplat_transforms.episodes import SceneEpisodes
 from gensplat_transforms.reconstruction import (
     GenSplatReconstructor,
@@ -49,7 +50,6 @@ from gensplat_transforms.reconstruction import (
     RGBDReconstructor,
     Views,
 )
-from gensplat_transforms.scenes import default_cameras
 from gensplat_transforms.sim.record import RecordConfig, record
 from gensplat_transforms.sim.world import WorldConfig
 

@@ -35,8 +35,8 @@ from machine import cpu_model, write_result
 from tqdm.auto import tqdm
 
 from gensplat_transforms.cache import GaussianCache
+from gensplat_transforms.data.scenes import default_cameras
 from gensplat_transforms.reconstruction import RGBDReconstructor, Views
-from gensplat_transforms.scenes import default_cameras
 
 WIDTH, HEIGHT = 640, 480
 

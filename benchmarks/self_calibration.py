@@ -52,7 +52,7 @@ from machine import cpu_model, write_result
 from gensplat_transforms.core.cameras import Cameras
 from gensplat_transforms.core.metrics import psnr, ssim
 from gensplat_transforms.core.views import nearest_pixels
-from gensplat_transforms.dataset_format import load_depth, save_depth
+from gensplat_transforms.data.format import load_depth, save_depth
 from gensplat_transforms.perturbation import EVAL_LEVELS, PerturbationSampler, pivot_point
 from gensplat_transforms.reconstruction import GeometryReconstructor, RGBDReconstructor, Views
 from gensplat_transforms.rendering import render

@@ -12,7 +12,7 @@ and LeRobot (``gensplat_lerobot``) are imported only where used.
 
 Example: two calibrated RGB-D views of one timestep, seen from a camera moved at "large":
     >>> from gensplat_transforms import PerturbationSampler, RGBDReconstructor, Views, render
-    >>> from gensplat_transforms.scenes import TabletopScene, default_cameras
+    >>> from gensplat_transforms.data.scenes import TabletopScene, default_cameras
     >>> cameras = default_cameras(32, 32)[:2]
     >>> images, depths = TabletopScene(seed=1).render(cameras)
     >>> recon = RGBDReconstructor().reconstruct(Views(images, cameras, depths))

@@ -25,7 +25,7 @@ from . import depth_codec
 from .core.cameras import Cameras
 from .core.gaussians import Gaussians
 from .core.tensor_file import FileChangedError, TensorFile
-from .dataset_format import open_depth
+from .data.format import open_depth
 from .reconstruction import Reconstruction, Reconstructor, Views
 from .reconstruction.base import nearest_pixels
 

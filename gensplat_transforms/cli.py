@@ -315,14 +315,14 @@ def _dispatch(args) -> int:
         _estimate(args)
     elif args.command == "calibrate" and args.from_features:
         from .calibration import calibrate_from_features
-        from .dataset_format import calibration_path
+        from .data.format import calibration_path
 
         cameras = calibrate_from_features(args.root, args.intrinsics, args.fov, args.focal, args.cameras)
         print(f"calibrated {', '.join(f'{n} ({len(c.episodes)} episodes)' for n, c in cameras.items())} from the "
               f"camera_extrinsics features; written to {calibration_path(args.root)} (the dataset is not modified)")  # fmt: skip
     elif args.command == "calibrate":
         from .calibration import calibrate
-        from .dataset_format import calibration_path
+        from .data.format import calibration_path
 
         cameras = calibrate(args.root, args.source, args.convention)
         print(f"calibrated {', '.join(f'{n} ({c.mount})' for n, c in cameras.items())} from {args.source}; "
@@ -352,7 +352,7 @@ def _cache(args) -> None:
         raise SystemExit(f"gensplat cache needs the LeRobot extra: pip install 'gensplat-transforms[lerobot]' ({e})")
     from .cache import size_text
     from .core.atomic import read_json_object
-    from .dataset_format import GENSPLAT_DIR, depth_path
+    from .data.format import GENSPLAT_DIR, depth_path
     from .distributed import Shard, gather
     from .settings import config_from_arguments
 
@@ -413,11 +413,11 @@ def _cache(args) -> None:
 def _train_model(args) -> None:
     from torch.utils.data import ConcatDataset
 
+    from .data.outputs import check_output
     from .model import ModelConfig
     from .model.data import ProceduralViews
     from .model.losses import LossWeights
     from .model.teacher import Pi3Teacher, TrueGeometryTeacher
-    from .outputs import check_output
     from .training import LOG_FILE, TrainConfig, train
 
     check_output(args.out, args.root, folder=True)  # against the dataset of --data lerobot
@@ -475,7 +475,7 @@ def _preview(args) -> None:
 
 
 def _estimate(args) -> None:
-    from .dataset_format import calibration_path
+    from .data.format import calibration_path
 
     estimate = _lerobot_module("estimate", "calibrate --estimate")
     repo_id = args.repo_id or f"local/{Path(args.root).name}"

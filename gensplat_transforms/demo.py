@@ -14,8 +14,8 @@ from .cache import size_text
 from .core.atomic import atomic_write_json
 from .core.images import save_grid
 from .core.metrics import psnr
-from .dataset_format import GENSPLAT_DIR
-from .outputs import check_output
+from .data.format import GENSPLAT_DIR
+from .data.outputs import check_output
 from .perturbation import EVAL_LEVELS, PerturbationSampler
 from .preview import write_preview
 from .transform import GenSplatConfig, GenSplatTransform, render_view

@@ -19,9 +19,9 @@ from tqdm.auto import tqdm
 
 from .cache import CacheStats, EpisodeSource, GaussianCache
 from .core.cameras import pivot_point
+from .data.scenes import TabletopScene, default_cameras
 from .distributed import Shard
 from .reconstruction import Views
-from .scenes import TabletopScene, default_cameras
 
 logger = logging.getLogger(__name__)
 

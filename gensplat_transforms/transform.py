@@ -14,7 +14,7 @@ from torch.utils.data import Dataset
 from .cache import EpisodeSource, GaussianCache
 from .cache_reader import CacheReader
 from .core.counters import SampleCounters
-from .dataset_format import DepthSensor
+from .data.format import DepthSensor
 from .perturbation import AXES, ROW
 from .plan import BATCH_KEYS, ViewPlan
 from .settings import GenSplatConfig

@@ -18,7 +18,7 @@ from .rendering import RenderOutput, render
 
 if TYPE_CHECKING:
     from .core.views import Reconstruction
-    from .dataset_format import DepthSensor
+    from .data.format import DepthSensor
     from .perturbation import Perturbation
     from .settings import GenSplatConfig
 

@@ -14,7 +14,7 @@ from gensplat_transforms.batched import disc_builder, render_batch
 from gensplat_transforms.cache import GaussianCache
 from gensplat_transforms.core.cameras import Cameras, rigid_inverse
 from gensplat_transforms.core.gaussians import Gaussians
-from gensplat_transforms.dataset_format import DepthSensor
+from gensplat_transforms.data.format import DepthSensor
 from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
 from gensplat_transforms.reconstruction import Reconstructor, RGBDConfig, RGBDReconstructor, Views
 from gensplat_transforms.rendering import gsplat_backend

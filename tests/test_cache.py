@@ -204,7 +204,7 @@ def test_depth_words_are_the_depth_as_stored(kind, built, linked):
 def test_a_depth_file_of_another_dtype_is_refused(tmp_path):
     from safetensors.torch import save_file
 
-    from gensplat_transforms.dataset_format import DEPTH_FORMAT, open_depth
+    from gensplat_transforms.data.format import DEPTH_FORMAT, open_depth
 
     path = tmp_path / "episode_000000.safetensors"
     save_file({"depth": torch.ones(2, 4, 4)}, str(path), metadata={"format": DEPTH_FORMAT})
@@ -253,7 +253,7 @@ def test_a_cache_written_with_zlib_still_reads(tmp_path, source, built, monkeypa
 def test_a_depth_file_is_read_frame_by_frame_and_checked(tmp_path):
     """Slices read only their frames and equal the stored ones; a file cut short or with a
     damaged header is refused when opened, and one cut short later when read."""
-    from gensplat_transforms.dataset_format import depth_path, open_depth, save_depth
+    from gensplat_transforms.data.format import depth_path, open_depth, save_depth
 
     depth = torch.rand(5, 6, 7) * 3
     path = save_depth(tmp_path, "left", 0, depth)
@@ -818,7 +818,7 @@ class SidecarSource:
     """A source whose depth lives in depth files (as a recorded dataset's sidecars)."""
 
     def __init__(self, source, root):
-        from gensplat_transforms.dataset_format import save_depth
+        from gensplat_transforms.data.format import save_depth
 
         self.source, self.root = source, root
         self.camera_names, self.fingerprint = ("left", "right"), source.fingerprint
@@ -831,7 +831,7 @@ class SidecarSource:
         return self.source.num_frames(episode)
 
     def views(self, episode, frame):
-        from gensplat_transforms.dataset_format import load_depth
+        from gensplat_transforms.data.format import load_depth
         from gensplat_transforms.reconstruction import Views
 
         v = self.source.views(episode, frame)
@@ -840,7 +840,7 @@ class SidecarSource:
 
     def depth_files(self, episode):
         from gensplat_transforms.cache import DepthFiles
-        from gensplat_transforms.dataset_format import depth_path
+        from gensplat_transforms.data.format import depth_path
 
         paths = tuple(depth_path(self.root, n, episode) for n in self.camera_names)
         return DepthFiles(paths, self.source.views(episode, 0).cameras)
@@ -884,7 +884,7 @@ def test_a_linked_cache_moves_with_its_dataset(linked, tmp_path):
 
 
 def test_a_changed_or_missing_depth_file_makes_the_episode_stale(linked):
-    from gensplat_transforms.dataset_format import depth_path, save_depth
+    from gensplat_transforms.data.format import depth_path, save_depth
 
     cache, sidecars, _ = linked
     left = depth_path(sidecars.root, "left", 0)

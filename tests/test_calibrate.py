@@ -14,8 +14,8 @@ from kornia.geometry.conversions import rotation_matrix_to_axis_angle
 from gensplat_transforms.calibration import calibrate, load_calibration
 from gensplat_transforms.cli import main
 from gensplat_transforms.core.cameras import opencv_to_opengl
-from gensplat_transforms.dataset_format import calibration_path
-from gensplat_transforms.scenes import default_cameras
+from gensplat_transforms.data.format import calibration_path
+from gensplat_transforms.data.scenes import default_cameras
 
 WIDTH, HEIGHT = 64, 48
 NAMES = ("left", "right", "front")

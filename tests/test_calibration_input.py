@@ -14,7 +14,7 @@ from test_calibrate import HEIGHT, WIDTH, entry, nerfstudio, write_info
 
 from gensplat_transforms.calibration import MAX_FILE_BYTES, calibrate, load_calibration
 from gensplat_transforms.cli import main
-from gensplat_transforms.dataset_format import calibration_path
+from gensplat_transforms.data.format import calibration_path
 
 truth = test_calibrate.truth  # its fixture
 

@@ -10,7 +10,7 @@ from torch.utils.data import default_collate
 
 from gensplat_transforms.batched import render_batch
 from gensplat_transforms.cache import GaussianCache
-from gensplat_transforms.dataset_format import DepthSensor
+from gensplat_transforms.data.format import DepthSensor
 from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
 from gensplat_transforms.perturbation import AXES, Perturbation
 from gensplat_transforms.reconstruction import RGBDReconstructor

@@ -15,7 +15,7 @@ from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
 from gensplat_transforms.calibration import calibrate, load_calibration, xyz_rpy_pose
 from gensplat_transforms.cli import main
-from gensplat_transforms.dataset_format import calibration_path
+from gensplat_transforms.data.format import calibration_path
 
 pytest.importorskip("lerobot", reason="the LeRobot extra is not installed")
 os.environ["HF_HUB_OFFLINE"] = "1"

@@ -32,7 +32,7 @@ from safetensors.torch import save_file
 
 from gensplat_transforms.cache import StaleCacheError
 from gensplat_transforms.core.metrics import psnr
-from gensplat_transforms.dataset_format import DEPTH_FORMAT, depth_path, load_depth, save_depth
+from gensplat_transforms.data.format import DEPTH_FORMAT, depth_path, load_depth, save_depth
 from gensplat_transforms.episodes import SceneEpisodes
 from gensplat_transforms.model import PATCH_SIZE
 from gensplat_transforms.perturbation import PerturbationRange
@@ -621,7 +621,7 @@ def test_folder_digests_are_remembered_by_file_stats(dataset_root, monkeypatch):
 
     from gensplat_lerobot.source import files_digest
 
-    from gensplat_transforms.dataset_format import digests_path
+    from gensplat_transforms.data.format import digests_path
 
     memo, folder = digests_path(dataset_root), "depth/left"
     plain = files_digest(dataset_root, folder)

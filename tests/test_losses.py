@@ -9,6 +9,7 @@ from tiny_model import TINY
 from gensplat_transforms.core.cameras import Cameras, look_at
 from gensplat_transforms.core.metrics import ssim_map
 from gensplat_transforms.core.rotations import quat_to_rotmat
+from gensplat_transforms.data.scenes import TabletopScene, default_cameras
 from gensplat_transforms.model import GenSplatModel, to_gaussians
 from gensplat_transforms.model.losses import (
     LossWeights,
@@ -20,7 +21,6 @@ from gensplat_transforms.model.losses import (
 )
 from gensplat_transforms.perturbation import axis_rotation
 from gensplat_transforms.rendering import render
-from gensplat_transforms.scenes import TabletopScene, default_cameras
 
 
 def rig(b: int = 2, v: int = 3) -> torch.Tensor:

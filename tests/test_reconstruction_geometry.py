@@ -8,6 +8,7 @@ from safetensors.torch import save_file
 from tiny_model import TINY, tiny_model
 
 from gensplat_transforms.cache import GaussianCache
+from gensplat_transforms.data.scenes import TabletopScene, default_cameras
 from gensplat_transforms.episodes import SceneEpisodes
 from gensplat_transforms.model import ModelConfig
 from gensplat_transforms.reconstruction import (
@@ -17,7 +18,6 @@ from gensplat_transforms.reconstruction import (
     Views,
     make_reconstructor,
 )
-from gensplat_transforms.scenes import TabletopScene, default_cameras
 
 
 @pytest.fixture(scope="module")

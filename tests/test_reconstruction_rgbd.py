@@ -10,9 +10,9 @@ from gensplat_transforms import Cameras, PerturbationSampler, pivot_point, rende
 from gensplat_transforms.core.metrics import psnr
 from gensplat_transforms.core.rotations import quat_to_rotmat
 from gensplat_transforms.core.views import Reconstruction, pixel_rays, preferred_means, source_rays
+from gensplat_transforms.data.scenes import LABEL_TABLE, TabletopScene, default_cameras
 from gensplat_transforms.reconstruction import RGBDReconstructor, Views
 from gensplat_transforms.reconstruction.rgbd import RGBDConfig
-from gensplat_transforms.scenes import LABEL_TABLE, TabletopScene, default_cameras
 
 SIZE = 96
 

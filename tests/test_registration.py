@@ -16,10 +16,10 @@ import yaml
 
 from gensplat_transforms.calibration import calibrate, load_calibration
 from gensplat_transforms.core.cameras import Cameras
-from gensplat_transforms.dataset_format import DepthSensor, save_depth
+from gensplat_transforms.data.format import DepthSensor, save_depth
+from gensplat_transforms.data.registration import register_depth
+from gensplat_transforms.data.scenes import TabletopScene, default_cameras
 from gensplat_transforms.depth_codec import depth_from_words
-from gensplat_transforms.registration import register_depth
-from gensplat_transforms.scenes import TabletopScene, default_cameras
 
 WIDTH, HEIGHT = 160, 120
 
@@ -253,7 +253,7 @@ def test_random_rigs_never_write_outside_the_image_or_leave_non_finite_depth(tmp
     script = textwrap.dedent("""
         import torch
         from gensplat_transforms.core.cameras import Cameras
-        from gensplat_transforms.registration import register_depth
+        from gensplat_transforms.data.registration import register_depth
         from gensplat_transforms.core.rotations import quat_to_rotmat
         g = torch.Generator().manual_seed(0)
         def size():

@@ -15,7 +15,7 @@ os.environ["HF_HUB_OFFLINE"] = "1"
 from gensplat_lerobot.scene_dataset import record_scene_dataset
 
 from gensplat_transforms.cli import main
-from gensplat_transforms.dataset_format import depth_path
+from gensplat_transforms.data.format import depth_path
 from gensplat_transforms.episodes import SceneEpisodes
 
 REPO = "local/reliability"
@@ -152,7 +152,7 @@ def import_depth(root, source, *options: str) -> int:
 def test_8_bit_depth_needs_its_units(root, tmp_path, capsys):
     import numpy as np
 
-    from gensplat_transforms.dataset_format import load_depth
+    from gensplat_transforms.data.format import load_depth
 
     np.save(tmp_path / "ep0.npy", np.full((T, H, W), 92, np.uint8))  # centimetres
     assert import_depth(root, tmp_path / "ep{episode}.npy") == 2
@@ -261,7 +261,7 @@ def test_a_garbled_dataset_record_gives_the_stale_cache_message(root):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     from gensplat_transforms.cache import StaleCacheError
-    from gensplat_transforms.dataset_format import load_depth, save_depth
+    from gensplat_transforms.data.format import load_depth, save_depth
 
     assert cache(root) == 0
     save_depth(root, "left", 1, load_depth(root, "left", 1)[:, 0] + 0.01)

@@ -14,7 +14,7 @@ import torch
 from gensplat_transforms.calibration import load_calibration
 from gensplat_transforms.cli import main
 from gensplat_transforms.core.cameras import look_at
-from gensplat_transforms.dataset_format import calibration_path
+from gensplat_transforms.data.format import calibration_path
 from gensplat_transforms.perturbation import pivot_point
 from gensplat_transforms.self_calibration import (
     Matches,
@@ -185,7 +185,7 @@ def test_a_given_principal_point_removes_the_bias_of_off_centre_images(monkeypat
     depth-derived distance 29-31 % long (seeds 0-3); given, within 0.9 deg and 3 %."""
     import gensplat_transforms.self_calibration as selfcal
     from gensplat_transforms.core.cameras import Cameras
-    from gensplat_transforms.scenes import TabletopScene
+    from gensplat_transforms.data.scenes import TabletopScene
 
     w, h, f = 320, 240, 300.0
     points = [(w / 2 - 40, h / 2 + 15), (w / 2 + 25, h / 2 - 10)]
@@ -492,7 +492,7 @@ def moving(tmp_path_factory):
     pytest.importorskip("mujoco", reason="the simulated world needs the 'sim' extra")
     from lerobot.datasets.aggregate import aggregate_datasets
 
-    from gensplat_transforms.dataset_format import load_depth, save_depth
+    from gensplat_transforms.data.format import load_depth, save_depth
     from gensplat_transforms.sim.record import RecordConfig, record
     from gensplat_transforms.sim.scene import CameraSpec, SceneConfig
     from gensplat_transforms.sim.world import WorldConfig

@@ -122,7 +122,7 @@ def test_never_nan_inf_or_negative():
 @pytest.mark.timeout(300)
 def test_recording_with_sensor_depth(tmp_path):
     pytest.importorskip("mujoco", reason="the simulated world needs the 'sim' extra")
-    from gensplat_transforms.dataset_format import load_depth
+    from gensplat_transforms.data.format import load_depth
     from gensplat_transforms.sim.record import RecordConfig, record
     from gensplat_transforms.sim.truth import GroundTruth
     from gensplat_transforms.sim.world import WorldConfig

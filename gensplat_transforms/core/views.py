@@ -49,7 +49,7 @@ class Views:
             (e.g. 1e10 or float32's largest value) yields no Gaussian.
 
     Example:
-        >>> from gensplat_transforms.scenes import TabletopScene, default_cameras
+        >>> from gensplat_transforms.data.scenes import TabletopScene, default_cameras
         >>> cameras = default_cameras(16, 16)[:2]
         >>> images, depths = TabletopScene(seed=0).render(cameras)
         >>> len(Views(images, cameras, depths)), len(Views(images))  # calibrated RGB-D; RGB only

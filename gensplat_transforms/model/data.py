@@ -17,7 +17,7 @@ from torch.utils.data import Dataset
 
 from ..core.cameras import Cameras, focal_from_fov, look_at
 from ..core.views import Views
-from ..scenes import WORKSPACE_CENTER, TabletopScene
+from ..data.scenes import WORKSPACE_CENTER, TabletopScene
 from .config import PATCH_SIZE
 
 
@@ -27,7 +27,7 @@ class RigConfig:
 
     Cameras stand on the far side of the table from the robot (which is at -x), as in DROID:
     each at its own azimuth about world z (0 = +x), at least ``min_separation`` apart. The
-    default cameras of :func:`~gensplat_transforms.scenes.default_cameras` (azimuths 64 and
+    default cameras of :func:`~gensplat_transforms.data.scenes.default_cameras` (azimuths 64 and
     -59 deg, 0.83 m away, 34 deg up, 60 deg field of view) lie inside these ranges.
 
     Attributes:

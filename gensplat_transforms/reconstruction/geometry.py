@@ -107,7 +107,7 @@ class GeometryReconstructor(DepthReconstructor):
             It does not change the results, nor the identity.
 
     Example: calibrated RGB, depth from the shipped small model
-        >>> from gensplat_transforms.scenes import TabletopScene, default_cameras
+        >>> from gensplat_transforms.data.scenes import TabletopScene, default_cameras
         >>> cameras = default_cameras(28, 28)[:2]  # the model takes multiples of 14 pixels
         >>> images, _ = TabletopScene(seed=0).render(cameras)
         >>> result = GeometryReconstructor().reconstruct(Views(images, cameras))

@@ -59,7 +59,7 @@ class GenSplatReconstructor(Reconstructor):
         autocast_dtype: e.g. torch.bfloat16 to run the transformer under autocast.
 
     Example: uncalibrated RGB, the shipped small model predicts the cameras too
-        >>> from gensplat_transforms.scenes import TabletopScene, default_cameras
+        >>> from gensplat_transforms.data.scenes import TabletopScene, default_cameras
         >>> images, _ = TabletopScene(seed=0).render(default_cameras(28, 28)[:2])
         >>> result = GenSplatReconstructor().reconstruct(Views(images))
         >>> len(result.cameras), result.gaussians.means.shape

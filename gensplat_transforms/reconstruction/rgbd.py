@@ -126,7 +126,7 @@ class RGBDReconstructor(DepthReconstructor):
     Gaussians (to float32 round-off) and the same :meth:`identity`.
 
     Example:
-        >>> from gensplat_transforms.scenes import TabletopScene, default_cameras
+        >>> from gensplat_transforms.data.scenes import TabletopScene, default_cameras
         >>> cameras = default_cameras(16, 16)[:2]
         >>> images, depths = TabletopScene(seed=0).render(cameras)
         >>> result = RGBDReconstructor().reconstruct(Views(images, cameras, depths))

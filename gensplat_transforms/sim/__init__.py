@@ -5,7 +5,7 @@ Modules: :mod:`.world` (``SimWorld``: physics, control, rendering), :mod:`.tasks
 :mod:`.experts` (``pick_place``, ``stack``), :mod:`.record` (LeRobot datasets,
 ``gensplat record``), :mod:`.truth` (``GroundTruth``), :mod:`.evaluate`
 (``PerturbedCameraEnv``, ``evaluate``). Calibration and depth follow
-:mod:`gensplat_transforms.dataset_format`.
+:mod:`gensplat_transforms.data.format`.
 
 Needs the ``sim`` extra (``pip install 'gensplat-transforms[sim]'``). Importing this package
 selects MuJoCo's headless EGL backend (``MUJOCO_GL=egl``, Mesa llvmpipe on a CPU) unless

@@ -44,7 +44,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from ..dataset_format import IMAGE_KEY_PREFIX
+from ..data.format import IMAGE_KEY_PREFIX
 from ..perturbation import Perturbation, PerturbationSampler, pivot_point
 from .control import ACTION_HIGH, ACTION_LOW
 from .scene import mat_to_quat

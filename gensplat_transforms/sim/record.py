@@ -4,10 +4,10 @@ Each attempt first runs the expert without rendering; successful episodes are th
 state by state and rendered, so the recorded images are exactly what
 :class:`~.truth.GroundTruth` re-renders. Failed attempts are skipped (and counted).
 
-Dataset contents (see :mod:`gensplat_transforms.dataset_format` for calibration and depth):
+Dataset contents (see :mod:`gensplat_transforms.data.format` for calibration and depth):
 
 * ``observation.images.{left,right,wrist}``: (H, W, 3) RGB, calibration in ``info`` (see
-  :mod:`gensplat_transforms.dataset_format`);
+  :mod:`gensplat_transforms.data.format`);
 * ``observation.state``: (12,) float32, names :data:`~.world.STATE_NAMES`;
 * ``action``: (5,) float32 ``[x, y, z, yaw, gripper]`` (see :mod:`.control`);
 * ``task``: the instruction, e.g. "put the red cube on the blue plate";
@@ -27,8 +27,8 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from ..dataset_format import IMAGE_KEY_PREFIX, camera_info, save_depth
-from ..outputs import new_folder
+from ..data.format import IMAGE_KEY_PREFIX, camera_info, save_depth
+from ..data.outputs import new_folder
 from .control import ACTION_NAMES
 from .experts import ExpertConfig, run_expert
 from .sensor import SensorDepthConfig, sensor_depth

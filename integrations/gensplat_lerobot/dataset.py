@@ -12,9 +12,9 @@ from safetensors import SafetensorError, safe_open
 
 from gensplat_transforms.cache import GaussianCache, StaleCacheError
 from gensplat_transforms.core.atomic import atomic_write_json, read_json_object
-from gensplat_transforms.dataset_format import GENSPLAT_DIR
+from gensplat_transforms.data.format import GENSPLAT_DIR
+from gensplat_transforms.data.outputs import gensplat_subfolder
 from gensplat_transforms.distributed import OnDevice, Shard
-from gensplat_transforms.outputs import gensplat_subfolder
 from gensplat_transforms.perturbation import get_range
 from gensplat_transforms.reconstruction import make_reconstructor
 from gensplat_transforms.rendering.gsplat_backend import check_gsplat

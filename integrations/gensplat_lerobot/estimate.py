@@ -14,7 +14,7 @@ import torch
 
 from gensplat_transforms.core.atomic import atomic_write_json
 from gensplat_transforms.core.cameras import focal_from_fov
-from gensplat_transforms.dataset_format import (
+from gensplat_transforms.data.format import (
     CALIBRATION_FORMAT,
     IMAGE_KEY_PREFIX,
     calibration_path,
@@ -22,7 +22,7 @@ from gensplat_transforms.dataset_format import (
     depth_path,
     load_depth,
 )
-from gensplat_transforms.outputs import gensplat_folder
+from gensplat_transforms.data.outputs import gensplat_folder
 from gensplat_transforms.self_calibration import (
     RigEstimate,
     check_principal_points,

@@ -33,7 +33,7 @@ import torch
 from PIL import Image
 from tqdm.auto import tqdm
 
-from .dataset_format import depth_path, open_depth, save_depth, storable_depth
+from .format import depth_path, open_depth, save_depth, storable_depth
 
 #: metres per stored unit, by name (``units`` also takes a number)
 UNITS = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}

@@ -20,7 +20,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from .dataset_format import GENSPLAT_DIR, GENSPLAT_OWNED
+from .format import GENSPLAT_DIR, GENSPLAT_OWNED
 
 
 def check_output(path: str | Path, dataset: str | Path | None = None, folder: bool = False) -> Path:

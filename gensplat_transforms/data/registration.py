@@ -20,9 +20,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .core.cameras import Cameras
-from .core.jit import _jit
-from .core.views import MAX_VIEW_DEPTH
+from ..core.cameras import Cameras
+from ..core.jit import _jit
+from ..core.views import MAX_VIEW_DEPTH
 
 #: colour pixels one depth pixel may fill along each axis (a footprint this wide or wider is
 #: cut to it: a surface at a grazing angle, or closer than the sensors' baseline)

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .core.cameras import Cameras, focal_from_fov, look_at
+from ..core.cameras import Cameras, focal_from_fov, look_at
 
 #: Centre of the robot workspace (slightly above the table top) and its size (x, y) in metres.
 WORKSPACE_CENTER = (0.0, 0.0, 0.05)

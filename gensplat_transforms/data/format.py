@@ -38,9 +38,9 @@ from pathlib import Path
 import torch
 from safetensors.torch import save_file
 
-from .core.atomic import atomic_write
-from .core.cameras import Cameras
-from .core.tensor_file import TensorFile
+from ..core.atomic import atomic_write
+from ..core.cameras import Cameras
+from ..core.tensor_file import TensorFile
 
 DEPTH_FORMAT = "gensplat-depth"
 DEPTH_FORMAT_VERSION = "1"
