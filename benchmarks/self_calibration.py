@@ -49,6 +49,7 @@ from gensplat_lerobot import LeRobotSource
 from gensplat_lerobot.estimate import estimate_calibration
 from machine import cpu_model, write_result
 
+from gensplat_transforms.calibration.estimate import rotation_angle_deg
 from gensplat_transforms.core.cameras import Cameras
 from gensplat_transforms.core.metrics import psnr, ssim
 from gensplat_transforms.core.views import nearest_pixels
@@ -56,7 +57,6 @@ from gensplat_transforms.data.format import load_depth, save_depth
 from gensplat_transforms.perturbation import EVAL_LEVELS, PerturbationSampler, pivot_point
 from gensplat_transforms.reconstruction import GeometryReconstructor, RGBDReconstructor, Views
 from gensplat_transforms.rendering import render
-from gensplat_transforms.self_calibration import rotation_angle_deg
 from gensplat_transforms.sim.record import RecordConfig, record
 from gensplat_transforms.sim.sensor import SensorDepthConfig, sensor_depth
 from gensplat_transforms.sim.truth import GroundTruth

@@ -314,14 +314,14 @@ def _dispatch(args) -> int:
     elif args.command == "calibrate" and args.estimate:
         _estimate(args)
     elif args.command == "calibrate" and args.from_features:
-        from .calibration import calibrate_from_features
+        from .calibration.files import calibrate_from_features
         from .data.format import calibration_path
 
         cameras = calibrate_from_features(args.root, args.intrinsics, args.fov, args.focal, args.cameras)
         print(f"calibrated {', '.join(f'{n} ({len(c.episodes)} episodes)' for n, c in cameras.items())} from the "
               f"camera_extrinsics features; written to {calibration_path(args.root)} (the dataset is not modified)")  # fmt: skip
     elif args.command == "calibrate":
-        from .calibration import calibrate
+        from .calibration.files import calibrate
         from .data.format import calibration_path
 
         cameras = calibrate(args.root, args.source, args.convention)

@@ -11,7 +11,7 @@ import torch
 import yaml
 from kornia.geometry.conversions import rotation_matrix_to_axis_angle
 
-from gensplat_transforms.calibration import calibrate, load_calibration
+from gensplat_transforms.calibration.files import calibrate, load_calibration
 from gensplat_transforms.cli import main
 from gensplat_transforms.core.cameras import opencv_to_opengl
 from gensplat_transforms.data.format import calibration_path
@@ -160,7 +160,7 @@ def test_cli_prints_the_error_alone_and_keeps_internal_errors(truth, tmp_path, c
     assert main(["calibrate", "--root", str(root), "--from", str(good)]) == 0
     assert f"written to {calibration_path(root)}" in capsys.readouterr().out
     # a ValueError raised outside this project's code is a bug: its traceback is kept
-    monkeypatch.setattr("gensplat_transforms.calibration.calibrate", lambda *a: json.loads("{"))
+    monkeypatch.setattr("gensplat_transforms.calibration.files.calibrate", lambda *a: json.loads("{"))
     with pytest.raises(json.JSONDecodeError):
         main(["calibrate", "--root", str(root), "--from", str(good)])
 

@@ -12,7 +12,7 @@ import torch
 import yaml
 from test_calibrate import HEIGHT, WIDTH, entry, nerfstudio, write_info
 
-from gensplat_transforms.calibration import MAX_FILE_BYTES, calibrate, load_calibration
+from gensplat_transforms.calibration.files import MAX_FILE_BYTES, calibrate, load_calibration
 from gensplat_transforms.cli import main
 from gensplat_transforms.data.format import calibration_path
 

@@ -13,7 +13,7 @@ import torch
 import yaml
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
-from gensplat_transforms.calibration import calibrate, load_calibration, xyz_rpy_pose
+from gensplat_transforms.calibration.files import calibrate, load_calibration, xyz_rpy_pose
 from gensplat_transforms.cli import main
 from gensplat_transforms.data.format import calibration_path
 

@@ -146,9 +146,16 @@ def test_the_batch_path_shares_the_workers_helpers_instead_of_reaching_into_the_
         f"{PACKAGE}.plan", f"{PACKAGE}.settings", f"{PACKAGE}.view_output", f"{PACKAGE}.perturbation"}
 
 
-def test_no_module_name_is_used_twice():
-    """A file's name says which layer it belongs to: no two modules of the core and the LeRobot
-    integration share one (``__init__.py`` aside)."""
+def test_no_module_name_is_used_twice_within_a_stage():
+    """A module's folder names its stage (``data/format.py``, ``cache/format.py``): within one
+    stage (its subpackages included) or one integration no two modules share a file name
+    (``__init__.py`` aside), and no module shares its name with a package beside it (the
+    package would win)."""
     paths = [p for base in (ROOT / PACKAGE, ROOT / "integrations") for p in base.rglob("*.py") if p.name != "__init__.py"]
-    names = [p.name for p in paths]
-    assert not {n for n in names if names.count(n) > 1}
+    stages = {}
+    for p in paths:
+        top = p.relative_to(ROOT / PACKAGE if p.is_relative_to(ROOT / PACKAGE) else ROOT / "integrations").parts
+        stages.setdefault(top[0] if len(top) > 1 else PACKAGE, []).append(p)
+    repeated = {s: sorted({p.name for p in ps if [q.name for q in ps].count(p.name) > 1}) for s, ps in stages.items()}
+    assert not {s: n for s, n in repeated.items() if n}
+    assert not [p for p in paths if (p.parent / p.stem / "__init__.py").exists()]

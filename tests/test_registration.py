@@ -14,7 +14,7 @@ import pytest
 import torch
 import yaml
 
-from gensplat_transforms.calibration import calibrate, load_calibration
+from gensplat_transforms.calibration.files import calibrate, load_calibration
 from gensplat_transforms.core.cameras import Cameras
 from gensplat_transforms.data.format import DepthSensor, save_depth
 from gensplat_transforms.data.registration import register_depth

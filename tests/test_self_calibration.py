@@ -11,12 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from gensplat_transforms.calibration import load_calibration
-from gensplat_transforms.cli import main
-from gensplat_transforms.core.cameras import look_at
-from gensplat_transforms.data.format import calibration_path
-from gensplat_transforms.perturbation import pivot_point
-from gensplat_transforms.self_calibration import (
+from gensplat_transforms.calibration.estimate import (
     Matches,
     _agreeing,
     estimate_pair,
@@ -26,6 +21,11 @@ from gensplat_transforms.self_calibration import (
     predict_cameras,
     rotation_angle_deg,
 )
+from gensplat_transforms.calibration.files import load_calibration
+from gensplat_transforms.cli import main
+from gensplat_transforms.core.cameras import look_at
+from gensplat_transforms.data.format import calibration_path
+from gensplat_transforms.perturbation import pivot_point
 
 
 def _rig(f_a: float = 300.0, f_b: float = 340.0):
@@ -66,7 +66,7 @@ def test_estimate_pair_recovers_focal_lengths_and_pose_with_outliers():
 
 
 def test_essential_pose_of_known_focal_lengths_recovers_rotation_and_direction():
-    from gensplat_transforms.self_calibration import _K, _essential, _triangulate
+    from gensplat_transforms.calibration.estimate import _K, _essential, _triangulate
 
     m, (fa, fb), b_from_a = _synthetic_matches()
     m = Matches(m.uv_a, torch.full_like(m.z_a, float("nan")), m.uv_b, torch.full_like(m.z_b, float("nan")))
@@ -82,7 +82,7 @@ def test_essential_pose_of_known_focal_lengths_recovers_rotation_and_direction()
 def test_parallel_cameras_that_only_translate_leave_the_focal_length_unobservable():
     """Two cameras looking the same way, side by side (a rectified stereo pair): depth tells
     only focal length x distance, and the fit says so; the converging rig's does not."""
-    from gensplat_transforms.self_calibration import FOCAL_SD_MAX, _depth_pair
+    from gensplat_transforms.calibration.estimate import FOCAL_SD_MAX, _depth_pair
 
     g = torch.Generator().manual_seed(1)
     points = torch.rand(500, 3, generator=g, dtype=torch.float64) * torch.tensor([1.0, 0.8, 1.0]) + \
@@ -153,8 +153,8 @@ def test_a_geometry_model_scales_the_pose_by_its_depth(monkeypatch):
     """Without the dataset's depth or a distance, each pair is scaled by the model's depth at
     the matches: a model depth k times the truth gives k times the true 0.8 m; without any
     there, an error names the camera."""
-    import gensplat_transforms.self_calibration as selfcal
-    from gensplat_transforms.self_calibration import _with_depth
+    import gensplat_transforms.calibration.estimate as selfcal
+    from gensplat_transforms.calibration.estimate import _with_depth
 
     m, (fa, fb), _ = _synthetic_matches(outliers=0.0)
     unknown = Matches(m.uv_a, torch.full_like(m.z_a, math.nan), m.uv_b, torch.full_like(m.z_b, math.nan))
@@ -183,7 +183,7 @@ def test_a_given_principal_point_removes_the_bias_of_off_centre_images(monkeypat
     cropped images), depth and the focal length given (the Middlebury case of
     benchmarks/real_geometry.py): assumed at the centres, the pose is 2.8-3.9 deg off and the
     depth-derived distance 29-31 % long (seeds 0-3); given, within 0.9 deg and 3 %."""
-    import gensplat_transforms.self_calibration as selfcal
+    import gensplat_transforms.calibration.estimate as selfcal
     from gensplat_transforms.core.cameras import Cameras
     from gensplat_transforms.data.scenes import TabletopScene
 

@@ -14,7 +14,7 @@ import gensplat_transforms.sim  # noqa: F401  (selects the headless GL backend b
 
 mujoco = pytest.importorskip("mujoco", reason="the simulated world needs the 'sim' extra (mujoco, gym-hil)")
 
-from gensplat_transforms.calibration import load_calibration
+from gensplat_transforms.calibration.files import load_calibration
 from gensplat_transforms.data.format import load_depth
 from gensplat_transforms.perturbation import Perturbation, PerturbationSampler, pivot_point
 from gensplat_transforms.sim.evaluate import EvalConfig, PerturbedCameraEnv, evaluate, paired_difference

@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 from pathlib import Path
 
-from gensplat_transforms.calibration import load_calibration
+from gensplat_transforms.calibration.files import load_calibration
 from gensplat_transforms.data.depth_import import ImportedEpisode, import_depth
 from gensplat_transforms.data.format import IMAGE_KEY_PREFIX
 

@@ -1,5 +1,5 @@
 """Calibration of a LeRobot dataset estimated from its own frames (``gensplat calibrate --estimate``):
-frames sampled across episodes and time, :func:`gensplat_transforms.self_calibration.estimate_rig`,
+frames sampled across episodes and time, :func:`gensplat_transforms.calibration.estimate.estimate_rig`,
 the result written to ``<root>/gensplat/calibration.json`` as a given calibration would be,
 with the estimate's spread beside it."""
 
@@ -12,6 +12,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gensplat_transforms.calibration.estimate import (
+    RigEstimate,
+    check_principal_points,
+    estimate_rig,
+    predict_cameras,
+    rotation_angle_deg,
+)
 from gensplat_transforms.core.atomic import atomic_write_json
 from gensplat_transforms.core.cameras import focal_from_fov
 from gensplat_transforms.data.format import (
@@ -23,13 +30,6 @@ from gensplat_transforms.data.format import (
     load_depth,
 )
 from gensplat_transforms.data.outputs import gensplat_folder
-from gensplat_transforms.self_calibration import (
-    RigEstimate,
-    check_principal_points,
-    estimate_rig,
-    predict_cameras,
-    rotation_angle_deg,
-)
 
 from .source import _is_depth_map, episode_table, read_info, video_backend
 
@@ -64,14 +64,14 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
     scale (``baseline_m`` between the first two cameras, or ``table_m`` from the first camera
     down to the table), or ``model``, a geometry model's checkpoint directory or hub id
     (:class:`~gensplat_transforms.reconstruction.GeometryReconstructor`), predicts the focal
-    lengths (:func:`~gensplat_transforms.self_calibration.predict_cameras`) and, where it is
+    lengths (:func:`~gensplat_transforms.calibration.estimate.predict_cameras`) and, where it is
     metric and no distance is given, the scale (and one camera's table). ``principal_point``:
     (cx, cy) in pixels (pixel centres at +0.5, the image centre (W / 2, H / 2); OpenCV's cx +
     0.5), one for every camera or one per camera, used instead of the image centres (cropped
     images). One camera needs depth and its focal length. ``per_episode``: cameras that move
     between episodes; every episode is estimated apart from ``timesteps`` of its own frames
     (:func:`per_episode_rig`) and gets its own poses. Raises ValueError naming what is missing
-    or wrong (see :func:`~gensplat_transforms.self_calibration.estimate_rig`)."""
+    or wrong (see :func:`~gensplat_transforms.calibration.estimate.estimate_rig`)."""
     root = Path(root)
     features = read_info(root)["features"]
     colour = [k[len(IMAGE_KEY_PREFIX) :] for k, ft in features.items()

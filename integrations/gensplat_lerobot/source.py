@@ -19,7 +19,7 @@ from torch.utils.data import Dataset
 
 from gensplat_transforms.cache import DepthFiles
 from gensplat_transforms.cache_format import check_sidecars
-from gensplat_transforms.calibration import load_calibration
+from gensplat_transforms.calibration.files import load_calibration
 from gensplat_transforms.core.atomic import atomic_write_json, read_json_object, stat_stamp
 from gensplat_transforms.core.cameras import Cameras
 from gensplat_transforms.data.format import (

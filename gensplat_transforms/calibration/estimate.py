@@ -35,7 +35,7 @@ import numpy as np
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix, rotation_matrix_to_axis_angle
 
-from .core.cameras import pivot_point
+from ..core.cameras import pivot_point
 
 #: horizontal fields of view searched for a camera's focal length, degrees
 FOV_RANGE_DEG = (15.0, 150.0)
@@ -141,7 +141,7 @@ def predict_cameras(model, names: tuple[str, ...], timesteps: list[dict]) -> Mod
     predicts no depth for a camera."""
     import torch.nn.functional as F
 
-    from .core.views import Views
+    from ..core.views import Views
 
     sides = [min(timesteps[0][n][0].shape[:2]) for n in names]
     focals, depths = [], []

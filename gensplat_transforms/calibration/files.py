@@ -56,9 +56,9 @@ import numpy as np
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
-from .core.atomic import atomic_write_json
-from .core.cameras import Cameras, focal_from_fov, opengl_to_opencv
-from .data.format import (
+from ..core.atomic import atomic_write_json
+from ..core.cameras import Cameras, focal_from_fov, opengl_to_opencv
+from ..data.format import (
     CALIBRATION_FORMAT,
     IMAGE_KEY_PREFIX,
     CameraCalibration,
@@ -67,7 +67,7 @@ from .data.format import (
     camera_info,
     image_sizes,
 )
-from .data.outputs import gensplat_folder
+from ..data.outputs import gensplat_folder
 
 CONVENTIONS = ("auto", "gensplat", "opencv-w2c", "nerfstudio")
 _INTRINSICS = ("K", "fx", "fy", "cx", "cy")
