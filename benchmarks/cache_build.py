@@ -44,7 +44,7 @@ from machine import cpu_model
 from gensplat_transforms.cache import GaussianCache
 from gensplat_transforms.data.scenes import default_cameras
 from gensplat_transforms.episodes import SceneEpisodes
-from gensplat_transforms.reconstruction import (
+from gensplat_transforms.geometry import (
     GenSplatReconstructor,
     GeometryReconstructor,
     RGBDReconstructor,

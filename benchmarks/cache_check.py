@@ -40,7 +40,7 @@ from tqdm.auto import tqdm
 
 from gensplat_transforms.cache import INDEX_NAME, GaussianCache
 from gensplat_transforms.episodes import SceneEpisodes
-from gensplat_transforms.reconstruction import RGBDReconstructor, Views
+from gensplat_transforms.geometry import RGBDReconstructor, Views
 
 DROID_EPISODES = 76_000
 

@@ -36,7 +36,7 @@ from tqdm.auto import tqdm
 
 from gensplat_transforms.cache import GaussianCache
 from gensplat_transforms.data.scenes import default_cameras
-from gensplat_transforms.reconstruction import RGBDReconstructor, Views
+from gensplat_transforms.geometry import RGBDReconstructor, Views
 
 WIDTH, HEIGHT = 640, 480
 

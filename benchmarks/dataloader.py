@@ -43,8 +43,8 @@ from torch.utils.data import DataLoader, RandomSampler
 
 from gensplat_transforms.cache import GaussianCache
 from gensplat_transforms.core.metrics import psnr
+from gensplat_transforms.geometry import Reconstructor, RGBDReconstructor
 from gensplat_transforms.perturbation import PerturbationSampler
-from gensplat_transforms.reconstruction import Reconstructor, RGBDReconstructor
 from gensplat_transforms.rendering import render
 from gensplat_transforms.sim.record import RecordConfig, record
 from gensplat_transforms.sim.truth import GroundTruth

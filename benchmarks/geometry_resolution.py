@@ -37,10 +37,10 @@ from machine import cpu_model, write_result
 
 from gensplat_transforms.core.metrics import psnr, sharpness_ratio
 from gensplat_transforms.data.scenes import TabletopScene, default_cameras
+from gensplat_transforms.geometry import GeometryReconstructor, Views
+from gensplat_transforms.geometry.base import nearest_pixels
+from gensplat_transforms.geometry.feedforward import model_size
 from gensplat_transforms.perturbation import PerturbationSampler
-from gensplat_transforms.reconstruction import GeometryReconstructor, Views
-from gensplat_transforms.reconstruction.base import nearest_pixels
-from gensplat_transforms.reconstruction.model import model_size
 from gensplat_transforms.transform import GenSplatConfig, render_view
 
 FIRST_SEED = 900_000

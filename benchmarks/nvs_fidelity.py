@@ -84,16 +84,16 @@ from policy_robustness import SAMPLER_ARMS
 
 from gensplat_transforms.core.cameras import Cameras
 from gensplat_transforms.core.metrics import psnr, ssim
-from gensplat_transforms.holes import fill_holes
-from gensplat_transforms.perturbation import EVAL_LEVELS, PerturbationSampler
-from gensplat_transforms.reconstruction import (
+from gensplat_transforms.geometry import (
     GenSplatReconstructor,
     GeometryReconstructor,
     Reconstruction,
     RGBDReconstructor,
     Views,
 )
-from gensplat_transforms.reconstruction.base import nearest_pixels
+from gensplat_transforms.geometry.base import nearest_pixels
+from gensplat_transforms.holes import fill_holes
+from gensplat_transforms.perturbation import EVAL_LEVELS, PerturbationSampler
 from gensplat_transforms.rendering import RenderOutput, render
 from gensplat_transforms.sim.evaluate import FOV_RANGE
 from gensplat_transforms.sim.record import RecordConfig, record

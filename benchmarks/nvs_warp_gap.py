@@ -36,8 +36,8 @@ from gensplat_lerobot import LeRobotSource
 from nvs_fidelity import PLAIN, _mean, draw, heldout_dataset, sampled_frames, sampling_parser, with_defaults
 
 from gensplat_transforms.core.metrics import psnr
+from gensplat_transforms.geometry import RGBDReconstructor, Views
 from gensplat_transforms.perturbation import EVAL_LEVELS, PerturbationSampler
-from gensplat_transforms.reconstruction import RGBDReconstructor, Views
 from gensplat_transforms.sim.truth import GroundTruth
 from gensplat_transforms.warp import forward_warp
 

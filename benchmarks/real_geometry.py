@@ -46,8 +46,8 @@ from PIL import Image
 
 from gensplat_transforms.calibration.estimate import estimate_rig, rotation_angle_deg
 from gensplat_transforms.core.cameras import Cameras
-from gensplat_transforms.reconstruction import Views
-from gensplat_transforms.reconstruction.geometry import GeometryReconstructor
+from gensplat_transforms.geometry import Views
+from gensplat_transforms.geometry.geometry import GeometryReconstructor
 from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 
 REPO = Path(__file__).resolve().parents[1]

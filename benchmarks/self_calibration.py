@@ -54,8 +54,8 @@ from gensplat_transforms.core.cameras import Cameras
 from gensplat_transforms.core.metrics import psnr, ssim
 from gensplat_transforms.core.views import nearest_pixels
 from gensplat_transforms.data.format import load_depth, save_depth
+from gensplat_transforms.geometry import GeometryReconstructor, RGBDReconstructor, Views
 from gensplat_transforms.perturbation import EVAL_LEVELS, PerturbationSampler, pivot_point
-from gensplat_transforms.reconstruction import GeometryReconstructor, RGBDReconstructor, Views
 from gensplat_transforms.rendering import render
 from gensplat_transforms.sim.record import RecordConfig, record
 from gensplat_transforms.sim.sensor import SensorDepthConfig, sensor_depth

@@ -40,9 +40,9 @@ from PIL import Image
 
 from gensplat_transforms.core.cameras import Cameras
 from gensplat_transforms.core.images import save_grid
+from gensplat_transforms.geometry.base import Views
+from gensplat_transforms.geometry.geometry import GeometryReconstructor
 from gensplat_transforms.perturbation import EVAL_LEVELS, PerturbationSampler, pivot_point
-from gensplat_transforms.reconstruction.base import Views
-from gensplat_transforms.reconstruction.geometry import GeometryReconstructor
 from gensplat_transforms.transform import GenSplatConfig, render_view
 
 REPO = Path(__file__).resolve().parents[1]

@@ -12,8 +12,8 @@ from pathlib import Path
 
 from gensplat_transforms.cache import GaussianCache
 from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
+from gensplat_transforms.geometry import RGBDReconstructor
 from gensplat_transforms.preview import write_preview
-from gensplat_transforms.reconstruction import RGBDReconstructor
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 
 OUT = Path(__file__).resolve().parents[1] / "outputs" / "preview"

@@ -26,14 +26,14 @@ from .cache import GaussianCache
 from .core.cameras import Cameras, look_at
 from .core.gaussians import Gaussians
 from .episodes import build_cache
-from .perturbation import LEVELS, Perturbation, PerturbationRange, PerturbationSampler, pivot_point
-from .reconstruction import (
+from .geometry import (
     GenSplatReconstructor,
     GeometryReconstructor,
     RGBDReconstructor,
     Views,
     make_reconstructor,
 )
+from .perturbation import LEVELS, Perturbation, PerturbationRange, PerturbationSampler, pivot_point
 from .rendering import RenderOutput, render
 from .transform import AugmentedDataset, GenSplatConfig, GenSplatTransform
 

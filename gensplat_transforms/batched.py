@@ -26,11 +26,11 @@ from .core.gaussians import Gaussians
 from .core.sh import num_sh_bases
 from .core.views import Reconstruction, preferred_means, source_rays
 from .depth_codec import depth_from_words
+from .geometry import Reconstructor
+from .geometry.base import nearest_pixels
+from .geometry.rgbd import RGBDReconstructor, dense_discs, grid_pixel_ids, own_saturation
 from .perturbation import move_rig, scale_focal
 from .plan import BATCH_KEYS
-from .reconstruction import Reconstructor
-from .reconstruction.base import nearest_pixels
-from .reconstruction.rgbd import RGBDReconstructor, dense_discs, grid_pixel_ids, own_saturation
 from .rendering import RenderOutput
 from .rendering.gsplat_backend import render_gsplat_batch
 from .view_output import (

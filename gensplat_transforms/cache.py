@@ -70,7 +70,7 @@ from .cache_format import (
 )
 from .core.atomic import atomic_write, read_json_object, stat_stamp
 from .core.cameras import Cameras
-from .reconstruction import DepthReconstructor, Reconstruction, Reconstructor, Views
+from .geometry import DepthReconstructor, Reconstruction, Reconstructor, Views
 
 __all__ = ["CacheError", "CacheStats", "CorruptCacheError", "DepthFiles", "EpisodeSource", "GaussianCache",
            "StaleCacheError", "dequantize", "quantize", "size_text"]  # fmt: skip

@@ -26,8 +26,8 @@ from .core.cameras import Cameras
 from .core.gaussians import Gaussians
 from .core.tensor_file import FileChangedError, TensorFile
 from .data.format import open_depth
-from .reconstruction import Reconstruction, Reconstructor, Views
-from .reconstruction.base import nearest_pixels
+from .geometry import Reconstruction, Reconstructor, Views
+from .geometry.base import nearest_pixels
 
 FORMAT = "gensplat-cache"
 FORMAT_VERSION = "2"

@@ -414,10 +414,10 @@ def _train_model(args) -> None:
     from torch.utils.data import ConcatDataset
 
     from .data.outputs import check_output
-    from .model import ModelConfig
-    from .model.data import ProceduralViews
-    from .model.losses import LossWeights
-    from .model.teacher import Pi3Teacher, TrueGeometryTeacher
+    from .geometry.model import ModelConfig
+    from .geometry.model.data import ProceduralViews
+    from .geometry.model.losses import LossWeights
+    from .geometry.model.teacher import Pi3Teacher, TrueGeometryTeacher
     from .training import LOG_FILE, TrainConfig, train
 
     check_output(args.out, args.root, folder=True)  # against the dataset of --data lerobot

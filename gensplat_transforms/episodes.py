@@ -21,7 +21,7 @@ from .cache import CacheStats, EpisodeSource, GaussianCache
 from .core.cameras import pivot_point
 from .data.scenes import TabletopScene, default_cameras
 from .distributed import Shard
-from .reconstruction import Views
+from .geometry import Views
 
 logger = logging.getLogger(__name__)
 

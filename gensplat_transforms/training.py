@@ -40,12 +40,12 @@ from tqdm.auto import tqdm
 from .core.atomic import atomic_write, atomic_write_json
 from .core.cameras import Cameras
 from .core.views import Views
-from .model.checkpoints import GAUSSIAN_PREFIX, load_pi3_weights
-from .model.config import ModelConfig
-from .model.frames import estimate_focal
-from .model.gensplat import GenSplatModel, to_gaussians
-from .model.losses import LossWeights, camera_loss, depth_loss, points_loss, rgb_loss
-from .model.teacher import Teacher
+from .geometry.model.checkpoints import GAUSSIAN_PREFIX, load_pi3_weights
+from .geometry.model.config import ModelConfig
+from .geometry.model.frames import estimate_focal
+from .geometry.model.gensplat import GenSplatModel, to_gaussians
+from .geometry.model.losses import LossWeights, camera_loss, depth_loss, points_loss, rgb_loss
+from .geometry.model.teacher import Teacher
 from .rendering import render
 
 CHECKPOINT_FILE = "checkpoint.pt"

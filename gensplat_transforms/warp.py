@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 
 from .core.cameras import Cameras
-from .reconstruction.base import valid_depth
+from .geometry.base import valid_depth
 
 
 def forward_warp(

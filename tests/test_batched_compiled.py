@@ -13,7 +13,7 @@ from gensplat_transforms.cache import GaussianCache
 from gensplat_transforms.core.rotations import covariance_3d
 from gensplat_transforms.depth_codec import depth_from_words
 from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
-from gensplat_transforms.reconstruction import RGBDReconstructor
+from gensplat_transforms.geometry import RGBDReconstructor
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 
 LEFT = "observation.images.left"

@@ -19,7 +19,7 @@ from gensplat_transforms.cache import CorruptCacheError, GaussianCache, StaleCac
 from gensplat_transforms.core.gaussians import Gaussians
 from gensplat_transforms.core.metrics import psnr
 from gensplat_transforms.episodes import SceneEpisodes, build_cache
-from gensplat_transforms.reconstruction import Reconstruction, Reconstructor, RGBDReconstructor
+from gensplat_transforms.geometry import Reconstruction, Reconstructor, RGBDReconstructor
 
 
 @pytest.fixture(scope="module")
@@ -773,7 +773,7 @@ KILLED_BUILDER = """
 import sys, time
 from gensplat_transforms.cache import GaussianCache
 from gensplat_transforms.episodes import SceneEpisodes
-from gensplat_transforms.reconstruction import RGBDReconstructor
+from gensplat_transforms.geometry import RGBDReconstructor
 src = SceneEpisodes(num_episodes=2, num_frames=3, size=48)
 slow = type("Slow", (), {"camera_names": src.camera_names, "fingerprint": src.fingerprint,
                          "num_frames": src.num_frames, "views": lambda self, e, t: time.sleep(60)})()
@@ -832,7 +832,7 @@ class SidecarSource:
 
     def views(self, episode, frame):
         from gensplat_transforms.data.format import load_depth
-        from gensplat_transforms.reconstruction import Views
+        from gensplat_transforms.geometry import Views
 
         v = self.source.views(episode, frame)
         depths = torch.stack([load_depth(self.root, n, episode, frame) for n in self.camera_names])

@@ -8,7 +8,7 @@ import torch
 from gensplat_transforms.cache import GaussianCache
 from gensplat_transforms.cache_reader import CacheReader
 from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
-from gensplat_transforms.reconstruction import GenSplatReconstructor, RGBDReconstructor
+from gensplat_transforms.geometry import GenSplatReconstructor, RGBDReconstructor
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 from gensplat_transforms.view_output import as_cache_images
 

@@ -12,9 +12,9 @@ from PIL import Image
 from gensplat_transforms.cache import GaussianCache
 from gensplat_transforms.cli import build_parser, main
 from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
+from gensplat_transforms.geometry import RGBDReconstructor
 from gensplat_transforms.perturbation import EVAL_LEVELS
 from gensplat_transforms.preview import write_preview
-from gensplat_transforms.reconstruction import RGBDReconstructor
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 
 

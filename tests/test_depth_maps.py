@@ -12,8 +12,8 @@ from gensplat_transforms.batched import render_batch
 from gensplat_transforms.cache import GaussianCache
 from gensplat_transforms.data.format import DepthSensor
 from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
+from gensplat_transforms.geometry import RGBDReconstructor
 from gensplat_transforms.perturbation import AXES, Perturbation
-from gensplat_transforms.reconstruction import RGBDReconstructor
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 
 LEFT, RIGHT = "observation.images.left", "observation.images.right"

@@ -18,8 +18,8 @@ from tiny_model import TINY
 from gensplat_transforms.cache import GaussianCache
 from gensplat_transforms.distributed import OnDevice, Shard, gather
 from gensplat_transforms.episodes import SceneEpisodes, build_cache
-from gensplat_transforms.model import GenSplatModel
-from gensplat_transforms.reconstruction import GenSplatReconstructor, RGBDReconstructor
+from gensplat_transforms.geometry import GenSplatReconstructor, RGBDReconstructor
+from gensplat_transforms.geometry.model import GenSplatModel
 
 REPO = "local/gensplat_scene"
 

@@ -34,7 +34,7 @@ from gensplat_transforms.cache import StaleCacheError
 from gensplat_transforms.core.metrics import psnr
 from gensplat_transforms.data.format import DEPTH_FORMAT, depth_path, load_depth, save_depth
 from gensplat_transforms.episodes import SceneEpisodes
-from gensplat_transforms.model import PATCH_SIZE
+from gensplat_transforms.geometry.model import PATCH_SIZE
 from gensplat_transforms.perturbation import PerturbationRange
 from gensplat_transforms.transform import GenSplatConfig
 

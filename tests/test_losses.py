@@ -10,8 +10,8 @@ from gensplat_transforms.core.cameras import Cameras, look_at
 from gensplat_transforms.core.metrics import ssim_map
 from gensplat_transforms.core.rotations import quat_to_rotmat
 from gensplat_transforms.data.scenes import TabletopScene, default_cameras
-from gensplat_transforms.model import GenSplatModel, to_gaussians
-from gensplat_transforms.model.losses import (
+from gensplat_transforms.geometry.model import GenSplatModel, to_gaussians
+from gensplat_transforms.geometry.model.losses import (
     LossWeights,
     camera_loss,
     depth_loss,

@@ -13,17 +13,17 @@ from tiny_model import tiny_model as perturbed_model
 from gensplat_transforms.core.cameras import Cameras, look_at
 from gensplat_transforms.core.rotations import quat_to_rotmat
 from gensplat_transforms.core.sh import sh_basis
-from gensplat_transforms.model import GenSplatModel, ModelConfig, load_pi3_weights, to_gaussians
-from gensplat_transforms.model.frames import (
+from gensplat_transforms.geometry import GenSplatReconstructor, Views
+from gensplat_transforms.geometry.model import GenSplatModel, ModelConfig, load_pi3_weights, to_gaussians
+from gensplat_transforms.geometry.model.frames import (
     align_similarity,
     estimate_focal,
     quat_mul,
     sh_rotation,
     transform_poses,
 )
-from gensplat_transforms.model.heads import svd_orthogonalize
-from gensplat_transforms.model.layers import rope_2d
-from gensplat_transforms.reconstruction import GenSplatReconstructor, Views
+from gensplat_transforms.geometry.model.heads import svd_orthogonalize
+from gensplat_transforms.geometry.model.layers import rope_2d
 
 MANIFEST = Path(__file__).resolve().parents[1].parent / "shared" / "pi3_state_dict_manifest.json"
 TINY = ModelConfig(

@@ -17,8 +17,8 @@ from gensplat_transforms.cache import GaussianCache
 from gensplat_transforms.core.cameras import look_at
 from gensplat_transforms.data.scenes import default_cameras
 from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache, scene_depth
+from gensplat_transforms.geometry import RGBDReconstructor, Views
 from gensplat_transforms.perturbation import Perturbation, move_rig, rig_pivot
-from gensplat_transforms.reconstruction import RGBDReconstructor, Views
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 
 LEFT, RIGHT = "observation.images.left", "observation.images.right"

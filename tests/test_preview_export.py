@@ -22,7 +22,7 @@ from gensplat_lerobot.training_preview import MIN_TILE_HEIGHT, open_dataset, wri
 from gensplat_transforms.cli import main
 from gensplat_transforms.core.gaussians import Gaussians
 from gensplat_transforms.episodes import SceneEpisodes
-from gensplat_transforms.reconstruction import make_reconstructor
+from gensplat_transforms.geometry import make_reconstructor
 
 REPO = "local/preview_scene"
 SIZE, FRAMES = 32, 6

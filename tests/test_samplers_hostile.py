@@ -10,6 +10,7 @@ import torch
 from gensplat_transforms.cache import GaussianCache
 from gensplat_transforms.core.cameras import FOCAL_MAX_PX, Cameras, look_at
 from gensplat_transforms.episodes import SceneEpisodes, build_cache
+from gensplat_transforms.geometry import RGBDReconstructor
 from gensplat_transforms.perturbation import (
     FOCAL_SCALE_LIMITS,
     KEY_LIMIT,
@@ -26,7 +27,6 @@ from gensplat_transforms.perturbation import (
     perturb_pose,
     scale_focal,
 )
-from gensplat_transforms.reconstruction import RGBDReconstructor
 from gensplat_transforms.settings import GenSplatConfig
 from gensplat_transforms.view_output import render_view
 

@@ -124,7 +124,7 @@ class _Model:
 
     def predict_depth(self, views):
         from gensplat_transforms.core.cameras import Cameras
-        from gensplat_transforms.reconstruction import Views
+        from gensplat_transforms.geometry import Views
 
         V = len(views.images)
         self.seen.append(tuple(views.images.shape))
@@ -571,7 +571,7 @@ def test_estimate_names_an_episode_without_depth(simulated, tmp_path, capsys):
 
 
 def test_weights_licence_is_read_from_the_checkpoint(tmp_path):
-    from gensplat_transforms.reconstruction.geometry import weights_licence
+    from gensplat_transforms.geometry.geometry import weights_licence
 
     for name, config, licence in (("da3", {"model_name": "da3-small"}, "Apache-2.0 (Depth Anything 3)"),
                                   ("pi3", {"encoder": "dinov2"}, "CC BY-NC 4.0 (Pi3's weights")):  # fmt: skip

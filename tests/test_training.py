@@ -12,11 +12,11 @@ from tiny_model import TINY
 
 from gensplat_transforms.cli import main as cli_main
 from gensplat_transforms.data.scenes import WORKSPACE_CENTER
-from gensplat_transforms.model import GenSplatModel, ModelConfig
-from gensplat_transforms.model.data import ProceduralViews, RigConfig
-from gensplat_transforms.model.losses import LossWeights
-from gensplat_transforms.model.teacher import Pi3Teacher, TrueGeometryTeacher, camera_points
-from gensplat_transforms.reconstruction import GenSplatReconstructor, Views
+from gensplat_transforms.geometry import GenSplatReconstructor, Views
+from gensplat_transforms.geometry.model import GenSplatModel, ModelConfig
+from gensplat_transforms.geometry.model.data import ProceduralViews, RigConfig
+from gensplat_transforms.geometry.model.losses import LossWeights
+from gensplat_transforms.geometry.model.teacher import Pi3Teacher, TrueGeometryTeacher, camera_points
 from gensplat_transforms.training import (
     CHECKPOINT_FILE,
     EXPORT_DIR,

@@ -10,9 +10,9 @@ import torch
 
 from gensplat_transforms.cache import GaussianCache
 from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
+from gensplat_transforms.geometry import RGBDReconstructor
 from gensplat_transforms.perturbation import Perturbation
 from gensplat_transforms.plan import ViewPlan
-from gensplat_transforms.reconstruction import RGBDReconstructor
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 
 LEFT, RIGHT = "observation.images.left", "observation.images.right"

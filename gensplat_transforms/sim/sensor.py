@@ -47,7 +47,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from ..reconstruction.base import valid_depth
+from ..geometry.base import valid_depth
 
 #: Rec. 709 luma weights of the colour image (a proxy for the IR reflectance).
 _LUMA = (0.2126, 0.7152, 0.0722)
@@ -132,7 +132,7 @@ def sensor_depth(
 
     Args:
         depth: (H, W) exact metric camera-z depth; values that are not depths (0, negative,
-            NaN, Inf, see :func:`~gensplat_transforms.reconstruction.base.valid_depth`) are
+            NaN, Inf, see :func:`~gensplat_transforms.geometry.base.valid_depth`) are
             invalid pixels.
         rgb: (3, H, W) colour image in [0, 1], registered to ``depth``.
         K: (3, 3) intrinsics of the colour camera (its fx sets the occlusion shadow width).

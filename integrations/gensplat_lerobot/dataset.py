@@ -15,8 +15,8 @@ from gensplat_transforms.core.atomic import atomic_write_json, read_json_object
 from gensplat_transforms.data.format import GENSPLAT_DIR
 from gensplat_transforms.data.outputs import gensplat_subfolder
 from gensplat_transforms.distributed import OnDevice, Shard
+from gensplat_transforms.geometry import make_reconstructor
 from gensplat_transforms.perturbation import get_range
-from gensplat_transforms.reconstruction import make_reconstructor
 from gensplat_transforms.rendering.gsplat_backend import check_gsplat
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 
@@ -44,7 +44,7 @@ def weights_licence_of(reconstructor: dict) -> str | None:
     """The licence of the model weights a reconstructor spec uses (None for ``rgbd``: no model)."""
     if reconstructor["name"] == "rgbd":
         return None
-    from gensplat_transforms.reconstruction.geometry import weights_licence
+    from gensplat_transforms.geometry.geometry import weights_licence
     from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 
     return weights_licence(reconstructor.get("model") or DEFAULT_MODEL_DIR)

@@ -63,7 +63,7 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
     (``fov_deg``, the horizontal field of view, or ``focal_px``) and so is one distance for the
     scale (``baseline_m`` between the first two cameras, or ``table_m`` from the first camera
     down to the table), or ``model``, a geometry model's checkpoint directory or hub id
-    (:class:`~gensplat_transforms.reconstruction.GeometryReconstructor`), predicts the focal
+    (:class:`~gensplat_transforms.geometry.GeometryReconstructor`), predicts the focal
     lengths (:func:`~gensplat_transforms.calibration.estimate.predict_cameras`) and, where it is
     metric and no distance is given, the scale (and one camera's table). ``principal_point``:
     (cx, cy) in pixels (pixel centres at +0.5, the image centre (W / 2, H / 2); OpenCV's cx +
@@ -196,7 +196,7 @@ def per_episode_rig(rigs: dict[int, RigEstimate]) -> RigEstimate:
 def _geometry_model(model: str | Path):
     """The geometry reconstructor of checkpoint directory or hub id ``model``, with the error
     a user can act on where it cannot be loaded."""
-    from gensplat_transforms.reconstruction import GeometryReconstructor
+    from gensplat_transforms.geometry import GeometryReconstructor
 
     try:
         return GeometryReconstructor(model)
@@ -206,7 +206,7 @@ def _geometry_model(model: str | Path):
 
 def _model_record(model: str | Path) -> dict:
     """The geometry model an estimate used: where from, and its weights' licence."""
-    from gensplat_transforms.reconstruction.geometry import weights_licence
+    from gensplat_transforms.geometry.geometry import weights_licence
 
     return {"source": str(model), "licence": weights_licence(model)}
 

@@ -9,7 +9,7 @@ from pathlib import Path
 from gensplat_transforms.core.atomic import atomic_write
 from gensplat_transforms.core.gaussians import Gaussians
 from gensplat_transforms.data.outputs import check_output
-from gensplat_transforms.reconstruction import make_reconstructor
+from gensplat_transforms.geometry import make_reconstructor
 from gensplat_transforms.transform import render_size
 
 from .dataset import dataset_cache, load_settings

@@ -33,8 +33,8 @@ from gensplat_transforms.data.format import (
     open_depth,
 )
 from gensplat_transforms.data.registration import register_depth
-from gensplat_transforms.model import PATCH_SIZE
-from gensplat_transforms.reconstruction import Views
+from gensplat_transforms.geometry import Views
+from gensplat_transforms.geometry.model import PATCH_SIZE
 
 log = logging.getLogger(__name__)
 

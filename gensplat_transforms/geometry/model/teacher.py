@@ -12,7 +12,7 @@ from typing import Protocol
 
 import torch
 
-from ..core.views import Views, valid_depth
+from ...core.views import Views, valid_depth
 from .checkpoints import load_pi3_weights
 from .config import ModelConfig
 from .gensplat import GenSplatModel

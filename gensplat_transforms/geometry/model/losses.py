@@ -13,7 +13,7 @@ import kornia
 import torch
 import torch.nn.functional as F
 
-from ..core.cameras import rigid_inverse
+from ...core.cameras import rigid_inverse
 
 
 @dataclass(frozen=True)

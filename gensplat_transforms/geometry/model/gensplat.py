@@ -14,10 +14,10 @@ import torch
 from safetensors.torch import save_file
 from torch import nn
 
-from ..core.atomic import atomic_write, atomic_write_json
-from ..core.gaussians import Gaussians
-from ..core.rotations import rotmat_to_quat
-from ..core.sh import rgb_to_sh_dc
+from ...core.atomic import atomic_write, atomic_write_json
+from ...core.gaussians import Gaussians
+from ...core.rotations import rotmat_to_quat
+from ...core.sh import rgb_to_sh_dc
 from .checkpoints import (
     CONFIG_FILE,
     FORMAT_NAME,

@@ -11,13 +11,13 @@ import torch.nn.functional as F
 
 from ..core.cameras import Cameras, rigid_inverse
 from ..core.gaussians import Gaussians
-from ..model import PATCH_SIZE, GenSplatModel, to_gaussians
-from ..model.config import check_max_pixels
-from ..model.da3 import PRESETS as DA3_PRESETS
-from ..model.da3 import DepthAnything3
-from ..model.frames import align_similarity, estimate_focal, transform_gaussians, transform_poses
 from ..weights import DEFAULT_MODEL_DIR
 from .base import Reconstruction, Reconstructor, Views
+from .model import PATCH_SIZE, GenSplatModel, to_gaussians
+from .model.config import check_max_pixels
+from .model.da3 import PRESETS as DA3_PRESETS
+from .model.da3 import DepthAnything3
+from .model.frames import align_similarity, estimate_focal, transform_gaussians, transform_poses
 
 
 class GenSplatReconstructor(Reconstructor):

@@ -32,8 +32,8 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 from torch import nn
 
-from ..core.atomic import atomic_write, atomic_write_json
-from ..core.rotations import quat_to_rotmat
+from ...core.atomic import atomic_write, atomic_write_json
+from ...core.rotations import quat_to_rotmat
 from .checkpoints import CONFIG_FILE, WEIGHTS_FILE, resolve
 from .config import PATCH_SIZE
 from .encoder import PatchEmbed

@@ -15,9 +15,9 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from ..core.cameras import Cameras, focal_from_fov, look_at
-from ..core.views import Views
-from ..data.scenes import WORKSPACE_CENTER, TabletopScene
+from ...core.cameras import Cameras, focal_from_fov, look_at
+from ...core.views import Views
+from ...data.scenes import WORKSPACE_CENTER, TabletopScene
 from .config import PATCH_SIZE
 
 

@@ -39,14 +39,9 @@ from pathlib import Path
 import torch
 
 from ..core.cameras import Cameras, rigid_inverse
-from ..model import GenSplatModel
-from ..model.checkpoints import CONFIG_FILE, FORMAT_NAME, resolve
-from ..model.config import check_max_pixels
-from ..model.da3 import DepthAnything3, is_da3_checkpoint
-from ..model.frames import align_similarity, estimate_focal, transform_poses
 from ..weights import DEFAULT_MODEL_DIR
 from .base import DepthReconstructor, Reconstruction, Views, valid_depth
-from .model import (
+from .feedforward import (
     check_batch_timesteps,
     model_size,
     pixel_channels,
@@ -54,6 +49,11 @@ from .model import (
     timesteps_per_pass,
     weights_hash,
 )
+from .model import GenSplatModel
+from .model.checkpoints import CONFIG_FILE, FORMAT_NAME, resolve
+from .model.config import check_max_pixels
+from .model.da3 import DepthAnything3, is_da3_checkpoint
+from .model.frames import align_similarity, estimate_focal, transform_poses
 from .rgbd import RGBDConfig, RGBDReconstructor, disc_identity
 
 SCALES = ("auto", "metric", "fit")

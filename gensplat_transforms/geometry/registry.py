@@ -8,8 +8,8 @@ import torch
 
 from ..weights import DEFAULT_MODEL_DIR
 from .base import Reconstructor
+from .feedforward import GenSplatReconstructor
 from .geometry import GeometryReconstructor
-from .model import GenSplatReconstructor
 from .rgbd import RGBDReconstructor
 
 #: name -> factory(spec, device); ``spec`` as in :func:`make_reconstructor`

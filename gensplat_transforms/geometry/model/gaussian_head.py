@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..core.sh import num_sh_bases
+from ...core.sh import num_sh_bases
 
 
 class ResidualConvUnit(nn.Module):

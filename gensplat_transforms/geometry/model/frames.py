@@ -5,9 +5,9 @@ from __future__ import annotations
 import torch
 from kornia.geometry.quaternion import Quaternion
 
-from ..core.gaussians import Gaussians
-from ..core.rotations import rotmat_to_quat
-from ..core.sh import sh_basis, sh_degree_from_bases
+from ...core.gaussians import Gaussians
+from ...core.rotations import rotmat_to_quat
+from ...core.sh import sh_basis, sh_degree_from_bases
 
 
 def quat_mul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
