@@ -41,9 +41,9 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 import torch
 from machine import cpu_model
 
-from gensplat_transforms.cache import GaussianCache
+from gensplat_transforms.cache.builder import SceneEpisodes
+from gensplat_transforms.cache.store import GaussianCache
 from gensplat_transforms.data.scenes import default_cameras
-from gensplat_transforms.episodes import SceneEpisodes
 from gensplat_transforms.geometry import (
     GenSplatReconstructor,
     GeometryReconstructor,

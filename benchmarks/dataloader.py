@@ -41,7 +41,7 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from machine import cpu_model, write_result
 from torch.utils.data import DataLoader, RandomSampler
 
-from gensplat_transforms.cache import GaussianCache
+from gensplat_transforms.cache.store import GaussianCache
 from gensplat_transforms.core.metrics import psnr
 from gensplat_transforms.geometry import Reconstructor, RGBDReconstructor
 from gensplat_transforms.perturbation import PerturbationSampler

@@ -22,10 +22,10 @@ Example: two calibrated RGB-D views of one timestep, seen from a camera moved at
 """
 
 from .batched import render_batch
-from .cache import GaussianCache
+from .cache.builder import build_cache
+from .cache.store import GaussianCache
 from .core.cameras import Cameras, look_at
 from .core.gaussians import Gaussians
-from .episodes import build_cache
 from .geometry import (
     GenSplatReconstructor,
     GeometryReconstructor,

@@ -21,11 +21,11 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from .cache.depth_codec import depth_from_words
 from .core.cameras import Cameras
 from .core.gaussians import Gaussians
 from .core.sh import num_sh_bases
 from .core.views import Reconstruction, preferred_means, source_rays
-from .depth_codec import depth_from_words
 from .geometry import Reconstructor
 from .geometry.base import nearest_pixels
 from .geometry.rgbd import RGBDReconstructor, dense_discs, grid_pixel_ids, own_saturation
@@ -77,7 +77,7 @@ def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None 
         >>> import tempfile
         >>> from torch.utils.data import DataLoader
         >>> from gensplat_transforms import AugmentedDataset, GaussianCache, GenSplatConfig, GenSplatTransform, RGBDReconstructor
-        >>> from gensplat_transforms.episodes import SceneDataset, SceneEpisodes
+        >>> from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes
         >>> source = SceneEpisodes(num_episodes=1, num_frames=4, size=16)
         >>> folder = tempfile.TemporaryDirectory()
         >>> cache = GaussianCache(folder.name, RGBDReconstructor(), source.fingerprint)

@@ -270,7 +270,7 @@ def main(argv: list[str] | None = None) -> int:
 def _user_error(e: Exception) -> bool:
     """A FileNotFoundError, ValueError or StaleCacheError raised by this project's own code
     (gensplat_transforms, gensplat_lerobot), whose messages say what to do."""
-    from .cache import StaleCacheError
+    from .cache.store import StaleCacheError
 
     if not isinstance(e, (FileNotFoundError, ValueError, StaleCacheError)):
         return False
@@ -350,10 +350,10 @@ def _cache(args) -> None:
         from gensplat_lerobot.dataset import check_cameras, content_path, default_reconstructor
     except ImportError as e:
         raise SystemExit(f"gensplat cache needs the LeRobot extra: pip install 'gensplat-transforms[lerobot]' ({e})")
-    from .cache import size_text
+    from .cache.distributed import Shard, gather
+    from .cache.store import size_text
     from .core.atomic import read_json_object
     from .data.format import GENSPLAT_DIR, depth_path
-    from .distributed import Shard, gather
     from .settings import config_from_arguments
 
     check_cameras(args.root, args.cameras or ())

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import torch
 
-from .cache import size_text
+from .cache.store import size_text
 from .core.atomic import atomic_write_json
 from .core.images import save_grid
 from .core.metrics import psnr

@@ -11,8 +11,8 @@ import time
 import torch
 from torch.utils.data import Dataset
 
-from .cache import EpisodeSource, GaussianCache
-from .cache_reader import CacheReader
+from .cache.reader import CacheReader
+from .cache.store import EpisodeSource, GaussianCache
 from .core.counters import SampleCounters
 from .data.format import DepthSensor
 from .perturbation import AXES, ROW
@@ -41,7 +41,7 @@ class GenSplatTransform:
     Example: augment every item of the procedural dataset
         >>> import tempfile
         >>> from gensplat_transforms import RGBDReconstructor, build_cache
-        >>> from gensplat_transforms.episodes import SceneDataset, SceneEpisodes
+        >>> from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes
         >>> source = SceneEpisodes(num_episodes=1, num_frames=2, size=16)
         >>> folder = tempfile.TemporaryDirectory()
         >>> cache = GaussianCache(folder.name, RGBDReconstructor(), source.fingerprint)
@@ -268,7 +268,7 @@ class AugmentedDataset(Dataset):
         >>> import tempfile
         >>> from torch.utils.data import DataLoader
         >>> from gensplat_transforms import RGBDReconstructor
-        >>> from gensplat_transforms.episodes import SceneDataset, SceneEpisodes
+        >>> from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes
         >>> source = SceneEpisodes(num_episodes=1, num_frames=4, size=16)
         >>> folder = tempfile.TemporaryDirectory()
         >>> cache = GaussianCache(folder.name, RGBDReconstructor(), source.fingerprint)

@@ -5,9 +5,9 @@ import torch
 from test_da3 import small  # noqa: F401 -- the random DA3-Small fixture, by name
 from tiny_model import tiny_model
 
-from gensplat_transforms.cache import GaussianCache
+from gensplat_transforms.cache.builder import SceneEpisodes
+from gensplat_transforms.cache.store import GaussianCache
 from gensplat_transforms.data.scenes import TabletopScene, default_cameras
-from gensplat_transforms.episodes import SceneEpisodes
 from gensplat_transforms.geometry import GeometryReconstructor, RGBDReconstructor, Views
 from gensplat_transforms.geometry.feedforward import INT_MAX, pixel_channels, timesteps_per_pass
 from gensplat_transforms.geometry.model import GenSplatModel, ModelConfig

@@ -12,13 +12,19 @@ import numpy as np
 import pytest
 import torch
 
-from gensplat_transforms import cache as cache_module
-from gensplat_transforms import depth_codec as dc
 from gensplat_transforms import render
-from gensplat_transforms.cache import CorruptCacheError, GaussianCache, StaleCacheError, dequantize, quantize
+from gensplat_transforms.cache import depth_codec as dc
+from gensplat_transforms.cache import store as cache_module
+from gensplat_transforms.cache.builder import SceneEpisodes, build_cache
+from gensplat_transforms.cache.store import (
+    CorruptCacheError,
+    GaussianCache,
+    StaleCacheError,
+    dequantize,
+    quantize,
+)
 from gensplat_transforms.core.gaussians import Gaussians
 from gensplat_transforms.core.metrics import psnr
-from gensplat_transforms.episodes import SceneEpisodes, build_cache
 from gensplat_transforms.geometry import Reconstruction, Reconstructor, RGBDReconstructor
 
 
@@ -596,7 +602,7 @@ GAUSSIAN_EDITS = {
 
 def _header_is_still_consistent(header):
     """Recompute the header checksum after an edit, as a forger would: the tensor checksums still catch it."""
-    from gensplat_transforms.cache_format import header_crc
+    from gensplat_transforms.cache.format import header_crc
 
     header["__metadata__"]["header_crc"] = header_crc(header["__metadata__"])
 
@@ -771,8 +777,8 @@ def test_concurrent_builds_with_verify_build_once(tmp_path, source):
 
 KILLED_BUILDER = """
 import sys, time
-from gensplat_transforms.cache import GaussianCache
-from gensplat_transforms.episodes import SceneEpisodes
+from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.cache.builder import SceneEpisodes
 from gensplat_transforms.geometry import RGBDReconstructor
 src = SceneEpisodes(num_episodes=2, num_frames=3, size=48)
 slow = type("Slow", (), {"camera_names": src.camera_names, "fingerprint": src.fingerprint,
@@ -839,7 +845,7 @@ class SidecarSource:
         return Views(v.images, v.cameras, depths)
 
     def depth_files(self, episode):
-        from gensplat_transforms.cache import DepthFiles
+        from gensplat_transforms.cache.store import DepthFiles
         from gensplat_transforms.data.format import depth_path
 
         paths = tuple(depth_path(self.root, n, episode) for n in self.camera_names)

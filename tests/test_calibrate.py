@@ -171,7 +171,7 @@ def test_lerobot_source_uses_the_stored_calibration_and_the_dataset_is_untouched
     from gensplat_lerobot import LeRobotSource
     from gensplat_lerobot.scene_dataset import record_scene_dataset
 
-    from gensplat_transforms.episodes import SceneEpisodes
+    from gensplat_transforms.cache.builder import SceneEpisodes
 
     root, repo = tmp_path / "ds", "local/uncalibrated"
     record_scene_dataset(root, SceneEpisodes(num_episodes=1, num_frames=2, size=32), repo, progress=False)

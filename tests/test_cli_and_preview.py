@@ -9,9 +9,9 @@ from pathlib import Path
 
 from PIL import Image
 
-from gensplat_transforms.cache import GaussianCache
+from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
+from gensplat_transforms.cache.store import GaussianCache
 from gensplat_transforms.cli import build_parser, main
-from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
 from gensplat_transforms.geometry import RGBDReconstructor
 from gensplat_transforms.perturbation import EVAL_LEVELS
 from gensplat_transforms.preview import write_preview

@@ -15,9 +15,9 @@ import torch
 from safetensors import safe_open
 from tiny_model import TINY
 
-from gensplat_transforms.cache import GaussianCache
-from gensplat_transforms.distributed import OnDevice, Shard, gather
-from gensplat_transforms.episodes import SceneEpisodes, build_cache
+from gensplat_transforms.cache.builder import SceneEpisodes, build_cache
+from gensplat_transforms.cache.distributed import OnDevice, Shard, gather
+from gensplat_transforms.cache.store import GaussianCache
 from gensplat_transforms.geometry import GenSplatReconstructor, RGBDReconstructor
 from gensplat_transforms.geometry.model import GenSplatModel
 

@@ -24,7 +24,7 @@ from gensplat_lerobot import LeRobotSource, enable_gensplat, prepare, video_back
 from gensplat_lerobot.scene_dataset import record_scene_dataset
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from gensplat_transforms.episodes import SceneEpisodes
+from gensplat_transforms.cache.builder import SceneEpisodes
 from gensplat_transforms.transform import GenSplatConfig
 
 REPO = "local/moving_cameras"

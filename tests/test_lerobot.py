@@ -30,10 +30,10 @@ from gensplat_lerobot.scene_dataset import record_scene_dataset
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from safetensors.torch import save_file
 
-from gensplat_transforms.cache import StaleCacheError
+from gensplat_transforms.cache.builder import SceneEpisodes
+from gensplat_transforms.cache.store import StaleCacheError
 from gensplat_transforms.core.metrics import psnr
 from gensplat_transforms.data.format import DEPTH_FORMAT, depth_path, load_depth, save_depth
-from gensplat_transforms.episodes import SceneEpisodes
 from gensplat_transforms.geometry.model import PATCH_SIZE
 from gensplat_transforms.perturbation import PerturbationRange
 from gensplat_transforms.transform import GenSplatConfig
@@ -789,6 +789,6 @@ def test_lerobots_own_depth_features_are_read_and_copied_into_the_cache(tmp_path
     assert torch.equal(item[LEFT + "_depth"], ref[LEFT + "_depth"]) and not torch.equal(item[LEFT], ref[LEFT])
     assert "kept as recorded (--keep-depth-maps)" in start_message(ds, SimpleNamespace(policy=None, resume=False))
     (words, coded), _ = ds.gensplat.cache.read_depth_words(0, 2)
-    from gensplat_transforms.depth_codec import depth_from_words
+    from gensplat_transforms.cache.depth_codec import depth_from_words
 
     assert (depth_from_words(words, coded) - want[:, 0]).abs().max() <= 1e-3 * want.max() + error_m

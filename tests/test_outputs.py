@@ -14,9 +14,9 @@ os.environ["HF_HUB_OFFLINE"] = "1"
 from gensplat_lerobot.scene_dataset import record_scene_dataset
 
 import gensplat_transforms.sim.record as sim_record
+from gensplat_transforms.cache.builder import SceneEpisodes
 from gensplat_transforms.cli import main
 from gensplat_transforms.core.gaussians import Gaussians
-from gensplat_transforms.episodes import SceneEpisodes
 from gensplat_transforms.sim.world import WorldConfig
 
 REPO = "local/outputs_scene"

@@ -19,9 +19,9 @@ from gensplat_lerobot.export import timestep_gaussians
 from gensplat_lerobot.scene_dataset import record_scene_dataset
 from gensplat_lerobot.training_preview import MIN_TILE_HEIGHT, open_dataset, write_lerobot_preview
 
+from gensplat_transforms.cache.builder import SceneEpisodes
 from gensplat_transforms.cli import main
 from gensplat_transforms.core.gaussians import Gaussians
-from gensplat_transforms.episodes import SceneEpisodes
 from gensplat_transforms.geometry import make_reconstructor
 
 REPO = "local/preview_scene"

@@ -7,9 +7,9 @@ import torch
 from safetensors.torch import save_file
 from tiny_model import TINY, tiny_model
 
-from gensplat_transforms.cache import GaussianCache
+from gensplat_transforms.cache.builder import SceneEpisodes
+from gensplat_transforms.cache.store import GaussianCache
 from gensplat_transforms.data.scenes import TabletopScene, default_cameras
-from gensplat_transforms.episodes import SceneEpisodes
 from gensplat_transforms.geometry import (
     RECONSTRUCTORS,
     GeometryReconstructor,
@@ -125,7 +125,7 @@ def test_geometry_cache_stores_depth_and_rebuilds_the_same_gaussians(tmp_path):
 def test_frames_missing_from_a_stacked_item_come_from_the_source_at_the_cache_size(tmp_path):
     """The geometry cache is at the model's size (40 -> 42 px): frames the transform reads from
     the source (dataset size) are resized to it like the item's own images."""
-    from gensplat_transforms.episodes import SceneDataset
+    from gensplat_transforms.cache.builder import SceneDataset
     from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 
     source = SceneEpisodes(num_episodes=1, num_frames=2, size=40)
@@ -148,8 +148,8 @@ def test_views_from_a_geometry_cache_keep_the_images_detail(tmp_path, render_in)
     from torch.utils.data import default_collate
 
     from gensplat_transforms.batched import render_batch
+    from gensplat_transforms.cache.builder import SceneDataset
     from gensplat_transforms.core.metrics import psnr, sharpness_ratio
-    from gensplat_transforms.episodes import SceneDataset
     from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform, render_view
 
     source = SceneEpisodes(num_episodes=1, num_frames=1, size=56)

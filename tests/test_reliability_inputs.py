@@ -10,10 +10,10 @@ from plyfile import PlyData
 from safetensors.torch import load_file, save_file
 from tiny_model import tiny_model
 
-from gensplat_transforms.cache import GaussianCache
+from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
+from gensplat_transforms.cache.store import GaussianCache
 from gensplat_transforms.cli import main
 from gensplat_transforms.core.gaussians import Gaussians
-from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
 from gensplat_transforms.geometry import RGBDReconstructor
 from gensplat_transforms.geometry.model import GenSplatModel
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform

@@ -9,10 +9,10 @@ import logging
 import pytest
 import torch
 
+from gensplat_transforms.cache.builder import PIVOT_TOLERANCE, SceneEpisodes, pivot_depth, scene_depth
 from gensplat_transforms.core.cameras import Cameras, look_at
 from gensplat_transforms.core.gaussians import Gaussians
 from gensplat_transforms.data.scenes import DEFAULT_VIEWS, WORKSPACE_CENTER
-from gensplat_transforms.episodes import PIVOT_TOLERANCE, SceneEpisodes, pivot_depth, scene_depth
 from gensplat_transforms.geometry import RGBDReconstructor
 from gensplat_transforms.perturbation import Perturbation, move_rig, rig_pivot
 from gensplat_transforms.settings import GenSplatConfig

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from gensplat_transforms.cache import GaussianCache
+from gensplat_transforms.cache.builder import SceneEpisodes, build_cache
+from gensplat_transforms.cache.store import GaussianCache
 from gensplat_transforms.core.cameras import FOCAL_MAX_PX, Cameras, look_at
-from gensplat_transforms.episodes import SceneEpisodes, build_cache
 from gensplat_transforms.geometry import RGBDReconstructor
 from gensplat_transforms.perturbation import (
     FOCAL_SCALE_LIMITS,

@@ -325,7 +325,7 @@ def test_lerobot_views_train_with_the_recorded_geometry(tmp_path, monkeypatch):
     from gensplat_lerobot import LeRobotViews
     from gensplat_lerobot.scene_dataset import record_scene_dataset
 
-    from gensplat_transforms.episodes import SceneEpisodes
+    from gensplat_transforms.cache.builder import SceneEpisodes
 
     record_scene_dataset(tmp_path / "ds", SceneEpisodes(num_episodes=1, num_frames=3, size=42), "local/t",
                          progress=False)  # fmt: skip
@@ -358,7 +358,7 @@ def test_cli_mixes_procedural_and_lerobot_data(tmp_path, monkeypatch):
     from gensplat_lerobot.scene_dataset import record_scene_dataset
 
     from gensplat_transforms import training as train_module
-    from gensplat_transforms.episodes import SceneEpisodes
+    from gensplat_transforms.cache.builder import SceneEpisodes
 
     record_scene_dataset(tmp_path / "ds", SceneEpisodes(num_episodes=1, num_frames=3, size=42), "local/t",
                          progress=False)  # fmt: skip

@@ -1,4 +1,4 @@
-"""A LeRobot dataset as an :class:`~gensplat_transforms.episodes.EpisodeSource`, and as training
+"""A LeRobot dataset as an :class:`~gensplat_transforms.cache.builder.EpisodeSource`, and as training
 samples of the GenSplat model (:class:`LeRobotViews`)."""
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ from pathlib import Path
 import torch
 from torch.utils.data import Dataset
 
-from gensplat_transforms.cache import DepthFiles
-from gensplat_transforms.cache_format import check_sidecars
+from gensplat_transforms.cache.format import check_sidecars
+from gensplat_transforms.cache.store import DepthFiles
 from gensplat_transforms.calibration.files import load_calibration
 from gensplat_transforms.core.atomic import atomic_write_json, read_json_object, stat_stamp
 from gensplat_transforms.core.cameras import Cameras
@@ -225,7 +225,7 @@ class LeRobotSource:
 
     def _check_sidecar(self, files: DepthFiles, episode: int) -> None:
         """ValueError naming the file when a depth sidecar's metadata names another camera,
-        episode or frame count (:func:`~gensplat_transforms.cache_format.check_sidecars`) or it
+        episode or frame count (:func:`~gensplat_transforms.cache.format.check_sidecars`) or it
         holds another number of frames than the episode has; checked again only when the file
         changes."""
         (path,) = files.paths

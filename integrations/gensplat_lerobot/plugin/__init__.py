@@ -8,7 +8,7 @@ import math
 import sys
 from dataclasses import replace
 
-from gensplat_transforms.cache import CacheError
+from gensplat_transforms.cache.store import CacheError
 from gensplat_transforms.core.counters import SampleCounters
 from gensplat_transforms.settings import GenSplatConfig
 from gensplat_transforms.view_output import render_size

@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import torch
 
-from .cache import CorruptCacheError, EpisodeSource, GaussianCache
-from .core.views import Reconstruction, nearest_pixels
+from ..core.views import Reconstruction, nearest_pixels
+from .store import CorruptCacheError, EpisodeSource, GaussianCache
 
 logger = logging.getLogger(__name__)
 
@@ -48,7 +48,7 @@ class CacheReader:
     Example:
         >>> import tempfile
         >>> from gensplat_transforms import RGBDReconstructor
-        >>> from gensplat_transforms.episodes import SceneEpisodes
+        >>> from gensplat_transforms.cache.builder import SceneEpisodes
         >>> source = SceneEpisodes(num_episodes=1, num_frames=3, size=16)
         >>> folder = tempfile.TemporaryDirectory()
         >>> reader = CacheReader(GaussianCache(folder.name, RGBDReconstructor(), source.fingerprint), source)

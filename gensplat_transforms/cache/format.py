@@ -21,13 +21,13 @@ from typing import Protocol
 import numpy as np
 import torch
 
+from ..core.cameras import Cameras
+from ..core.gaussians import Gaussians
+from ..core.tensor_file import FileChangedError, TensorFile
+from ..data.format import open_depth
+from ..geometry import Reconstruction, Reconstructor, Views
+from ..geometry.base import nearest_pixels
 from . import depth_codec
-from .core.cameras import Cameras
-from .core.gaussians import Gaussians
-from .core.tensor_file import FileChangedError, TensorFile
-from .data.format import open_depth
-from .geometry import Reconstruction, Reconstructor, Views
-from .geometry.base import nearest_pixels
 
 FORMAT = "gensplat-cache"
 FORMAT_VERSION = "2"

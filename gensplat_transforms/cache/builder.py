@@ -17,11 +17,11 @@ import torch
 from torch.utils.data import Dataset
 from tqdm.auto import tqdm
 
-from .cache import CacheStats, EpisodeSource, GaussianCache
-from .core.cameras import pivot_point
-from .data.scenes import TabletopScene, default_cameras
+from ..core.cameras import pivot_point
+from ..data.scenes import TabletopScene, default_cameras
+from ..geometry import Views
 from .distributed import Shard
-from .geometry import Views
+from .store import CacheStats, EpisodeSource, GaussianCache
 
 logger = logging.getLogger(__name__)
 

@@ -18,7 +18,7 @@ from datetime import timedelta
 import torch
 import torch.distributed as dist
 
-from .geometry import Reconstruction, Reconstructor, Views
+from ..geometry import Reconstruction, Reconstructor, Views
 
 #: How long :func:`gather` waits for the slowest process to finish its shard.
 GATHER_TIMEOUT = timedelta(hours=12)

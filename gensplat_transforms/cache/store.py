@@ -49,7 +49,10 @@ from typing import Protocol
 import torch
 from safetensors.torch import save
 
-from .cache_format import (
+from ..core.atomic import atomic_write, read_json_object, stat_stamp
+from ..core.cameras import Cameras
+from ..geometry import DepthReconstructor, Reconstruction, Reconstructor, Views
+from .format import (
     FORMAT,
     FORMAT_VERSION,
     CacheError,
@@ -68,9 +71,6 @@ from .cache_format import (
     quantize,
     tensor_crc,
 )
-from .core.atomic import atomic_write, read_json_object, stat_stamp
-from .core.cameras import Cameras
-from .geometry import DepthReconstructor, Reconstruction, Reconstructor, Views
 
 __all__ = ["CacheError", "CacheStats", "CorruptCacheError", "DepthFiles", "EpisodeSource", "GaussianCache",
            "StaleCacheError", "dequantize", "quantize", "size_text"]  # fmt: skip
@@ -147,7 +147,7 @@ class GaussianCache:
     Example: cache the procedural RGB-D episodes (a ``depth`` cache)
         >>> import tempfile
         >>> from gensplat_transforms import RGBDReconstructor
-        >>> from gensplat_transforms.episodes import SceneEpisodes
+        >>> from gensplat_transforms.cache.builder import SceneEpisodes
         >>> source = SceneEpisodes(num_episodes=1, num_frames=2, size=16)
         >>> folder = tempfile.TemporaryDirectory()
         >>> cache = GaussianCache(folder.name, RGBDReconstructor(), source.fingerprint)
