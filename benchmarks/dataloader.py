@@ -44,12 +44,12 @@ from torch.utils.data import DataLoader, RandomSampler
 from gensplat_transforms.cache.store import GaussianCache
 from gensplat_transforms.core.metrics import psnr
 from gensplat_transforms.geometry import Reconstructor, RGBDReconstructor
-from gensplat_transforms.perturbation import PerturbationSampler
 from gensplat_transforms.rendering import render
 from gensplat_transforms.sim.record import RecordConfig, record
 from gensplat_transforms.sim.truth import GroundTruth
 from gensplat_transforms.sim.world import WorldConfig
 from gensplat_transforms.transform import GenSplatConfig, render_view
+from gensplat_transforms.views.perturbation import PerturbationSampler
 
 REPO = "gensplat/bench_pick_place"
 

@@ -41,8 +41,8 @@ from gensplat_transforms.core.metrics import psnr
 from gensplat_transforms.data.registration import register_depth
 from gensplat_transforms.data.scenes import TabletopScene, default_cameras
 from gensplat_transforms.geometry import RGBDReconstructor, Views
-from gensplat_transforms.perturbation import PerturbationSampler
 from gensplat_transforms.transform import GenSplatConfig, render_depth, render_view
+from gensplat_transforms.views.perturbation import PerturbationSampler
 
 FIRST_SEED = 900_000
 WIDTH, HEIGHT = 640, 480

@@ -40,8 +40,8 @@ from gensplat_transforms.data.scenes import TabletopScene, default_cameras
 from gensplat_transforms.geometry import GeometryReconstructor, Views
 from gensplat_transforms.geometry.base import nearest_pixels
 from gensplat_transforms.geometry.feedforward import model_size
-from gensplat_transforms.perturbation import PerturbationSampler
 from gensplat_transforms.transform import GenSplatConfig, render_view
+from gensplat_transforms.views.perturbation import PerturbationSampler
 
 FIRST_SEED = 900_000
 SETTINGS = {(224, 224): (None, 25_000, 12_544, 8_000),

@@ -168,7 +168,6 @@ from gensplat_lerobot import prepare
 from plotting import Panel, line_panels
 
 from gensplat_transforms.core.atomic import atomic_write_json, read_json_object
-from gensplat_transforms.perturbation import KEY_LIMIT
 from gensplat_transforms.sim.evaluate import (
     FOV_RANGE,
     EvalConfig,
@@ -182,6 +181,7 @@ from gensplat_transforms.sim.tasks import TASKS
 from gensplat_transforms.sim.vista import SAMPLERS
 from gensplat_transforms.sim.world import CAMERA_NAMES, EXTERNAL_CAMERAS, STATE_NAMES, WorldConfig
 from gensplat_transforms.transform import GenSplatConfig
+from gensplat_transforms.views.perturbation import KEY_LIMIT
 
 LEVELS = ("none", "small", "medium", "large")
 #: The evaluation protocols and their levels (``PerturbedCameraEnv``'s ``protocol``).

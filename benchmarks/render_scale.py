@@ -49,11 +49,11 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from machine import cpu_model, write_result
 
 from gensplat_transforms.core.metrics import psnr, sharpness_ratio, ssim
-from gensplat_transforms.perturbation import AXES, Perturbation
 from gensplat_transforms.sim.record import RecordConfig, record
 from gensplat_transforms.sim.truth import GroundTruth
 from gensplat_transforms.sim.world import WorldConfig
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform, render_size
+from gensplat_transforms.views.perturbation import AXES, Perturbation
 
 REPO = "gensplat/sim_pick_place_heldout"
 HELDOUT_SEED = 1000  # as nvs_fidelity.py: training recordings use other seeds

@@ -55,12 +55,12 @@ from gensplat_transforms.core.metrics import psnr, ssim
 from gensplat_transforms.core.views import nearest_pixels
 from gensplat_transforms.data.format import load_depth, save_depth
 from gensplat_transforms.geometry import GeometryReconstructor, RGBDReconstructor, Views
-from gensplat_transforms.perturbation import EVAL_LEVELS, PerturbationSampler, pivot_point
 from gensplat_transforms.rendering import render
 from gensplat_transforms.sim.record import RecordConfig, record
 from gensplat_transforms.sim.sensor import SensorDepthConfig, sensor_depth
 from gensplat_transforms.sim.truth import GroundTruth
 from gensplat_transforms.sim.world import WorldConfig
+from gensplat_transforms.views.perturbation import EVAL_LEVELS, PerturbationSampler, pivot_point
 from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 
 REPO = "gensplat/sim_pick_place_heldout"

@@ -42,8 +42,8 @@ from gensplat_transforms.core.cameras import Cameras
 from gensplat_transforms.core.images import save_grid
 from gensplat_transforms.geometry.base import Views
 from gensplat_transforms.geometry.geometry import GeometryReconstructor
-from gensplat_transforms.perturbation import EVAL_LEVELS, PerturbationSampler, pivot_point
 from gensplat_transforms.transform import GenSplatConfig, render_view
+from gensplat_transforms.views.perturbation import EVAL_LEVELS, PerturbationSampler, pivot_point
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = REPO.parent / "shared" / "data" / "droid_sample"

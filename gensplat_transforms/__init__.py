@@ -33,9 +33,9 @@ from .geometry import (
     Views,
     make_reconstructor,
 )
-from .perturbation import LEVELS, Perturbation, PerturbationRange, PerturbationSampler, pivot_point
 from .rendering import RenderOutput, render
 from .transform import AugmentedDataset, GenSplatConfig, GenSplatTransform
+from .views.perturbation import LEVELS, Perturbation, PerturbationRange, PerturbationSampler, pivot_point
 
 __version__ = "0.1.0"
 

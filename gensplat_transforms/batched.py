@@ -29,8 +29,6 @@ from .core.views import Reconstruction, preferred_means, source_rays
 from .geometry import Reconstructor
 from .geometry.base import nearest_pixels
 from .geometry.rgbd import RGBDReconstructor, dense_discs, grid_pixel_ids, own_saturation
-from .perturbation import move_rig, scale_focal
-from .plan import BATCH_KEYS
 from .rendering import RenderOutput
 from .rendering.gsplat_backend import render_gsplat_batch
 from .view_output import (
@@ -44,6 +42,8 @@ from .view_output import (
     render_view,
     seen_depth,
 )
+from .views.perturbation import move_rig, scale_focal
+from .views.plan import BATCH_KEYS
 
 if TYPE_CHECKING:
     from .settings import GenSplatConfig

@@ -16,9 +16,9 @@ from .core.images import save_grid
 from .core.metrics import psnr
 from .data.format import GENSPLAT_DIR
 from .data.outputs import check_output
-from .perturbation import EVAL_LEVELS, PerturbationSampler
 from .preview import write_preview
 from .transform import GenSplatConfig, GenSplatTransform, render_view
+from .views.perturbation import EVAL_LEVELS, PerturbationSampler
 
 #: the simulated dataset's repo id, as ``gensplat record`` names it and ``policies/*.json`` use it
 REPO_ID = "gensplat/sim_pick_place"

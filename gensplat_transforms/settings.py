@@ -6,9 +6,9 @@ import argparse
 import math
 from dataclasses import asdict, dataclass, field, fields
 
-from .perturbation import SAMPLERS, PerturbationRange, _integer, make_sampler, sampler_kinds
 from .rendering import BACKENDS
 from .view_output import DEPTH_UNITS
+from .views.perturbation import SAMPLERS, PerturbationRange, _integer, make_sampler, sampler_kinds
 
 RENDER_IN = ("auto", "worker", "batch")
 #: ``GenSplatConfig.mode`` values

@@ -15,10 +15,10 @@ from .cache.reader import CacheReader
 from .cache.store import EpisodeSource, GaussianCache
 from .core.counters import SampleCounters
 from .data.format import DepthSensor
-from .perturbation import AXES, ROW
-from .plan import BATCH_KEYS, ViewPlan
 from .settings import GenSplatConfig
 from .view_output import as_cache_images, render_depth, render_size, render_view, render_views
+from .views.perturbation import AXES, ROW
+from .views.plan import BATCH_KEYS, ViewPlan
 
 __all__ = ["BATCH_KEYS", "AugmentedDataset", "GenSplatConfig", "GenSplatTransform", "ViewPlan", "render_depth",
            "render_size", "render_view"]  # fmt: skip

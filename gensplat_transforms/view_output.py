@@ -19,8 +19,8 @@ from .rendering import RenderOutput, render
 if TYPE_CHECKING:
     from .core.views import Reconstruction
     from .data.format import DepthSensor
-    from .perturbation import Perturbation
     from .settings import GenSplatConfig
+    from .views.perturbation import Perturbation
 
 #: ``GenSplatConfig.depth_unit`` values: metres per unit of the item's depth maps, or None
 DEPTH_UNITS = {None: None, "keep": None, "m": 1.0, "mm": 1e-3}

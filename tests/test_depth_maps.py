@@ -13,8 +13,8 @@ from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build
 from gensplat_transforms.cache.store import GaussianCache
 from gensplat_transforms.data.format import DepthSensor
 from gensplat_transforms.geometry import RGBDReconstructor
-from gensplat_transforms.perturbation import AXES, Perturbation
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
+from gensplat_transforms.views.perturbation import AXES, Perturbation
 
 LEFT, RIGHT = "observation.images.left", "observation.images.right"
 LEFT_DEPTH, RIGHT_DEPTH = LEFT + "_depth", RIGHT + "_depth"

@@ -143,7 +143,7 @@ def test_the_batch_path_shares_the_workers_helpers_instead_of_reaching_into_the_
                       for a in n.names}  # fmt: skip
     assert from_transform == {"GenSplatTransform"}
     assert imports(f"{PACKAGE}.batched", MODULES[f"{PACKAGE}.batched"], MODULES) >= {
-        f"{PACKAGE}.plan", f"{PACKAGE}.settings", f"{PACKAGE}.view_output", f"{PACKAGE}.perturbation"}
+        f"{PACKAGE}.views.plan", f"{PACKAGE}.settings", f"{PACKAGE}.view_output", f"{PACKAGE}.views.perturbation"}
 
 
 def test_no_module_name_is_used_twice_within_a_stage():

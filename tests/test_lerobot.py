@@ -35,8 +35,8 @@ from gensplat_transforms.cache.store import StaleCacheError
 from gensplat_transforms.core.metrics import psnr
 from gensplat_transforms.data.format import DEPTH_FORMAT, depth_path, load_depth, save_depth
 from gensplat_transforms.geometry.model import PATCH_SIZE
-from gensplat_transforms.perturbation import PerturbationRange
 from gensplat_transforms.transform import GenSplatConfig
+from gensplat_transforms.views.perturbation import PerturbationRange
 
 REPO = "local/gensplat_scene"
 SIM_REPO = "gensplat/sim_pick_place"

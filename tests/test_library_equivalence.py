@@ -22,8 +22,8 @@ from gensplat_transforms.core.metrics import ssim, ssim_map
 from gensplat_transforms.core.rotations import normalize_quat, quat_to_rotmat, rotmat_to_quat
 from gensplat_transforms.geometry.model.frames import quat_mul
 from gensplat_transforms.geometry.model.losses import LossWeights, rgb_loss
-from gensplat_transforms.perturbation import axis_rotation
 from gensplat_transforms.training import ema_model
+from gensplat_transforms.views.perturbation import axis_rotation
 
 DATA = Path(__file__).parent / "data"
 

@@ -19,8 +19,8 @@ from gensplat_transforms.geometry.model.losses import (
     points_loss,
     rgb_loss,
 )
-from gensplat_transforms.perturbation import axis_rotation
 from gensplat_transforms.rendering import render
+from gensplat_transforms.views.perturbation import axis_rotation
 
 
 def rig(b: int = 2, v: int = 3) -> torch.Tensor:

@@ -1,4 +1,4 @@
-"""Tests for gensplat_transforms.perturbation (the paper's pivot-and-push camera protocol)."""
+"""Tests for gensplat_transforms.views.perturbation (the paper's pivot-and-push camera protocol)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from gensplat_transforms.core.cameras import Cameras, look_at
-from gensplat_transforms.perturbation import (
+from gensplat_transforms.views.perturbation import (
     AXES,
     EVAL_LEVELS,
     LEVELS,

@@ -146,7 +146,7 @@ def test_bad_episode_or_frame_is_a_clear_error(cached, tmp_path, capsys, command
 def test_preview_labels_name_each_move_and_where_it_turns():
     from gensplat_lerobot.training_preview import _label
 
-    from gensplat_transforms.perturbation import Perturbation
+    from gensplat_transforms.views.perturbation import Perturbation
 
     moves = [Perturbation("x", 5.0, 0.02), Perturbation((0.0, 0.6, 0.8), -7.5, shift_m=(0.01, 0, 0), about="camera"),
              Perturbation("z", 30.0, focal_scale=1.2)]  # fmt: skip
@@ -161,7 +161,7 @@ def test_preview_labels_name_each_move_and_where_it_turns():
 def test_preview_labels_give_any_focal_change_in_three_digits(scale, text):
     from gensplat_lerobot.training_preview import _label
 
-    from gensplat_transforms.perturbation import Perturbation
+    from gensplat_transforms.views.perturbation import Perturbation
 
     item = {"gensplat.axis": torch.tensor([0]), "gensplat.move": torch.tensor([Perturbation(focal_scale=scale).as_row()],
                                                                                  dtype=torch.float64)}  # fmt: skip

@@ -6,7 +6,7 @@ import subprocess
 import sys
 
 import gensplat_transforms
-from gensplat_transforms import perturbation
+from gensplat_transforms.views import perturbation
 
 
 def test_every_public_name_has_a_docstring_example():

@@ -14,8 +14,8 @@ from gensplat_transforms.core.cameras import Cameras, look_at
 from gensplat_transforms.core.gaussians import Gaussians
 from gensplat_transforms.data.scenes import DEFAULT_VIEWS, WORKSPACE_CENTER
 from gensplat_transforms.geometry import RGBDReconstructor
-from gensplat_transforms.perturbation import Perturbation, move_rig, rig_pivot
 from gensplat_transforms.settings import GenSplatConfig
+from gensplat_transforms.views.perturbation import Perturbation, move_rig, rig_pivot
 
 F64 = torch.float64
 

@@ -25,7 +25,7 @@ from gensplat_transforms.calibration.files import load_calibration
 from gensplat_transforms.cli import main
 from gensplat_transforms.core.cameras import look_at
 from gensplat_transforms.data.format import calibration_path
-from gensplat_transforms.perturbation import pivot_point
+from gensplat_transforms.views.perturbation import pivot_point
 
 
 def _rig(f_a: float = 300.0, f_b: float = 340.0):

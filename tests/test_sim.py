@@ -16,7 +16,6 @@ mujoco = pytest.importorskip("mujoco", reason="the simulated world needs the 'si
 
 from gensplat_transforms.calibration.files import load_calibration
 from gensplat_transforms.data.format import load_depth
-from gensplat_transforms.perturbation import Perturbation, PerturbationSampler, pivot_point
 from gensplat_transforms.sim.evaluate import EvalConfig, PerturbedCameraEnv, evaluate, paired_difference
 from gensplat_transforms.sim.experts import ExpertPolicy, run_expert
 from gensplat_transforms.sim.record import RecordConfig, record
@@ -24,6 +23,7 @@ from gensplat_transforms.sim.scene import ObjectSpec
 from gensplat_transforms.sim.tasks import REACH_CLEARANCE, TASKS, Task, episode_seed
 from gensplat_transforms.sim.truth import GroundTruth, load_sim_episode
 from gensplat_transforms.sim.world import CAMERA_NAMES, SimWorld, WorldConfig
+from gensplat_transforms.views.perturbation import Perturbation, PerturbationSampler, pivot_point
 
 SIZE = 96
 

@@ -11,8 +11,8 @@ import pytest
 import torch
 
 from gensplat_transforms.core.cameras import look_at
-from gensplat_transforms.perturbation import PerturbationSampler
 from gensplat_transforms.sim.vista import ArcMove, SmallPerturb, VistaSampler
+from gensplat_transforms.views.perturbation import PerturbationSampler
 
 EYE, CENTRE = (
     (1.05, 0.40, 0.50),

@@ -45,7 +45,7 @@ import numpy as np
 import torch
 
 from ..data.format import IMAGE_KEY_PREFIX
-from ..perturbation import Perturbation, PerturbationSampler, pivot_point
+from ..views.perturbation import Perturbation, PerturbationSampler, pivot_point
 from .control import ACTION_HIGH, ACTION_LOW
 from .scene import mat_to_quat
 from .tasks import episode_seed

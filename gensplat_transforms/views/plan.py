@@ -17,7 +17,7 @@ import torch
 from .perturbation import Perturbation
 
 if TYPE_CHECKING:
-    from .settings import GenSplatConfig
+    from ..settings import GenSplatConfig
 
 #: item keys the transform adds with ``render_in="batch"`` and ``render_batch`` removes:
 #: ``gensplat.render`` () bool, the item is augmented; ``gensplat.depth`` (T, V, h, w) int16,

@@ -41,7 +41,7 @@ import numpy as np
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
-from .core.cameras import Cameras, _check_rigid, _closest, pivot_point, rigid_tolerance
+from ..core.cameras import Cameras, _check_rigid, _closest, pivot_point, rigid_tolerance
 
 #: world axes a move can turn about by name; the paper's levels use x and y (``PAPER_AXES``)
 AXES = ("x", "y", "z")
