@@ -29,7 +29,7 @@ from .core.views import Reconstruction, preferred_means, source_rays
 from .geometry import Reconstructor
 from .geometry.base import nearest_pixels
 from .geometry.rgbd import RGBDReconstructor, dense_discs, grid_pixel_ids, own_saturation
-from .rendering import RenderOutput
+from .rendering import RenderOutput, render_size
 from .rendering.gsplat_backend import render_gsplat_batch
 from .view_output import (
     as_cache_images,
@@ -38,7 +38,6 @@ from .view_output import (
     like_images,
     render_background,
     render_depth,
-    render_size,
     render_view,
     seen_depth,
 )

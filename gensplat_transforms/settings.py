@@ -71,7 +71,7 @@ class GenSplatConfig:
         report: add ``gensplat.*`` keys describing the perturbation to the item.
         render_scale: build and render the augmented views at this fraction of the item's
             image size, in (0, 1], then resize them to the image size (see
-            :func:`.view_output.render_size`): about scale^2 of the render's time, for about 1 dB PSNR
+            :func:`.rendering.render_size`): about scale^2 of the render's time, for about 1 dB PSNR
             per halving of the side, also at the size a policy shrinks the frames to
             (``benchmarks/render_scale.py``: 640x480 frames seen at 224x168, 27.6 dB at 1,
             26.4 at 0.5, 25.3 at 0.35). Render no smaller than the policy reads. Cached

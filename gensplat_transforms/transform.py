@@ -15,8 +15,9 @@ from .cache.reader import CacheReader
 from .cache.store import EpisodeSource, GaussianCache
 from .core.counters import SampleCounters
 from .data.format import DepthSensor
+from .rendering import render_size
 from .settings import GenSplatConfig
-from .view_output import as_cache_images, render_depth, render_size, render_view, render_views
+from .view_output import as_cache_images, render_depth, render_view, render_views
 from .views.perturbation import AXES, ROW
 from .views.plan import BATCH_KEYS, ViewPlan
 

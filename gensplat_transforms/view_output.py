@@ -106,17 +106,6 @@ def filled(out: RenderOutput, config: GenSplatConfig) -> RenderOutput:
     return out
 
 
-def render_size(width: int, height: int, scale: float) -> tuple[int, int]:
-    """(width, height) of the views rendered for ``width x height`` images at ``scale``
-    (``GenSplatConfig.render_scale``), at least one pixel each.
-
-    Example:
-        >>> render_size(640, 480, 0.35)
-        (224, 168)
-    """
-    return max(1, round(width * scale)), max(1, round(height * scale))
-
-
 def as_cache_images(images: torch.Tensor, height: int, width: int) -> torch.Tensor:
     """(N, 3, H, W) uint8 or float images as float in [0, 1] at ``height x width`` (what a depth
     cache rebuilds the Gaussians from)."""

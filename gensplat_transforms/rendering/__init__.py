@@ -1,4 +1,5 @@
-"""Rendering Gaussians into cameras: one entry point, :func:`render`, several backends."""
+"""Rendering Gaussians into cameras: one entry point, :func:`render`, several backends; and
+:func:`render_size`, the size the augmented views are rendered at."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ from .gsplat_backend import render_gsplat
 from .projection import DILATION, Projected, precondition, project
 from .reference import rasterize_reference
 
-__all__ = ["BACKENDS", "Projected", "RenderOutput", "auto_backend", "project", "render"]
+__all__ = ["BACKENDS", "Projected", "RenderOutput", "auto_backend", "project", "render", "render_size"]
 
 
 @dataclass
@@ -91,6 +92,17 @@ def _saturation(saturation: float | torch.Tensor, gaussians: Gaussians) -> float
     if not (math.isfinite(saturation) and saturation >= 1):
         raise ValueError(f"render: saturation must be a finite number >= 1, got {saturation}")
     return saturation if saturation != 1 else None
+
+
+def render_size(width: int, height: int, scale: float) -> tuple[int, int]:
+    """(width, height) of the views rendered for ``width x height`` images at ``scale``
+    (``GenSplatConfig.render_scale``), at least one pixel each.
+
+    Example:
+        >>> render_size(640, 480, 0.35)
+        (224, 168)
+    """
+    return max(1, round(width * scale)), max(1, round(height * scale))
 
 
 def render(

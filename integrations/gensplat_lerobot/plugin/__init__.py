@@ -10,8 +10,8 @@ from dataclasses import replace
 
 from gensplat_transforms.cache.store import CacheError
 from gensplat_transforms.core.counters import SampleCounters
+from gensplat_transforms.rendering import render_size
 from gensplat_transforms.settings import GenSplatConfig
-from gensplat_transforms.view_output import render_size
 
 from .. import batch_mode
 from ..dataset import enable_gensplat, load_settings
