@@ -44,7 +44,7 @@ from torch.utils.data import DataLoader, RandomSampler
 from gensplat_transforms.cache.store import GaussianCache
 from gensplat_transforms.core.metrics import psnr
 from gensplat_transforms.geometry import Reconstructor, RGBDReconstructor
-from gensplat_transforms.rendering import render
+from gensplat_transforms.render import render
 from gensplat_transforms.sim.record import RecordConfig, record
 from gensplat_transforms.sim.truth import GroundTruth
 from gensplat_transforms.sim.world import WorldConfig

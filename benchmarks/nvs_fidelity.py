@@ -92,8 +92,9 @@ from gensplat_transforms.geometry import (
     Views,
 )
 from gensplat_transforms.geometry.base import nearest_pixels
-from gensplat_transforms.holes import fill_holes
-from gensplat_transforms.rendering import RenderOutput, render
+from gensplat_transforms.render import RenderOutput, render
+from gensplat_transforms.render.holes import fill_holes
+from gensplat_transforms.render.warp import forward_warp
 from gensplat_transforms.sim.evaluate import FOV_RANGE
 from gensplat_transforms.sim.record import RecordConfig, record
 from gensplat_transforms.sim.sensor import SensorDepthConfig, sensor_depth
@@ -101,7 +102,6 @@ from gensplat_transforms.sim.truth import GroundTruth
 from gensplat_transforms.sim.world import WorldConfig
 from gensplat_transforms.transform import GenSplatConfig
 from gensplat_transforms.views.perturbation import EVAL_LEVELS, PerturbationSampler
-from gensplat_transforms.warp import forward_warp
 from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 
 REPO = "gensplat/sim_pick_place_heldout"

@@ -37,9 +37,9 @@ from nvs_fidelity import PLAIN, _mean, draw, heldout_dataset, sampled_frames, sa
 
 from gensplat_transforms.core.metrics import psnr
 from gensplat_transforms.geometry import RGBDReconstructor, Views
+from gensplat_transforms.render.warp import forward_warp
 from gensplat_transforms.sim.truth import GroundTruth
 from gensplat_transforms.views.perturbation import EVAL_LEVELS, PerturbationSampler
-from gensplat_transforms.warp import forward_warp
 
 RGBD = {"rgbd": {}, "rgbd_plain": PLAIN, "rgbd_left": {}, "rgbd_no_preference": {"view_preference": 0.0},
         "rgbd_no_soften": {"soften_noise": False},

@@ -55,7 +55,7 @@ from gensplat_transforms.core.metrics import psnr, ssim
 from gensplat_transforms.core.views import nearest_pixels
 from gensplat_transforms.data.format import load_depth, save_depth
 from gensplat_transforms.geometry import GeometryReconstructor, RGBDReconstructor, Views
-from gensplat_transforms.rendering import render
+from gensplat_transforms.render import render
 from gensplat_transforms.sim.record import RecordConfig, record
 from gensplat_transforms.sim.sensor import SensorDepthConfig, sensor_depth
 from gensplat_transforms.sim.truth import GroundTruth

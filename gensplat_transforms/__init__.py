@@ -21,7 +21,6 @@ Example: two calibrated RGB-D views of one timestep, seen from a camera moved at
     torch.Size([1, 3, 32, 32])
 """
 
-from .batched import render_batch
 from .cache.builder import build_cache
 from .cache.store import GaussianCache
 from .core.cameras import Cameras, look_at
@@ -33,7 +32,8 @@ from .geometry import (
     Views,
     make_reconstructor,
 )
-from .rendering import RenderOutput, render
+from .render import RenderOutput, render
+from .render.batched import render_batch
 from .transform import AugmentedDataset, GenSplatConfig, GenSplatTransform
 from .views.perturbation import LEVELS, Perturbation, PerturbationRange, PerturbationSampler, pivot_point
 

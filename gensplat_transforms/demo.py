@@ -16,7 +16,7 @@ from .core.images import save_grid
 from .core.metrics import psnr
 from .data.format import GENSPLAT_DIR
 from .data.outputs import check_output
-from .preview import write_preview
+from .render.preview import write_preview
 from .transform import GenSplatConfig, GenSplatTransform, render_view
 from .views.perturbation import EVAL_LEVELS, PerturbationSampler
 

@@ -6,8 +6,8 @@ import argparse
 import math
 from dataclasses import asdict, dataclass, field, fields
 
-from .rendering import BACKENDS
-from .view_output import DEPTH_UNITS
+from .render import BACKENDS
+from .render.output import DEPTH_UNITS
 from .views.perturbation import SAMPLERS, PerturbationRange, _integer, make_sampler, sampler_kinds
 
 RENDER_IN = ("auto", "worker", "batch")

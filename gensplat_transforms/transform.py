@@ -15,9 +15,9 @@ from .cache.reader import CacheReader
 from .cache.store import EpisodeSource, GaussianCache
 from .core.counters import SampleCounters
 from .data.format import DepthSensor
-from .rendering import render_size
+from .render import render_size
+from .render.output import as_cache_images, render_depth, render_view, render_views
 from .settings import GenSplatConfig
-from .view_output import as_cache_images, render_depth, render_view, render_views
 from .views.perturbation import AXES, ROW
 from .views.plan import BATCH_KEYS, ViewPlan
 

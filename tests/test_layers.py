@@ -138,12 +138,12 @@ def test_the_cycle_finder_finds_a_cycle():
 def test_the_batch_path_shares_the_workers_helpers_instead_of_reaching_into_the_transform():
     """batched.py takes the config, the plan's keys and the view helpers from the modules that
     hold them; from transform.py only the transform's type (for annotations)."""
-    tree = ast.parse(MODULES[f"{PACKAGE}.batched"].read_text())
+    tree = ast.parse(MODULES[f"{PACKAGE}.render.batched"].read_text())
     from_transform = {a.name for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module == "transform"
                       for a in n.names}  # fmt: skip
     assert from_transform == {"GenSplatTransform"}
-    assert imports(f"{PACKAGE}.batched", MODULES[f"{PACKAGE}.batched"], MODULES) >= {
-        f"{PACKAGE}.views.plan", f"{PACKAGE}.settings", f"{PACKAGE}.view_output", f"{PACKAGE}.views.perturbation"}
+    assert imports(f"{PACKAGE}.render.batched", MODULES[f"{PACKAGE}.render.batched"], MODULES) >= {
+        f"{PACKAGE}.views.plan", f"{PACKAGE}.settings", f"{PACKAGE}.render.output", f"{PACKAGE}.views.perturbation"}
 
 
 def test_no_module_name_is_used_twice_within_a_stage():

@@ -12,12 +12,12 @@ import pytest
 import torch
 from torch.utils.data import default_collate
 
-from gensplat_transforms.batched import render_batch
 from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache, scene_depth
 from gensplat_transforms.cache.store import GaussianCache
 from gensplat_transforms.core.cameras import look_at
 from gensplat_transforms.data.scenes import default_cameras
 from gensplat_transforms.geometry import RGBDReconstructor, Views
+from gensplat_transforms.render.batched import render_batch
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 from gensplat_transforms.views.perturbation import Perturbation, move_rig, rig_pivot
 

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import torch
 
-from .core.atomic import atomic_write
-from .core.images import save_grid, to_uint8
+from ..core.atomic import atomic_write
+from ..core.images import save_grid, to_uint8
 
 
 def as_frame(image: torch.Tensor) -> torch.Tensor:

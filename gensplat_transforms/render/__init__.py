@@ -1,5 +1,19 @@
-"""Rendering Gaussians into cameras: one entry point, :func:`render`, several backends; and
-:func:`render_size`, the size the augmented views are rendered at."""
+"""The render stage: Gaussians into cameras, and the rendered views into an item's images.
+
+Here: :func:`render`, one entry point for several backends (:mod:`.reference`, differentiable
+PyTorch over :mod:`.projection`; :mod:`.fast`, the compiled CPU renderer; :mod:`.gsplat_backend`),
+and :func:`render_size`, the size the augmented views are rendered at. Beside it:
+:mod:`.output` (``render_views``: the worker path's views of an item, holes filled with
+:mod:`.holes`, resized and typed like the item's images and depth maps), :mod:`.batched`
+(``render_batch``: a whole collated batch at once, ``render_in="batch"``), :mod:`.warp`
+(forward warping, the baseline of the fidelity benchmarks) and :mod:`.preview` (preview
+images). Imports the stages below it; the transform's settings only as a type.
+
+The package's name is also that of the function: ``gensplat_transforms.render`` (the
+attribute) is :func:`render`. Import the stage's modules with ``from gensplat_transforms.render
+import fast`` or ``from gensplat_transforms.render.fast import ...``, not
+``import gensplat_transforms.render.fast as fast``.
+"""
 
 from __future__ import annotations
 

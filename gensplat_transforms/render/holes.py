@@ -9,7 +9,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .core.jit import _jit
+from ..core.jit import _jit
 
 _EPS = 1e-6
 

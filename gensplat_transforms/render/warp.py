@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import torch
 
-from .core.cameras import Cameras
-from .geometry.base import valid_depth
+from ..core.cameras import Cameras
+from ..geometry.base import valid_depth
 
 
 def forward_warp(

@@ -11,16 +11,16 @@ from typing import TYPE_CHECKING
 import torch
 import torch.nn.functional as F
 
-from .core.cameras import Cameras
-from .core.views import nearest_pixels
+from ..core.cameras import Cameras
+from ..core.views import nearest_pixels
+from . import RenderOutput, render
 from .holes import fill_holes
-from .rendering import RenderOutput, render
 
 if TYPE_CHECKING:
-    from .core.views import Reconstruction
-    from .data.format import DepthSensor
-    from .settings import GenSplatConfig
-    from .views.perturbation import Perturbation
+    from ..core.views import Reconstruction
+    from ..data.format import DepthSensor
+    from ..settings import GenSplatConfig
+    from ..views.perturbation import Perturbation
 
 #: ``GenSplatConfig.depth_unit`` values: metres per unit of the item's depth maps, or None
 DEPTH_UNITS = {None: None, "keep": None, "m": 1.0, "mm": 1e-3}

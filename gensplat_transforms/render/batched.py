@@ -21,17 +21,19 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from .cache.depth_codec import depth_from_words
-from .core.cameras import Cameras
-from .core.gaussians import Gaussians
-from .core.sh import num_sh_bases
-from .core.views import Reconstruction, preferred_means, source_rays
-from .geometry import Reconstructor
-from .geometry.base import nearest_pixels
-from .geometry.rgbd import RGBDReconstructor, dense_discs, grid_pixel_ids, own_saturation
-from .rendering import RenderOutput, render_size
-from .rendering.gsplat_backend import render_gsplat_batch
-from .view_output import (
+from ..cache.depth_codec import depth_from_words
+from ..core.cameras import Cameras
+from ..core.gaussians import Gaussians
+from ..core.sh import num_sh_bases
+from ..core.views import Reconstruction, preferred_means, source_rays
+from ..geometry import Reconstructor
+from ..geometry.base import nearest_pixels
+from ..geometry.rgbd import RGBDReconstructor, dense_discs, grid_pixel_ids, own_saturation
+from ..views.perturbation import move_rig, scale_focal
+from ..views.plan import BATCH_KEYS
+from . import RenderOutput, render_size
+from .gsplat_backend import render_gsplat_batch
+from .output import (
     as_cache_images,
     filled,
     like_depth,
@@ -41,12 +43,10 @@ from .view_output import (
     render_view,
     seen_depth,
 )
-from .views.perturbation import move_rig, scale_focal
-from .views.plan import BATCH_KEYS
 
 if TYPE_CHECKING:
-    from .settings import GenSplatConfig
-    from .transform import GenSplatTransform
+    from ..settings import GenSplatConfig
+    from ..transform import GenSplatTransform
 
 
 def disc_builder(reconstructor: Reconstructor) -> RGBDReconstructor:
