@@ -79,6 +79,11 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from gensplat_lerobot import LeRobotSource
+from gensplat_sim.evaluate import FOV_RANGE
+from gensplat_sim.record import RecordConfig, record
+from gensplat_sim.sensor import SensorDepthConfig, sensor_depth
+from gensplat_sim.truth import GroundTruth
+from gensplat_sim.world import WorldConfig
 from plotting import Panel, line_panels
 from policy_robustness import SAMPLER_ARMS
 
@@ -95,11 +100,6 @@ from gensplat_transforms.geometry.base import nearest_pixels
 from gensplat_transforms.render import RenderOutput, render
 from gensplat_transforms.render.holes import fill_holes
 from gensplat_transforms.render.warp import forward_warp
-from gensplat_transforms.sim.evaluate import FOV_RANGE
-from gensplat_transforms.sim.record import RecordConfig, record
-from gensplat_transforms.sim.sensor import SensorDepthConfig, sensor_depth
-from gensplat_transforms.sim.truth import GroundTruth
-from gensplat_transforms.sim.world import WorldConfig
 from gensplat_transforms.transform import GenSplatConfig
 from gensplat_transforms.views.perturbation import EVAL_LEVELS, PerturbationSampler
 from gensplat_transforms.weights import DEFAULT_MODEL_DIR

@@ -45,13 +45,13 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as in render_speed.py
 import torch
 import torch.nn.functional as F
 from gensplat_lerobot import enable_gensplat, prepare, video_backend
+from gensplat_sim.record import RecordConfig, record
+from gensplat_sim.truth import GroundTruth
+from gensplat_sim.world import WorldConfig
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from machine import cpu_model, write_result
 
 from gensplat_transforms.core.metrics import psnr, sharpness_ratio, ssim
-from gensplat_transforms.sim.record import RecordConfig, record
-from gensplat_transforms.sim.truth import GroundTruth
-from gensplat_transforms.sim.world import WorldConfig
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform, render_size
 from gensplat_transforms.views.perturbation import AXES, Perturbation
 

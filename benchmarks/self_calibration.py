@@ -47,6 +47,10 @@ import numpy as np
 import torch
 from gensplat_lerobot import LeRobotSource
 from gensplat_lerobot.estimate import estimate_calibration
+from gensplat_sim.record import RecordConfig, record
+from gensplat_sim.sensor import SensorDepthConfig, sensor_depth
+from gensplat_sim.truth import GroundTruth
+from gensplat_sim.world import WorldConfig
 from machine import cpu_model, write_result
 
 from gensplat_transforms.calibration.estimate import rotation_angle_deg
@@ -56,10 +60,6 @@ from gensplat_transforms.core.views import nearest_pixels
 from gensplat_transforms.data.format import load_depth, save_depth
 from gensplat_transforms.geometry import GeometryReconstructor, RGBDReconstructor, Views
 from gensplat_transforms.render import render
-from gensplat_transforms.sim.record import RecordConfig, record
-from gensplat_transforms.sim.sensor import SensorDepthConfig, sensor_depth
-from gensplat_transforms.sim.truth import GroundTruth
-from gensplat_transforms.sim.world import WorldConfig
 from gensplat_transforms.views.perturbation import EVAL_LEVELS, PerturbationSampler, pivot_point
 from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 

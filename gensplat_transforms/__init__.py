@@ -7,7 +7,7 @@ Gaussians out: :class:`RGBDReconstructor`, :class:`GeometryReconstructor`,
 :class:`GenSplatReconstructor`, :func:`make_reconstructor`), :func:`render`, the cache
 (:class:`GaussianCache`, :func:`build_cache`) and the online transform
 (:class:`GenSplatTransform`, :class:`GenSplatConfig`, :class:`AugmentedDataset`, and
-:func:`render_batch` for ``render_in="batch"``). The simulator (``gensplat_transforms.sim``)
+:func:`render_batch` for ``render_in="batch"``). The simulator (``gensplat_sim``)
 and LeRobot (``gensplat_lerobot``) are imported only where used.
 
 Example: two calibrated RGB-D views of one timestep, seen from a camera moved at "large":

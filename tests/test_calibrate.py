@@ -9,10 +9,10 @@ from pathlib import Path
 import pytest
 import torch
 import yaml
+from gensplat_cli import main
 from kornia.geometry.conversions import rotation_matrix_to_axis_angle
 
 from gensplat_transforms.calibration.files import calibrate, load_calibration
-from gensplat_transforms.cli import main
 from gensplat_transforms.core.cameras import opencv_to_opengl
 from gensplat_transforms.data.format import calibration_path
 from gensplat_transforms.data.scenes import default_cameras

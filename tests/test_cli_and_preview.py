@@ -7,11 +7,11 @@ import os
 import subprocess
 from pathlib import Path
 
+from gensplat_cli import build_parser, main
 from PIL import Image
 
 from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
 from gensplat_transforms.cache.store import GaussianCache
-from gensplat_transforms.cli import build_parser, main
 from gensplat_transforms.geometry import RGBDReconstructor
 from gensplat_transforms.render.preview import write_preview
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform

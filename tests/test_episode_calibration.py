@@ -11,10 +11,10 @@ from pathlib import Path
 import pytest
 import torch
 import yaml
+from gensplat_cli import main
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
 from gensplat_transforms.calibration.files import calibrate, load_calibration, xyz_rpy_pose
-from gensplat_transforms.cli import main
 from gensplat_transforms.data.format import calibration_path
 
 pytest.importorskip("lerobot", reason="the LeRobot extra is not installed")

@@ -149,9 +149,8 @@ def one_camera_dataset(tmp_path_factory):
 
 
 def test_cache_preview_and_lerobot_train_with_one_camera(one_camera_dataset, tmp_path, capsys):
+    from gensplat_cli import main
     from test_lerobot import train_diffusion
-
-    from gensplat_transforms.cli import main
 
     root = one_camera_dataset
     assert main(["cache", "--root", str(root), "--repo-id", REPO, "--probability", "1"]) == 0

@@ -11,13 +11,13 @@ import pytest
 pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
 os.environ["HF_HUB_OFFLINE"] = "1"
 
+import gensplat_sim.record as sim_record
+from gensplat_cli import main
 from gensplat_lerobot.scene_dataset import record_scene_dataset
+from gensplat_sim.world import WorldConfig
 
-import gensplat_transforms.sim.record as sim_record
 from gensplat_transforms.cache.builder import SceneEpisodes
-from gensplat_transforms.cli import main
 from gensplat_transforms.core.gaussians import Gaussians
-from gensplat_transforms.sim.world import WorldConfig
 
 REPO = "local/outputs_scene"
 

@@ -6,10 +6,9 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+import gensplat_sim  # noqa: F401  (selects the headless GL backend before MuJoCo loads)
 import numpy as np
 import pytest
-
-import gensplat_transforms.sim  # noqa: F401  (selects the headless GL backend before MuJoCo loads)
 
 pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
 pytest.importorskip("mujoco", reason="the study needs the 'sim' extra (mujoco)")

@@ -13,6 +13,7 @@ pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip i
 os.environ["HF_HUB_OFFLINE"] = "1"
 
 import av
+from gensplat_cli import main
 from gensplat_lerobot import LeRobotSource, enable_gensplat, load_settings, save_settings
 from gensplat_lerobot.dataset import dataset_cache
 from gensplat_lerobot.export import timestep_gaussians
@@ -20,7 +21,6 @@ from gensplat_lerobot.scene_dataset import record_scene_dataset
 from gensplat_lerobot.training_preview import MIN_TILE_HEIGHT, open_dataset, write_lerobot_preview
 
 from gensplat_transforms.cache.builder import SceneEpisodes
-from gensplat_transforms.cli import main
 from gensplat_transforms.core.gaussians import Gaussians
 from gensplat_transforms.geometry import make_reconstructor
 

@@ -22,5 +22,5 @@ def test_importing_the_package_loads_neither_the_simulator_nor_lerobot():
     code = "import sys, json, gensplat_transforms; print(json.dumps(sorted(sys.modules)))"
     loaded = json.loads(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                                        check=True).stdout)  # fmt: skip
-    heavy = ("gensplat_transforms.sim", "gensplat_transforms.demo", "gensplat_lerobot", "lerobot", "mujoco")
+    heavy = ("gensplat_sim", "gensplat_cli", "gensplat_lerobot", "lerobot", "mujoco")
     assert not [m for m in loaded if m.startswith(heavy)]

@@ -12,10 +12,10 @@ import pytest
 pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
 os.environ["HF_HUB_OFFLINE"] = "1"
 
+from gensplat_cli import main
 from gensplat_lerobot.scene_dataset import record_scene_dataset
 
 from gensplat_transforms.cache.builder import SceneEpisodes
-from gensplat_transforms.cli import main
 from gensplat_transforms.data.format import depth_path
 
 REPO = "local/reliability"

@@ -6,13 +6,13 @@ import shutil
 
 import pytest
 import torch
+from gensplat_cli import main
 from plyfile import PlyData
 from safetensors.torch import load_file, save_file
 from tiny_model import tiny_model
 
 from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
 from gensplat_transforms.cache.store import GaussianCache
-from gensplat_transforms.cli import main
 from gensplat_transforms.core.gaussians import Gaussians
 from gensplat_transforms.geometry import RGBDReconstructor
 from gensplat_transforms.geometry.model import GenSplatModel

@@ -100,9 +100,8 @@ def test_a_pivot_depth_puts_the_pivot_of_any_rig_on_camera_0s_axis_in_both_paths
 
 def test_gensplat_cache_stores_the_pivot_on_camera_0s_axis_for_a_rig_whose_axes_do_not_cross(tmp_path, caplog, capsys):
     pytest.importorskip("lerobot", reason="the LeRobot commands need the lerobot extra")
+    from gensplat_cli import main
     from gensplat_lerobot.scene_dataset import record_scene_dataset
-
-    from gensplat_transforms.cli import main
 
     root, repo = tmp_path / "ds", "local/parallel_rig"
     source = beside_left(-0.1, toe_in_m=0.003)

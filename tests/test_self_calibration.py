@@ -10,6 +10,7 @@ import shutil
 import numpy as np
 import pytest
 import torch
+from gensplat_cli import main
 
 from gensplat_transforms.calibration.estimate import (
     Matches,
@@ -22,7 +23,6 @@ from gensplat_transforms.calibration.estimate import (
     rotation_angle_deg,
 )
 from gensplat_transforms.calibration.files import load_calibration
-from gensplat_transforms.cli import main
 from gensplat_transforms.core.cameras import look_at
 from gensplat_transforms.data.format import calibration_path
 from gensplat_transforms.views.perturbation import pivot_point
@@ -297,11 +297,11 @@ def _strip_calibration(root) -> None:
 @pytest.fixture(scope="module")
 def simulated(tmp_path_factory):
     """A 320x240 MP4 recording of the simulated tabletop (with calibration and depth sidecars)."""
-    import gensplat_transforms.sim  # noqa: F401  selects MuJoCo's headless backend before mujoco loads
+    import gensplat_sim  # noqa: F401  selects MuJoCo's headless backend before mujoco loads
 
     pytest.importorskip("mujoco", reason="the simulated world needs the 'sim' extra")
-    from gensplat_transforms.sim.record import RecordConfig, record
-    from gensplat_transforms.sim.world import WorldConfig
+    from gensplat_sim.record import RecordConfig, record
+    from gensplat_sim.world import WorldConfig
 
     root = tmp_path_factory.mktemp("selfcal") / "calibrated"
     record(RecordConfig(root, episodes=2, seed=5, max_frames=30, world=WorldConfig(height=240, width=320)),
@@ -487,15 +487,15 @@ def moving(tmp_path_factory):
     """A 320x240 recording of two episodes between which both external cameras moved (two
     recordings without calibration, joined by LeRobot's ``aggregate_datasets``, their depth
     sidecars copied), and the two recordings' calibrations."""
-    import gensplat_transforms.sim  # noqa: F401  selects MuJoCo's headless backend before mujoco loads
+    import gensplat_sim  # noqa: F401  selects MuJoCo's headless backend before mujoco loads
 
     pytest.importorskip("mujoco", reason="the simulated world needs the 'sim' extra")
+    from gensplat_sim.record import RecordConfig, record
+    from gensplat_sim.scene import CameraSpec, SceneConfig
+    from gensplat_sim.world import WorldConfig
     from lerobot.datasets.aggregate import aggregate_datasets
 
     from gensplat_transforms.data.format import load_depth, save_depth
-    from gensplat_transforms.sim.record import RecordConfig, record
-    from gensplat_transforms.sim.scene import CameraSpec, SceneConfig
-    from gensplat_transforms.sim.world import WorldConfig
 
     base = tmp_path_factory.mktemp("moving")
     moved = SceneConfig(external={"left": CameraSpec((1.00, 0.48, 0.55), (0.45, 0.02, 0.12)),

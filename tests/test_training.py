@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 import torch
+from gensplat_cli import main as cli_main
 from safetensors.torch import save_file
 from tiny_model import TINY
 
-from gensplat_transforms.cli import main as cli_main
 from gensplat_transforms.data.scenes import WORKSPACE_CENTER
 from gensplat_transforms.geometry import GenSplatReconstructor, Views
 from gensplat_transforms.geometry.model import GenSplatModel, ModelConfig

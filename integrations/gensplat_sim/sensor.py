@@ -47,7 +47,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from ..geometry.base import valid_depth
+from gensplat_transforms.geometry.base import valid_depth
 
 #: Rec. 709 luma weights of the colour image (a proxy for the IR reflectance).
 _LUMA = (0.2126, 0.7152, 0.0722)

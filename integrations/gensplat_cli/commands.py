@@ -51,13 +51,13 @@ def build_parser() -> argparse.ArgumentParser:
         "cache", help="write GenSplat settings beside a LeRobot dataset and build its Gaussian cache",
         description="Write GenSplat settings beside a LeRobot dataset and build its Gaussian cache. Runs as one "
                     "process, or as one of several started by torchrun or SLURM's srun, which then share the "
-                    "episodes (e.g. torchrun --nproc-per-node 8 -m gensplat_transforms.cli cache ...; see "
+                    "episodes (e.g. torchrun --nproc-per-node 8 -m gensplat_cli cache ...; see "
                     "docs/cache_at_scale.md). Resumable: valid episodes are skipped.",
     )  # fmt: skip
     _dataset_arguments(cache)
     cache.add_argument("--cameras", nargs="+", default=None,
                        help="external cameras to reconstruct (default: those with depth, else every external camera)")
-    from .settings import add_config_arguments
+    from gensplat_transforms.settings import add_config_arguments
 
     add_config_arguments(cache)  # the transform's settings: one flag per GenSplatConfig field that has one
     cache.add_argument("--episodes", type=int, nargs="+", default=None, help="only these episodes (default: all)")
@@ -267,17 +267,21 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
 
+#: the project's own packages: their errors are the user's to fix (:func:`_user_error`)
+_OWN_PACKAGES = ("gensplat_transforms", "gensplat_lerobot", "gensplat_sim", "gensplat_cli")
+
+
 def _user_error(e: Exception) -> bool:
     """A FileNotFoundError, ValueError or StaleCacheError raised by this project's own code
-    (gensplat_transforms, gensplat_lerobot), whose messages say what to do."""
-    from .cache.store import StaleCacheError
+    (gensplat_transforms, gensplat_lerobot, gensplat_sim, gensplat_cli), whose messages say what to do."""
+    from gensplat_transforms.cache.store import StaleCacheError
 
     if not isinstance(e, (FileNotFoundError, ValueError, StaleCacheError)):
         return False
     tb = e.__traceback__
     while tb.tb_next is not None:
         tb = tb.tb_next
-    return tb.tb_frame.f_globals.get("__name__", "").split(".")[0] in ("gensplat_transforms", "gensplat_lerobot")
+    return tb.tb_frame.f_globals.get("__name__", "").split(".")[0] in _OWN_PACKAGES
 
 
 #: the options each way of ``gensplat calibrate`` reads; one it does not read is refused, not ignored
@@ -307,22 +311,22 @@ def _dispatch(args) -> int:
     if args.command == "calibrate":
         _check_calibrate_options(args)
     if args.command == "record":
-        from .sim.record import record_from_cli
+        from gensplat_sim.record import record_from_cli
 
         root, repo_id = record_from_cli(args).root, f"gensplat/sim_{args.task}"
         print(f"repo id {repo_id}, dataset root {root}; next: gensplat cache --root {root} --repo-id {repo_id}")
     elif args.command == "calibrate" and args.estimate:
         _estimate(args)
     elif args.command == "calibrate" and args.from_features:
-        from .calibration.files import calibrate_from_features
-        from .data.format import calibration_path
+        from gensplat_transforms.calibration.files import calibrate_from_features
+        from gensplat_transforms.data.format import calibration_path
 
         cameras = calibrate_from_features(args.root, args.intrinsics, args.fov, args.focal, args.cameras)
         print(f"calibrated {', '.join(f'{n} ({len(c.episodes)} episodes)' for n, c in cameras.items())} from the "
               f"camera_extrinsics features; written to {calibration_path(args.root)} (the dataset is not modified)")  # fmt: skip
     elif args.command == "calibrate":
-        from .calibration.files import calibrate
-        from .data.format import calibration_path
+        from gensplat_transforms.calibration.files import calibrate
+        from gensplat_transforms.data.format import calibration_path
 
         cameras = calibrate(args.root, args.source, args.convention)
         print(f"calibrated {', '.join(f'{n} ({c.mount})' for n, c in cameras.items())} from {args.source}; "
@@ -330,7 +334,7 @@ def _dispatch(args) -> int:
     elif args.command == "import-depth":
         _import_depth(args)
     elif args.command == "demo":
-        from .demo import run_demo
+        from gensplat_sim.demo import run_demo
 
         run_demo(args.out, episodes=args.episodes, size=args.size, seed=args.seed, backend=args.backend)
     elif args.command == "cache":
@@ -350,11 +354,11 @@ def _cache(args) -> None:
         from gensplat_lerobot.dataset import check_cameras, content_path, default_reconstructor
     except ImportError as e:
         raise SystemExit(f"gensplat cache needs the LeRobot extra: pip install 'gensplat-transforms[lerobot]' ({e})")
-    from .cache.distributed import Shard, gather
-    from .cache.store import size_text
-    from .core.atomic import read_json_object
-    from .data.format import GENSPLAT_DIR, depth_path
-    from .settings import config_from_arguments
+    from gensplat_transforms.cache.distributed import Shard, gather
+    from gensplat_transforms.cache.store import size_text
+    from gensplat_transforms.core.atomic import read_json_object
+    from gensplat_transforms.data.format import GENSPLAT_DIR, depth_path
+    from gensplat_transforms.settings import config_from_arguments
 
     check_cameras(args.root, args.cameras or ())
     source = LeRobotSource(args.root, args.repo_id, tuple(args.cameras) if args.cameras else None)
@@ -400,7 +404,7 @@ def _cache(args) -> None:
     spec = load_settings(args.root)[1]
     licence = read_json_object(content_path(args.root)).get("weights_licence")  # as prepare recorded it
     if licence is not None:
-        from .weights import DEFAULT_MODEL_DIR
+        from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 
         print(f"model weights {spec.get('model') or DEFAULT_MODEL_DIR}: licence {licence}")
     sensed = [n for n in cameras if n in source.depth_features and not depth_path(args.root, n, 0).exists()]
@@ -413,12 +417,12 @@ def _cache(args) -> None:
 def _train_model(args) -> None:
     from torch.utils.data import ConcatDataset
 
-    from .data.outputs import check_output
-    from .geometry.model import ModelConfig
-    from .geometry.model.data import ProceduralViews
-    from .geometry.model.losses import LossWeights
-    from .geometry.model.teacher import Pi3Teacher, TrueGeometryTeacher
-    from .training import LOG_FILE, TrainConfig, train
+    from gensplat_transforms.data.outputs import check_output
+    from gensplat_transforms.geometry.model import ModelConfig
+    from gensplat_transforms.geometry.model.data import ProceduralViews
+    from gensplat_transforms.geometry.model.losses import LossWeights
+    from gensplat_transforms.geometry.model.teacher import Pi3Teacher, TrueGeometryTeacher
+    from gensplat_transforms.training import LOG_FILE, TrainConfig, train
 
     check_output(args.out, args.root, folder=True)  # against the dataset of --data lerobot
     check_output(Path(args.out) / LOG_FILE, args.root)  # appended to; the other files are replaced atomically
@@ -475,7 +479,7 @@ def _preview(args) -> None:
 
 
 def _estimate(args) -> None:
-    from .data.format import calibration_path
+    from gensplat_transforms.data.format import calibration_path
 
     estimate = _lerobot_module("estimate", "calibrate --estimate")
     repo_id = args.repo_id or f"local/{Path(args.root).name}"
@@ -490,7 +494,7 @@ def _estimate(args) -> None:
 
 def _model_source(model: str | None) -> str | None:
     """``--model``'s checkpoint: "shipped" is the shipped small model's directory."""
-    from .weights import DEFAULT_MODEL_DIR
+    from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 
     return str(DEFAULT_MODEL_DIR) if model == "shipped" else model
 

@@ -44,8 +44,9 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from ..data.format import IMAGE_KEY_PREFIX
-from ..views.perturbation import Perturbation, PerturbationSampler, pivot_point
+from gensplat_transforms.data.format import IMAGE_KEY_PREFIX
+from gensplat_transforms.views.perturbation import Perturbation, PerturbationSampler, pivot_point
+
 from .control import ACTION_HIGH, ACTION_LOW
 from .scene import mat_to_quat
 from .tasks import episode_seed

@@ -2,7 +2,7 @@
 rendering (RGB, metric depth, segmentation) at the dataset cameras or at any pose.
 
 ``MUJOCO_GL`` must name a headless backend before MuJoCo is imported; importing
-:mod:`gensplat_transforms.sim` sets it to ``egl`` (Mesa llvmpipe on a CPU) unless it is set.
+:mod:`gensplat_sim` sets it to ``egl`` (Mesa llvmpipe on a CPU) unless it is set.
 
 Example:
     >>> world = SimWorld("pick_place")
@@ -20,7 +20,8 @@ import mujoco
 import numpy as np
 import torch
 
-from ..core.cameras import Cameras
+from gensplat_transforms.core.cameras import Cameras
+
 from .control import ArmController, yaw_of
 from .render import OffscreenRenderer
 from .scene import HOME_QPOS, CameraSpec, SceneConfig, build_model

@@ -4,8 +4,10 @@ recording, ground truth at any camera pose and a perturbed-camera evaluation env
 Modules: :mod:`.world` (``SimWorld``: physics, control, rendering), :mod:`.tasks` and
 :mod:`.experts` (``pick_place``, ``stack``), :mod:`.record` (LeRobot datasets,
 ``gensplat record``), :mod:`.truth` (``GroundTruth``), :mod:`.evaluate`
-(``PerturbedCameraEnv``, ``evaluate``). Calibration and depth follow
-:mod:`gensplat_transforms.data.format`.
+(``PerturbedCameraEnv``, ``evaluate``); :mod:`.demo` (``gensplat demo``: record, cache,
+augment and score against the simulator's ground truth). Calibration and depth follow
+:mod:`gensplat_transforms.data.format`. A layer above ``gensplat_transforms`` and
+``gensplat_lerobot``; below ``gensplat_cli``.
 
 Needs the ``sim`` extra (``pip install 'gensplat-transforms[sim]'``). Importing this package
 selects MuJoCo's headless EGL backend (``MUJOCO_GL=egl``, Mesa llvmpipe on a CPU) unless

@@ -27,8 +27,9 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from ..data.format import IMAGE_KEY_PREFIX, camera_info, save_depth
-from ..data.outputs import new_folder
+from gensplat_transforms.data.format import IMAGE_KEY_PREFIX, camera_info, save_depth
+from gensplat_transforms.data.outputs import new_folder
+
 from .control import ACTION_NAMES
 from .experts import ExpertConfig, run_expert
 from .sensor import SensorDepthConfig, sensor_depth

@@ -30,8 +30,9 @@ import torch
 from safetensors import safe_open
 from safetensors.numpy import save_file
 
-from ..core.atomic import atomic_write, atomic_write_json
-from ..core.cameras import Cameras
+from gensplat_transforms.core.atomic import atomic_write, atomic_write_json
+from gensplat_transforms.core.cameras import Cameras
+
 from .sensor import SensorDepthConfig
 from .tasks import EpisodeSpec
 from .world import CAMERA_NAMES, SimState, SimWorld, WorldConfig

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
-from ..core.cameras import look_at
+from gensplat_transforms.core.cameras import look_at
 
 #: The samplers, in the order that salts their seeds.
 SAMPLERS = ("small_perturb", "arc_90deg")

@@ -10,15 +10,15 @@ from pathlib import Path
 
 import torch
 
-from .cache.store import size_text
-from .core.atomic import atomic_write_json
-from .core.images import save_grid
-from .core.metrics import psnr
-from .data.format import GENSPLAT_DIR
-from .data.outputs import check_output
-from .render.preview import write_preview
-from .transform import GenSplatConfig, GenSplatTransform, render_view
-from .views.perturbation import EVAL_LEVELS, PerturbationSampler
+from gensplat_transforms.cache.store import size_text
+from gensplat_transforms.core.atomic import atomic_write_json
+from gensplat_transforms.core.images import save_grid
+from gensplat_transforms.core.metrics import psnr
+from gensplat_transforms.data.format import GENSPLAT_DIR
+from gensplat_transforms.data.outputs import check_output
+from gensplat_transforms.render.preview import write_preview
+from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform, render_view
+from gensplat_transforms.views.perturbation import EVAL_LEVELS, PerturbationSampler
 
 #: the simulated dataset's repo id, as ``gensplat record`` names it and ``policies/*.json`` use it
 REPO_ID = "gensplat/sim_pick_place"
@@ -33,9 +33,9 @@ def run_demo(out_dir: str | Path, episodes: int = 2, size: int = 224, seed: int 
     from gensplat_lerobot import enable_gensplat, prepare, video_backend
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from .sim.record import RecordConfig, record
-    from .sim.truth import GroundTruth
-    from .sim.world import WorldConfig
+    from .record import RecordConfig, record
+    from .truth import GroundTruth
+    from .world import WorldConfig
 
     out_dir = check_output(out_dir, folder=True)
     root = out_dir / "sim_dataset"
