@@ -24,3 +24,13 @@ def test_importing_the_package_loads_neither_the_simulator_nor_lerobot():
                                        check=True).stdout)  # fmt: skip
     heavy = ("gensplat_sim", "gensplat_cli", "gensplat_lerobot", "lerobot", "mujoco")
     assert not [m for m in loaded if m.startswith(heavy)]
+
+
+def test_render_is_the_function_and_the_render_stage_imports_by_name():
+    """The render stage's package shares its name with the public function: the package's
+    attribute ``render`` is the function, the stage's modules import with ``from ... import``."""
+    from gensplat_transforms.render import fast
+
+    stage = sys.modules["gensplat_transforms.render"]
+    assert gensplat_transforms.render is stage.render and callable(gensplat_transforms.render)
+    assert fast.__name__ == "gensplat_transforms.render.fast"
