@@ -15,7 +15,7 @@ each method's view at that pose is compared with ``GroundTruth.render`` there:
 * ``rgbd_fill``: the same render with the uncovered pixels filled from their surroundings
   (``holes.fill_holes``, what the training transform does by default);
 * ``rgbd_sensor``: ``rgbd`` on the depth a real RGB-D camera would give
-  (``sim.sensor.sensor_depth`` with the default, RealSense D435-like ``SensorDepthConfig``,
+  (``gensplat_sim.sensor.sensor_depth`` with the default, RealSense D435-like ``SensorDepthConfig``,
   seeded per timestep); ``rgbd_sensor_fill``: with the uncovered pixels filled, as the
   transform shows it; ``rgbd_sensor_depth_fill``: the same with the sensor's holes given depth
   before the discs are built (``RGBDConfig.fill_depth_px`` = ``FILL_DEPTH_PX``, ``gensplat cache
@@ -118,7 +118,7 @@ PLOT_MAX_DB = 40.0
 def level_samplers(args: argparse.Namespace) -> dict:
     """{level: sampler} of the run: the paper's levels, or with ``--samplers`` ``none``, the
     ``gensplat-tilt`` and ``gensplat-arc`` arms' training moves and the ``fov`` protocol's focal
-    change alone (policy_robustness.py's ``SAMPLER_ARMS``; sim.evaluate's ``FOV_RANGE``)."""
+    change alone (policy_robustness.py's ``SAMPLER_ARMS``; gensplat_sim.evaluate's ``FOV_RANGE``)."""
     if args.samplers:
         arm = {kind: GenSplatConfig(**SAMPLER_ARMS[f"gensplat-{kind}"], seed=args.seed).perturbations()
                for kind in ("tilt", "arc")}  # fmt: skip

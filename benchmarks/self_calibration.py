@@ -5,7 +5,7 @@
 A held-out simulated pick-and-place recording (480x640 MP4 with depth sidecars; ``--root``:
 one recorded with ``gensplat record``) is copied with its calibration removed: with its
 exact depth (``depth``), with the depth a RealSense D435-like sensor measures there
-(``sensor_depth``: noise, holes, 1 mm steps; ``sim.sensor``, seeded per frame), and RGB only
+(``sensor_depth``: noise, holes, 1 mm steps; ``gensplat_sim.sensor``, seeded per frame), and RGB only
 with the cameras' true field of view and distance given (``rgb_given_fov``) or the field of
 view 5 % too wide (``rgb_fov_5pct_wide``), and RGB only with nothing given: the shipped
 model's focal lengths and metric depth (``rgb_model``, ``gensplat calibrate --estimate

@@ -36,7 +36,7 @@ class GenSplatTransform:
     Picklable (spawn workers). The ``gsplat`` backend renders on CUDA: use it with spawn
     workers (CUDA cannot be initialised in a forked worker) or in the main process.
     ``depth_sensors`` names the replaced cameras whose depth maps are their depth sensor's own
-    (:class:`.dataset_format.DepthSensor`; LeRobot's RealSense recordings): their maps are
+    (:class:`.data.format.DepthSensor`; LeRobot's RealSense recordings): their maps are
     rendered from the sensor moved with the camera, at its size.
 
     Example: augment every item of the procedural dataset
@@ -90,9 +90,9 @@ class GenSplatTransform:
     def __call__(self, item: dict, plan: ViewPlan | None = None) -> dict:
         """The item with its replaced cameras' images (and depth maps) rendered as ``plan``
         says (default: :meth:`plan` draws one): one read of the cache for every frame of the
-        item's stacks (:meth:`.cache_reader.CacheReader.stacks`) and one render of all its views
-        (:func:`.view_output.render_views`); with ``render_in="batch"``, one read of their
-        stored depth (:meth:`.cache_reader.CacheReader.depth`) and no render."""
+        item's stacks (:meth:`.cache.reader.CacheReader.stacks`) and one render of all its views
+        (:func:`.render.output.render_views`); with ``render_in="batch"``, one read of their
+        stored depth (:meth:`.cache.reader.CacheReader.depth`) and no render."""
         start = time.perf_counter()
         for key in ("episode_index", "frame_index"):
             if key not in item:
@@ -168,7 +168,7 @@ class GenSplatTransform:
         """The :data:`.plan.BATCH_KEYS` of an item for :func:`.batched.render_batch`, of the
         same shapes whether augmented or not (zeros when not), so that default collation stacks
         them: the stack's stored depth and cameras at the render size of the first replaced
-        camera's images (:meth:`.cache_reader.CacheReader.depth`) and the plan's moves. Their
+        camera's images (:meth:`.cache.reader.CacheReader.depth`) and the plan's moves. Their
         images are taken from the batch, so every reconstructed camera must be stacked alike."""
         stacks = {tuple(item[keys[n]].shape[:-3]) for n in self.cfg.cameras}
         if len(stacks) > 1:

@@ -1,6 +1,6 @@
 """Where a rig of two cameras turns about: the crossing of their optical axes where it lies at
 the scene, else a point on camera 0's axis at the scene's depth (nearly parallel, diverging or
-crossing axes), chosen once by ``gensplat cache`` (``episodes.pivot_depth``)."""
+crossing axes), chosen once by ``gensplat cache`` (``cache.builder.pivot_depth``)."""
 
 import dataclasses
 import json

@@ -59,7 +59,7 @@ class ReplacedError(CorruptCacheError):
 @dataclass(frozen=True)
 class DepthFiles:
     """The depth a dataset carries for one episode: one file per reconstructed camera, in the
-    depth format of :mod:`.dataset_format` (tensor ``"depth"`` (T, H, W), metres, 0 = invalid),
+    depth format of :mod:`.data.format` (tensor ``"depth"`` (T, H, W), metres, 0 = invalid),
     the V cameras it was taken with and their names (each file's own metadata must name the
     same camera, episode and frame count)."""
 

@@ -3,7 +3,7 @@
 One file per episode, ``<root>/episode_<index:06d>.safetensors``, holding every timestep.
 What it stores depends on the reconstructor:
 
-* ``depth`` (any :class:`~.reconstruction.DepthReconstructor`, e.g. RGB-D): only what the
+* ``depth`` (any :class:`~.geometry.DepthReconstructor`, e.g. RGB-D): only what the
   worker cannot recompute cheaply: each view's depth, compressed with a bounded error
   (:mod:`.depth_codec`: 16-bit log codes, the static scene once, Zstandard), and the cameras. The
   worker rebuilds the Gaussians from the item's own images with
@@ -132,7 +132,7 @@ class GaussianCache:
     Args:
         root: folder of the episode files (created on first write).
         reconstructor: what builds the episodes; its :meth:`~.Reconstructor.identity` keys
-            the files, and a :class:`~.reconstruction.DepthReconstructor` makes this a
+            the files, and a :class:`~.geometry.DepthReconstructor` makes this a
             ``depth`` cache (see the module docstring).
         dataset: fingerprint of the dataset (anything that changes when its content does).
         keep_bytes: memory a process may spend on the episode files it keeps parsed (their
@@ -377,7 +377,7 @@ class GaussianCache:
                 Gaussians from them, ignored otherwise.
             size: (width, height) to build at, default the cached size: the cameras'
                 intrinsics are scaled to it and a depth cache takes the depth at the pixel
-                nearest each pixel centre of that size (:func:`.reconstruction.base.nearest_pixels`).
+                nearest each pixel centre of that size (:func:`.geometry.base.nearest_pixels`).
         Raises:
             FileNotFoundError: the episode is not cached.
             IndexError: ``frame`` is outside the episode.

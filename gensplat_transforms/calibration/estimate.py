@@ -132,7 +132,7 @@ class ModelPrediction:
 
 
 def predict_cameras(model, names: tuple[str, ...], timesteps: list[dict]) -> ModelPrediction:
-    """The focal lengths and depth ``model`` (a :class:`.reconstruction.GeometryReconstructor`)
+    """The focal lengths and depth ``model`` (a :class:`.geometry.GeometryReconstructor`)
     predicts for cameras ``names`` at each of ``timesteps`` (``{name: (image (H, W, 3) uint8,
     ...)}``, as :func:`estimate_rig` takes them). The model sees the central square of every
     image (the aspect the shipped model was trained at; a crop keeps the focal length in

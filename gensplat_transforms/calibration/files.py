@@ -1,6 +1,6 @@
 """Camera calibration for a LeRobot dataset whose image features carry none (``gensplat
 calibrate``): read from a file in one of three conventions, validated, and stored beside the
-dataset in ``<root>/gensplat/calibration.json`` (:func:`.dataset_format.calibration_path`);
+dataset in ``<root>/gensplat/calibration.json`` (:func:`.data.format.calibration_path`);
 the dataset itself, ``meta/info.json`` included, is never modified.
 
 Conventions of the input file (JSON, or YAML when it ends in ``.yaml``/``.yml``):
@@ -76,7 +76,7 @@ _FIELDS = {"gensplat": {*_INTRINSICS, "c2w", "mount", "width", "height", "depth"
 _POSE_FIELDS = {"gensplat": {"c2w"}, "opencv-w2c": {"R", "rvec", "t"}}
 _SENSOR_FIELDS = {*_INTRINSICS, "width", "height", "to_camera"}
 _DISTORTION = ("dist", "k1", "k2", "k3", "k4", "p1", "p2")
-#: calibration.json's ``info`` keys (:func:`.dataset_format.camera_info`) as the gensplat convention's
+#: calibration.json's ``info`` keys (:func:`.data.format.camera_info`) as the gensplat convention's
 _STORED = {"camera.intrinsics": "K", "camera.extrinsics": "c2w", "camera.mount": "mount",
            "camera.depth": "depth", "camera.episodes": "episodes"}  # fmt: skip
 MAX_FILE_BYTES = 1_000_000

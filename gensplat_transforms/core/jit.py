@@ -1,6 +1,6 @@
 """numba's ``njit`` as every compiled kernel of the package uses it (the renderer, the RGB-D
 discs, hole filling, depth registration): compiled code cached on disk next to the module
-that defines it (see :mod:`.rendering.fast` for where numba writes it)."""
+that defines it (see :mod:`.render.fast` for where numba writes it)."""
 
 from __future__ import annotations
 

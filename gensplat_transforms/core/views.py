@@ -102,7 +102,7 @@ class Reconstruction:
 
     ``pixel_ids`` (N,) int64 tells pixel-aligned Gaussians' source pixel, ``v * H * W + row *
     W + col``; caches use it to store the static part of a scene once. ``render_options``
-    are the ``rendering.render`` options its Gaussians are drawn with (RGB-D discs: their
+    are the ``render.render`` options its Gaussians are drawn with (RGB-D discs: their
     ``dilation`` and ``saturation``, one number or (N,), one per Gaussian, where discs on
     noisy depth are drawn plain), and ``view_preference`` lets each view's Gaussians win
     where their camera saw the surface best (:meth:`seen_from`; needs ``pixel_ids``).

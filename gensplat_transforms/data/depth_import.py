@@ -4,7 +4,7 @@ Sensor recordings keep depth as one image per frame (16-bit PNG in millimetres, 
 Azure Kinect and ROS tools write it; 32-bit float TIFF in metres) or as an array per episode
 (``.npy``, ``.npz``). :func:`import_depth` reads one camera's, checks it against the dataset
 (frames per episode, image size, plausible distances) and writes
-``<root>/depth/<camera>/episode_<index:06d>.safetensors`` (:mod:`.dataset_format`), atomically,
+``<root>/depth/<camera>/episode_<index:06d>.safetensors`` (:mod:`.data.format`), atomically,
 episode by episode: the dataset's own files are not touched.
 
 The depth must be z-depth along the camera's optical axis, registered to the colour image

@@ -78,7 +78,7 @@ def register_depth(depth: torch.Tensor, sensor: Cameras, camera: Cameras) -> tor
     """(..., h, w) z-depth in metres of ``sensor`` (one camera of size w x h) as (..., H, W)
     z-depth of ``camera`` (one camera of size W x H; both poses in one world frame), 0 where
     nothing was measured, in ``depth``'s dtype (float32 for integer input) and device.
-    Invalid depth (see :func:`.reconstruction.base.valid_depth`) is skipped.
+    Invalid depth (see :func:`.geometry.base.valid_depth`) is skipped.
 
     Example: the same camera twice gives the depth back
         >>> K = torch.tensor([[10.0, 0, 4], [0, 10, 4], [0, 0, 1]])

@@ -21,12 +21,12 @@ Frame and scale:
   focal lengths estimated from the point maps (DA3's predicted ones); depth as predicted.
 
 The model runs at the nearest multiple of 14 of the input size, or within ``max_pixels``
-(:func:`.model.model_size`); the returned views (and so the cache) are at that size, with the
+(:func:`.feedforward.model_size`); the returned views (and so the cache) are at that size, with the
 cameras scaled to it.
 
 :meth:`~GeometryReconstructor.predict_depths` (what a cache build calls) runs the model on
 several timesteps at once, ``batch_timesteps`` of them (by default on CUDA as many as keep
-every tensor below 2**31 elements, up to 32: :func:`.model.timesteps_per_pass`); each
+every tensor below 2**31 elements, up to 32: :func:`.feedforward.timesteps_per_pass`); each
 timestep's result is :meth:`~GeometryReconstructor.predict_depth`'s.
 """
 
@@ -93,7 +93,7 @@ class GeometryReconstructor(DepthReconstructor):
             ``soften_noise`` off: a model's depth errors are not a sensor's noise, and plain
             discs on them cost the hole-filled view 1.3 dB at the source pose, 0.2 dB moved.
         max_pixels: run the model on at most this many pixels per view (its input shrunk,
-            aspect kept, to :func:`.model.model_size`; the depth, and so the cache, at that size).
+            aspect kept, to :func:`.feedforward.model_size`; the depth, and so the cache, at that size).
             Default: the model's own (``GenSplatModel.max_pixels``, the size it was trained at:
             12,544 for the shipped model, 255,000 for Pi3), none for a model that does not say.
         device, autocast_dtype: where the model runs, and e.g. torch.bfloat16 for autocast.
@@ -103,7 +103,7 @@ class GeometryReconstructor(DepthReconstructor):
             182x322 takes 7.55 ms a timestep on an H200, one at a time 65.8 ms); 1 on the CPU,
             where batching gains nothing. A given number is capped by the same 2**31 rule, so
             no value can overflow the 32-bit indexing of CUDA kernels; see
-            :func:`.model.timesteps_per_pass`. The model runs without its Gaussian head.
+            :func:`.feedforward.timesteps_per_pass`. The model runs without its Gaussian head.
             It does not change the results, nor the identity.
 
     Example: calibrated RGB, depth from the shipped small model
@@ -178,7 +178,7 @@ class GeometryReconstructor(DepthReconstructor):
     def timesteps_per_pass(self, views: int, height: int, width: int) -> int:
         """Timesteps per forward pass for ``views`` images of ``height x width`` (input pixels)
         in :meth:`predict_depths`: ``batch_timesteps`` or automatic, within the 2**31-element
-        bound at the model's size (:func:`.model.timesteps_per_pass`)."""
+        bound at the model's size (:func:`.feedforward.timesteps_per_pass`)."""
         h, w = model_size(height, width, self.max_pixels)
         device = self.model.image_mean.device
         return timesteps_per_pass(views, h, w, self._channels, device, self.batch_timesteps)

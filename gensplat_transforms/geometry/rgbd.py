@@ -36,7 +36,7 @@ number per disc) and their footprint in the surface widens by the plain render's
 (``PLAIN_DILATION`` minus ``dilation`` px^2, in source pixels). Planes at any tilt and curved
 surfaces read 0, and depth edges (a step beyond ``ROUGH_EDGE`` footprints) are not counted,
 so exact depth keeps its sharp discs: on the built-in simulation the mean blend is 0.97 on
-its simulated RealSense depth (``sim.sensor``) and 0.02 on exact depth (small steps).
+its simulated RealSense depth (``gensplat_sim.sensor``) and 0.02 on exact depth (small steps).
 """
 
 from __future__ import annotations

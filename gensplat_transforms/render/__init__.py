@@ -156,7 +156,7 @@ def render(
             gsplat, with which learnt Gaussians are trained); > 0.
         saturation: each splat's alpha is min(0.99, saturation * opacity * exp(-q/2)): above 1,
             flat-topped splats that cover their core fully and fall off within a fraction of
-            their size (pixel-aligned RGB-D discs, see ``reconstruction.rgbd``); >= 1, one
+            their size (pixel-aligned RGB-D discs, see ``geometry.rgbd``); >= 1, one
             number or one per Gaussian (N,).
         recheck: False trusts a check the Gaussians passed while torch saw no write to their
             tensors (``Gaussians.check()``), for Gaussians the caller has just built (the

@@ -6,10 +6,10 @@ same RNG calls, in the same order) and adds the moves, the cached cameras and th
 depth as stored (two bytes a pixel) to the item (``plan.BATCH_KEYS``). :func:`render_batch`
 decodes the depth and moves the cameras of the whole batch at once, rebuilds the Gaussians
 of every augmented sample from that depth and the batch's own images with the PyTorch disc
-rule (:func:`.reconstruction.rgbd.dense_discs`, in float32, compiled on CUDA), renders all target cameras,
+rule (:func:`.geometry.rgbd.dense_discs`, in float32, compiled on CUDA), renders all target cameras,
 fills the holes and writes the images back, in the images' dtype, range and size. On CUDA
 all scenes go through one gsplat call; elsewhere (tests) each scene is rendered with
-``config.backend``, through the same :func:`.view_output.render_view` as the worker, so the
+``config.backend``, through the same :func:`.render.output.render_view` as the worker, so the
 images match the worker path's up to the disc rule's round-off.
 """
 
@@ -174,7 +174,7 @@ def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None 
 def _render_depth(means, quats, scales, sh, saturation, keep, sources: Cameras, discs: RGBDReconstructor, options: dict,
                   K: torch.Tensor, c2w: torch.Tensor, width: int, height: int, backend: str,
                   cfg: GenSplatConfig) -> torch.Tensor:  # fmt: skip
-    """(S, 1, H, W) depth maps (:func:`.view_output.render_depth`) of the S scenes' discs (from
+    """(S, 1, H, W) depth maps (:func:`.render.output.render_depth`) of the S scenes' discs (from
     the S * V ``sources``), each seen by one camera K (S, 3, 3), c2w (S, 4, 4) of ``width x
     height``, drawn with ``options``."""
     if backend == "gsplat":
@@ -195,7 +195,7 @@ _COMPILED: dict = {}  # the disc rule compiled by torch.compile, made once per p
 
 
 def _compiled_discs(*args):
-    """:func:`.reconstruction.rgbd.dense_discs` compiled by ``torch.compile`` (dynamic shapes:
+    """:func:`.geometry.rgbd.dense_discs` compiled by ``torch.compile`` (dynamic shapes:
     one compilation for any number of augmented samples); where compiling fails (no compiler,
     an unsupported device), a warning and the plain rule from then on."""
     if "rule" not in _COMPILED:

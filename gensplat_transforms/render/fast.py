@@ -693,7 +693,7 @@ def render_fast(
     Args:
         threads: CPU threads (capped at ``numba.config.NUMBA_NUM_THREADS``); 1 runs serial code.
         timings: if given, receives the milliseconds of "projection", "binning" and "raster".
-        Others: as for every backend (see ``rendering.BACKENDS``).
+        Others: as for every backend (see ``render.BACKENDS``).
     Returns:
         rgb (H*W, 3) (the transpose of a contiguous (3, H*W), so that ``render``'s (3, H, W)
         planes are a view of it), depth_sum (H*W,) = sum_i w_i z_i or None without ``return_depth``,

@@ -83,7 +83,7 @@ def render_gsplat(
 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
     """Render one camera (``len(camera) == 1``) with gsplat on the default CUDA device.
 
-    Args: as for every backend (see ``rendering.BACKENDS``).
+    Args: as for every backend (see ``render.BACKENDS``).
     Returns:
         rgb (H*W, 3), depth_sum (H*W,) = expected depth * alpha or None without
         ``return_depth``, alpha (H*W,); in ``out_dtype`` on the Gaussians' device.

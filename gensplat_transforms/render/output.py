@@ -38,7 +38,7 @@ def render_views(stacks: Sequence[Sequence[Reconstruction]], moves: Sequence[Per
     (:func:`like_images`) and, where its depth map ``depths[r]`` (..., 1, H', W') is given, its
     depth at the moved pose like that map in ``config.depth_unit`` (:func:`like_depth`): the
     view's own, or that of its depth sensor ``sensors[name]`` moved with it
-    (:meth:`.dataset_format.DepthSensor.cameras`, :func:`render_depth`)."""
+    (:meth:`.data.format.DepthSensor.cameras`, :func:`render_depth`)."""
     out = []
     for name, stack, p, image, like in zip(config.replace, stacks, moves, images, depths):
         sensor = sensors.get(name) if like is not None else None

@@ -21,7 +21,7 @@ def forward_warp(
 
     Args:
         images: (V, 3, H, W) colours; depths: (V, 1, H, W) metric camera-z depth (pixels
-            without depth as in :func:`~.reconstruction.base.valid_depth` are skipped);
+            without depth as in :func:`~.geometry.base.valid_depth` are skipped);
         cameras: the V source cameras (H x W); target: B cameras of any image size.
     Returns:
         rgb: (B, 3, H', W') in ``images``' dtype, 0 where nothing landed;
