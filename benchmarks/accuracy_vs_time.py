@@ -46,8 +46,8 @@ from plotting import Panel, line_panels
 from standard_scene import standard_scene
 
 from gensplat_transforms import render
-from gensplat_transforms.cache import dequantize, quantize
-from gensplat_transforms.metrics import psnr, ssim
+from gensplat_transforms.cache.store import dequantize, quantize
+from gensplat_transforms.core.metrics import psnr, ssim
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SIZE = 224

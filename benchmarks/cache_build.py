@@ -39,19 +39,19 @@ from pathlib import Path
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 import torch
+from gensplat_sim.record import RecordConfig, record
+from gensplat_sim.world import WorldConfig
 from machine import cpu_model
 
-from gensplat_transforms.cache import GaussianCache
-from gensplat_transforms.episodes import SceneEpisodes
-from gensplat_transforms.reconstruction import (
+from gensplat_transforms.cache.builder import SceneEpisodes
+from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.data.scenes import default_cameras
+from gensplat_transforms.geometry import (
     GenSplatReconstructor,
     GeometryReconstructor,
     RGBDReconstructor,
     Views,
 )
-from gensplat_transforms.scenes import default_cameras
-from gensplat_transforms.sim.record import RecordConfig, record
-from gensplat_transforms.sim.world import WorldConfig
 
 REPO = "gensplat/bench_cache_build"
 
@@ -61,7 +61,7 @@ def build(root: Path, processes: int, mode: str) -> dict:
     the depth (``mode``); times and sizes."""
     shutil.rmtree(root / "gensplat", ignore_errors=True)
     torchrun = ["-m", "torch.distributed.run", "--standalone", "--nproc-per-node", str(processes)]
-    cli = ["-m", "gensplat_transforms.cli", "cache", "--root", str(root), "--repo-id", REPO,
+    cli = ["-m", "gensplat_cli", "cache", "--root", str(root), "--repo-id", REPO,
            *(["--copy-depth"] if mode == "copy" else [])]  # fmt: skip
     cmd = [sys.executable, *(torchrun if processes > 1 else []), *cli]
     t0 = time.perf_counter()

@@ -38,9 +38,9 @@ from gensplat_lerobot.source import files_digest
 from machine import cpu_model, write_result
 from tqdm.auto import tqdm
 
-from gensplat_transforms.cache import INDEX_NAME, GaussianCache
-from gensplat_transforms.episodes import SceneEpisodes
-from gensplat_transforms.reconstruction import RGBDReconstructor, Views
+from gensplat_transforms.cache.builder import SceneEpisodes
+from gensplat_transforms.cache.store import INDEX_NAME, GaussianCache
+from gensplat_transforms.geometry import RGBDReconstructor, Views
 
 DROID_EPISODES = 76_000
 

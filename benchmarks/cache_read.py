@@ -34,9 +34,9 @@ import torch
 from machine import cpu_model, write_result
 from tqdm.auto import tqdm
 
-from gensplat_transforms.cache import GaussianCache
-from gensplat_transforms.reconstruction import RGBDReconstructor, Views
-from gensplat_transforms.scenes import default_cameras
+from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.data.scenes import default_cameras
+from gensplat_transforms.geometry import RGBDReconstructor, Views
 
 WIDTH, HEIGHT = 640, 480
 

@@ -36,15 +36,15 @@ import torch
 from torchvision.transforms import RandomPerspective
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from gensplat_sim.evaluate import EvalConfig, PerturbedCameraEnv
+from gensplat_sim.scene import WORKSPACE_HIGH, WORKSPACE_LOW
+from gensplat_sim.world import WorldConfig
 from machine import write_result
 from policy_robustness import MORE_OFTEN, PERSPECTIVE_DISTORTION, PROTOCOLS, SAMPLER_ARMS
 
-from gensplat_transforms.cameras import Cameras
-from gensplat_transforms.perturbation import PerturbationSampler, scale_focal
-from gensplat_transforms.sim.evaluate import EvalConfig, PerturbedCameraEnv
-from gensplat_transforms.sim.scene import WORKSPACE_HIGH, WORKSPACE_LOW
-from gensplat_transforms.sim.world import WorldConfig
+from gensplat_transforms.core.cameras import Cameras
 from gensplat_transforms.transform import GenSplatConfig
+from gensplat_transforms.views.perturbation import PerturbationSampler, scale_focal
 
 RESULTS = Path(__file__).resolve().parent / "results" / "camera_motion.json"
 

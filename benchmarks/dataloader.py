@@ -37,19 +37,19 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 import torch
 from gensplat_lerobot import LeRobotSource, enable_gensplat, prepare, video_backend
+from gensplat_sim.record import RecordConfig, record
+from gensplat_sim.truth import GroundTruth
+from gensplat_sim.world import WorldConfig
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from machine import cpu_model, write_result
 from torch.utils.data import DataLoader, RandomSampler
 
-from gensplat_transforms.cache import GaussianCache
-from gensplat_transforms.metrics import psnr
-from gensplat_transforms.perturbation import PerturbationSampler
-from gensplat_transforms.reconstruction import Reconstructor, RGBDReconstructor
-from gensplat_transforms.rendering import render
-from gensplat_transforms.sim.record import RecordConfig, record
-from gensplat_transforms.sim.truth import GroundTruth
-from gensplat_transforms.sim.world import WorldConfig
+from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.core.metrics import psnr
+from gensplat_transforms.geometry import Reconstructor, RGBDReconstructor
+from gensplat_transforms.render import render
 from gensplat_transforms.transform import GenSplatConfig, render_view
+from gensplat_transforms.views.perturbation import PerturbationSampler
 
 REPO = "gensplat/bench_pick_place"
 

@@ -9,7 +9,7 @@ a wider view, 15 mm to the side) over held-out procedural tabletops (``TabletopS
 from 900000). Per scene and camera, the sensor's own map is:
 
 * used as if registered ("raw": what such a dataset gives without a ``depth`` block in its
-  calibration), registered with :func:`~gensplat_transforms.registration.register_depth`
+  calibration), registered with :func:`~gensplat_transforms.data.registration.register_depth`
   ("registered"), or replaced by the colour camera's true depth ("true");
 * compared with the colour camera's true depth: median and 95th-percentile absolute error
   where both have depth, and the share of the colour image that gets depth;
@@ -36,13 +36,13 @@ from pathlib import Path
 import torch
 from machine import cpu_model, write_result
 
-from gensplat_transforms.cameras import Cameras
-from gensplat_transforms.metrics import psnr
-from gensplat_transforms.perturbation import PerturbationSampler
-from gensplat_transforms.reconstruction import RGBDReconstructor, Views
-from gensplat_transforms.registration import register_depth
-from gensplat_transforms.scenes import TabletopScene, default_cameras
+from gensplat_transforms.core.cameras import Cameras
+from gensplat_transforms.core.metrics import psnr
+from gensplat_transforms.data.registration import register_depth
+from gensplat_transforms.data.scenes import TabletopScene, default_cameras
+from gensplat_transforms.geometry import RGBDReconstructor, Views
 from gensplat_transforms.transform import GenSplatConfig, render_depth, render_view
+from gensplat_transforms.views.perturbation import PerturbationSampler
 
 FIRST_SEED = 900_000
 WIDTH, HEIGHT = 640, 480

@@ -28,9 +28,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from gensplat_transforms.model import GenSplatModel, ModelConfig
-from gensplat_transforms.reconstruction import GeometryReconstructor, Views
-from gensplat_transforms.scenes import default_cameras
+from gensplat_transforms.data.scenes import default_cameras
+from gensplat_transforms.geometry import GeometryReconstructor, Views
+from gensplat_transforms.geometry.model import GenSplatModel, ModelConfig
 
 SIZES = ("180x320", "294x518")  # height x width of the input; DROID's runs at 182x322
 BATCHES = ("1", "8", "32", "64", "auto")

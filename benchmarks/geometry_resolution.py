@@ -16,7 +16,7 @@ is its default). Per setting:
   ``large`` (two draws per scene), rendered with hole filling from discs built at the frame
   size from the frames' colours and the model's depth (taken at the nearest pixels), as the
   transform builds them from such a cache, against the scene's true image there (PSNR, and
-  detail over the true image's, :func:`~gensplat_transforms.metrics.sharpness_ratio`);
+  detail over the true image's, :func:`~gensplat_transforms.core.metrics.sharpness_ratio`);
   ``psnr_large_small`` / ``sharpness_large_small``: the same view rendered from discs at the
   model's size and resized to the frame size (bilinear), for comparison.
 
@@ -35,13 +35,13 @@ import torch
 import torch.nn.functional as F
 from machine import cpu_model, write_result
 
-from gensplat_transforms.metrics import psnr, sharpness_ratio
-from gensplat_transforms.perturbation import PerturbationSampler
-from gensplat_transforms.reconstruction import GeometryReconstructor, Views
-from gensplat_transforms.reconstruction.base import nearest_pixels
-from gensplat_transforms.reconstruction.model import model_size
-from gensplat_transforms.scenes import TabletopScene, default_cameras
+from gensplat_transforms.core.metrics import psnr, sharpness_ratio
+from gensplat_transforms.data.scenes import TabletopScene, default_cameras
+from gensplat_transforms.geometry import GeometryReconstructor, Views
+from gensplat_transforms.geometry.base import nearest_pixels
+from gensplat_transforms.geometry.feedforward import model_size
 from gensplat_transforms.transform import GenSplatConfig, render_view
+from gensplat_transforms.views.perturbation import PerturbationSampler
 
 FIRST_SEED = 900_000
 SETTINGS = {(224, 224): (None, 25_000, 12_544, 8_000),

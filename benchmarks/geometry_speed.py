@@ -25,9 +25,9 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import cpu_model
 
-from gensplat_transforms.model import GenSplatModel, ModelConfig
-from gensplat_transforms.reconstruction import GeometryReconstructor, Views
-from gensplat_transforms.scenes import TabletopScene, default_cameras
+from gensplat_transforms.data.scenes import TabletopScene, default_cameras
+from gensplat_transforms.geometry import GeometryReconstructor, Views
+from gensplat_transforms.geometry.model import GenSplatModel, ModelConfig
 
 
 def time_config(name: str, size: int, repeats: int, device: str, threads: int) -> dict:

@@ -42,14 +42,14 @@ from pathlib import Path
 
 import torch
 
-from gensplat_transforms.metrics import psnr
-from gensplat_transforms.model import GenSplatModel
-from gensplat_transforms.model.losses import geodesic_angle, relative_poses
-from gensplat_transforms.model.teacher import camera_points
-from gensplat_transforms.perturbation import PerturbationSampler, pivot_point
-from gensplat_transforms.reconstruction import GenSplatReconstructor, RGBDReconstructor, Views
-from gensplat_transforms.rendering import render
-from gensplat_transforms.scenes import TabletopScene, default_cameras
+from gensplat_transforms.core.metrics import psnr
+from gensplat_transforms.data.scenes import TabletopScene, default_cameras
+from gensplat_transforms.geometry import GenSplatReconstructor, RGBDReconstructor, Views
+from gensplat_transforms.geometry.model import GenSplatModel
+from gensplat_transforms.geometry.model.losses import geodesic_angle, relative_poses
+from gensplat_transforms.geometry.model.teacher import camera_points
+from gensplat_transforms.render import render
+from gensplat_transforms.views.perturbation import PerturbationSampler, pivot_point
 from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 
 SIZE = 112

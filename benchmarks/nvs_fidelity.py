@@ -15,7 +15,7 @@ each method's view at that pose is compared with ``GroundTruth.render`` there:
 * ``rgbd_fill``: the same render with the uncovered pixels filled from their surroundings
   (``holes.fill_holes``, what the training transform does by default);
 * ``rgbd_sensor``: ``rgbd`` on the depth a real RGB-D camera would give
-  (``sim.sensor.sensor_depth`` with the default, RealSense D435-like ``SensorDepthConfig``,
+  (``gensplat_sim.sensor.sensor_depth`` with the default, RealSense D435-like ``SensorDepthConfig``,
   seeded per timestep); ``rgbd_sensor_fill``: with the uncovered pixels filled, as the
   transform shows it; ``rgbd_sensor_depth_fill``: the same with the sensor's holes given depth
   before the discs are built (``RGBDConfig.fill_depth_px`` = ``FILL_DEPTH_PX``, ``gensplat cache
@@ -79,29 +79,29 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from gensplat_lerobot import LeRobotSource
+from gensplat_sim.evaluate import FOV_RANGE
+from gensplat_sim.record import RecordConfig, record
+from gensplat_sim.sensor import SensorDepthConfig, sensor_depth
+from gensplat_sim.truth import GroundTruth
+from gensplat_sim.world import WorldConfig
 from plotting import Panel, line_panels
 from policy_robustness import SAMPLER_ARMS
 
-from gensplat_transforms.cameras import Cameras
-from gensplat_transforms.holes import fill_holes
-from gensplat_transforms.metrics import psnr, ssim
-from gensplat_transforms.perturbation import EVAL_LEVELS, PerturbationSampler
-from gensplat_transforms.reconstruction import (
+from gensplat_transforms.core.cameras import Cameras
+from gensplat_transforms.core.metrics import psnr, ssim
+from gensplat_transforms.geometry import (
     GenSplatReconstructor,
     GeometryReconstructor,
     Reconstruction,
     RGBDReconstructor,
     Views,
 )
-from gensplat_transforms.reconstruction.base import nearest_pixels
-from gensplat_transforms.rendering import RenderOutput, render
-from gensplat_transforms.sim.evaluate import FOV_RANGE
-from gensplat_transforms.sim.record import RecordConfig, record
-from gensplat_transforms.sim.sensor import SensorDepthConfig, sensor_depth
-from gensplat_transforms.sim.truth import GroundTruth
-from gensplat_transforms.sim.world import WorldConfig
+from gensplat_transforms.geometry.base import nearest_pixels
+from gensplat_transforms.render import RenderOutput, render
+from gensplat_transforms.render.holes import fill_holes
+from gensplat_transforms.render.warp import forward_warp
 from gensplat_transforms.transform import GenSplatConfig
-from gensplat_transforms.warp import forward_warp
+from gensplat_transforms.views.perturbation import EVAL_LEVELS, PerturbationSampler
 from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 
 REPO = "gensplat/sim_pick_place_heldout"
@@ -118,7 +118,7 @@ PLOT_MAX_DB = 40.0
 def level_samplers(args: argparse.Namespace) -> dict:
     """{level: sampler} of the run: the paper's levels, or with ``--samplers`` ``none``, the
     ``gensplat-tilt`` and ``gensplat-arc`` arms' training moves and the ``fov`` protocol's focal
-    change alone (policy_robustness.py's ``SAMPLER_ARMS``; sim.evaluate's ``FOV_RANGE``)."""
+    change alone (policy_robustness.py's ``SAMPLER_ARMS``; gensplat_sim.evaluate's ``FOV_RANGE``)."""
     if args.samplers:
         arm = {kind: GenSplatConfig(**SAMPLER_ARMS[f"gensplat-{kind}"], seed=args.seed).perturbations()
                for kind in ("tilt", "arc")}  # fmt: skip
@@ -163,7 +163,7 @@ def heldout_dataset(size: int, episodes: int) -> Path:
 def load_model(path: Path) -> GenSplatReconstructor | str:
     """The feed-forward reconstructor, or why it is unavailable."""
     if not (path / "model.safetensors").is_file():
-        return f"no weights at {path} (train them with gensplat_transforms.model.train)"
+        return f"no weights at {path} (train them with gensplat_transforms.training)"
     return GenSplatReconstructor(path)
 
 

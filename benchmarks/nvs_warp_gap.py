@@ -33,13 +33,13 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from gensplat_lerobot import LeRobotSource
+from gensplat_sim.truth import GroundTruth
 from nvs_fidelity import PLAIN, _mean, draw, heldout_dataset, sampled_frames, sampling_parser, with_defaults
 
-from gensplat_transforms.metrics import psnr
-from gensplat_transforms.perturbation import EVAL_LEVELS, PerturbationSampler
-from gensplat_transforms.reconstruction import RGBDReconstructor, Views
-from gensplat_transforms.sim.truth import GroundTruth
-from gensplat_transforms.warp import forward_warp
+from gensplat_transforms.core.metrics import psnr
+from gensplat_transforms.geometry import RGBDReconstructor, Views
+from gensplat_transforms.render.warp import forward_warp
+from gensplat_transforms.views.perturbation import EVAL_LEVELS, PerturbationSampler
 
 RGBD = {"rgbd": {}, "rgbd_plain": PLAIN, "rgbd_left": {}, "rgbd_no_preference": {"view_preference": 0.0},
         "rgbd_no_soften": {"soften_noise": False},

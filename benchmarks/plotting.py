@@ -8,7 +8,7 @@ from pathlib import Path
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
-from gensplat_transforms.atomic import atomic_write
+from gensplat_transforms.core.atomic import atomic_write
 
 RGB = tuple[int, int, int]
 

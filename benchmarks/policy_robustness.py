@@ -82,7 +82,7 @@ refused):
 4. evaluate every arm's checkpoint in ``PerturbedCameraEnv`` with the left external camera
    moved once per episode, under three protocols (``PROTOCOLS``): ``paper`` (the paper's:
    rotation about the pivot of the external cameras and a forward move, levels none / small /
-   medium / large) and ``vista`` (VISTA's camera samplers, ``gensplat_transforms.sim.vista``:
+   medium / large) and ``vista`` (VISTA's camera samplers, ``gensplat_sim.vista``:
    ``small_perturb``, 3 cm position and 0.075 rad rotation noise; ``arc_90deg``, the camera
    anywhere on a +-45 deg arc about the point it looks at), and ``fov`` (level ``zoom``: the
    camera in place, its focal length scaled log-uniformly in 0.8-1.25). Episode layouts come
@@ -165,23 +165,23 @@ import torch
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 from gensplat_lerobot import prepare
-from plotting import Panel, line_panels
-
-from gensplat_transforms.atomic import atomic_write_json, read_json_object
-from gensplat_transforms.perturbation import KEY_LIMIT
-from gensplat_transforms.sim.evaluate import (
+from gensplat_sim.evaluate import (
     FOV_RANGE,
     EvalConfig,
     PerturbedCameraEnv,
     evaluate,
     paired_difference,
 )
-from gensplat_transforms.sim.policy_adapter import LeRobotPolicy
-from gensplat_transforms.sim.record import RecordConfig, record
-from gensplat_transforms.sim.tasks import TASKS
-from gensplat_transforms.sim.vista import SAMPLERS
-from gensplat_transforms.sim.world import CAMERA_NAMES, EXTERNAL_CAMERAS, STATE_NAMES, WorldConfig
+from gensplat_sim.policy_adapter import LeRobotPolicy
+from gensplat_sim.record import RecordConfig, record
+from gensplat_sim.tasks import TASKS
+from gensplat_sim.vista import SAMPLERS
+from gensplat_sim.world import CAMERA_NAMES, EXTERNAL_CAMERAS, STATE_NAMES, WorldConfig
+from plotting import Panel, line_panels
+
+from gensplat_transforms.core.atomic import atomic_write_json, read_json_object
 from gensplat_transforms.transform import GenSplatConfig
+from gensplat_transforms.views.perturbation import KEY_LIMIT
 
 LEVELS = ("none", "small", "medium", "large")
 #: The evaluation protocols and their levels (``PerturbedCameraEnv``'s ``protocol``).

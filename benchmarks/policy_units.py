@@ -41,7 +41,7 @@ import policy_robustness as pr
 from machine import cpu_model
 from plotting import Panel, line_panels
 
-from gensplat_transforms.atomic import atomic_write, atomic_write_json, read_json_object
+from gensplat_transforms.core.atomic import atomic_write, atomic_write_json, read_json_object
 
 #: policy_robustness.py's settings per task (what its command line would say).
 STUDY = {

@@ -12,7 +12,7 @@ Two real pairs with known cameras:
   81 deg apart, calibrated, no depth; DROID's own extrinsics are known to be off by a few
   degrees in places).
 
-Calibration estimate (``self_calibration.estimate_rig``, as ``gensplat calibrate --estimate``):
+Calibration estimate (``calibration.estimate.estimate_rig``, as ``gensplat calibrate --estimate``):
 with the Middlebury depth and no focal length (a rectified pair: expected to be refused, as
 depth tells only focal length x distance there), with its depth and the focal length given,
 with its depth, the focal length and the true principal points given (``--principal-point``:
@@ -44,10 +44,10 @@ import torch.nn.functional as F
 from machine import cpu_model, write_result
 from PIL import Image
 
-from gensplat_transforms.cameras import Cameras
-from gensplat_transforms.reconstruction import Views
-from gensplat_transforms.reconstruction.geometry import GeometryReconstructor
-from gensplat_transforms.self_calibration import estimate_rig, rotation_angle_deg
+from gensplat_transforms.calibration.estimate import estimate_rig, rotation_angle_deg
+from gensplat_transforms.core.cameras import Cameras
+from gensplat_transforms.geometry import Views
+from gensplat_transforms.geometry.geometry import GeometryReconstructor
 from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 
 REPO = Path(__file__).resolve().parents[1]

@@ -21,7 +21,7 @@ external cameras replaced) runs on the same samples with the same draws at every
   320x240 (e.g. Diffusion Policy with ``resize_shape=(240, 320)``) and 224x168 (pi0 and pi0.5
   shrink 640x480 to fit 224x224, keeping the aspect). Every image is shrunk alike (bilinear,
   antialiased); mean PSNR and SSIM over views, ``sharpness`` (the view's detail over the true
-  image's, :func:`~gensplat_transforms.metrics.sharpness_ratio`: below 1 is blurrier, which
+  image's, :func:`~gensplat_transforms.core.metrics.sharpness_ratio`: below 1 is blurrier, which
   PSNR rewards) and ``psnr_vs_full``: PSNR against the scale-1 view (what the scale alone
   loses).
 
@@ -45,15 +45,15 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as in render_speed.py
 import torch
 import torch.nn.functional as F
 from gensplat_lerobot import enable_gensplat, prepare, video_backend
+from gensplat_sim.record import RecordConfig, record
+from gensplat_sim.truth import GroundTruth
+from gensplat_sim.world import WorldConfig
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from machine import cpu_model, write_result
 
-from gensplat_transforms.metrics import psnr, sharpness_ratio, ssim
-from gensplat_transforms.perturbation import AXES, Perturbation
-from gensplat_transforms.sim.record import RecordConfig, record
-from gensplat_transforms.sim.truth import GroundTruth
-from gensplat_transforms.sim.world import WorldConfig
+from gensplat_transforms.core.metrics import psnr, sharpness_ratio, ssim
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform, render_size
+from gensplat_transforms.views.perturbation import AXES, Perturbation
 
 REPO = "gensplat/sim_pick_place_heldout"
 HELDOUT_SEED = 1000  # as nvs_fidelity.py: training recordings use other seeds

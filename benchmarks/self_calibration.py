@@ -5,7 +5,7 @@
 A held-out simulated pick-and-place recording (480x640 MP4 with depth sidecars; ``--root``:
 one recorded with ``gensplat record``) is copied with its calibration removed: with its
 exact depth (``depth``), with the depth a RealSense D435-like sensor measures there
-(``sensor_depth``: noise, holes, 1 mm steps; ``sim.sensor``, seeded per frame), and RGB only
+(``sensor_depth``: noise, holes, 1 mm steps; ``gensplat_sim.sensor``, seeded per frame), and RGB only
 with the cameras' true field of view and distance given (``rgb_given_fov``) or the field of
 view 5 % too wide (``rgb_fov_5pct_wide``), and RGB only with nothing given: the shipped
 model's focal lengths and metric depth (``rgb_model``, ``gensplat calibrate --estimate
@@ -47,20 +47,20 @@ import numpy as np
 import torch
 from gensplat_lerobot import LeRobotSource
 from gensplat_lerobot.estimate import estimate_calibration
+from gensplat_sim.record import RecordConfig, record
+from gensplat_sim.sensor import SensorDepthConfig, sensor_depth
+from gensplat_sim.truth import GroundTruth
+from gensplat_sim.world import WorldConfig
 from machine import cpu_model, write_result
 
-from gensplat_transforms.cameras import Cameras
-from gensplat_transforms.dataset_format import load_depth, save_depth
-from gensplat_transforms.metrics import psnr, ssim
-from gensplat_transforms.perturbation import EVAL_LEVELS, PerturbationSampler, pivot_point
-from gensplat_transforms.reconstruction import GeometryReconstructor, RGBDReconstructor, Views
-from gensplat_transforms.rendering import render
-from gensplat_transforms.self_calibration import rotation_angle_deg
-from gensplat_transforms.sim.record import RecordConfig, record
-from gensplat_transforms.sim.sensor import SensorDepthConfig, sensor_depth
-from gensplat_transforms.sim.truth import GroundTruth
-from gensplat_transforms.sim.world import WorldConfig
-from gensplat_transforms.views import nearest_pixels
+from gensplat_transforms.calibration.estimate import rotation_angle_deg
+from gensplat_transforms.core.cameras import Cameras
+from gensplat_transforms.core.metrics import psnr, ssim
+from gensplat_transforms.core.views import nearest_pixels
+from gensplat_transforms.data.format import load_depth, save_depth
+from gensplat_transforms.geometry import GeometryReconstructor, RGBDReconstructor, Views
+from gensplat_transforms.render import render
+from gensplat_transforms.views.perturbation import EVAL_LEVELS, PerturbationSampler, pivot_point
 from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 
 REPO = "gensplat/sim_pick_place_heldout"

@@ -23,11 +23,10 @@ import time
 from pathlib import Path
 
 import torch
-
-from gensplat_transforms.sim.experts import run_expert
-from gensplat_transforms.sim.record import RecordConfig, record
-from gensplat_transforms.sim.tasks import TASKS, episode_seed
-from gensplat_transforms.sim.world import CAMERA_NAMES, SimWorld
+from gensplat_sim.experts import run_expert
+from gensplat_sim.record import RecordConfig, record
+from gensplat_sim.tasks import TASKS, episode_seed
+from gensplat_sim.world import CAMERA_NAMES, SimWorld
 
 RESULTS = Path(__file__).resolve().parent / "results" / "sim_record.json"
 

@@ -20,9 +20,9 @@ from dataclasses import dataclass
 import torch
 
 from gensplat_transforms import Cameras, Gaussians, pivot_point
-from gensplat_transforms.perturbation import perturb_pose
-from gensplat_transforms.reconstruction import RGBDReconstructor, Views
-from gensplat_transforms.scenes import TabletopScene, default_cameras
+from gensplat_transforms.data.scenes import TabletopScene, default_cameras
+from gensplat_transforms.geometry import RGBDReconstructor, Views
+from gensplat_transforms.views.perturbation import perturb_pose
 
 STANDARD_SIGMA_PX = 1.5
 

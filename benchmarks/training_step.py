@@ -28,7 +28,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 import policy_robustness as pr
 from machine import cpu_model
 
-from gensplat_transforms.atomic import atomic_write_json
+from gensplat_transforms.core.atomic import atomic_write_json
 
 #: (label, dataloader workers, with fast_rows)
 SETTINGS = (("as it is, 2 workers", 2, False), ("as it is, no workers", 0, False),

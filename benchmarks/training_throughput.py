@@ -221,8 +221,8 @@ def main() -> None:
     root = args.root or Path(tempfile.mkdtemp()) / "ds"
     info = root / "meta" / "info.json"
     if not info.exists():
-        from gensplat_transforms.sim.record import RecordConfig, record  # MuJoCo: only to record
-        from gensplat_transforms.sim.world import WorldConfig
+        from gensplat_sim.record import RecordConfig, record  # MuJoCo: only to record
+        from gensplat_sim.world import WorldConfig
 
         record(RecordConfig(root, "pick_place", args.episodes, seed=0, use_videos=True, repo_id=REPO,
                             world=WorldConfig(width=args.size, height=args.size)), progress=False)  # fmt: skip

@@ -19,7 +19,7 @@ from gensplat_transforms import (
     RGBDReconstructor,
     build_cache,
 )
-from gensplat_transforms.episodes import SceneDataset, SceneEpisodes
+from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes
 
 
 def main(argv: list[str] | None = None) -> list[dict]:

@@ -38,12 +38,12 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
-from gensplat_transforms.cameras import Cameras
-from gensplat_transforms.images import save_grid
-from gensplat_transforms.perturbation import EVAL_LEVELS, PerturbationSampler, pivot_point
-from gensplat_transforms.reconstruction.base import Views
-from gensplat_transforms.reconstruction.geometry import GeometryReconstructor
+from gensplat_transforms.core.cameras import Cameras
+from gensplat_transforms.core.images import save_grid
+from gensplat_transforms.geometry.base import Views
+from gensplat_transforms.geometry.geometry import GeometryReconstructor
 from gensplat_transforms.transform import GenSplatConfig, render_view
+from gensplat_transforms.views.perturbation import EVAL_LEVELS, PerturbationSampler, pivot_point
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = REPO.parent / "shared" / "data" / "droid_sample"

@@ -16,7 +16,7 @@ out="$repo/outputs/dp_gensplat/run_$run"
 [ -d "$root" ] || "$bin/python" -c "
 import sys
 from gensplat_lerobot.scene_dataset import record_scene_dataset
-from gensplat_transforms.episodes import SceneEpisodes
+from gensplat_transforms.cache.builder import SceneEpisodes
 record_scene_dataset(sys.argv[1], SceneEpisodes(num_episodes=4, num_frames=30, size=96), sys.argv[2])" "$root" "$repo_id"
 
 # 2. once: settings + Gaussian cache beside the dataset (a rerun finds the cache built)

@@ -7,12 +7,12 @@ Gaussians out: :class:`RGBDReconstructor`, :class:`GeometryReconstructor`,
 :class:`GenSplatReconstructor`, :func:`make_reconstructor`), :func:`render`, the cache
 (:class:`GaussianCache`, :func:`build_cache`) and the online transform
 (:class:`GenSplatTransform`, :class:`GenSplatConfig`, :class:`AugmentedDataset`, and
-:func:`render_batch` for ``render_in="batch"``). The simulator (``gensplat_transforms.sim``)
+:func:`render_batch` for ``render_in="batch"``). The simulator (``gensplat_sim``)
 and LeRobot (``gensplat_lerobot``) are imported only where used.
 
 Example: two calibrated RGB-D views of one timestep, seen from a camera moved at "large":
     >>> from gensplat_transforms import PerturbationSampler, RGBDReconstructor, Views, render
-    >>> from gensplat_transforms.scenes import TabletopScene, default_cameras
+    >>> from gensplat_transforms.data.scenes import TabletopScene, default_cameras
     >>> cameras = default_cameras(32, 32)[:2]
     >>> images, depths = TabletopScene(seed=1).render(cameras)
     >>> recon = RGBDReconstructor().reconstruct(Views(images, cameras, depths))
@@ -21,21 +21,21 @@ Example: two calibrated RGB-D views of one timestep, seen from a camera moved at
     torch.Size([1, 3, 32, 32])
 """
 
-from .batched import render_batch
-from .cache import GaussianCache
-from .cameras import Cameras, look_at
-from .episodes import build_cache
-from .gaussians import Gaussians
-from .perturbation import LEVELS, Perturbation, PerturbationRange, PerturbationSampler, pivot_point
-from .reconstruction import (
+from .cache.builder import build_cache
+from .cache.store import GaussianCache
+from .core.cameras import Cameras, look_at
+from .core.gaussians import Gaussians
+from .geometry import (
     GenSplatReconstructor,
     GeometryReconstructor,
     RGBDReconstructor,
     Views,
     make_reconstructor,
 )
-from .rendering import RenderOutput, render
+from .render import RenderOutput, render
+from .render.batched import render_batch
 from .transform import AugmentedDataset, GenSplatConfig, GenSplatTransform
+from .views.perturbation import LEVELS, Perturbation, PerturbationRange, PerturbationSampler, pivot_point
 
 __version__ = "0.1.0"
 

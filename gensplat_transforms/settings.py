@@ -1,18 +1,17 @@
-"""The transform's settings (:class:`GenSplatConfig`) and the sizes that follow from them."""
+"""The transform's settings (:class:`GenSplatConfig`) and the command-line flags made from them."""
 
 from __future__ import annotations
 
 import argparse
 from dataclasses import asdict, dataclass, field, fields
 
-from .perturbation import SAMPLERS, PerturbationRange, _integer, get_range, make_sampler, sampler_kinds
-from .rendering import BACKENDS
+from .render import BACKENDS
+from .render.output import DEPTH_UNITS
+from .views.perturbation import SAMPLERS, PerturbationRange, _integer, get_range, make_sampler, sampler_kinds
 
 RENDER_IN = ("auto", "worker", "batch")
 #: ``GenSplatConfig.mode`` values
 MODES = ("episode", "frame")
-#: ``GenSplatConfig.depth_unit`` values: metres per unit of the item's depth maps, or None
-DEPTH_UNITS = {None: None, "keep": None, "m": 1.0, "mm": 1e-3}
 #: Bounds of the move settings, past which no augmented image shows the scene (docs/transform.md):
 #: a camera shift (``shift_m``, a level's forward move ``mu_m``) of at most 1 m, a pivot at most
 #: 100 m along camera 0's axis, and at most 1000 distinct cameras per trajectory (the paper's
@@ -67,7 +66,7 @@ class GenSplatConfig:
             RNG, which DataLoader seeds per worker and per epoch.
         frame_offsets: frames of a temporal stack (T, C, H, W) relative to the item's frame
             (default: the T frames ending at it); clamped to the episode, as LeRobot pads.
-        backend, render_options: renderer (a ``rendering.BACKENDS`` name, or "auto" as in
+        backend, render_options: renderer (a ``render.BACKENDS`` name, or "auto" as in
             ``render``) and its options; "fast" renders with one thread unless
             ``{"threads": n}`` is given.
         background: RGB where nothing was reconstructed (with ``fill_holes``: only where the
@@ -78,7 +77,7 @@ class GenSplatConfig:
         report: add ``gensplat.*`` keys describing the perturbation to the item.
         render_scale: build and render the augmented views at this fraction of the item's
             image size, in (0, 1], then resize them to the image size (see
-            :func:`render_size`): about scale^2 of the render's time, for about 1 dB PSNR
+            :func:`.render.render_size`): about scale^2 of the render's time, for about 1 dB PSNR
             per halving of the side, also at the size a policy shrinks the frames to
             (``benchmarks/render_scale.py``: 640x480 frames seen at 224x168, 27.6 dB at 1,
             26.4 at 0.5, 25.3 at 0.35). Render no smaller than the policy reads. Cached
@@ -87,7 +86,7 @@ class GenSplatConfig:
         depth_unit: the unit of the depth maps an item carries for the replaced cameras, at
             ``<image key>_depth`` (LeRobot's depth-map features: its ``depth_output_unit``,
             "mm" or "m"): those are replaced by the depth of the view at the new pose, 0 where
-            it shows nothing (as a depth camera reports no return; see :func:`.view_output.render_view`).
+            it shows nothing (as a depth camera reports no return; see :func:`.render.output.render_view`).
             "keep" leaves them unchanged (then they no longer match an augmented view); None,
             the default, raises for an item that carries one (the LeRobot plugin sets the
             dataset's unit).
@@ -99,7 +98,7 @@ class GenSplatConfig:
         pivot_depth: the distance in metres along camera 0's optical axis to the pivot (see
             :mod:`.perturbation`). One reconstructed camera needs it (for any sampler but
             "tilt"); with two or more, None puts the pivot where the axes of cameras 0 and 1
-            cross. ``gensplat cache`` sets it (:func:`.episodes.pivot_depth`): the scene's
+            cross. ``gensplat cache`` sets it (:func:`.cache.builder.pivot_depth`): the scene's
             depth for one camera, or for two whose axes do not cross in front of both near
             the scene.
 
@@ -217,17 +216,6 @@ class GenSplatConfig:
 
 def _tuples(d: dict) -> dict:
     return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
-
-
-def render_size(width: int, height: int, scale: float) -> tuple[int, int]:
-    """(width, height) of the views rendered for ``width x height`` images at ``scale``
-    (``GenSplatConfig.render_scale``), at least one pixel each.
-
-    Example:
-        >>> render_size(640, 480, 0.35)
-        (224, 168)
-    """
-    return max(1, round(width * scale)), max(1, round(height * scale))
 
 
 def add_config_arguments(parser: argparse.ArgumentParser) -> None:

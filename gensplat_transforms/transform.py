@@ -11,14 +11,15 @@ import time
 import torch
 from torch.utils.data import Dataset
 
-from .cache import EpisodeSource, GaussianCache
-from .cache_reader import CacheReader
-from .counters import SampleCounters
-from .dataset_format import DepthSensor
-from .perturbation import AXES, ROW
-from .plan import BATCH_KEYS, ViewPlan
-from .settings import GenSplatConfig, render_size
-from .view_output import as_cache_images, render_depth, render_view, render_views
+from .cache.reader import CacheReader
+from .cache.store import EpisodeSource, GaussianCache
+from .core.counters import SampleCounters
+from .data.format import DepthSensor
+from .render import render_size
+from .render.output import as_cache_images, render_depth, render_view, render_views
+from .settings import GenSplatConfig
+from .views.perturbation import AXES, ROW
+from .views.plan import BATCH_KEYS, ViewPlan
 
 __all__ = ["BATCH_KEYS", "AugmentedDataset", "GenSplatConfig", "GenSplatTransform", "ViewPlan", "render_depth",
            "render_size", "render_view"]  # fmt: skip
@@ -35,13 +36,13 @@ class GenSplatTransform:
     Picklable (spawn workers). The ``gsplat`` backend renders on CUDA: use it with spawn
     workers (CUDA cannot be initialised in a forked worker) or in the main process.
     ``depth_sensors`` names the replaced cameras whose depth maps are their depth sensor's own
-    (:class:`.dataset_format.DepthSensor`; LeRobot's RealSense recordings): their maps are
+    (:class:`.data.format.DepthSensor`; LeRobot's RealSense recordings): their maps are
     rendered from the sensor moved with the camera, at its size.
 
     Example: augment every item of the procedural dataset
         >>> import tempfile
         >>> from gensplat_transforms import RGBDReconstructor, build_cache
-        >>> from gensplat_transforms.episodes import SceneDataset, SceneEpisodes
+        >>> from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes
         >>> source = SceneEpisodes(num_episodes=1, num_frames=2, size=16)
         >>> folder = tempfile.TemporaryDirectory()
         >>> cache = GaussianCache(folder.name, RGBDReconstructor(), source.fingerprint)
@@ -89,9 +90,9 @@ class GenSplatTransform:
     def __call__(self, item: dict, plan: ViewPlan | None = None) -> dict:
         """The item with its replaced cameras' images (and depth maps) rendered as ``plan``
         says (default: :meth:`plan` draws one): one read of the cache for every frame of the
-        item's stacks (:meth:`.cache_reader.CacheReader.stacks`) and one render of all its views
-        (:func:`.view_output.render_views`); with ``render_in="batch"``, one read of their
-        stored depth (:meth:`.cache_reader.CacheReader.depth`) and no render."""
+        item's stacks (:meth:`.cache.reader.CacheReader.stacks`) and one render of all its views
+        (:func:`.render.output.render_views`); with ``render_in="batch"``, one read of their
+        stored depth (:meth:`.cache.reader.CacheReader.depth`) and no render."""
         start = time.perf_counter()
         for key in ("episode_index", "frame_index"):
             if key not in item:
@@ -167,7 +168,7 @@ class GenSplatTransform:
         """The :data:`.plan.BATCH_KEYS` of an item for :func:`.batched.render_batch`, of the
         same shapes whether augmented or not (zeros when not), so that default collation stacks
         them: the stack's stored depth and cameras at the render size of the first replaced
-        camera's images (:meth:`.cache_reader.CacheReader.depth`) and the plan's moves. Their
+        camera's images (:meth:`.cache.reader.CacheReader.depth`) and the plan's moves. Their
         images are taken from the batch, so every reconstructed camera must be stacked alike."""
         stacks = {tuple(item[keys[n]].shape[:-3]) for n in self.cfg.cameras}
         if len(stacks) > 1:
@@ -268,7 +269,7 @@ class AugmentedDataset(Dataset):
         >>> import tempfile
         >>> from torch.utils.data import DataLoader
         >>> from gensplat_transforms import RGBDReconstructor
-        >>> from gensplat_transforms.episodes import SceneDataset, SceneEpisodes
+        >>> from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes
         >>> source = SceneEpisodes(num_episodes=1, num_frames=4, size=16)
         >>> folder = tempfile.TemporaryDirectory()
         >>> cache = GaussianCache(folder.name, RGBDReconstructor(), source.fingerprint)

@@ -18,8 +18,8 @@ from pathlib import Path
 from gensplat_lerobot import prepare
 from gensplat_lerobot.training_preview import open_dataset, write_lerobot_preview
 
-from gensplat_transforms.images import save_grid
-from gensplat_transforms.preview import as_frame
+from gensplat_transforms.core.images import save_grid
+from gensplat_transforms.render.preview import as_frame
 from gensplat_transforms.settings import GenSplatConfig
 
 #: row label -> the settings that differ from GenSplatConfig's defaults

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from gensplat_transforms.cameras import Cameras
+from gensplat_transforms.core.cameras import Cameras
 
 #: One real DROID timestep (two calibrated external cameras), kept beside the repository.
 DROID_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "droid_sample"

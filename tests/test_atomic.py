@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from gensplat_transforms.atomic import atomic_write, atomic_write_json, read_json_object, stat_stamp
-from gensplat_transforms.dataset_format import load_depth, save_depth
+from gensplat_transforms.core.atomic import atomic_write, atomic_write_json, read_json_object, stat_stamp
+from gensplat_transforms.data.format import load_depth, save_depth
 
 
 @pytest.fixture

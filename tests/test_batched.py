@@ -10,14 +10,14 @@ import torch.nn.functional as F
 from torch.utils.data import default_collate
 
 from gensplat_transforms import render
-from gensplat_transforms.batched import disc_builder, render_batch
-from gensplat_transforms.cache import GaussianCache
-from gensplat_transforms.cameras import Cameras, rigid_inverse
-from gensplat_transforms.dataset_format import DepthSensor
-from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
-from gensplat_transforms.gaussians import Gaussians
-from gensplat_transforms.reconstruction import Reconstructor, RGBDConfig, RGBDReconstructor, Views
-from gensplat_transforms.rendering import gsplat_backend
+from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
+from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.core.cameras import Cameras, rigid_inverse
+from gensplat_transforms.core.gaussians import Gaussians
+from gensplat_transforms.data.format import DepthSensor
+from gensplat_transforms.geometry import Reconstructor, RGBDConfig, RGBDReconstructor, Views
+from gensplat_transforms.render import gsplat_backend
+from gensplat_transforms.render.batched import disc_builder, render_batch
 from gensplat_transforms.transform import BATCH_KEYS, GenSplatConfig, GenSplatTransform
 
 LEFT, RIGHT = "observation.images.left", "observation.images.right"

@@ -5,13 +5,13 @@ import torch
 from test_da3 import small  # noqa: F401 -- the random DA3-Small fixture, by name
 from tiny_model import tiny_model
 
-from gensplat_transforms.cache import GaussianCache
-from gensplat_transforms.episodes import SceneEpisodes
-from gensplat_transforms.model import GenSplatModel, ModelConfig
-from gensplat_transforms.model.da3 import DA3Config, DepthAnything3
-from gensplat_transforms.reconstruction import GeometryReconstructor, RGBDReconstructor, Views
-from gensplat_transforms.reconstruction.model import INT_MAX, pixel_channels, timesteps_per_pass
-from gensplat_transforms.scenes import TabletopScene, default_cameras
+from gensplat_transforms.cache.builder import SceneEpisodes
+from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.data.scenes import TabletopScene, default_cameras
+from gensplat_transforms.geometry import GeometryReconstructor, RGBDReconstructor, Views
+from gensplat_transforms.geometry.feedforward import INT_MAX, pixel_channels, timesteps_per_pass
+from gensplat_transforms.geometry.model import GenSplatModel, ModelConfig
+from gensplat_transforms.geometry.model.da3 import DA3Config, DepthAnything3
 
 
 def timesteps(width: int, height: int, n: int = 5) -> list[Views]:

@@ -7,13 +7,13 @@ import pytest
 import torch
 from torch.utils.data import default_collate
 
-from gensplat_transforms import batched
-from gensplat_transforms.batched import render_batch
-from gensplat_transforms.cache import GaussianCache
-from gensplat_transforms.depth_codec import depth_from_words
-from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
-from gensplat_transforms.reconstruction import RGBDReconstructor
-from gensplat_transforms.rotations import covariance_3d
+from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
+from gensplat_transforms.cache.depth_codec import depth_from_words
+from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.core.rotations import covariance_3d
+from gensplat_transforms.geometry import RGBDReconstructor
+from gensplat_transforms.render import batched
+from gensplat_transforms.render.batched import render_batch
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 
 LEFT = "observation.images.left"

@@ -12,14 +12,20 @@ import numpy as np
 import pytest
 import torch
 
-from gensplat_transforms import cache as cache_module
-from gensplat_transforms import depth_codec as dc
 from gensplat_transforms import render
-from gensplat_transforms.cache import CorruptCacheError, GaussianCache, StaleCacheError, dequantize, quantize
-from gensplat_transforms.episodes import SceneEpisodes, build_cache
-from gensplat_transforms.gaussians import Gaussians
-from gensplat_transforms.metrics import psnr
-from gensplat_transforms.reconstruction import Reconstruction, Reconstructor, RGBDReconstructor
+from gensplat_transforms.cache import depth_codec as dc
+from gensplat_transforms.cache import store as cache_module
+from gensplat_transforms.cache.builder import SceneEpisodes, build_cache
+from gensplat_transforms.cache.store import (
+    CorruptCacheError,
+    GaussianCache,
+    StaleCacheError,
+    dequantize,
+    quantize,
+)
+from gensplat_transforms.core.gaussians import Gaussians
+from gensplat_transforms.core.metrics import psnr
+from gensplat_transforms.geometry import Reconstruction, Reconstructor, RGBDReconstructor
 
 
 @pytest.fixture(scope="module")
@@ -204,7 +210,7 @@ def test_depth_words_are_the_depth_as_stored(kind, built, linked):
 def test_a_depth_file_of_another_dtype_is_refused(tmp_path):
     from safetensors.torch import save_file
 
-    from gensplat_transforms.dataset_format import DEPTH_FORMAT, open_depth
+    from gensplat_transforms.data.format import DEPTH_FORMAT, open_depth
 
     path = tmp_path / "episode_000000.safetensors"
     save_file({"depth": torch.ones(2, 4, 4)}, str(path), metadata={"format": DEPTH_FORMAT})
@@ -253,7 +259,7 @@ def test_a_cache_written_with_zlib_still_reads(tmp_path, source, built, monkeypa
 def test_a_depth_file_is_read_frame_by_frame_and_checked(tmp_path):
     """Slices read only their frames and equal the stored ones; a file cut short or with a
     damaged header is refused when opened, and one cut short later when read."""
-    from gensplat_transforms.dataset_format import depth_path, open_depth, save_depth
+    from gensplat_transforms.data.format import depth_path, open_depth, save_depth
 
     depth = torch.rand(5, 6, 7) * 3
     path = save_depth(tmp_path, "left", 0, depth)
@@ -596,7 +602,7 @@ GAUSSIAN_EDITS = {
 
 def _header_is_still_consistent(header):
     """Recompute the header checksum after an edit, as a forger would: the tensor checksums still catch it."""
-    from gensplat_transforms.cache_format import header_crc
+    from gensplat_transforms.cache.format import header_crc
 
     header["__metadata__"]["header_crc"] = header_crc(header["__metadata__"])
 
@@ -771,9 +777,9 @@ def test_concurrent_builds_with_verify_build_once(tmp_path, source):
 
 KILLED_BUILDER = """
 import sys, time
-from gensplat_transforms.cache import GaussianCache
-from gensplat_transforms.episodes import SceneEpisodes
-from gensplat_transforms.reconstruction import RGBDReconstructor
+from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.cache.builder import SceneEpisodes
+from gensplat_transforms.geometry import RGBDReconstructor
 src = SceneEpisodes(num_episodes=2, num_frames=3, size=48)
 slow = type("Slow", (), {"camera_names": src.camera_names, "fingerprint": src.fingerprint,
                          "num_frames": src.num_frames, "views": lambda self, e, t: time.sleep(60)})()
@@ -818,7 +824,7 @@ class SidecarSource:
     """A source whose depth lives in depth files (as a recorded dataset's sidecars)."""
 
     def __init__(self, source, root):
-        from gensplat_transforms.dataset_format import save_depth
+        from gensplat_transforms.data.format import save_depth
 
         self.source, self.root = source, root
         self.camera_names, self.fingerprint = ("left", "right"), source.fingerprint
@@ -831,16 +837,16 @@ class SidecarSource:
         return self.source.num_frames(episode)
 
     def views(self, episode, frame):
-        from gensplat_transforms.dataset_format import load_depth
-        from gensplat_transforms.reconstruction import Views
+        from gensplat_transforms.data.format import load_depth
+        from gensplat_transforms.geometry import Views
 
         v = self.source.views(episode, frame)
         depths = torch.stack([load_depth(self.root, n, episode, frame) for n in self.camera_names])
         return Views(v.images, v.cameras, depths)
 
     def depth_files(self, episode):
-        from gensplat_transforms.cache import DepthFiles
-        from gensplat_transforms.dataset_format import depth_path
+        from gensplat_transforms.cache.store import DepthFiles
+        from gensplat_transforms.data.format import depth_path
 
         paths = tuple(depth_path(self.root, n, episode) for n in self.camera_names)
         return DepthFiles(paths, self.source.views(episode, 0).cameras)
@@ -884,7 +890,7 @@ def test_a_linked_cache_moves_with_its_dataset(linked, tmp_path):
 
 
 def test_a_changed_or_missing_depth_file_makes_the_episode_stale(linked):
-    from gensplat_transforms.dataset_format import depth_path, save_depth
+    from gensplat_transforms.data.format import depth_path, save_depth
 
     cache, sidecars, _ = linked
     left = depth_path(sidecars.root, "left", 0)

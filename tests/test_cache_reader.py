@@ -5,12 +5,12 @@ episodes and keeping the storage's kind to itself."""
 import pytest
 import torch
 
-from gensplat_transforms.cache import GaussianCache
-from gensplat_transforms.cache_reader import CacheReader
-from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
-from gensplat_transforms.reconstruction import GenSplatReconstructor, RGBDReconstructor
+from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
+from gensplat_transforms.cache.reader import CacheReader
+from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.geometry import GenSplatReconstructor, RGBDReconstructor
+from gensplat_transforms.render.output import as_cache_images
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
-from gensplat_transforms.view_output import as_cache_images
 
 
 @pytest.fixture(scope="module")

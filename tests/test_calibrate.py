@@ -9,13 +9,13 @@ from pathlib import Path
 import pytest
 import torch
 import yaml
+from gensplat_cli import main
 from kornia.geometry.conversions import rotation_matrix_to_axis_angle
 
-from gensplat_transforms.calibration import calibrate
-from gensplat_transforms.cameras import opencv_to_opengl
-from gensplat_transforms.cli import main
-from gensplat_transforms.dataset_format import calibration_path, load_calibration
-from gensplat_transforms.scenes import default_cameras
+from gensplat_transforms.calibration.files import calibrate, load_calibration
+from gensplat_transforms.core.cameras import opencv_to_opengl
+from gensplat_transforms.data.format import calibration_path
+from gensplat_transforms.data.scenes import default_cameras
 
 WIDTH, HEIGHT = 64, 48
 NAMES = ("left", "right", "front")
@@ -160,7 +160,7 @@ def test_cli_prints_the_error_alone_and_keeps_internal_errors(truth, tmp_path, c
     assert main(["calibrate", "--root", str(root), "--from", str(good)]) == 0
     assert f"written to {calibration_path(root)}" in capsys.readouterr().out
     # a ValueError raised outside this project's code is a bug: its traceback is kept
-    monkeypatch.setattr("gensplat_transforms.calibration.calibrate", lambda *a: json.loads("{"))
+    monkeypatch.setattr("gensplat_transforms.calibration.files.calibrate", lambda *a: json.loads("{"))
     with pytest.raises(json.JSONDecodeError):
         main(["calibrate", "--root", str(root), "--from", str(good)])
 
@@ -171,7 +171,7 @@ def test_lerobot_source_uses_the_stored_calibration_and_the_dataset_is_untouched
     from gensplat_lerobot import LeRobotSource
     from gensplat_lerobot.scene_dataset import record_scene_dataset
 
-    from gensplat_transforms.episodes import SceneEpisodes
+    from gensplat_transforms.cache.builder import SceneEpisodes
 
     root, repo = tmp_path / "ds", "local/uncalibrated"
     record_scene_dataset(root, SceneEpisodes(num_episodes=1, num_frames=2, size=32), repo, progress=False)

@@ -10,11 +10,11 @@ import pytest
 import test_calibrate
 import torch
 import yaml
+from gensplat_cli import main
 from test_calibrate import HEIGHT, WIDTH, entry, nerfstudio, write_info
 
-from gensplat_transforms.calibration import MAX_FILE_BYTES, calibrate
-from gensplat_transforms.cli import main
-from gensplat_transforms.dataset_format import calibration_path, load_calibration
+from gensplat_transforms.calibration.files import MAX_FILE_BYTES, calibrate, load_calibration
+from gensplat_transforms.data.format import calibration_path
 
 truth = test_calibrate.truth  # its fixture
 

@@ -7,10 +7,9 @@ import math
 import sys
 from pathlib import Path
 
+import gensplat_sim  # noqa: F401  (selects MuJoCo's headless backend before mujoco loads)
 import pytest
 import torch
-
-import gensplat_transforms.sim  # noqa: F401  (selects MuJoCo's headless backend before mujoco loads)
 
 pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
 pytest.importorskip("mujoco", reason="the sim extra is not installed (pip install -e '.[sim]')")

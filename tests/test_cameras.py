@@ -1,4 +1,4 @@
-"""Tests for gensplat_transforms.cameras (OpenCV pinhole cameras, camera-to-world poses)."""
+"""Tests for gensplat_transforms.core.cameras (OpenCV pinhole cameras, camera-to-world poses)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import pytest
 import torch
 from PIL import Image
 
-from gensplat_transforms import cameras as cameras_module
-from gensplat_transforms.cameras import (
+from gensplat_transforms.core import cameras as cameras_module
+from gensplat_transforms.core.cameras import (
     Cameras,
     focal_from_fov,
     look_at,

@@ -7,15 +7,15 @@ import os
 import subprocess
 from pathlib import Path
 
+from gensplat_cli import build_parser, main
 from PIL import Image
 
-from gensplat_transforms.cache import GaussianCache
-from gensplat_transforms.cli import build_parser, main
-from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
-from gensplat_transforms.perturbation import EVAL_LEVELS
-from gensplat_transforms.preview import write_preview
-from gensplat_transforms.reconstruction import RGBDReconstructor
+from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
+from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.geometry import RGBDReconstructor
+from gensplat_transforms.render.preview import write_preview
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
+from gensplat_transforms.views.perturbation import EVAL_LEVELS
 
 
 def test_demo_records_caches_and_previews(tmp_path, capfd, caplog):

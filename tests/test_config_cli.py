@@ -5,8 +5,8 @@ import argparse
 from dataclasses import fields
 
 import pytest
+from gensplat_cli import build_parser
 
-from gensplat_transforms.cli import build_parser
 from gensplat_transforms.settings import GenSplatConfig, add_config_arguments, config_from_arguments
 
 BASE = ["cache", "--root", "r", "--repo-id", "x/y"]

@@ -12,8 +12,8 @@ from gensplat_transforms import (
     GenSplatTransform,
     RGBDReconstructor,
 )
-from gensplat_transforms.counters import SampleCounters
-from gensplat_transforms.episodes import SceneDataset, SceneEpisodes
+from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes
+from gensplat_transforms.core.counters import SampleCounters
 
 
 def test_counts_from_spawned_workers_reach_the_main_process():

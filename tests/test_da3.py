@@ -16,7 +16,13 @@ import pytest
 import torch
 from safetensors.torch import load_file, save_file, save_model
 
-from gensplat_transforms.model.da3 import TIED, DA3Config, DepthAnything3, pose_encoding_to_cameras, unproject
+from gensplat_transforms.geometry.model.da3 import (
+    TIED,
+    DA3Config,
+    DepthAnything3,
+    pose_encoding_to_cameras,
+    unproject,
+)
 
 #: a subset of the published DA3-Small state dict: first and last keys of each block
 SMALL_KEYS = {
@@ -227,9 +233,9 @@ def test_config_names_only_the_apache_models():
 def test_geometry_reconstructor_takes_a_da3_checkpoint(small, tmp_path):
     """``gensplat cache --reconstructor geometry --model DIR`` builds this through make_reconstructor:
     the checkpoint kind comes from its config, the weights' licence goes into the identity."""
-    from gensplat_transforms.reconstruction.base import Views
-    from gensplat_transforms.reconstruction.registry import make_reconstructor
-    from gensplat_transforms.scenes import TabletopScene, default_cameras
+    from gensplat_transforms.data.scenes import TabletopScene, default_cameras
+    from gensplat_transforms.geometry.base import Views
+    from gensplat_transforms.geometry.registry import make_reconstructor
 
     small.save_pretrained(tmp_path)
     rec = make_reconstructor({"name": "geometry", "model": str(tmp_path)})

@@ -7,8 +7,8 @@ import pytest
 import torch
 from PIL import Image
 
-from gensplat_transforms.dataset_format import depth_path, load_depth
-from gensplat_transforms.depth_import import import_depth
+from gensplat_transforms.data.depth_import import import_depth
+from gensplat_transforms.data.format import depth_path, load_depth
 
 W, H, T = 12, 8, 11
 

@@ -8,13 +8,13 @@ import pytest
 import torch
 from torch.utils.data import default_collate
 
-from gensplat_transforms.batched import render_batch
-from gensplat_transforms.cache import GaussianCache
-from gensplat_transforms.dataset_format import DepthSensor
-from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
-from gensplat_transforms.perturbation import AXES, Perturbation
-from gensplat_transforms.reconstruction import RGBDReconstructor
+from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
+from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.data.format import DepthSensor
+from gensplat_transforms.geometry import RGBDReconstructor
+from gensplat_transforms.render.batched import render_batch
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
+from gensplat_transforms.views.perturbation import AXES, Perturbation
 
 LEFT, RIGHT = "observation.images.left", "observation.images.right"
 LEFT_DEPTH, RIGHT_DEPTH = LEFT + "_depth", RIGHT + "_depth"

@@ -15,11 +15,11 @@ import torch
 from safetensors import safe_open
 from tiny_model import TINY
 
-from gensplat_transforms.cache import GaussianCache
-from gensplat_transforms.distributed import OnDevice, Shard, gather
-from gensplat_transforms.episodes import SceneEpisodes, build_cache
-from gensplat_transforms.model import GenSplatModel
-from gensplat_transforms.reconstruction import GenSplatReconstructor, RGBDReconstructor
+from gensplat_transforms.cache.builder import SceneEpisodes, build_cache
+from gensplat_transforms.cache.distributed import OnDevice, Shard, gather
+from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.geometry import GenSplatReconstructor, RGBDReconstructor
+from gensplat_transforms.geometry.model import GenSplatModel
 
 REPO = "local/gensplat_scene"
 
@@ -100,7 +100,7 @@ def test_two_torchrun_processes_build_what_one_process_builds(tmp_path):
 
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1"}
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
-           "-m", "gensplat_transforms.cli", "cache", "--root", str(two), "--repo-id", REPO]  # fmt: skip
+           "-m", "gensplat_cli", "cache", "--root", str(two), "--repo-id", REPO]  # fmt: skip
     run = subprocess.run(cmd, check=False, capture_output=True, text=True, env=env, timeout=300)
     assert run.returncode == 0, run.stderr[-3000:]
     summary = re.findall(r"^cached .*$", run.stdout, re.MULTILINE)  # rank 0 alone prints, for both processes

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from gensplat_transforms.perturbation import EVAL_LEVELS
+from gensplat_transforms.views.perturbation import EVAL_LEVELS
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "droid_preview.py"
 

@@ -12,11 +12,11 @@ from pathlib import Path
 import pytest
 import torch
 import yaml
+from gensplat_cli import main
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
-from gensplat_transforms.calibration import calibrate, xyz_rpy_pose
-from gensplat_transforms.cli import main
-from gensplat_transforms.dataset_format import calibration_path, load_calibration
+from gensplat_transforms.calibration.files import calibrate, load_calibration, xyz_rpy_pose
+from gensplat_transforms.data.format import calibration_path
 
 pytest.importorskip("lerobot", reason="the LeRobot extra is not installed")
 os.environ["HF_HUB_OFFLINE"] = "1"
@@ -25,7 +25,7 @@ from gensplat_lerobot import LeRobotSource, enable_gensplat, prepare, video_back
 from gensplat_lerobot.scene_dataset import record_scene_dataset
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from gensplat_transforms.episodes import SceneEpisodes
+from gensplat_transforms.cache.builder import SceneEpisodes
 from gensplat_transforms.transform import GenSplatConfig
 
 REPO = "local/moving_cameras"

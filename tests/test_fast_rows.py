@@ -16,7 +16,7 @@ from gensplat_lerobot.scene_dataset import record_scene_dataset
 from lerobot.datasets.dataset_reader import DatasetReader
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from gensplat_transforms.episodes import SceneEpisodes
+from gensplat_transforms.cache.builder import SceneEpisodes
 
 REPO = "local/fast_rows"
 

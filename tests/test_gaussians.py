@@ -1,4 +1,4 @@
-"""Tests for gensplat_transforms.gaussians (container, safetensors and 3DGS PLY I/O)."""
+"""Tests for gensplat_transforms.core.gaussians (container, safetensors and 3DGS PLY I/O)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
-from gensplat_transforms.gaussians import FORMAT_NAME, FORMAT_VERSION, Gaussians
+from gensplat_transforms.core.gaussians import FORMAT_NAME, FORMAT_VERSION, Gaussians
 
 
 def make(n: int = 6, degree: int = 1, seed: int = 0, dtype=torch.float32) -> Gaussians:

@@ -1,6 +1,12 @@
-"""Layers point down: the core library never imports the bench (the simulator, the demo, the
-command line) or LeRobot, the LeRobot integration imports only the core, and no modules of
-the package import each other in a cycle. Read from the source (ast), nothing is imported."""
+"""Layers point down. The package is folders by pipeline stage, lowest first: ``core`` <
+``data`` < ``calibration`` < ``geometry`` < ``cache`` < ``views`` < ``render`` < the top
+modules (``settings``, ``transform``, ``training``, the package's ``__init__``); above it the
+integrations ``gensplat_lerobot`` < ``gensplat_sim`` < ``gensplat_cli``. A module imports only
+its own stage and lower ones, at module or function level alike; the package never imports
+LeRobot or an integration; no modules import each other in a cycle, function-level imports
+counted. Imports under ``if TYPE_CHECKING:`` never run: they are no edges of the cycle check,
+and may name the top's settings and transform types (what the stages are handed) from any
+stage. Read from the source (ast), nothing is imported."""
 
 from __future__ import annotations
 
@@ -9,9 +15,16 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = "gensplat_transforms"
-#: The bench: may import the core and gensplat_lerobot; nothing in the core imports it.
-BENCH = (f"{PACKAGE}.sim", f"{PACKAGE}.demo", f"{PACKAGE}.cli")
-INTEGRATION = "gensplat_lerobot"
+#: the package's stage folders, lowest first (docs/architecture.md)
+STAGES = ("core", "data", "calibration", "geometry", "cache", "views", "render")
+#: the package's modules above every stage (and the package's ``__init__``)
+TOP = (f"{PACKAGE}.settings", f"{PACKAGE}.transform", f"{PACKAGE}.training")
+#: the shipped network's weights: package data beside the stages, read by the geometry stage
+WEIGHTS = f"{PACKAGE}.weights"
+#: the integrations, lowest first; each may import the package and the ones before it
+INTEGRATIONS = ("gensplat_lerobot", "gensplat_sim", "gensplat_cli")
+#: what a stage may name in a type-only import from above it: the objects it is handed
+TYPES_FROM_ABOVE = (f"{PACKAGE}.settings", f"{PACKAGE}.transform")
 
 
 def _name(path: Path, base: Path) -> str:
@@ -23,29 +36,62 @@ MODULES = {_name(p, ROOT): p for p in sorted((ROOT / PACKAGE).rglob("*.py"))}
 INTEGRATION_MODULES = {
     _name(p, ROOT / "integrations"): p for p in sorted((ROOT / "integrations").rglob("*.py"))
 }
+ALL_MODULES = {**MODULES, **INTEGRATION_MODULES}
 
 
 def _under(name: str, prefixes) -> bool:
     return any(name == p or name.startswith(p + ".") for p in prefixes)
 
 
-def _statements(tree: ast.Module, module_level: bool):
-    """Import statements anywhere, or only those that run on import (not inside functions)."""
-    todo = list(tree.body)
+def rank(name: str) -> int | None:
+    """The layer of a module or package of the project, lowest 0; None for other modules."""
+    top = len(STAGES)
+    if _under(name, [WEIGHTS]):
+        return STAGES.index("geometry")
+    if name == PACKAGE or _under(name, TOP):
+        return top
+    for i, stage in enumerate(STAGES):
+        if _under(name, [f"{PACKAGE}.{stage}"]):
+            return i
+    for i, integration in enumerate(INTEGRATIONS):
+        if _under(name, [integration]):
+            return top + 1 + i
+    return None
+
+
+def _type_checking(node: ast.AST) -> bool:
+    """``if TYPE_CHECKING:`` (or ``typing.TYPE_CHECKING``): its imports never run."""
+    test = node.test if isinstance(node, ast.If) else None
+    return isinstance(test, ast.Name) and test.id == "TYPE_CHECKING" or (
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
+
+
+def _statements(tree: ast.Module, module_level: bool, types: bool = False):
+    """Import statements that run (functions included), only those that run on import (not
+    inside functions) with ``module_level``, or with ``types`` those under ``if TYPE_CHECKING:``
+    (which never run)."""
+    todo = [(node, False, False) for node in tree.body]  # (node, in a function, type-only)
     while todo:
-        node = todo.pop()
+        node, in_function, type_only = todo.pop()
         if isinstance(node, (ast.Import, ast.ImportFrom)):
-            yield node
-        elif not (module_level and isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda))):
-            todo.extend(ast.iter_child_nodes(node))
+            if type_only == types and not (module_level and in_function):
+                yield node
+            continue
+        in_function = in_function or isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda))
+        if _type_checking(node):
+            todo += [(n, in_function, True) for n in node.body]
+            todo += [(n, in_function, type_only) for n in node.orelse]
+        else:
+            todo += [(n, in_function, type_only) for n in ast.iter_child_nodes(node)]
 
 
-def imports(name: str, path: Path, modules: dict, module_level: bool = False) -> set[str]:
-    """Absolute names of what ``name`` imports: ``from a import b`` gives ``a.b`` when that is
-    a module of ``modules``, else ``a``."""
+def imports(name: str, path: Path, modules: dict, module_level: bool = False,
+            types: bool = False) -> set[str]:
+    """Absolute names of what ``name`` imports (see :func:`_statements` for which statements):
+    ``from a import b`` gives ``a.b`` when that is a module of ``modules``, else ``a``."""
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     out = set()
-    for node in _statements(ast.parse(path.read_text()), module_level):
+    for node in _statements(ast.parse(path.read_text()), module_level, types):
         if isinstance(node, ast.Import):
             out |= {a.name for a in node.names}
             continue
@@ -57,39 +103,59 @@ def imports(name: str, path: Path, modules: dict, module_level: bool = False) ->
     return out
 
 
-def test_the_core_imports_neither_the_bench_nor_lerobot():
-    forbidden = (*BENCH, INTEGRATION, "lerobot")
-    bad = {m: sorted(i for i in imports(m, p, MODULES) if _under(i, forbidden))
-           for m, p in MODULES.items() if not _under(m, BENCH)}  # fmt: skip
-    assert not {m: i for m, i in bad.items() if i}, "core modules import the bench or LeRobot"
+def test_every_module_belongs_to_a_layer():
+    assert not [m for m in ALL_MODULES if rank(m) is None]
+    assert all((ROOT / PACKAGE / stage / "__init__.py").is_file() for stage in STAGES)
+    assert [rank(f"{PACKAGE}.{s}.x") for s in STAGES] == list(range(len(STAGES)))
+    order = [f"{PACKAGE}.render.batched", f"{PACKAGE}.transform", "gensplat_lerobot.plugin",
+             "gensplat_sim.demo", "gensplat_cli"]
+    assert [rank(m) for m in order] == sorted({rank(m) for m in order})
+
+
+def test_modules_import_only_their_own_layer_and_lower_ones():
+    """At module or function level alike: a function-level import is an arrow too."""
+    up = {m: sorted(i for i in imports(m, p, ALL_MODULES) if (rank(i) or 0) > rank(m))
+          for m, p in ALL_MODULES.items()}  # fmt: skip
+    assert not {m: i for m, i in up.items() if i}, "imports that point up"
+
+
+def test_type_only_imports_name_only_the_types_the_stages_are_handed_from_above():
+    up = {m: sorted(i for i in imports(m, p, ALL_MODULES, types=True)
+                    if (rank(i) or 0) > rank(m) and not _under(i, TYPES_FROM_ABOVE))
+          for m, p in ALL_MODULES.items()}  # fmt: skip
+    assert not {m: i for m, i in up.items() if i}
+
+
+def test_the_package_imports_neither_lerobot_nor_an_integration():
+    forbidden = (*INTEGRATIONS, "lerobot")
+    every = {m: imports(m, p, MODULES) | imports(m, p, MODULES, types=True) for m, p in MODULES.items()}
+    bad = {m: sorted(i for i in names if _under(i, forbidden)) for m, names in every.items()}
+    assert not {m: i for m, i in bad.items() if i}, "the package imports LeRobot or an integration"
 
 
 def test_the_model_does_not_import_the_reconstructors():
-    """``model/`` sits below ``reconstruction/`` (which wraps the models): the types both use
-    (views, reconstructions) live in ``views``, below both."""
-    model = f"{PACKAGE}.model"
-    bad = {m: sorted(i for i in imports(m, p, MODULES) if _under(i, (f"{PACKAGE}.reconstruction",)))
-           for m, p in MODULES.items() if _under(m, (model,))}  # fmt: skip
-    assert not {m: i for m, i in bad.items() if i}, "model/ imports reconstruction/"
+    """``geometry/model/`` (the network) sits below the reconstructors of ``geometry/`` (which
+    wrap it): the types both use (views, reconstructions) live in ``core/views.py``, below both."""
+    model = f"{PACKAGE}.geometry.model"
+    inside = {m: imports(m, p, MODULES) for m, p in MODULES.items() if _under(m, [model])}
+    bad = {m: sorted(i for i in names if _under(i, [f"{PACKAGE}.geometry"]) and not _under(i, [model]))
+           for m, names in inside.items()}  # fmt: skip
+    assert not {m: i for m, i in bad.items() if i}, "geometry/model/ imports the reconstructors"
 
 
-def test_the_lerobot_integration_imports_only_the_core():
-    bad = {m: sorted(i for i in imports(m, p, INTEGRATION_MODULES) if _under(i, BENCH))
-           for m, p in INTEGRATION_MODULES.items()}  # fmt: skip
-    assert not {m: i for m, i in bad.items() if i}
-
-
-def _graph() -> dict[str, set[str]]:
-    """Module-level imports between the package's modules; importing ``a.b.c`` from outside
-    ``a.b`` also runs ``a.b``'s ``__init__``."""
+def _graph(module_level: bool = False) -> dict[str, set[str]]:
+    """Imports between the project's modules (the package and the integrations), function-level
+    ones too unless ``module_level``; importing ``a.b.c`` from outside ``a.b`` also runs
+    ``a.b``'s ``__init__`` (a module's own packages are running already; importing one of them
+    by name, ``from . import x``, is an edge)."""
     graph = {}
-    for m, p in MODULES.items():
+    for m, p in ALL_MODULES.items():
         edges = set()
-        for target in imports(m, p, MODULES, module_level=True):
+        for target in imports(m, p, ALL_MODULES, module_level=module_level):
             parts = target.split(".")
             for k in range(1, len(parts) + 1):
                 parent = ".".join(parts[:k])
-                if parent in MODULES and parent != m and not _under(m, [parent]):
+                if parent in ALL_MODULES and parent != m and (parent == target or not _under(m, [parent])):
                     edges.add(parent)
         graph[m] = edges
     return graph
@@ -115,7 +181,9 @@ def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
 
 def test_no_import_cycles():
     graph = _graph()
-    assert f"{PACKAGE}.model" in graph[f"{PACKAGE}.reconstruction.model"]  # the graph sees imports
+    assert f"{PACKAGE}.geometry.model" in graph[f"{PACKAGE}.geometry.feedforward"]  # the graph sees imports
+    assert "gensplat_sim.demo" in graph["gensplat_cli.commands"]  # ... function-level ones too
+    assert "gensplat_sim.demo" not in _graph(module_level=True)["gensplat_cli.commands"]
     cycle = find_cycle(graph)
     assert cycle is None, " -> ".join(cycle)
 
@@ -125,20 +193,40 @@ def test_the_cycle_finder_finds_a_cycle():
     assert find_cycle({"a": {"b"}, "b": set()}) is None
 
 
+def test_the_checks_see_function_level_and_type_only_imports():
+    tree = ast.parse("import a\nif TYPE_CHECKING:\n    import t\ndef f():\n    import b\n")
+    names = lambda **kw: {a.name for n in _statements(tree, **kw) for a in n.names}
+    assert names(module_level=False) == {"a", "b"}
+    assert names(module_level=True) == {"a"}
+    assert names(module_level=False, types=True) == {"t"}
+
+
 def test_the_batch_path_shares_the_workers_helpers_instead_of_reaching_into_the_transform():
-    """batched.py takes the config, the plan's keys and the view helpers from the modules that
-    hold them; from transform.py only the transform's type (for annotations)."""
-    tree = ast.parse(MODULES[f"{PACKAGE}.batched"].read_text())
+    """render/batched.py takes the plan's keys and the view helpers from the modules that hold
+    them; the config and the transform only as types (for annotations), from transform.py only
+    the transform's type."""
+    name = f"{PACKAGE}.render.batched"
+    tree = ast.parse(MODULES[name].read_text())
     from_transform = {a.name for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module == "transform"
                       for a in n.names}  # fmt: skip
     assert from_transform == {"GenSplatTransform"}
-    assert imports(f"{PACKAGE}.batched", MODULES[f"{PACKAGE}.batched"], MODULES) >= {
-        f"{PACKAGE}.plan", f"{PACKAGE}.settings", f"{PACKAGE}.view_output", f"{PACKAGE}.perturbation"}
+    assert imports(name, MODULES[name], MODULES) >= {
+        f"{PACKAGE}.views.plan", f"{PACKAGE}.render.output", f"{PACKAGE}.views.perturbation"}
+    assert imports(name, MODULES[name], MODULES, types=True) == set(TYPES_FROM_ABOVE)
 
 
-def test_no_module_name_is_used_twice():
-    """A file's name says which layer it belongs to: no two modules of the core and the LeRobot
-    integration share one (``__init__.py`` aside)."""
+def test_no_module_name_is_used_twice_within_a_stage():
+    """A module's folder names its stage (``data/format.py``, ``cache/format.py``): within one
+    stage (its subpackages included) or one integration no two modules share a file name
+    (``__init__.py`` aside), and no module shares its name with a package beside it (the
+    package would win)."""
     paths = [p for base in (ROOT / PACKAGE, ROOT / "integrations") for p in base.rglob("*.py") if p.name != "__init__.py"]
-    names = [p.name for p in paths]
-    assert not {n for n in names if names.count(n) > 1}
+    stages = {}
+    for p in paths:
+        base = ROOT / PACKAGE if p.is_relative_to(ROOT / PACKAGE) else ROOT / "integrations"
+        parts = p.relative_to(base).parts
+        stages.setdefault(parts[0] if len(parts) > 1 else PACKAGE, []).append(p)
+    repeated = {s: sorted({p.name for p in ps if [q.name for q in ps].count(p.name) > 1})
+                for s, ps in stages.items()}  # fmt: skip
+    assert not {s: n for s, n in repeated.items() if n}
+    assert not [p for p in paths if (p.parent / p.stem / "__init__.py").exists()]

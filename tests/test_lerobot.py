@@ -30,13 +30,13 @@ from gensplat_lerobot.scene_dataset import record_scene_dataset
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from safetensors.torch import save_file
 
-from gensplat_transforms.cache import StaleCacheError
-from gensplat_transforms.dataset_format import DEPTH_FORMAT, depth_path, load_depth, save_depth
-from gensplat_transforms.episodes import SceneEpisodes
-from gensplat_transforms.metrics import psnr
-from gensplat_transforms.model import PATCH_SIZE
-from gensplat_transforms.perturbation import PerturbationRange
+from gensplat_transforms.cache.builder import SceneEpisodes
+from gensplat_transforms.cache.store import StaleCacheError
+from gensplat_transforms.core.metrics import psnr
+from gensplat_transforms.data.format import DEPTH_FORMAT, depth_path, load_depth, save_depth
+from gensplat_transforms.geometry.model import PATCH_SIZE
 from gensplat_transforms.transform import GenSplatConfig
+from gensplat_transforms.views.perturbation import PerturbationRange
 
 REPO = "local/gensplat_scene"
 SIM_REPO = "gensplat/sim_pick_place"
@@ -62,12 +62,12 @@ def record_and_cache(root: Path, height: int, width: int, frames: int | None = N
     """A simulated pick-and-place episode (the first ``frames`` timesteps, or all) in LeRobot's
     default MP4 video at ``height x width``, its depth cache built by ``gensplat cache`` with
     every sample augmented (probability 1)."""
-    import gensplat_transforms.sim  # noqa: F401  (selects the headless GL backend before MuJoCo loads)
+    import gensplat_sim  # noqa: F401  (selects the headless GL backend before MuJoCo loads)
 
     pytest.importorskip("mujoco", reason="recording needs the 'sim' extra (mujoco)")
-    from gensplat_transforms.cli import main
-    from gensplat_transforms.sim.record import RecordConfig, record
-    from gensplat_transforms.sim.world import WorldConfig
+    from gensplat_cli import main
+    from gensplat_sim.record import RecordConfig, record
+    from gensplat_sim.world import WorldConfig
 
     scheduling = os.sched_getscheduler(0), os.sched_getparam(0)
     if frames is None:
@@ -253,7 +253,7 @@ def test_missing_episodes_are_announced_with_the_command(dataset_root, caplog):
 
 
 def test_demo_and_policies_use_one_repo_id():
-    from gensplat_transforms.demo import REPO_ID
+    from gensplat_sim.demo import REPO_ID
 
     assert REPO_ID == SIM_REPO
     for config in POLICIES.glob("*.json"):
@@ -261,7 +261,7 @@ def test_demo_and_policies_use_one_repo_id():
 
 
 def test_cli_user_mistakes_end_with_the_message(dataset_root, tmp_path, capsys):
-    from gensplat_transforms.cli import main
+    from gensplat_cli import main
 
     assert main(["cache", "--root", str(tmp_path / "nothing"), "--repo-id", REPO]) == 2
     err = capsys.readouterr().err
@@ -281,7 +281,7 @@ def test_cli_user_mistakes_end_with_the_message(dataset_root, tmp_path, capsys):
 
 
 def test_cache_command_writes_settings_and_cache(dataset_root, capsys):
-    from gensplat_transforms.cli import main
+    from gensplat_cli import main
 
     main(["cache", "--root", str(dataset_root), "--repo-id", REPO, "--level", "large", "--probability", "0.7"])
     out = capsys.readouterr().out
@@ -405,10 +405,9 @@ def test_the_dataset_record_keeps_the_licence_of_the_model_weights(dataset_root,
     """gensplat cache on the geometry path (a random checkpoint) records its weights' licence in
     <root>/gensplat/dataset.json and prints it from there; the field is not part of the content
     or its fingerprint, so a record without it (written before) still serves the cache."""
+    from gensplat_cli import main
     from gensplat_lerobot.dataset import content_path, what_differs
     from tiny_model import tiny_model
-
-    from gensplat_transforms.cli import main
 
     shutil.rmtree(dataset_root / "depth")
     ckpt = tiny_model().save_pretrained(tmp_path / "ckpt")
@@ -431,7 +430,7 @@ def test_max_pixels_caches_the_geometry_path_at_the_models_smaller_size(dataset_
     """gensplat cache --max-pixels: the model sees 28x28 of the 48x48 frames and the depth cache
     holds that size; the views are still rendered at the frames' size (the images' detail kept),
     and the policy is told when it reads less than half that."""
-    from gensplat_transforms.cli import main
+    from gensplat_cli import main
 
     shutil.rmtree(dataset_root / "depth")
     assert main(["cache", "--root", str(dataset_root), "--repo-id", REPO, "--max-pixels", "1000",
@@ -463,7 +462,7 @@ def test_max_pixels_caches_the_geometry_path_at_the_models_smaller_size(dataset_
 
 def test_batch_timesteps_is_refused_where_no_geometry_model_runs(dataset_root):
     """With depth the default reconstructor is rgbd: a model batch size is refused, not ignored."""
-    from gensplat_transforms.cli import main
+    from gensplat_cli import main
 
     for given in ([], ["--reconstructor", "rgbd"], ["--reconstructor", "gensplat"]):
         with pytest.raises(SystemExit, match="--batch-timesteps batches the geometry reconstructor's model; this"):
@@ -474,9 +473,8 @@ def test_batch_timesteps_is_refused_where_no_geometry_model_runs(dataset_root):
 def test_recorded_depth_is_imported_as_the_datasets_sidecars(dataset_root, tmp_path, capsys):
     """gensplat import-depth: millimetre PNGs of an RGB-only dataset become its depth
     sidecars, which the rgbd cache then links; user mistakes end with a message."""
+    from gensplat_cli import main
     from PIL import Image
-
-    from gensplat_transforms.cli import main
 
     want = {(n, e): load_depth(dataset_root, n, e)[:, 0] for n in ("left", "right") for e in (0, 1)}
     shutil.rmtree(dataset_root / "depth")
@@ -621,7 +619,7 @@ def test_folder_digests_are_remembered_by_file_stats(dataset_root, monkeypatch):
 
     from gensplat_lerobot.source import files_digest
 
-    from gensplat_transforms.dataset_format import digests_path
+    from gensplat_transforms.data.format import digests_path
 
     memo, folder = digests_path(dataset_root), "depth/left"
     plain = files_digest(dataset_root, folder)
@@ -748,9 +746,8 @@ def test_lerobots_own_depth_features_are_read_and_copied_into_the_cache(tmp_path
     assert load_settings(root)[1]["name"] == "rgbd" and stats[0].bytes_per_timestep > 200  # a stored copy
     from types import SimpleNamespace
 
+    from gensplat_cli import main
     from gensplat_lerobot.plugin import start_message
-
-    from gensplat_transforms.cli import main
 
     for unit in ("mm", "m"):  # LeRobot's default, and metres
         opened = {"root": root, "video_backend": video_backend(), "depth_output_unit": unit}
@@ -789,6 +786,6 @@ def test_lerobots_own_depth_features_are_read_and_copied_into_the_cache(tmp_path
     assert torch.equal(item[LEFT + "_depth"], ref[LEFT + "_depth"]) and not torch.equal(item[LEFT], ref[LEFT])
     assert "kept as recorded (--keep-depth-maps)" in start_message(ds, SimpleNamespace(policy=None, resume=False))
     (words, coded), _ = ds.gensplat.cache.read_depth_words(0, 2)
-    from gensplat_transforms.depth_codec import depth_from_words
+    from gensplat_transforms.cache.depth_codec import depth_from_words
 
     assert (depth_from_words(words, coded) - want[:, 0]).abs().max() <= 1e-3 * want.max() + error_m

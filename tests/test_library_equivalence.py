@@ -16,14 +16,14 @@ import torch.nn.functional as F
 from PIL import Image, ImageDraw
 from safetensors.torch import load_file
 
-from gensplat_transforms.gaussians import Gaussians
-from gensplat_transforms.images import save_grid, to_uint8
-from gensplat_transforms.metrics import ssim, ssim_map
-from gensplat_transforms.model.frames import quat_mul
-from gensplat_transforms.model.losses import LossWeights, rgb_loss
-from gensplat_transforms.model.train import ema_model
-from gensplat_transforms.perturbation import axis_rotation
-from gensplat_transforms.rotations import normalize_quat, quat_to_rotmat, rotmat_to_quat
+from gensplat_transforms.core.gaussians import Gaussians
+from gensplat_transforms.core.images import save_grid, to_uint8
+from gensplat_transforms.core.metrics import ssim, ssim_map
+from gensplat_transforms.core.rotations import normalize_quat, quat_to_rotmat, rotmat_to_quat
+from gensplat_transforms.geometry.model.frames import quat_mul
+from gensplat_transforms.geometry.model.losses import LossWeights, rgb_loss
+from gensplat_transforms.training import ema_model
+from gensplat_transforms.views.perturbation import axis_rotation
 
 DATA = Path(__file__).parent / "data"
 

@@ -6,10 +6,12 @@ import pytest
 import torch
 from tiny_model import TINY
 
-from gensplat_transforms.cameras import Cameras, look_at
-from gensplat_transforms.metrics import ssim_map
-from gensplat_transforms.model import GenSplatModel, to_gaussians
-from gensplat_transforms.model.losses import (
+from gensplat_transforms.core.cameras import Cameras, look_at
+from gensplat_transforms.core.metrics import ssim_map
+from gensplat_transforms.core.rotations import quat_to_rotmat
+from gensplat_transforms.data.scenes import TabletopScene, default_cameras
+from gensplat_transforms.geometry.model import GenSplatModel, to_gaussians
+from gensplat_transforms.geometry.model.losses import (
     LossWeights,
     camera_loss,
     depth_loss,
@@ -17,10 +19,8 @@ from gensplat_transforms.model.losses import (
     points_loss,
     rgb_loss,
 )
-from gensplat_transforms.perturbation import axis_rotation
-from gensplat_transforms.rendering import render
-from gensplat_transforms.rotations import quat_to_rotmat
-from gensplat_transforms.scenes import TabletopScene, default_cameras
+from gensplat_transforms.render import render
+from gensplat_transforms.views.perturbation import axis_rotation
 
 
 def rig(b: int = 2, v: int = 3) -> torch.Tensor:

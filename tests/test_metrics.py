@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from gensplat_transforms.metrics import psnr, ssim, ssim_map
+from gensplat_transforms.core.metrics import psnr, ssim, ssim_map
 
 C1, C2 = 0.01**2, 0.03**2
 

@@ -10,20 +10,20 @@ import torch
 from safetensors.torch import save_file
 from tiny_model import tiny_model as perturbed_model
 
-from gensplat_transforms.cameras import Cameras, look_at
-from gensplat_transforms.model import GenSplatModel, ModelConfig, load_pi3_weights, to_gaussians
-from gensplat_transforms.model.frames import (
+from gensplat_transforms.core.cameras import Cameras, look_at
+from gensplat_transforms.core.rotations import quat_to_rotmat
+from gensplat_transforms.core.sh import sh_basis
+from gensplat_transforms.geometry import GenSplatReconstructor, Views
+from gensplat_transforms.geometry.model import GenSplatModel, ModelConfig, load_pi3_weights, to_gaussians
+from gensplat_transforms.geometry.model.frames import (
     align_similarity,
     estimate_focal,
     quat_mul,
     sh_rotation,
     transform_poses,
 )
-from gensplat_transforms.model.heads import svd_orthogonalize
-from gensplat_transforms.model.layers import rope_2d
-from gensplat_transforms.reconstruction import GenSplatReconstructor, Views
-from gensplat_transforms.rotations import quat_to_rotmat
-from gensplat_transforms.sh import sh_basis
+from gensplat_transforms.geometry.model.heads import svd_orthogonalize
+from gensplat_transforms.geometry.model.layers import rope_2d
 
 MANIFEST = Path(__file__).resolve().parents[1].parent / "shared" / "pi3_state_dict_manifest.json"
 TINY = ModelConfig(
@@ -356,7 +356,7 @@ def test_a_foreign_checkpoint_is_refused_from_its_header_before_the_model_is_bui
         GenSplatModel.from_pretrained(tmp_path)
     assert built == ["meta"]  # only the shapes were built, on the meta device
     (tmp_path / "config.json").write_text("[1, 2]")
-    from gensplat_transforms.reconstruction.geometry import GeometryReconstructor, is_gensplat_checkpoint
+    from gensplat_transforms.geometry.geometry import GeometryReconstructor, is_gensplat_checkpoint
 
     with pytest.raises(ValueError, match=r"config.json: expected a JSON object, got list"):
         is_gensplat_checkpoint(tmp_path)

@@ -7,10 +7,10 @@ import argparse
 import sys
 from pathlib import Path
 
+import gensplat_sim  # noqa: F401  (selects MuJoCo's headless backend before mujoco loads)
 import pytest
 
-import gensplat_transforms.sim  # noqa: F401  (selects MuJoCo's headless backend before mujoco loads)
-from gensplat_transforms.perturbation import EVAL_LEVELS, ArcSampler, TiltSampler
+from gensplat_transforms.views.perturbation import EVAL_LEVELS, ArcSampler, TiltSampler
 
 pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
 pytest.importorskip("mujoco", reason="the sim extra is not installed (pip install -e '.[sim]')")

@@ -12,14 +12,14 @@ import pytest
 import torch
 from torch.utils.data import default_collate
 
-from gensplat_transforms.batched import render_batch
-from gensplat_transforms.cache import GaussianCache
-from gensplat_transforms.cameras import look_at
-from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache, scene_depth
-from gensplat_transforms.perturbation import Perturbation, move_rig, rig_pivot
-from gensplat_transforms.reconstruction import RGBDReconstructor, Views
-from gensplat_transforms.scenes import default_cameras
+from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache, scene_depth
+from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.core.cameras import look_at
+from gensplat_transforms.data.scenes import default_cameras
+from gensplat_transforms.geometry import RGBDReconstructor, Views
+from gensplat_transforms.render.batched import render_batch
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
+from gensplat_transforms.views.perturbation import Perturbation, move_rig, rig_pivot
 
 LEFT, RIGHT = "observation.images.left", "observation.images.right"
 
@@ -149,9 +149,8 @@ def one_camera_dataset(tmp_path_factory):
 
 
 def test_cache_preview_and_lerobot_train_with_one_camera(one_camera_dataset, tmp_path, capsys):
+    from gensplat_cli import main
     from test_lerobot import train_diffusion
-
-    from gensplat_transforms.cli import main
 
     root = one_camera_dataset
     assert main(["cache", "--root", str(root), "--repo-id", REPO, "--probability", "1"]) == 0

@@ -1,5 +1,5 @@
 """Nothing a user types as an output path harms the dataset: every command's ``--out`` is checked
-(gensplat_transforms.outputs), refused ones end as ``gensplat: error:`` lines, and ``gensplat
+(gensplat_transforms.data.outputs), refused ones end as ``gensplat: error:`` lines, and ``gensplat
 record`` refuses bad sizes up front and leaves no partial dataset when it fails."""
 
 import hashlib
@@ -11,13 +11,13 @@ import pytest
 pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
 os.environ["HF_HUB_OFFLINE"] = "1"
 
+import gensplat_sim.record as sim_record
+from gensplat_cli import main
 from gensplat_lerobot.scene_dataset import record_scene_dataset
+from gensplat_sim.world import WorldConfig
 
-import gensplat_transforms.sim.record as sim_record
-from gensplat_transforms.cli import main
-from gensplat_transforms.episodes import SceneEpisodes
-from gensplat_transforms.gaussians import Gaussians
-from gensplat_transforms.sim.world import WorldConfig
+from gensplat_transforms.cache.builder import SceneEpisodes
+from gensplat_transforms.core.gaussians import Gaussians
 
 REPO = "local/outputs_scene"
 
@@ -254,7 +254,7 @@ def test_outputs_never_replace_gensplat_s_own_files(cached, tmp_path, capsys, ow
 def test_every_file_gensplat_keeps_is_listed_as_its_own(tmp_path):
     from gensplat_lerobot.dataset import content_path, settings_path
 
-    from gensplat_transforms.dataset_format import GENSPLAT_OWNED, calibration_path, digests_path
+    from gensplat_transforms.data.format import GENSPLAT_OWNED, calibration_path, digests_path
 
     for path in (f(tmp_path) for f in (content_path, settings_path, calibration_path, digests_path)):
         assert path.parent == tmp_path / "gensplat" and path.name in GENSPLAT_OWNED

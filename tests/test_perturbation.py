@@ -1,4 +1,4 @@
-"""Tests for gensplat_transforms.perturbation (the paper's pivot-and-push camera protocol)."""
+"""Tests for gensplat_transforms.views.perturbation (the paper's pivot-and-push camera protocol)."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from gensplat_transforms.cameras import Cameras, look_at
-from gensplat_transforms.perturbation import (
+from gensplat_transforms.core.cameras import Cameras, look_at
+from gensplat_transforms.views.perturbation import (
     AXES,
     EVAL_LEVELS,
     LEVELS,
@@ -328,7 +328,7 @@ def test_bad_arguments_raise_clear_value_errors(make, match):
 
 
 def test_move_perturbs_one_camera_of_a_rig_about_its_pivot():
-    from gensplat_transforms.scenes import default_cameras
+    from gensplat_transforms.data.scenes import default_cameras
 
     cams = default_cameras(32, 32)
     p = Perturbation("x", 12.0, 0.03)
@@ -345,8 +345,8 @@ def test_move_perturbs_one_camera_of_a_rig_about_its_pivot():
 def test_move_checks_the_moved_pose_only_for_overflow(monkeypatch):
     """The move is a rigid motion of a checked pose, so the rotation checks are not repeated;
     a pose that overflows (cameras near float64's largest value) still raises."""
-    from gensplat_transforms import cameras as cameras_module
-    from gensplat_transforms.scenes import default_cameras
+    from gensplat_transforms.core import cameras as cameras_module
+    from gensplat_transforms.data.scenes import default_cameras
 
     cams = default_cameras(32, 32)
     monkeypatch.setattr(cameras_module, "_check_rigid", lambda c2w, tolerance: pytest.fail("checked again"))

@@ -6,13 +6,13 @@ import pytest
 import torch
 from torch.utils.data import default_collate
 
-from gensplat_transforms.batched import render_batch
-from gensplat_transforms.cache import GaussianCache
-from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
-from gensplat_transforms.perturbation import ROW, Perturbation, move_rig
-from gensplat_transforms.plan import ViewPlan
-from gensplat_transforms.reconstruction import RGBDReconstructor
+from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
+from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.geometry import RGBDReconstructor
+from gensplat_transforms.render.batched import render_batch
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform, render_view
+from gensplat_transforms.views.perturbation import ROW, Perturbation, move_rig
+from gensplat_transforms.views.plan import ViewPlan
 
 LEFT, RIGHT = "observation.images.left", "observation.images.right"
 

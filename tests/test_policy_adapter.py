@@ -7,19 +7,18 @@ import subprocess
 import sys
 from pathlib import Path
 
+import gensplat_sim  # noqa: F401  (selects the headless GL backend before MuJoCo loads)
 import pytest
 import torch
-
-import gensplat_transforms.sim  # noqa: F401  (selects the headless GL backend before MuJoCo loads)
 
 pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
 pytest.importorskip("mujoco", reason="the simulated world needs the 'sim' extra")
 os.environ["HF_HUB_OFFLINE"] = "1"
 
-from gensplat_transforms.sim.evaluate import EvalConfig, PerturbedCameraEnv, evaluate
-from gensplat_transforms.sim.policy_adapter import LeRobotPolicy
-from gensplat_transforms.sim.record import RecordConfig, record
-from gensplat_transforms.sim.world import WorldConfig
+from gensplat_sim.evaluate import EvalConfig, PerturbedCameraEnv, evaluate
+from gensplat_sim.policy_adapter import LeRobotPolicy
+from gensplat_sim.record import RecordConfig, record
+from gensplat_sim.world import WorldConfig
 
 SIZE = 64
 REPO = "gensplat/sim_adapter_test"

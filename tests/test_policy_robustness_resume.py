@@ -9,17 +9,15 @@ import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import gensplat_sim  # noqa: F401  (selects the headless GL backend before MuJoCo loads)
 import pytest
-
-import gensplat_transforms.sim  # noqa: F401  (selects the headless GL backend before MuJoCo loads)
 
 pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
 pytest.importorskip("mujoco", reason="recording needs the 'sim' extra (mujoco)")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import policy_robustness as pr
-
-from gensplat_transforms.sim.record import RecordConfig, record
-from gensplat_transforms.sim.world import WorldConfig
+from gensplat_sim.record import RecordConfig, record
+from gensplat_sim.world import WorldConfig
 
 
 def test_a_stopped_training_resumes_from_its_last_checkpoint(tmp_path, monkeypatch):

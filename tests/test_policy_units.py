@@ -6,10 +6,9 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+import gensplat_sim  # noqa: F401  (selects the headless GL backend before MuJoCo loads)
 import numpy as np
 import pytest
-
-import gensplat_transforms.sim  # noqa: F401  (selects the headless GL backend before MuJoCo loads)
 
 pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
 pytest.importorskip("mujoco", reason="the study needs the 'sim' extra (mujoco)")
@@ -17,7 +16,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import policy_robustness as pr
 import policy_units as pu
 
-from gensplat_transforms.atomic import atomic_write_json
+from gensplat_transforms.core.atomic import atomic_write_json
 
 TASK = "reach_solo"
 LEVELS = [(p, lv) for p, levels in pr.PROTOCOLS.items() for lv in levels]

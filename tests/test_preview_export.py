@@ -13,16 +13,16 @@ pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip i
 os.environ["HF_HUB_OFFLINE"] = "1"
 
 import av
+from gensplat_cli import main
 from gensplat_lerobot import LeRobotSource, enable_gensplat, load_settings, save_settings
 from gensplat_lerobot.dataset import dataset_cache
 from gensplat_lerobot.export import timestep_gaussians
 from gensplat_lerobot.scene_dataset import record_scene_dataset
 from gensplat_lerobot.training_preview import MIN_TILE_HEIGHT, open_dataset, write_lerobot_preview
 
-from gensplat_transforms.cli import main
-from gensplat_transforms.episodes import SceneEpisodes
-from gensplat_transforms.gaussians import Gaussians
-from gensplat_transforms.reconstruction import make_reconstructor
+from gensplat_transforms.cache.builder import SceneEpisodes
+from gensplat_transforms.core.gaussians import Gaussians
+from gensplat_transforms.geometry import make_reconstructor
 
 REPO = "local/preview_scene"
 SIZE, FRAMES = 32, 6
@@ -146,7 +146,7 @@ def test_bad_episode_or_frame_is_a_clear_error(cached, tmp_path, capsys, command
 def test_preview_labels_name_each_move_and_where_it_turns():
     from gensplat_lerobot.training_preview import _label
 
-    from gensplat_transforms.perturbation import Perturbation
+    from gensplat_transforms.views.perturbation import Perturbation
 
     moves = [Perturbation("x", 5.0, 0.02), Perturbation((0.0, 0.6, 0.8), -7.5, shift_m=(0.01, 0, 0), about="camera"),
              Perturbation("z", 30.0, focal_scale=1.2)]  # fmt: skip
@@ -161,7 +161,7 @@ def test_preview_labels_name_each_move_and_where_it_turns():
 def test_preview_labels_give_any_focal_change_in_three_digits(scale, text):
     from gensplat_lerobot.training_preview import _label
 
-    from gensplat_transforms.perturbation import Perturbation
+    from gensplat_transforms.views.perturbation import Perturbation
 
     item = {"gensplat.axis": torch.tensor([0]), "gensplat.move": torch.tensor([Perturbation(focal_scale=scale).as_row()],
                                                                                  dtype=torch.float64)}  # fmt: skip

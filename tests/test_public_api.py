@@ -6,7 +6,7 @@ import subprocess
 import sys
 
 import gensplat_transforms
-from gensplat_transforms import perturbation
+from gensplat_transforms.views import perturbation
 
 
 def test_every_public_name_has_a_docstring_example():
@@ -22,5 +22,15 @@ def test_importing_the_package_loads_neither_the_simulator_nor_lerobot():
     code = "import sys, json, gensplat_transforms; print(json.dumps(sorted(sys.modules)))"
     loaded = json.loads(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                                        check=True).stdout)  # fmt: skip
-    heavy = ("gensplat_transforms.sim", "gensplat_transforms.demo", "gensplat_lerobot", "lerobot", "mujoco")
+    heavy = ("gensplat_sim", "gensplat_cli", "gensplat_lerobot", "lerobot", "mujoco")
     assert not [m for m in loaded if m.startswith(heavy)]
+
+
+def test_render_is_the_function_and_the_render_stage_imports_by_name():
+    """The render stage's package shares its name with the public function: the package's
+    attribute ``render`` is the function, the stage's modules import with ``from ... import``."""
+    from gensplat_transforms.render import fast
+
+    stage = sys.modules["gensplat_transforms.render"]
+    assert gensplat_transforms.render is stage.render and callable(gensplat_transforms.render)
+    assert fast.__name__ == "gensplat_transforms.render.fast"

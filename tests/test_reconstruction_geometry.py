@@ -7,17 +7,17 @@ import torch
 from safetensors.torch import save_file
 from tiny_model import TINY, tiny_model
 
-from gensplat_transforms.cache import GaussianCache
-from gensplat_transforms.episodes import SceneEpisodes
-from gensplat_transforms.model import ModelConfig
-from gensplat_transforms.reconstruction import (
+from gensplat_transforms.cache.builder import SceneEpisodes
+from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.data.scenes import TabletopScene, default_cameras
+from gensplat_transforms.geometry import (
     RECONSTRUCTORS,
     GeometryReconstructor,
     RGBDReconstructor,
     Views,
     make_reconstructor,
 )
-from gensplat_transforms.scenes import TabletopScene, default_cameras
+from gensplat_transforms.geometry.model import ModelConfig
 
 
 @pytest.fixture(scope="module")
@@ -125,7 +125,7 @@ def test_geometry_cache_stores_depth_and_rebuilds_the_same_gaussians(tmp_path):
 def test_frames_missing_from_a_stacked_item_come_from_the_source_at_the_cache_size(tmp_path):
     """The geometry cache is at the model's size (40 -> 42 px): frames the transform reads from
     the source (dataset size) are resized to it like the item's own images."""
-    from gensplat_transforms.episodes import SceneDataset
+    from gensplat_transforms.cache.builder import SceneDataset
     from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 
     source = SceneEpisodes(num_episodes=1, num_frames=2, size=40)
@@ -147,9 +147,9 @@ def test_views_from_a_geometry_cache_keep_the_images_detail(tmp_path, render_in)
     size, resized, is blurred."""
     from torch.utils.data import default_collate
 
-    from gensplat_transforms.batched import render_batch
-    from gensplat_transforms.episodes import SceneDataset
-    from gensplat_transforms.metrics import psnr, sharpness_ratio
+    from gensplat_transforms.cache.builder import SceneDataset
+    from gensplat_transforms.core.metrics import psnr, sharpness_ratio
+    from gensplat_transforms.render.batched import render_batch
     from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform, render_view
 
     source = SceneEpisodes(num_episodes=1, num_frames=1, size=56)
@@ -175,7 +175,7 @@ def test_views_from_a_geometry_cache_keep_the_images_detail(tmp_path, render_in)
 @pytest.mark.parametrize(("height", "width", "most"), [(480, 640, 255_000), (480, 640, 12_544), (720, 1280, 100_000),
                                                        (1, 5000, 196), (50, 64, 10**9)])  # fmt: skip
 def test_model_size_keeps_the_aspect_within_max_pixels(height, width, most):
-    from gensplat_transforms.reconstruction.model import model_size
+    from gensplat_transforms.geometry.feedforward import model_size
 
     h, w = model_size(height, width, most)
     assert h % 14 == 0 and w % 14 == 0 and h * w <= max(most, 196)
@@ -197,7 +197,7 @@ def test_max_pixels_shrinks_the_models_input_and_names_the_cache(views):
     assert "max_pixels" not in plain.config() and small.config()["max_pixels"] == 28 * 42
     assert small.identity() != plain.identity() == GeometryReconstructor(model, max_pixels=None).identity()
     assert GeometryReconstructor(model, max_pixels=10**6).predict_depth(views).depths.shape == (2, 1, 56, 70)
-    from gensplat_transforms.reconstruction import GenSplatReconstructor
+    from gensplat_transforms.geometry import GenSplatReconstructor
 
     g = GenSplatReconstructor(model, max_pixels=28 * 42).reconstruct(views)
     assert len(g.gaussians) == 2 * 28 * 42 and (g.cameras.width, g.cameras.height) == (64, 50)
@@ -214,8 +214,8 @@ def test_a_checkpoint_says_the_size_it_was_trained_at_and_the_geometry_path_keep
     """config.json's max_pixels: saved and loaded with the weights, the geometry path's
     default cap (an explicit one wins); the shipped model says 112x112; a bad value is
     refused naming the file."""
-    from gensplat_transforms.model import GenSplatModel
-    from gensplat_transforms.reconstruction import GenSplatReconstructor
+    from gensplat_transforms.geometry import GenSplatReconstructor
+    from gensplat_transforms.geometry.model import GenSplatModel
     from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 
     assert GenSplatModel.from_pretrained(DEFAULT_MODEL_DIR).max_pixels == 112 * 112

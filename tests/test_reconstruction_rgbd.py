@@ -7,12 +7,12 @@ import torch
 import torch.nn.functional as F
 
 from gensplat_transforms import Cameras, PerturbationSampler, pivot_point, render
-from gensplat_transforms.metrics import psnr
-from gensplat_transforms.reconstruction import RGBDReconstructor, Views
-from gensplat_transforms.reconstruction.rgbd import RGBDConfig
-from gensplat_transforms.rotations import quat_to_rotmat
-from gensplat_transforms.scenes import LABEL_TABLE, TabletopScene, default_cameras
-from gensplat_transforms.views import Reconstruction, pixel_rays, preferred_means, source_rays
+from gensplat_transforms.core.metrics import psnr
+from gensplat_transforms.core.rotations import quat_to_rotmat
+from gensplat_transforms.core.views import Reconstruction, pixel_rays, preferred_means, source_rays
+from gensplat_transforms.data.scenes import LABEL_TABLE, TabletopScene, default_cameras
+from gensplat_transforms.geometry import RGBDReconstructor, Views
+from gensplat_transforms.geometry.rgbd import RGBDConfig
 
 SIZE = 96
 
@@ -166,7 +166,7 @@ def test_a_camera_with_zero_focal_length_is_refused_naming_the_camera(scene_view
 def test_compiled_discs_match_the_pytorch_rule(scene_views, overrides):
     """The compiled disc builder (default) against the PyTorch rule: same pixels, centres,
     colours and covariances (quaternions may differ by sign or by an in-plane half-turn)."""
-    from gensplat_transforms.rotations import covariance_3d
+    from gensplat_transforms.core.rotations import covariance_3d
 
     _, cams, images, depths = scene_views
     depths = depths.clone()
@@ -214,9 +214,9 @@ def test_compiled_discs_match_the_float64_rule_on_hard_depth_maps(stride):
     times farther and nearer, one at 1e30 m whose squared steps overflow float32, the image
     border, odd sizes): every compiled disc agrees with the PyTorch rule evaluated in
     float64, although the compiled one computes in float32."""
-    from gensplat_transforms.reconstruction.discs_fast import surface_discs
-    from gensplat_transforms.reconstruction.rgbd import RGBDConfig, dense_discs, grid_pixel_ids
-    from gensplat_transforms.rotations import covariance_3d
+    from gensplat_transforms.core.rotations import covariance_3d
+    from gensplat_transforms.geometry.discs_fast import surface_discs
+    from gensplat_transforms.geometry.rgbd import RGBDConfig, dense_discs, grid_pixel_ids
 
     z, images, K, c2w = _disc_inputs()
     z[0, 3:7, 4:9] = 0
@@ -246,7 +246,7 @@ def test_compiled_discs_scale_with_the_depth_and_stay_finite():
     """Depths times 2^e (e from -100 to 100; camera at the origin): the same rotations, and
     centres and scales times 2^e, bit for bit. Depths near the ends of float32's range next
     to ordinary ones (denormal included) give finite discs."""
-    from gensplat_transforms.reconstruction.discs_fast import surface_discs
+    from gensplat_transforms.geometry.discs_fast import surface_discs
 
     z, images, K, c2w = _disc_inputs(rotate=False)
     z[0, 4:6, 5:9] = 0
@@ -269,7 +269,7 @@ def test_fill_depth_gives_small_holes_the_farthest_depth_around():
     behind it; a wider gap fills from both sides, a pixel a round; a hole wider than twice the
     steps keeps its centre empty; measured depth is kept; no holes or steps 0: the map
     itself; negative steps are refused."""
-    from gensplat_transforms.reconstruction.depth_fill import BEHIND, fill_depth
+    from gensplat_transforms.geometry.depth_fill import BEHIND, fill_depth
 
     assert BEHIND == 1.03
     assert torch.equal(fill_depth(torch.tensor([[1.0, 0.0, 2.0]]), 1), torch.tensor([[1.0, 2.0 * BEHIND, 2.0]]))
@@ -400,7 +400,7 @@ def test_compiled_preference_matches_the_tensor_rule():
     """The workers' compiled push (float32 CPU Gaussians) against the tensor rule (which
     ``preferred_means`` runs in float64): random means and cameras, a mean at the viewing
     camera's centre, a zero source ray."""
-    from gensplat_transforms.views import _preferred_means_cpu
+    from gensplat_transforms.core.views import _preferred_means_cpu
 
     g = torch.Generator().manual_seed(5)
     means = torch.randn(5000, 3, generator=g) * 2

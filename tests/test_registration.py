@@ -14,12 +14,12 @@ import pytest
 import torch
 import yaml
 
-from gensplat_transforms.calibration import calibrate
-from gensplat_transforms.cameras import Cameras
-from gensplat_transforms.dataset_format import DepthSensor, load_calibration, save_depth
-from gensplat_transforms.depth_codec import depth_from_words
-from gensplat_transforms.registration import register_depth
-from gensplat_transforms.scenes import TabletopScene, default_cameras
+from gensplat_transforms.cache.depth_codec import depth_from_words
+from gensplat_transforms.calibration.files import calibrate, load_calibration
+from gensplat_transforms.core.cameras import Cameras
+from gensplat_transforms.data.format import DepthSensor, save_depth
+from gensplat_transforms.data.registration import register_depth
+from gensplat_transforms.data.scenes import TabletopScene, default_cameras
 
 WIDTH, HEIGHT = 160, 120
 
@@ -185,7 +185,7 @@ def test_lerobot_source_registers_a_sensors_own_depth(tmp_path):
     from gensplat_lerobot.depth import import_dataset_depth
     from gensplat_lerobot.scene_dataset import record_scene_dataset
 
-    from gensplat_transforms.episodes import SceneEpisodes
+    from gensplat_transforms.cache.builder import SceneEpisodes
     from gensplat_transforms.transform import GenSplatConfig
 
     root, repo, names = tmp_path / "ds", "local/unregistered", ("left", "right")
@@ -252,9 +252,9 @@ def test_random_rigs_never_write_outside_the_image_or_leave_non_finite_depth(tmp
     arrays, and every value out is finite and >= 0."""
     script = textwrap.dedent("""
         import torch
-        from gensplat_transforms.cameras import Cameras
-        from gensplat_transforms.registration import register_depth
-        from gensplat_transforms.rotations import quat_to_rotmat
+        from gensplat_transforms.core.cameras import Cameras
+        from gensplat_transforms.data.registration import register_depth
+        from gensplat_transforms.core.rotations import quat_to_rotmat
         g = torch.Generator().manual_seed(0)
         def size():
             return int(torch.randint(1, 41, (1,), generator=g)), int(torch.randint(1, 31, (1,), generator=g))

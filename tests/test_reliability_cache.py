@@ -12,11 +12,11 @@ import pytest
 pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
 os.environ["HF_HUB_OFFLINE"] = "1"
 
+from gensplat_cli import main
 from gensplat_lerobot.scene_dataset import record_scene_dataset
 
-from gensplat_transforms.cli import main
-from gensplat_transforms.dataset_format import depth_path
-from gensplat_transforms.episodes import SceneEpisodes
+from gensplat_transforms.cache.builder import SceneEpisodes
+from gensplat_transforms.data.format import depth_path
 
 REPO = "local/reliability"
 
@@ -86,7 +86,7 @@ def test_a_removed_lock_file_lets_no_second_builder_in(tmp_path):
     """A builder holds an episode's lock; the lock file is deleted; a second builder gets a
     new lock file and builds the episode: the first, resumed, finds it built."""
     from gensplat_transforms import RGBDReconstructor
-    from gensplat_transforms.cache import GaussianCache
+    from gensplat_transforms.cache.store import GaussianCache
 
     source = SceneEpisodes(num_episodes=1, num_frames=2, size=16)
     entered, resume = threading.Event(), threading.Event()
@@ -122,7 +122,7 @@ def test_every_bit_flip_of_compressed_depth_is_refused_or_harmless():
     import numpy as np
     import torch
 
-    from gensplat_transforms import depth_codec as dc
+    from gensplat_transforms.cache import depth_codec as dc
 
     depth = 0.5 + torch.rand(3, 2, 12, 16, generator=torch.Generator().manual_seed(0))
     ref, blobs = dc.encode_episode(depth)
@@ -152,7 +152,7 @@ def import_depth(root, source, *options: str) -> int:
 def test_8_bit_depth_needs_its_units(root, tmp_path, capsys):
     import numpy as np
 
-    from gensplat_transforms.dataset_format import load_depth
+    from gensplat_transforms.data.format import load_depth
 
     np.save(tmp_path / "ep0.npy", np.full((T, H, W), 92, np.uint8))  # centimetres
     assert import_depth(root, tmp_path / "ep{episode}.npy") == 2
@@ -260,8 +260,8 @@ def test_a_garbled_dataset_record_gives_the_stale_cache_message(root):
     from gensplat_lerobot import enable_gensplat
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from gensplat_transforms.cache import StaleCacheError
-    from gensplat_transforms.dataset_format import load_depth, save_depth
+    from gensplat_transforms.cache.store import StaleCacheError
+    from gensplat_transforms.data.format import load_depth, save_depth
 
     assert cache(root) == 0
     save_depth(root, "left", 1, load_depth(root, "left", 1)[:, 0] + 0.01)

@@ -6,16 +6,16 @@ import shutil
 
 import pytest
 import torch
+from gensplat_cli import main
 from plyfile import PlyData
 from safetensors.torch import load_file, save_file
 from tiny_model import tiny_model
 
-from gensplat_transforms.cache import GaussianCache
-from gensplat_transforms.cli import main
-from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
-from gensplat_transforms.gaussians import Gaussians
-from gensplat_transforms.model import GenSplatModel
-from gensplat_transforms.reconstruction import RGBDReconstructor
+from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
+from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.core.gaussians import Gaussians
+from gensplat_transforms.geometry import RGBDReconstructor
+from gensplat_transforms.geometry.model import GenSplatModel
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 
 LEFT = "observation.images.left"
@@ -174,7 +174,7 @@ def test_a_hub_id_that_cannot_be_fetched_is_a_clear_error(monkeypatch):
     """Offline (or no such repository): a ValueError naming the id and the fix, not the hub
     library's own exception."""
     pytest.importorskip("huggingface_hub")
-    from gensplat_transforms.model.checkpoints import resolve
+    from gensplat_transforms.geometry.model.checkpoints import resolve
 
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     with pytest.raises(ValueError, match=r"'someone/no-such-model' is not a local directory and could not be fetched"):

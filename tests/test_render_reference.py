@@ -9,10 +9,12 @@ import torch
 from dense_renderer import dense_render
 from hard_cases import HARD_CASES, MAGNITUDES, SCALABLE_FIELDS, scaled
 
-from gensplat_transforms import Cameras, Gaussians, rendering
-from gensplat_transforms.sh import C0, eval_sh
+from gensplat_transforms import Cameras, Gaussians
+from gensplat_transforms.core.sh import C0, eval_sh
+from gensplat_transforms.render import auto_backend
+from gensplat_transforms.render import render as render_any
 
-render = partial(rendering.render, backend="reference")  # the backend these tests cover
+render = partial(render_any, backend="reference")  # the backend these tests cover
 
 W, H = 40, 32
 
@@ -72,7 +74,7 @@ def test_single_gaussian_matches_analytic_footprint():
 
 def test_field_of_view_clamp_is_that_of_3dgs_and_gsplat():
     """Off-image centres use the Jacobian at x/z clamped to (W - cx) / fx + 0.3 tan(fov_x / 2)."""
-    from gensplat_transforms.rendering.projection import project
+    from gensplat_transforms.render.projection import project
 
     f, z, s = 40.0, 2.0, 1.0
     cam = Cameras.from_intrinsics(f, f, W / 2, H / 2, torch.eye(4, dtype=torch.float64), W, H)
@@ -302,21 +304,21 @@ def test_bad_arguments_raise():
 def test_auto_backend_is_fast_without_grad_and_reference_with_grad():
     g = random_scene()
     cam = camera(torch.float32)
-    assert rendering.auto_backend(g, cam) == "fast"  # CPU Gaussians, even with gsplat installed
-    torch.testing.assert_close(rendering.render(g, cam).rgb, rendering.render(g, cam, backend="fast").rgb,
+    assert auto_backend(g, cam) == "fast"  # CPU Gaussians, even with gsplat installed
+    torch.testing.assert_close(render_any(g, cam).rgb, render_any(g, cam, backend="fast").rgb,
                                rtol=0, atol=0)  # fmt: skip
     for field in ("means", "sh"):
         learnt = Gaussians(**{**g.tensors(), field: getattr(g, field).clone().requires_grad_()})
-        assert rendering.auto_backend(learnt, cam) == "reference"
-        out = rendering.render(learnt, cam)
+        assert auto_backend(learnt, cam) == "reference"
+        out = render_any(learnt, cam)
         assert out.rgb.requires_grad
         torch.testing.assert_close(out.rgb, render(learnt, cam).rgb, rtol=0, atol=0)
         with torch.no_grad():  # no graph is recorded: the fast renderer does
-            assert rendering.auto_backend(learnt, cam) == "fast"
+            assert auto_backend(learnt, cam) == "fast"
     background = torch.tensor([0.2, 0.3, 0.4], requires_grad=True)
-    assert rendering.auto_backend(g, cam, background) == "reference"
+    assert auto_backend(g, cam, background) == "reference"
     moving = Cameras(cam.K, cam.c2w.clone().requires_grad_(), W, H)
-    assert rendering.auto_backend(g, moving) == "reference"
+    assert auto_backend(g, moving) == "reference"
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
@@ -325,6 +327,6 @@ def test_auto_backend_on_cuda_is_gsplat_when_installed():
 
     g, cam = random_scene().to("cuda"), camera(torch.float32)
     expected = "gsplat" if importlib.util.find_spec("gsplat") else "fast"
-    assert rendering.auto_backend(g, cam) == expected
-    torch.testing.assert_close(rendering.render(g, cam).rgb, rendering.render(g, cam, backend=expected).rgb,
+    assert auto_backend(g, cam) == expected
+    torch.testing.assert_close(render_any(g, cam).rgb, render_any(g, cam, backend=expected).rgb,
                                rtol=0, atol=0)  # fmt: skip

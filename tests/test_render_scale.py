@@ -9,13 +9,13 @@ import torch
 import torch.nn.functional as F
 from torch.utils.data import default_collate
 
-from gensplat_transforms import view_output
-from gensplat_transforms.batched import render_batch
-from gensplat_transforms.cache import GaussianCache
-from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
-from gensplat_transforms.metrics import psnr
-from gensplat_transforms.reconstruction import Reconstructor, RGBDReconstructor, Views
-from gensplat_transforms.reconstruction.base import nearest_pixels
+from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
+from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.core.metrics import psnr
+from gensplat_transforms.geometry import Reconstructor, RGBDReconstructor, Views
+from gensplat_transforms.geometry.base import nearest_pixels
+from gensplat_transforms.render import output as view_output
+from gensplat_transforms.render.batched import render_batch
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform, render_size
 
 LEFT, RIGHT = "observation.images.left", "observation.images.right"

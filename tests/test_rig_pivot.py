@@ -1,6 +1,6 @@
 """Where a rig of two cameras turns about: the crossing of their optical axes where it lies at
 the scene, else a point on camera 0's axis at the scene's depth (nearly parallel, diverging or
-crossing axes), chosen once by ``gensplat cache`` (``episodes.pivot_depth``)."""
+crossing axes), chosen once by ``gensplat cache`` (``cache.builder.pivot_depth``)."""
 
 import dataclasses
 import json
@@ -9,13 +9,13 @@ import logging
 import pytest
 import torch
 
-from gensplat_transforms.cameras import Cameras, look_at
-from gensplat_transforms.episodes import PIVOT_TOLERANCE, SceneEpisodes, pivot_depth, scene_depth
-from gensplat_transforms.gaussians import Gaussians
-from gensplat_transforms.perturbation import Perturbation, move_rig, rig_pivot
-from gensplat_transforms.reconstruction import RGBDReconstructor
-from gensplat_transforms.scenes import DEFAULT_VIEWS, WORKSPACE_CENTER
+from gensplat_transforms.cache.builder import PIVOT_TOLERANCE, SceneEpisodes, pivot_depth, scene_depth
+from gensplat_transforms.core.cameras import Cameras, look_at
+from gensplat_transforms.core.gaussians import Gaussians
+from gensplat_transforms.data.scenes import DEFAULT_VIEWS, WORKSPACE_CENTER
+from gensplat_transforms.geometry import RGBDReconstructor
 from gensplat_transforms.settings import GenSplatConfig
+from gensplat_transforms.views.perturbation import Perturbation, move_rig, rig_pivot
 
 F64 = torch.float64
 
@@ -100,9 +100,8 @@ def test_a_pivot_depth_puts_the_pivot_of_any_rig_on_camera_0s_axis_in_both_paths
 
 def test_gensplat_cache_stores_the_pivot_on_camera_0s_axis_for_a_rig_whose_axes_do_not_cross(tmp_path, caplog, capsys):
     pytest.importorskip("lerobot", reason="the LeRobot commands need the lerobot extra")
+    from gensplat_cli import main
     from gensplat_lerobot.scene_dataset import record_scene_dataset
-
-    from gensplat_transforms.cli import main
 
     root, repo = tmp_path / "ds", "local/parallel_rig"
     source = beside_left(-0.1, toe_in_m=0.003)

@@ -1,4 +1,4 @@
-"""Tests for gensplat_transforms.rotations (w-x-y-z quaternions <-> rotation matrices)."""
+"""Tests for gensplat_transforms.core.rotations (w-x-y-z quaternions <-> rotation matrices)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from gensplat_transforms.rotations import covariance_3d, normalize_quat, quat_to_rotmat, rotmat_to_quat
+from gensplat_transforms.core.rotations import covariance_3d, normalize_quat, quat_to_rotmat, rotmat_to_quat
 
 DTYPE = torch.float64
 S = math.sqrt(0.5)

@@ -7,10 +7,13 @@ import numpy as np
 import pytest
 import torch
 
-from gensplat_transforms.cache import GaussianCache
-from gensplat_transforms.cameras import FOCAL_MAX_PX, Cameras, look_at
-from gensplat_transforms.episodes import SceneEpisodes, build_cache
-from gensplat_transforms.perturbation import (
+from gensplat_transforms.cache.builder import SceneEpisodes, build_cache
+from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.core.cameras import FOCAL_MAX_PX, Cameras, look_at
+from gensplat_transforms.geometry import RGBDReconstructor
+from gensplat_transforms.render.output import render_view
+from gensplat_transforms.settings import GenSplatConfig
+from gensplat_transforms.views.perturbation import (
     FOCAL_SCALE_LIMITS,
     KEY_LIMIT,
     ROW,
@@ -26,9 +29,6 @@ from gensplat_transforms.perturbation import (
     perturb_pose,
     scale_focal,
 )
-from gensplat_transforms.reconstruction import RGBDReconstructor
-from gensplat_transforms.settings import GenSplatConfig
-from gensplat_transforms.view_output import render_view
 
 F64 = torch.float64
 RIG = torch.stack([look_at((1.05, 0.4, 0.5), (0.45, 0.0, 0.12)), look_at((1.05, -0.4, 0.5), (0.45, 0.0, 0.12))])

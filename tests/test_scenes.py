@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from gensplat_transforms import Cameras, look_at, pivot_point
-from gensplat_transforms.scenes import (
+from gensplat_transforms.data.scenes import (
     AMBIENT,
     BACKGROUND_RGB,
     LABEL_FIRST_OBJECT,

@@ -11,12 +11,9 @@ import shutil
 import numpy as np
 import pytest
 import torch
+from gensplat_cli import main
 
-from gensplat_transforms.cameras import look_at
-from gensplat_transforms.cli import main
-from gensplat_transforms.dataset_format import calibration_path, load_calibration
-from gensplat_transforms.perturbation import pivot_point
-from gensplat_transforms.self_calibration import (
+from gensplat_transforms.calibration.estimate import (
     Matches,
     _agreeing,
     estimate_pair,
@@ -26,6 +23,10 @@ from gensplat_transforms.self_calibration import (
     predict_cameras,
     rotation_angle_deg,
 )
+from gensplat_transforms.calibration.files import load_calibration
+from gensplat_transforms.core.cameras import look_at
+from gensplat_transforms.data.format import calibration_path
+from gensplat_transforms.views.perturbation import pivot_point
 
 
 def _rig(f_a: float = 300.0, f_b: float = 340.0):
@@ -66,7 +67,7 @@ def test_estimate_pair_recovers_focal_lengths_and_pose_with_outliers():
 
 
 def test_essential_pose_of_known_focal_lengths_recovers_rotation_and_direction():
-    from gensplat_transforms.self_calibration import _K, _essential, _triangulate
+    from gensplat_transforms.calibration.estimate import _K, _essential, _triangulate
 
     m, (fa, fb), b_from_a = _synthetic_matches()
     m = Matches(m.uv_a, torch.full_like(m.z_a, float("nan")), m.uv_b, torch.full_like(m.z_b, float("nan")))
@@ -82,7 +83,7 @@ def test_essential_pose_of_known_focal_lengths_recovers_rotation_and_direction()
 def test_parallel_cameras_that_only_translate_leave_the_focal_length_unobservable():
     """Two cameras looking the same way, side by side (a rectified stereo pair): depth tells
     only focal length x distance, and the fit says so; the converging rig's does not."""
-    from gensplat_transforms.self_calibration import FOCAL_SD_MAX, _depth_pair
+    from gensplat_transforms.calibration.estimate import FOCAL_SD_MAX, _depth_pair
 
     g = torch.Generator().manual_seed(1)
     points = torch.rand(500, 3, generator=g, dtype=torch.float64) * torch.tensor([1.0, 0.8, 1.0]) + \
@@ -123,8 +124,8 @@ class _Model:
         self.focal, self.depth, self.seen = focal, depth, []
 
     def predict_depth(self, views):
-        from gensplat_transforms.cameras import Cameras
-        from gensplat_transforms.reconstruction import Views
+        from gensplat_transforms.core.cameras import Cameras
+        from gensplat_transforms.geometry import Views
 
         V = len(views.images)
         self.seen.append(tuple(views.images.shape))
@@ -153,8 +154,8 @@ def test_a_geometry_model_scales_the_pose_by_its_depth(monkeypatch):
     """Without the dataset's depth or a distance, each pair is scaled by the model's depth at
     the matches: a model depth k times the truth gives k times the true 0.8 m; without any
     there, an error names the camera."""
-    import gensplat_transforms.self_calibration as selfcal
-    from gensplat_transforms.self_calibration import _with_depth
+    import gensplat_transforms.calibration.estimate as selfcal
+    from gensplat_transforms.calibration.estimate import _with_depth
 
     m, (fa, fb), _ = _synthetic_matches(outliers=0.0)
     unknown = Matches(m.uv_a, torch.full_like(m.z_a, math.nan), m.uv_b, torch.full_like(m.z_b, math.nan))
@@ -183,9 +184,9 @@ def test_a_given_principal_point_removes_the_bias_of_off_centre_images(monkeypat
     cropped images), depth and the focal length given (the Middlebury case of
     benchmarks/real_geometry.py): assumed at the centres, the pose is 2.8-3.9 deg off and the
     depth-derived distance 29-31 % long (seeds 0-3); given, within 0.9 deg and 3 %."""
-    import gensplat_transforms.self_calibration as selfcal
-    from gensplat_transforms.cameras import Cameras
-    from gensplat_transforms.scenes import TabletopScene
+    import gensplat_transforms.calibration.estimate as selfcal
+    from gensplat_transforms.core.cameras import Cameras
+    from gensplat_transforms.data.scenes import TabletopScene
 
     w, h, f = 320, 240, 300.0
     points = [(w / 2 - 40, h / 2 + 15), (w / 2 + 25, h / 2 - 10)]
@@ -311,11 +312,11 @@ def _strip_calibration(root) -> None:
 @pytest.fixture(scope="module")
 def simulated(tmp_path_factory):
     """A 320x240 MP4 recording of the simulated tabletop (with calibration and depth sidecars)."""
-    import gensplat_transforms.sim  # noqa: F401  selects MuJoCo's headless backend before mujoco loads
+    import gensplat_sim  # noqa: F401  selects MuJoCo's headless backend before mujoco loads
 
     pytest.importorskip("mujoco", reason="the simulated world needs the 'sim' extra")
-    from gensplat_transforms.sim.record import RecordConfig, record
-    from gensplat_transforms.sim.world import WorldConfig
+    from gensplat_sim.record import RecordConfig, record
+    from gensplat_sim.world import WorldConfig
 
     root = tmp_path_factory.mktemp("selfcal") / "calibrated"
     record(RecordConfig(root, episodes=2, seed=5, max_frames=30, world=WorldConfig(height=240, width=320)),
@@ -554,15 +555,15 @@ def moving(tmp_path_factory):
     """A 320x240 recording of two episodes between which both external cameras moved (two
     recordings without calibration, joined by LeRobot's ``aggregate_datasets``, their depth
     sidecars copied), and the two recordings' calibrations."""
-    import gensplat_transforms.sim  # noqa: F401  selects MuJoCo's headless backend before mujoco loads
+    import gensplat_sim  # noqa: F401  selects MuJoCo's headless backend before mujoco loads
 
     pytest.importorskip("mujoco", reason="the simulated world needs the 'sim' extra")
+    from gensplat_sim.record import RecordConfig, record
+    from gensplat_sim.scene import CameraSpec, SceneConfig
+    from gensplat_sim.world import WorldConfig
     from lerobot.datasets.aggregate import aggregate_datasets
 
-    from gensplat_transforms.dataset_format import load_depth, save_depth
-    from gensplat_transforms.sim.record import RecordConfig, record
-    from gensplat_transforms.sim.scene import CameraSpec, SceneConfig
-    from gensplat_transforms.sim.world import WorldConfig
+    from gensplat_transforms.data.format import load_depth, save_depth
 
     base = tmp_path_factory.mktemp("moving")
     moved = SceneConfig(external={"left": CameraSpec((1.00, 0.48, 0.55), (0.45, 0.02, 0.12)),
@@ -638,7 +639,7 @@ def test_estimate_names_an_episode_without_depth(simulated, tmp_path, capsys):
 
 
 def test_weights_licence_is_read_from_the_checkpoint(tmp_path):
-    from gensplat_transforms.reconstruction.geometry import weights_licence
+    from gensplat_transforms.geometry.geometry import weights_licence
 
     for name, config, licence in (("da3", {"model_name": "da3-small"}, "Apache-2.0 (Depth Anything 3)"),
                                   ("pi3", {"encoder": "dinov2"}, "CC BY-NC 4.0 (Pi3's weights")):  # fmt: skip

@@ -9,8 +9,7 @@ from pathlib import Path
 
 import pytest
 import torch
-
-from gensplat_transforms.sim.sensor import SensorDepthConfig, sensor_depth
+from gensplat_sim.sensor import SensorDepthConfig, sensor_depth
 
 SIZE = 96
 F = 100.0
@@ -40,7 +39,7 @@ def box(near=0.6, far=1.0, lo=32, hi=64) -> torch.Tensor:
 
 
 def test_recording_is_exact_unless_asked_and_an_all_off_sensor_is_exact():
-    from gensplat_transforms.sim.record import RecordConfig
+    from gensplat_sim.record import RecordConfig
 
     assert RecordConfig(Path("unused")).sensor_depth is None
     z = box() + torch.linspace(0, 0.01, SIZE)
@@ -122,10 +121,11 @@ def test_never_nan_inf_or_negative():
 @pytest.mark.timeout(300)
 def test_recording_with_sensor_depth(tmp_path):
     pytest.importorskip("mujoco", reason="the simulated world needs the 'sim' extra")
-    from gensplat_transforms.dataset_format import load_depth
-    from gensplat_transforms.sim.record import RecordConfig, record
-    from gensplat_transforms.sim.truth import GroundTruth
-    from gensplat_transforms.sim.world import WorldConfig
+    from gensplat_sim.record import RecordConfig, record
+    from gensplat_sim.truth import GroundTruth
+    from gensplat_sim.world import WorldConfig
+
+    from gensplat_transforms.data.format import load_depth
 
     root = tmp_path / "sensor"
     config = D435

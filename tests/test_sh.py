@@ -1,4 +1,4 @@
-"""Tests for gensplat_transforms.sh (real spherical harmonics, 3DGS / gsplat layout)."""
+"""Tests for gensplat_transforms.core.sh (real spherical harmonics, 3DGS / gsplat layout)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from gensplat_transforms.rotations import quat_to_rotmat
-from gensplat_transforms.sh import (
+from gensplat_transforms.core.rotations import quat_to_rotmat
+from gensplat_transforms.core.sh import (
     C0,
     MAX_DEGREE,
     eval_sh,

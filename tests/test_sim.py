@@ -6,23 +6,24 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
+import gensplat_sim  # noqa: F401  (selects the headless GL backend before MuJoCo loads)
 import numpy as np
 import pytest
 import torch
 
-import gensplat_transforms.sim  # noqa: F401  (selects the headless GL backend before MuJoCo loads)
-
 mujoco = pytest.importorskip("mujoco", reason="the simulated world needs the 'sim' extra (mujoco, gym-hil)")
 
-from gensplat_transforms.dataset_format import load_calibration, load_depth
-from gensplat_transforms.perturbation import Perturbation, PerturbationSampler, pivot_point
-from gensplat_transforms.sim.evaluate import EvalConfig, PerturbedCameraEnv, evaluate, paired_difference
-from gensplat_transforms.sim.experts import ExpertPolicy, run_expert
-from gensplat_transforms.sim.record import RecordConfig, record
-from gensplat_transforms.sim.scene import ObjectSpec
-from gensplat_transforms.sim.tasks import REACH_CLEARANCE, TASKS, Task, episode_seed
-from gensplat_transforms.sim.truth import GroundTruth, load_sim_episode
-from gensplat_transforms.sim.world import CAMERA_NAMES, SimWorld, WorldConfig
+from gensplat_sim.evaluate import EvalConfig, PerturbedCameraEnv, evaluate, paired_difference
+from gensplat_sim.experts import ExpertPolicy, run_expert
+from gensplat_sim.record import RecordConfig, record
+from gensplat_sim.scene import ObjectSpec
+from gensplat_sim.tasks import REACH_CLEARANCE, TASKS, Task, episode_seed
+from gensplat_sim.truth import GroundTruth, load_sim_episode
+from gensplat_sim.world import CAMERA_NAMES, SimWorld, WorldConfig
+
+from gensplat_transforms.calibration.files import load_calibration
+from gensplat_transforms.data.format import load_depth
+from gensplat_transforms.views.perturbation import Perturbation, PerturbationSampler, pivot_point
 
 SIZE = 96
 
@@ -319,7 +320,7 @@ def test_kept_scheduling_gives_the_thread_its_policy_back(monkeypatch):
     """What the AV1 encoder does to a thread of root's (SCHED_FIFO, priority 99) is undone."""
     import os
 
-    from gensplat_transforms.sim.record import kept_scheduling
+    from gensplat_sim.record import kept_scheduling
 
     state = {"policy": 0, "param": os.sched_param(0)}
     monkeypatch.setattr(os, "sched_getscheduler", lambda pid: state["policy"])

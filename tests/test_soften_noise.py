@@ -6,9 +6,9 @@ import torch
 from tiny_model import tiny_model
 
 from gensplat_transforms import Cameras, look_at, render
-from gensplat_transforms.gaussians import Gaussians
-from gensplat_transforms.reconstruction import GeometryReconstructor, RGBDReconstructor, Views, discs_fast
-from gensplat_transforms.reconstruction.rgbd import (
+from gensplat_transforms.core.gaussians import Gaussians
+from gensplat_transforms.geometry import GeometryReconstructor, RGBDReconstructor, Views, discs_fast
+from gensplat_transforms.geometry.rgbd import (
     PLAIN_DILATION,
     ROUGH_EDGE,
     ROUGH_START,

@@ -8,7 +8,7 @@ import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
-from gensplat_transforms.tensor_file import DTYPES, FileChangedError, TensorFile
+from gensplat_transforms.core.tensor_file import DTYPES, FileChangedError, TensorFile
 
 
 @pytest.fixture

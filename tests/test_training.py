@@ -7,15 +7,17 @@ import math
 import numpy as np
 import pytest
 import torch
+from gensplat_cli import main as cli_main
 from safetensors.torch import save_file
 from tiny_model import TINY
 
-from gensplat_transforms.cli import main as cli_main
-from gensplat_transforms.model import GenSplatModel, ModelConfig
-from gensplat_transforms.model.data import ProceduralViews, RigConfig
-from gensplat_transforms.model.losses import LossWeights
-from gensplat_transforms.model.teacher import Pi3Teacher, TrueGeometryTeacher, camera_points
-from gensplat_transforms.model.train import (
+from gensplat_transforms.data.scenes import WORKSPACE_CENTER
+from gensplat_transforms.geometry import GenSplatReconstructor, Views
+from gensplat_transforms.geometry.model import GenSplatModel, ModelConfig
+from gensplat_transforms.geometry.model.data import ProceduralViews, RigConfig
+from gensplat_transforms.geometry.model.losses import LossWeights
+from gensplat_transforms.geometry.model.teacher import Pi3Teacher, TrueGeometryTeacher, camera_points
+from gensplat_transforms.training import (
     CHECKPOINT_FILE,
     EXPORT_DIR,
     LOG_FILE,
@@ -25,8 +27,6 @@ from gensplat_transforms.model.train import (
     lr_factor,
     pretrained_names,
 )
-from gensplat_transforms.reconstruction import GenSplatReconstructor, Views
-from gensplat_transforms.scenes import WORKSPACE_CENTER
 from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 
 SIZE = 28  # 2 x 2 patches, above the 11-pixel SSIM window
@@ -88,7 +88,7 @@ def test_without_distillation_needs_no_teacher_and_skips_its_terms(tmp_path):
 
 
 def test_geometry_only_training_renders_nothing(tmp_path, monkeypatch):
-    import gensplat_transforms.model.train as train_module
+    import gensplat_transforms.training as train_module
 
     monkeypatch.setattr(train_module, "render", None)  # would fail if called
     trainer = tiny_trainer(tmp_path, loss=LossWeights(l1=0, perceptual=0, depth=0))
@@ -325,7 +325,7 @@ def test_lerobot_views_train_with_the_recorded_geometry(tmp_path, monkeypatch):
     from gensplat_lerobot import LeRobotViews
     from gensplat_lerobot.scene_dataset import record_scene_dataset
 
-    from gensplat_transforms.episodes import SceneEpisodes
+    from gensplat_transforms.cache.builder import SceneEpisodes
 
     record_scene_dataset(tmp_path / "ds", SceneEpisodes(num_episodes=1, num_frames=3, size=42), "local/t",
                          progress=False)  # fmt: skip
@@ -357,8 +357,8 @@ def test_cli_mixes_procedural_and_lerobot_data(tmp_path, monkeypatch):
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     from gensplat_lerobot.scene_dataset import record_scene_dataset
 
-    from gensplat_transforms.episodes import SceneEpisodes
-    from gensplat_transforms.model import train as train_module
+    from gensplat_transforms import training as train_module
+    from gensplat_transforms.cache.builder import SceneEpisodes
 
     record_scene_dataset(tmp_path / "ds", SceneEpisodes(num_episodes=1, num_frames=3, size=42), "local/t",
                          progress=False)  # fmt: skip

@@ -12,7 +12,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import training_throughput as tt
 from gensplat_lerobot.scene_dataset import record_scene_dataset
 
-from gensplat_transforms.episodes import SceneEpisodes
+from gensplat_transforms.cache.builder import SceneEpisodes
 
 
 @pytest.fixture(scope="module")

@@ -8,12 +8,12 @@ import torch
 from torch.utils.data import DataLoader
 
 from gensplat_transforms import render
-from gensplat_transforms.cache import CorruptCacheError, GaussianCache
-from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
-from gensplat_transforms.metrics import psnr
-from gensplat_transforms.perturbation import PerturbationRange, PerturbationSampler
-from gensplat_transforms.reconstruction import RGBDReconstructor
+from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
+from gensplat_transforms.cache.store import CorruptCacheError, GaussianCache
+from gensplat_transforms.core.metrics import psnr
+from gensplat_transforms.geometry import RGBDReconstructor
 from gensplat_transforms.transform import AugmentedDataset, GenSplatConfig, GenSplatTransform, render_view
+from gensplat_transforms.views.perturbation import PerturbationRange, PerturbationSampler
 
 LEFT = "observation.images.left"
 RIGHT = "observation.images.right"

@@ -1,4 +1,4 @@
-"""VISTA's camera samplers (gensplat_transforms.sim.vista) and the "vista" evaluation protocol of
+"""VISTA's camera samplers (gensplat_sim.vista) and the "vista" evaluation protocol of
 PerturbedCameraEnv: the samplers' statistics, rigid and reproducible poses, the arc camera
 looking at the centre, and the default protocol left as it was."""
 
@@ -9,10 +9,10 @@ import math
 import numpy as np
 import pytest
 import torch
+from gensplat_sim.vista import ArcMove, SmallPerturb, VistaSampler
 
-from gensplat_transforms.cameras import look_at
-from gensplat_transforms.perturbation import PerturbationSampler
-from gensplat_transforms.sim.vista import ArcMove, SmallPerturb, VistaSampler
+from gensplat_transforms.core.cameras import look_at
+from gensplat_transforms.views.perturbation import PerturbationSampler
 
 EYE, CENTRE = (
     (1.05, 0.40, 0.50),
@@ -110,9 +110,9 @@ def test_samplers_are_seeded_per_episode():
 
 def test_perturbed_camera_env_protocols():
     pytest.importorskip("mujoco", reason="the simulated world needs the 'sim' extra (mujoco, gym-hil)")
-    import gensplat_transforms.sim  # noqa: F401  (selects the headless GL backend before MuJoCo loads)
-    from gensplat_transforms.sim.evaluate import EvalConfig, PerturbedCameraEnv
-    from gensplat_transforms.sim.world import WorldConfig
+    import gensplat_sim  # noqa: F401  (selects the headless GL backend before MuJoCo loads)
+    from gensplat_sim.evaluate import EvalConfig, PerturbedCameraEnv
+    from gensplat_sim.world import WorldConfig
 
     world = WorldConfig(height=32, width=32)
     paper = PerturbedCameraEnv(EvalConfig("reach_solo", "medium", seed=5, world=world))

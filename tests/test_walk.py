@@ -8,17 +8,17 @@ from collections import Counter
 import pytest
 import torch
 
-from gensplat_transforms.cache import GaussianCache
-from gensplat_transforms.episodes import SceneDataset, SceneEpisodes, build_cache
-from gensplat_transforms.perturbation import Perturbation
-from gensplat_transforms.plan import ViewPlan
-from gensplat_transforms.reconstruction import RGBDReconstructor
+from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
+from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.geometry import RGBDReconstructor
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
+from gensplat_transforms.views.perturbation import Perturbation
+from gensplat_transforms.views.plan import ViewPlan
 
 LEFT, RIGHT = "observation.images.left", "observation.images.right"
 TRANSFORM = GenSplatTransform.__module__
-STAGES = {"gensplat_transforms.plan": "plan", "gensplat_transforms.cache_reader": "reader",
-          "gensplat_transforms.view_output": "renderer"}  # fmt: skip
+STAGES = {"gensplat_transforms.views.plan": "plan", "gensplat_transforms.cache.reader": "reader",
+          "gensplat_transforms.render.output": "renderer"}  # fmt: skip
 
 
 @pytest.fixture(scope="module")

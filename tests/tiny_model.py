@@ -1,6 +1,6 @@
 """The tiny model configuration shared by the loss and training tests."""
 
-from gensplat_transforms.model import ModelConfig
+from gensplat_transforms.geometry.model import ModelConfig
 
 TINY = ModelConfig(
     dim=32, enc_depth=1, enc_heads=2, enc_pos_grid=2, dec_depth=4, dec_heads=2, head_dim=32, head_depth=1,
@@ -14,7 +14,7 @@ def tiny_model(seed: int = 0, config: ModelConfig = TINY):
     cross-view blocks all matter), in eval mode."""
     import torch
 
-    from gensplat_transforms.model import GenSplatModel
+    from gensplat_transforms.geometry.model import GenSplatModel
 
     torch.manual_seed(seed)
     model = GenSplatModel(config).eval()

@@ -10,15 +10,15 @@ from pathlib import Path
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from safetensors import SafetensorError, safe_open
 
-from gensplat_transforms.atomic import atomic_write_json, read_json_object
-from gensplat_transforms.cache import GaussianCache, StaleCacheError
-from gensplat_transforms.dataset_format import GENSPLAT_DIR
-from gensplat_transforms.distributed import OnDevice, Shard
-from gensplat_transforms.outputs import gensplat_subfolder
-from gensplat_transforms.perturbation import get_range
-from gensplat_transforms.reconstruction import make_reconstructor
-from gensplat_transforms.rendering.gsplat_backend import check_gsplat
+from gensplat_transforms.cache.distributed import OnDevice, Shard
+from gensplat_transforms.cache.store import GaussianCache, StaleCacheError
+from gensplat_transforms.core.atomic import atomic_write_json, read_json_object
+from gensplat_transforms.data.format import GENSPLAT_DIR
+from gensplat_transforms.data.outputs import gensplat_subfolder
+from gensplat_transforms.geometry import make_reconstructor
+from gensplat_transforms.render.gsplat_backend import check_gsplat
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
+from gensplat_transforms.views.perturbation import get_range
 
 from .source import (
     LeRobotSource,
@@ -44,7 +44,7 @@ def weights_licence_of(reconstructor: dict) -> str | None:
     """The licence of the model weights a reconstructor spec uses (None for ``rgbd``: no model)."""
     if reconstructor["name"] == "rgbd":
         return None
-    from gensplat_transforms.reconstruction.geometry import weights_licence
+    from gensplat_transforms.geometry.geometry import weights_licence
     from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 
     return weights_licence(reconstructor.get("model") or DEFAULT_MODEL_DIR)
@@ -102,7 +102,7 @@ def check_cache(transform: GenSplatTransform, episodes, repo_id: str) -> int:
 
     Episodes missing (or built by another cache format) are built lazily by the workers; a
     WARNING says how many and which command builds them ahead. Raises
-    :class:`~gensplat_transforms.cache.StaleCacheError` naming what differs when cache files
+    :class:`~gensplat_transforms.cache.store.StaleCacheError` naming what differs when cache files
     were built from other dataset content (the dataset changed since ``gensplat cache``)."""
     cache, source = transform.cache, transform.source
     status = cache.statuses(episodes)  # one stat per episode file found valid before
@@ -228,18 +228,18 @@ def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructo
             link_depth: bool = True, batch_timesteps: int | None = None) -> dict:
     """Write the settings beside the dataset and build its Gaussian cache (resumable).
 
-    ``shard`` is this process's place among several (see :mod:`gensplat_transforms.distributed`;
+    ``shard`` is this process's place among several (see :mod:`gensplat_transforms.cache.distributed`;
     default: the only process): it builds only its share of the episodes, and only rank 0
     writes the settings. The models (geometry, gensplat) run on ``shard.device`` (``cuda:<local
     rank>`` when CUDA is available). ``verify=False`` skips episodes whose header is valid
-    without reading their data (see :func:`~gensplat_transforms.episodes.build_cache`).
+    without reading their data (see :func:`~gensplat_transforms.cache.builder.build_cache`).
     ``link_depth=False`` stores a compressed copy of the depth sidecars instead of linking them
-    (see :class:`~gensplat_transforms.cache.GaussianCache`). ``batch_timesteps``: the geometry
+    (see :class:`~gensplat_transforms.cache.store.GaussianCache`). ``batch_timesteps``: the geometry
     reconstructor's timesteps per forward pass (default: automatic; not stored in the settings,
     it does not change the cache). Returns per-episode
-    :class:`~gensplat_transforms.cache.CacheStats` of this process's episodes (None when the
+    :class:`~gensplat_transforms.cache.store.CacheStats` of this process's episodes (None when the
     episode was already cached)."""
-    from gensplat_transforms.episodes import build_cache, pivot_depth
+    from gensplat_transforms.cache.builder import build_cache, pivot_depth
 
     shard = shard or Shard()
     source = LeRobotSource(root, repo_id, config.cameras)

@@ -5,8 +5,9 @@ from __future__ import annotations
 from collections.abc import Iterable
 from pathlib import Path
 
-from gensplat_transforms.dataset_format import IMAGE_KEY_PREFIX, load_calibration
-from gensplat_transforms.depth_import import ImportedEpisode, import_depth
+from gensplat_transforms.calibration.files import load_calibration
+from gensplat_transforms.data.depth_import import ImportedEpisode, import_depth
+from gensplat_transforms.data.format import IMAGE_KEY_PREFIX
 
 from .source import episode_table, read_info
 
@@ -14,7 +15,7 @@ from .source import episode_table, read_info
 def import_dataset_depth(root: str | Path, repo_id: str, camera: str, source: str, units: str | float | None = None,
                          episodes: Iterable[int] | None = None, overwrite: bool = False,
                          progress: bool = True) -> dict[int, ImportedEpisode]:  # fmt: skip
-    """:func:`gensplat_transforms.depth_import.import_depth` for ``camera`` of the LeRobot
+    """:func:`gensplat_transforms.data.depth_import.import_depth` for ``camera`` of the LeRobot
     dataset at ``root``: its episodes' lengths (default: every episode) and its images' size
     (its depth sensor's, where the calibration has one: the depth is registered when read)
     are the dataset's. Raises ``ValueError`` naming the dataset's cameras or episodes when

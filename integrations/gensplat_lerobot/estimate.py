@@ -1,5 +1,5 @@
 """Calibration of a LeRobot dataset estimated from its own frames (``gensplat calibrate --estimate``):
-frames sampled across episodes and time, :func:`gensplat_transforms.self_calibration.estimate_rig`,
+frames sampled across episodes and time, :func:`gensplat_transforms.calibration.estimate.estimate_rig`,
 the result written to ``<root>/gensplat/calibration.json`` as a given calibration would be,
 with the estimate's spread beside it."""
 
@@ -12,10 +12,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gensplat_transforms.atomic import atomic_write_json
-from gensplat_transforms.calibration import FOV_RANGE, stored_cameras
-from gensplat_transforms.cameras import focal_from_fov
-from gensplat_transforms.dataset_format import (
+from gensplat_transforms.calibration.estimate import (
+    RigEstimate,
+    check_principal_points,
+    estimate_rig,
+    predict_cameras,
+    rotation_angle_deg,
+)
+from gensplat_transforms.calibration.files import FOV_RANGE, stored_cameras
+from gensplat_transforms.core.atomic import atomic_write_json
+from gensplat_transforms.core.cameras import focal_from_fov
+from gensplat_transforms.data.format import (
     CALIBRATION_FORMAT,
     IMAGE_KEY_PREFIX,
     calibration_path,
@@ -24,14 +31,7 @@ from gensplat_transforms.dataset_format import (
     distinct_cameras,
     load_depth,
 )
-from gensplat_transforms.outputs import gensplat_folder
-from gensplat_transforms.self_calibration import (
-    RigEstimate,
-    check_principal_points,
-    estimate_rig,
-    predict_cameras,
-    rotation_angle_deg,
-)
+from gensplat_transforms.data.outputs import gensplat_folder
 
 from .source import _is_depth_map, episode_table, read_info, video_backend
 
@@ -69,15 +69,15 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
     (``fov_deg``, the horizontal field of view, or ``focal_px``) and so is one distance for the
     scale (``baseline_m`` between the first two cameras, or ``table_m`` from the first camera
     down to the table), or ``model``, a geometry model's checkpoint directory or hub id
-    (:class:`~gensplat_transforms.reconstruction.GeometryReconstructor`), predicts the focal
-    lengths (:func:`~gensplat_transforms.self_calibration.predict_cameras`) and, where it is
+    (:class:`~gensplat_transforms.geometry.GeometryReconstructor`), predicts the focal
+    lengths (:func:`~gensplat_transforms.calibration.estimate.predict_cameras`) and, where it is
     metric and no distance is given, the scale (and one camera's table). ``principal_point``:
     (cx, cy) in pixels (pixel centres at +0.5, the image centre (W / 2, H / 2); OpenCV's cx +
     0.5), one for every camera or one per camera, used instead of the image centres (cropped
     images). One camera needs depth and its focal length. ``per_episode``: cameras that move
     between episodes; every episode is estimated apart from ``timesteps`` of its own frames
     (:func:`per_episode_rig`) and gets its own poses. Raises ValueError naming what is missing
-    or wrong (see :func:`~gensplat_transforms.self_calibration.estimate_rig`)."""
+    or wrong (see :func:`~gensplat_transforms.calibration.estimate.estimate_rig`)."""
     root = Path(root)
     features = read_info(root)["features"]
     colour = [k[len(IMAGE_KEY_PREFIX) :] for k, ft in features.items()
@@ -211,7 +211,7 @@ def per_episode_rig(rigs: dict[int, RigEstimate]) -> RigEstimate:
 def _geometry_model(model: str | Path):
     """The geometry reconstructor of checkpoint directory or hub id ``model``, with the error
     a user can act on where it cannot be loaded."""
-    from gensplat_transforms.reconstruction import GeometryReconstructor
+    from gensplat_transforms.geometry import GeometryReconstructor
 
     try:
         return GeometryReconstructor(model)
@@ -221,7 +221,7 @@ def _geometry_model(model: str | Path):
 
 def _model_record(model: str | Path) -> dict:
     """The geometry model an estimate used: where from, and its weights' licence."""
-    from gensplat_transforms.reconstruction.geometry import weights_licence
+    from gensplat_transforms.geometry.geometry import weights_licence
 
     return {"source": str(model), "licence": weights_licence(model)}
 

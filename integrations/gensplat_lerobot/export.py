@@ -6,10 +6,10 @@ import logging
 from collections.abc import Iterable
 from pathlib import Path
 
-from gensplat_transforms.atomic import atomic_write
-from gensplat_transforms.gaussians import Gaussians
-from gensplat_transforms.outputs import check_output
-from gensplat_transforms.reconstruction import make_reconstructor
+from gensplat_transforms.core.atomic import atomic_write
+from gensplat_transforms.core.gaussians import Gaussians
+from gensplat_transforms.data.outputs import check_output
+from gensplat_transforms.geometry import make_reconstructor
 from gensplat_transforms.transform import render_size
 
 from .dataset import dataset_cache, load_settings
@@ -54,6 +54,6 @@ def timestep_gaussians(root: str | Path, repo_id: str, episode: int, frame: int)
 
 def export_ply(root: str | Path, repo_id: str, episode: int, frame: int, out: str | Path) -> Path:
     """Write :func:`timestep_gaussians` to ``out`` (a 3DGS binary PLY, :meth:`Gaussians.to_ply`;
-    :func:`~gensplat_transforms.outputs.check_output`'s rule, written atomically); returns its path."""
+    :func:`~gensplat_transforms.data.outputs.check_output`'s rule, written atomically); returns its path."""
     out = check_output(out, root)
     return atomic_write(out, timestep_gaussians(root, repo_id, episode, frame).to_ply)

@@ -9,9 +9,9 @@ import torch
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from tqdm.auto import tqdm
 
-from gensplat_transforms.dataset_format import camera_info, save_depth
-from gensplat_transforms.episodes import SceneEpisodes
-from gensplat_transforms.outputs import new_folder
+from gensplat_transforms.cache.builder import SceneEpisodes
+from gensplat_transforms.data.format import camera_info, save_depth
+from gensplat_transforms.data.outputs import new_folder
 
 from .source import video_backend
 

@@ -1,4 +1,4 @@
-"""A LeRobot dataset as an :class:`~gensplat_transforms.episodes.EpisodeSource`, and as training
+"""A LeRobot dataset as an :class:`~gensplat_transforms.cache.builder.EpisodeSource`, and as training
 samples of the GenSplat model (:class:`LeRobotViews`)."""
 
 from __future__ import annotations
@@ -17,24 +17,24 @@ from pathlib import Path
 import torch
 from torch.utils.data import Dataset
 
-from gensplat_transforms.atomic import atomic_write_json, read_json_object, stat_stamp
-from gensplat_transforms.cache import DepthFiles
-from gensplat_transforms.cache_format import check_sidecars
-from gensplat_transforms.cameras import Cameras
-from gensplat_transforms.dataset_format import (
+from gensplat_transforms.cache.format import check_sidecars
+from gensplat_transforms.cache.store import DepthFiles
+from gensplat_transforms.calibration.files import load_calibration
+from gensplat_transforms.core.atomic import atomic_write_json, read_json_object, stat_stamp
+from gensplat_transforms.core.cameras import Cameras
+from gensplat_transforms.data.format import (
     IMAGE_KEY_PREFIX,
     calibrated_cameras,
     calibration_path,
     camera_info,
     depth_path,
     digests_path,
-    load_calibration,
     load_depth,
     open_depth,
 )
-from gensplat_transforms.model import PATCH_SIZE
-from gensplat_transforms.reconstruction import Views
-from gensplat_transforms.registration import register_depth
+from gensplat_transforms.data.registration import register_depth
+from gensplat_transforms.geometry import Views
+from gensplat_transforms.geometry.model import PATCH_SIZE
 
 log = logging.getLogger(__name__)
 
@@ -46,7 +46,7 @@ DECODE_CHUNK = 8
 class LeRobotSource:
     """Views of the external cameras of a local LeRobot dataset, frame by frame.
 
-    A camera's depth is its sidecar (:mod:`gensplat_transforms.dataset_format`), or else
+    A camera's depth is its sidecar (:mod:`gensplat_transforms.data.format`), or else
     LeRobot's own depth-map feature of it, ``observation.images.<camera>_depth`` (``info``
     ``is_depth_map``, as LeRobot records a RealSense's depth; read in metres): a cache then
     stores a compressed copy, as there are no files to link.
@@ -82,7 +82,7 @@ class LeRobotSource:
                 f"`gensplat calibrate --root {self.root} --estimate` (with depth; RGB only: add --model, or --fov and "
                 "--baseline), or give it with `gensplat calibrate --root "
                 f"{self.root} --from FILE` (either is stored in {calibration_path(self.root)}, the dataset is not "
-                "modified), or put it in the image features' info (gensplat_transforms.dataset_format)"
+                "modified), or put it in the image features' info (gensplat_transforms.data.format)"
             )
         shape = info["features"][IMAGE_KEY_PREFIX + self.camera_names[0]]["shape"]  # (H, W, C)
         self.size = shape[1], shape[0]
@@ -225,7 +225,7 @@ class LeRobotSource:
 
     def _check_sidecar(self, files: DepthFiles, episode: int) -> None:
         """ValueError naming the file when a depth sidecar's metadata names another camera,
-        episode or frame count (:func:`~gensplat_transforms.cache_format.check_sidecars`) or it
+        episode or frame count (:func:`~gensplat_transforms.cache.format.check_sidecars`) or it
         holds another number of frames than the episode has; checked again only when the file
         changes."""
         (path,) = files.paths

@@ -17,10 +17,10 @@ import torch.nn.functional as F
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.transforms import ImageTransforms, ImageTransformsConfig
 
-from gensplat_transforms.images import save_grid
-from gensplat_transforms.outputs import check_output
-from gensplat_transforms.perturbation import AXES
-from gensplat_transforms.preview import as_frame, save_video
+from gensplat_transforms.core.images import save_grid
+from gensplat_transforms.data.outputs import check_output
+from gensplat_transforms.render.preview import as_frame, save_video
+from gensplat_transforms.views.perturbation import AXES
 
 from .dataset import enable_gensplat, load_settings
 from .export import timestep_indices
@@ -71,7 +71,7 @@ def write_lerobot_preview(
     seed: int = 0,
 ) -> Preview:
     """Write ``preview.png`` and ``preview.mp4`` to ``out_dir`` (created; files replaced atomically;
-    :func:`~gensplat_transforms.outputs.check_output`'s rule against the dataset ``root``).
+    :func:`~gensplat_transforms.data.outputs.check_output`'s rule against the dataset ``root``).
 
     The grid has ``draws`` rows per frame of ``frames`` (default: 4 evenly spaced frames of
     ``episode``): row d shows view d of the trajectory's ``views_per_source`` (cycling when

@@ -8,9 +8,10 @@ import math
 import sys
 from dataclasses import replace
 
-from gensplat_transforms.cache import CacheError
-from gensplat_transforms.counters import SampleCounters
-from gensplat_transforms.settings import GenSplatConfig, render_size
+from gensplat_transforms.cache.store import CacheError
+from gensplat_transforms.core.counters import SampleCounters
+from gensplat_transforms.render import render_size
+from gensplat_transforms.settings import GenSplatConfig
 
 from .. import batch_mode
 from ..dataset import enable_gensplat, load_settings

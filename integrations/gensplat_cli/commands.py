@@ -1,0 +1,523 @@
+"""Command-line entry point: ``gensplat <command>``."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+import time
+from pathlib import Path
+
+
+def _pixel_point(text: str) -> tuple[float, float]:
+    """``CX,CY`` -> (cx, cy) (checked against the image where it is used)."""
+    try:
+        cx, cy = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected CX,CY in pixels (e.g. 311.7,255.4), got {text!r}") from None
+    return cx, cy
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``gensplat`` parser and its subcommands."""
+    parser = argparse.ArgumentParser(prog="gensplat", description="GenSplat camera-pose augmentation tools")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    demo = sub.add_parser("demo", help="the main job: simulated dataset -> Gaussian cache -> augmentation preview")
+    demo.add_argument("--out", default="outputs/demo", help="output folder (default: outputs/demo)")
+    demo.add_argument("--episodes", type=int, default=2, help="demonstrations to record (default: 2)")
+    demo.add_argument("--size", type=int, default=224, help="image size in pixels (default: 224)")
+    demo.add_argument("--seed", type=int, default=0, help="seed of the recording and the perturbations (default: 0)")
+    demo.add_argument("--backend", default="fast", help="render backend (default: fast)")
+
+    record = sub.add_parser("record", help="record scripted demonstrations of the simulated tabletop (LeRobot v3)")
+    record.add_argument("--out", required=True, help="dataset root to create (must not exist)")
+    record.add_argument("--task", default="pick_place", help="pick_place or stack (default: pick_place)")
+    record.add_argument("--episodes", type=int, default=10, help="demonstrations to record (default: 10)")
+    record.add_argument("--seed", type=int, default=0, help="run seed (default: 0)")
+    record.add_argument("--size", type=int, default=224, help="square image side in pixels (default: 224)")
+    record.add_argument("--height", type=int, default=None, help="image height in pixels (default: --size)")
+    record.add_argument("--width", type=int, default=None, help="image width in pixels (default: --size)")
+    record.add_argument("--fps", type=int, default=10, help="control and recording rate (default: 10)")
+    record.add_argument("--images", action="store_true",
+                        help="store lossless PNG images (default: MP4 video, LeRobot's default)")
+    record.add_argument("--shadows", action="store_true", help="render shadows and reflections (slower)")
+    record.add_argument(
+        "--sensor-depth", action="store_true",
+        help="record depth as a RealSense D435 measures it (noise, holes, 1 mm steps, 1 px shift)",
+    )  # fmt: skip
+
+    cache = sub.add_parser(
+        "cache", help="write GenSplat settings beside a LeRobot dataset and build its Gaussian cache",
+        description="Write GenSplat settings beside a LeRobot dataset and build its Gaussian cache. Runs as one "
+                    "process, or as one of several started by torchrun or SLURM's srun, which then share the "
+                    "episodes (e.g. torchrun --nproc-per-node 8 -m gensplat_cli cache ...; see "
+                    "docs/cache_at_scale.md). Resumable: valid episodes are skipped.",
+    )  # fmt: skip
+    _dataset_arguments(cache)
+    cache.add_argument("--cameras", nargs="+", default=None,
+                       help="external cameras to reconstruct (default: those with depth, else every external camera)")
+    from gensplat_transforms.settings import add_config_arguments
+
+    add_config_arguments(cache)  # the transform's settings: one flag per GenSplatConfig field that has one
+    cache.add_argument("--episodes", type=int, nargs="+", default=None, help="only these episodes (default: all)")
+    cache.add_argument("--trust-headers", dest="verify", action="store_false",
+                       help="resume without reading cached data: skip every episode whose header is valid (data "
+                            "checksums are still checked on every read; default: check every checksum)")
+    cache.add_argument("--copy-depth", dest="link_depth", action="store_false",
+                       help="rgbd: store a compressed copy of the dataset's depth (4-17 kB per timestep) instead of "
+                            "linking its depth files, e.g. when the dataset is on slow network storage (default: link)")
+    cache.add_argument("--fill-depth", type=int, default=0, metavar="PIXELS",
+                       help="rgbd: give pixels without depth within PIXELS of measured depth the farthest depth "
+                            "around them before the discs are built, for a depth sensor's holes (e.g. 8; "
+                            "benchmarks/nvs_fidelity.py, rgbd_sensor_depth_fill; default: 0, none)")
+    cache.add_argument("--reconstructor", choices=["rgbd", "geometry", "gensplat"], default=None,
+                       help="rgbd: the dataset's depth; geometry: depth from a Pi3-compatible model, RGB-D discs; "
+                            "gensplat: the model's own Gaussian head (default: rgbd when the cameras have depth, "
+                            "else geometry)")
+    cache.add_argument("--max-pixels", type=int, default=None,
+                       help="geometry and gensplat: run the model on at most this many pixels per view, aspect kept "
+                            "(benchmarks/geometry_resolution.py; default: geometry, the size the checkpoint was trained "
+                            "at, 12544 for the shipped model, 255000 for Pi3; gensplat, the frame size)")
+    cache.add_argument("--model", default=None,
+                       help="weights directory or hub id of the geometry or gensplat model, e.g. a Pi3 checkpoint "
+                            "(default: the shipped small model)")
+    cache.add_argument("--batch-timesteps", type=int, default=None, metavar="N",
+                       help="geometry: timesteps the model runs on at once (the same depth either way; capped so "
+                            "that no tensor reaches 2**31 elements; default: on CUDA as many as that allows, up to "
+                            "32, on the CPU 1)")
+
+    depth = sub.add_parser(
+        "import-depth", help="write a camera's recorded depth (16-bit PNG, float TIFF, .npy/.npz) as the depth "
+                             "sidecars of a LeRobot dataset",
+        description="Read one camera's depth per episode from FROM, check it against the dataset (frames per "
+                    "episode, image size, plausible distances) and write ROOT/depth/CAMERA/episode_*.safetensors, "
+                    "which the rgbd reconstructor links. FROM names the episode with {episode} (e.g. "
+                    "'raw/ep{episode:03d}/depth_left/*.png', 'raw/depth_left/episode_{episode}.npy'): a folder or "
+                    "glob of frame images (natural order) or one (T, H, W) array. The depth must be z-depth "
+                    "registered to the colour image; 0 marks no depth. The dataset's own files are not touched; "
+                    "episodes whose sidecar exists are kept (--overwrite replaces them).",
+    )  # fmt: skip
+    _dataset_arguments(depth)
+    depth.add_argument("--camera", required=True, help="the camera the depth belongs to (its image feature's name)")
+    depth.add_argument("--from", dest="source", required=True, metavar="FROM",
+                       help="each episode's depth, with {episode}: a folder, a glob or a .npy/.npz file")
+    depth.add_argument("--units", default=None,
+                       help="metres per stored value: mm, cm, m or a number (default: mm for integer data, m for "
+                            "floats, refused when the median distance is implausible)")
+    depth.add_argument("--episodes", type=int, nargs="+", default=None, help="only these episodes (default: all)")
+    depth.add_argument("--overwrite", action="store_true", help="replace existing depth sidecars")
+
+    calibrate = sub.add_parser(
+        "calibrate", help="store camera calibration beside a LeRobot dataset whose features carry none",
+        description="Read intrinsics and camera poses from FILE, check them against the dataset's cameras and "
+                    "write ROOT/gensplat/calibration.json (the dataset itself is not modified). Conventions: "
+                    "gensplat ({camera: {K | fx, fy, cx, cy, c2w, mount}}, OpenCV axes, camera-to-world), "
+                    "opencv-w2c (world-to-camera R or rvec and t as from cv2.calibrateCamera/solvePnP) and "
+                    "nerfstudio (transforms.json: OpenGL camera-to-world per frame, the file_path's name naming "
+                    "the camera). JSON, or YAML for files ending in .yaml/.yml.",
+    )  # fmt: skip
+    calibrate.add_argument("--root", required=True, help="local LeRobot dataset root")
+    given = calibrate.add_mutually_exclusive_group(required=True)
+    given.add_argument("--from", dest="source", metavar="FILE",
+                       help="calibration file (JSON, or YAML ending in .yaml/.yml)")
+    given.add_argument("--estimate", action="store_true",
+                       help="estimate the external cameras' intrinsics and poses from the dataset's own frames and "
+                            "depth, or without depth from a field of view or a geometry model (--model) "
+                            "(docs/calibration.md)")
+    given.add_argument("--from-features", action="store_true",
+                       help="each external camera's pose per episode from the dataset's camera_extrinsics.<camera> "
+                            "features (x, y, z, roll, pitch, yaw, as in DROID's LeRobot port; docs/lerobot.md), "
+                            "intrinsics from --intrinsics, --fov or --focal")
+    calibrate.add_argument("--intrinsics", metavar="FILE", default=None,
+                           help="--from-features: a calibration file giving each camera's K (no poses needed)")
+    calibrate.add_argument("--fov", type=float, default=None, metavar="DEG",
+                           help="--from-features, and --estimate without depth or of one camera: every camera's "
+                                "horizontal field of view in degrees (square pixels, principal point at the image "
+                                "centre)")
+    calibrate.add_argument("--focal", type=float, default=None, metavar="PX",
+                           help="as --fov, every camera's focal length in pixels")
+    calibrate.add_argument("--model", nargs="?", const="shipped", default=None, metavar="DIR_OR_HUB_ID",
+                           help="--estimate without depth: a geometry model predicts the focal lengths and, when it "
+                                "is metric and neither --baseline nor --table-distance is given, the scale; a "
+                                "checkpoint directory or hub id (Depth Anything 3: Apache-2.0; Pi3: CC BY-NC 4.0, "
+                                "non-commercial), or alone the shipped small model (trained on simulated tabletops "
+                                "only)")
+    calibrate.add_argument("--per-episode", action="store_true",
+                           help="--estimate: cameras that move between episodes; every episode is estimated apart "
+                                "from --timesteps of its own frames and gets its own poses")
+    calibrate.add_argument("--principal-point", type=_pixel_point, nargs="+", default=None, metavar="CX,CY",
+                           help="--estimate: the principal point in pixels instead of the image centre (cropped "
+                                "images), one for every camera or one per camera in --cameras order; the image "
+                                "centre is W/2,H/2 (OpenCV's cx, cy + 0.5)")
+    calibrate.add_argument("--repo-id", default=None, help="--estimate: the dataset's repo id (default: local/<root name>)")
+    calibrate.add_argument("--cameras", nargs="+", default=None,
+                           help="--estimate, --from-features: the external cameras (--estimate: the first the "
+                                "reference; default: every colour camera whose name does not contain 'wrist', with "
+                                "--from-features one with a camera_extrinsics.<camera> feature)")
+    calibrate.add_argument("--timesteps", type=int, default=16,
+                           help="--estimate: timesteps sampled across the episodes (default: 16)")
+    calibrate.add_argument("--baseline", type=float, default=None,
+                           help="--estimate without depth: the distance between the first two cameras, metres "
+                                "(sets the scale)")
+    calibrate.add_argument("--table-distance", type=float, default=None,
+                           help="--estimate without depth: the distance from the first camera down to the table, "
+                                "metres (sets the scale)")
+    calibrate.add_argument("--convention", choices=["auto", "gensplat", "opencv-w2c", "nerfstudio"], default="auto",
+                           help="how FILE states the cameras; auto: nerfstudio when it has frames, opencv-w2c when "
+                                "cameras have R or rvec, else gensplat (default: auto)")
+
+    train = sub.add_parser("train-model", help="train the GenSplat model with 3D-prior distillation")
+    train.add_argument("--out", required=True, help="run directory (resumes when it holds a checkpoint)")
+    train.add_argument("--steps", type=int, required=True, help="optimiser steps")
+    train.add_argument("--batch-size", type=int, default=4, help="samples per step (default: 4)")
+    train.add_argument("--size", type=int, default=112, help="image side, a multiple of 14 (default: 112)")
+    train.add_argument("--model", choices=["small", "full"], default="small",
+                       help="small: 128 wide, 4 + 4 blocks, trains on a CPU; full: Pi3 size, about 1 B parameters "
+                            "(default: small)")
+    train.add_argument("--init-weights", default=None,
+                       help="Pi3 (or GenSplat) model.safetensors to initialise from; its geometry parts train at "
+                            "--pretrained-lr-scale x lr (default: random initialisation)")
+    train.add_argument("--pretrained-lr-scale", type=float, default=0.1,
+                       help="learning-rate factor of the parts initialised from --init-weights (default: 0.1)")
+    train.add_argument("--data", choices=["procedural", "lerobot"], nargs="+", default=["procedural"],
+                       help="one or both: both mixes the samples, in proportion to the datasets' lengths "
+                            "(set the procedural one with --scenes; default: procedural)")
+    train.add_argument("--views", type=int, default=2, help="procedural: cameras per sample (default: 2)")
+    train.add_argument("--scenes", type=int, default=None, help="procedural: distinct scenes (default: one per sample)")
+    train.add_argument("--root", default=None, help="lerobot: local dataset root")
+    train.add_argument("--repo-id", default=None, help="lerobot: the dataset's repo id")
+    train.add_argument("--cameras", nargs="+", default=None, help="lerobot: external cameras (default: all)")
+    train.add_argument("--teacher", choices=["true", "pi3"], default="true",
+                       help="true: the data's depth and calibration; pi3: a frozen Pi3 model (default: true)")
+    train.add_argument("--teacher-weights", default=None, help="Pi3 model.safetensors for --teacher pi3 (default: none)")
+    train.add_argument("--no-distill", action="store_true", help="L_rgb only (l_depth = l_3D = l_cam = 0)")
+    train.add_argument("--l1", type=float, default=1.0, help="L1 weight inside L_rgb (default: 1.0)")
+    train.add_argument("--perceptual", type=float, default=0.2, help="SSIM (or LPIPS) weight inside L_rgb (default: 0.2)")
+    train.add_argument("--l-depth", type=float, default=0.1, help="weight of the depth distillation loss (default: 0.1)")
+    train.add_argument("--l-3d", type=float, default=1.0, help="weight of the 3D point-map loss (default: 1.0)")
+    train.add_argument("--l-cam", type=float, default=1.0, help="weight of the camera-pose loss (default: 1.0)")
+    train.add_argument("--lr", type=float, default=2e-4,
+                       help="peak learning rate, cosine decay after the warm-up (default: 0.0002)")
+    train.add_argument("--warmup", type=int, default=100, help="linear warm-up steps (default: 100)")
+    train.add_argument("--ema-decay", type=float, default=0.999,
+                       help="decay of the exported exponential moving average of the weights (default: 0.999)")
+    train.add_argument("--render-views", type=int, default=None, help="context views rendered per sample (default: all)")
+    train.add_argument("--render-crop", type=int, default=None,
+                       help="render only a random square window of this side (default: whole views)")
+    train.add_argument("--bf16", action="store_true", help="bfloat16 autocast")
+    train.add_argument("--grad-checkpointing", action="store_true",
+                       help="recompute transformer activations in the backward pass (less memory, slower)")
+    train.add_argument("--seed", type=int, default=0,
+                       help="seed of the initialisation, data order and view subsets (default: 0)")
+    train.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's own choice)")
+    train.add_argument("--log-every", type=int, default=10, help="steps between log lines (default: 10)")
+    train.add_argument("--save-every", type=int, default=100, help="steps between checkpoints (default: 100)")
+
+    preview = sub.add_parser(
+        "preview", help="grid PNG and MP4 of what the policy gets from a LeRobot dataset (GenSplat forced on)",
+        description="Write preview.png (original versus policy input per camera, a few perturbation draws per "
+                    "frame, labelled with axis, theta and mu) and preview.mp4 (every frame of the episode) of a "
+                    "LeRobot dataset opened as lerobot-train opens it, with the settings gensplat cache wrote and "
+                    "augmentation forced on (probability 1). Nothing is written into the dataset.",
+    )  # fmt: skip
+    _dataset_arguments(preview, " (with gensplat cache's settings)")
+    preview.add_argument("--episode", type=int, default=0, help="episode to show (default: 0)")
+    preview.add_argument("--frames", type=int, nargs="+", default=None,
+                         help="frames of the episode in the grid (default: 4 evenly spaced)")
+    preview.add_argument("--draws", type=int, default=3,
+                         help="perturbation draws per frame in the grid, draw d showing view d of the episode's "
+                              "views_per_source (default: 3)")
+    preview.add_argument("--image-transforms", action="store_true",
+                         help="also apply LeRobot's 2D image transforms at their default config, after GenSplat "
+                              "(as --dataset.image_transforms.enable=true does in lerobot-train)")
+    preview.add_argument("--seed", type=int, default=0, help="torch seed of the draws (default: 0)")
+    preview.add_argument("--out", required=True, help="output folder, outside the dataset (created; files replaced)")
+
+    export = sub.add_parser(
+        "export-ply", help="write the cached Gaussians of one timestep of a LeRobot dataset as a 3DGS PLY",
+        description="Write the Gaussians GenSplat renders one timestep from as a standard 3DGS binary PLY "
+                    "(opens in splat viewers). Read from the dataset's cache; an episode missing from it is built "
+                    "first with the cache's reconstructor (run gensplat cache once before).",
+    )  # fmt: skip
+    _dataset_arguments(export, " (with gensplat cache's settings)")
+    export.add_argument("--episode", type=int, required=True, help="episode index")
+    export.add_argument("--frame", type=int, required=True, help="frame index within the episode")
+    export.add_argument("--out", required=True, help="PLY file to write, outside the dataset (replaced when it exists)")
+
+    return parser
+
+
+def _dataset_arguments(parser: argparse.ArgumentParser, root_note: str = "") -> None:
+    """--root and --repo-id of a local LeRobot dataset."""
+    parser.add_argument("--root", required=True, help=f"local LeRobot dataset root{root_note}")
+    parser.add_argument("--repo-id", required=True, help="the dataset's repo id")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run a command; a user mistake (:func:`_user_error`) ends as ``gensplat: error: <message>``
+    on stderr with exit status 2, anything else raises."""
+    args = build_parser().parse_args(argv)
+    try:
+        return _dispatch(args)
+    except Exception as e:
+        if not _user_error(e):
+            raise
+        print(f"gensplat: error: {e}", file=sys.stderr)
+        return 2
+
+
+#: the project's own packages: their errors are the user's to fix (:func:`_user_error`)
+_OWN_PACKAGES = ("gensplat_transforms", "gensplat_lerobot", "gensplat_sim", "gensplat_cli")
+
+
+def _user_error(e: Exception) -> bool:
+    """A FileNotFoundError, ValueError or StaleCacheError raised by this project's own code
+    (gensplat_transforms, gensplat_lerobot, gensplat_sim, gensplat_cli), whose messages say what to do."""
+    from gensplat_transforms.cache.store import StaleCacheError
+
+    if not isinstance(e, (FileNotFoundError, ValueError, StaleCacheError)):
+        return False
+    tb = e.__traceback__
+    while tb.tb_next is not None:
+        tb = tb.tb_next
+    return tb.tb_frame.f_globals.get("__name__", "").split(".")[0] in _OWN_PACKAGES
+
+
+#: the options each way of ``gensplat calibrate`` reads; one it does not read is refused, not ignored
+_CALIBRATE_READS = {
+    "--from": ("convention",),
+    "--from-features": ("intrinsics", "fov", "focal", "cameras"),
+    "--estimate": ("fov", "focal", "model", "per_episode", "principal_point", "repo_id", "cameras", "timesteps",
+                   "baseline", "table_distance"),
+}  # fmt: skip
+
+
+def _check_calibrate_options(args) -> None:
+    """Raise ``ValueError`` naming the options given to ``calibrate`` that its way of
+    calibrating (``--from``, ``--from-features`` or ``--estimate``) would not read."""
+    way = "--estimate" if args.estimate else "--from-features" if args.from_features else "--from"
+    defaults = vars(build_parser().parse_args(["calibrate", "--root", ".", "--estimate"]))
+    options = {name for names in _CALIBRATE_READS.values() for name in names} - set(_CALIBRATE_READS[way])
+    given = sorted("--" + name.replace("_", "-") for name in options if getattr(args, name) != defaults[name])
+    if given:
+        readers = {flag: [w for w, names in _CALIBRATE_READS.items() if flag[2:].replace("-", "_") in names]
+                   for flag in given}  # fmt: skip
+        raise ValueError(f"calibrate {way} does not read " + "; ".join(f"{flag} (only {' and '.join(readers[flag])})"
+                                                                       for flag in given))  # fmt: skip
+
+
+def _dispatch(args) -> int:
+    if args.command == "calibrate":
+        _check_calibrate_options(args)
+    if args.command == "record":
+        from gensplat_sim.record import record_from_cli
+
+        root, repo_id = record_from_cli(args).root, f"gensplat/sim_{args.task}"
+        print(f"repo id {repo_id}, dataset root {root}; next: gensplat cache --root {root} --repo-id {repo_id}")
+    elif args.command == "calibrate" and args.estimate:
+        _estimate(args)
+    elif args.command == "calibrate" and args.from_features:
+        from gensplat_transforms.calibration.files import calibrate_from_features
+        from gensplat_transforms.data.format import calibration_path
+
+        cameras = calibrate_from_features(args.root, args.intrinsics, args.fov, args.focal, args.cameras)
+        print(f"calibrated {', '.join(f'{n} ({len(c.episodes)} episodes)' for n, c in cameras.items())} from the "
+              f"camera_extrinsics features; written to {calibration_path(args.root)} (the dataset is not modified)")  # fmt: skip
+    elif args.command == "calibrate":
+        from gensplat_transforms.calibration.files import calibrate
+        from gensplat_transforms.data.format import calibration_path
+
+        cameras = calibrate(args.root, args.source, args.convention)
+        print(f"calibrated {', '.join(f'{n} ({c.mount})' for n, c in cameras.items())} from {args.source}; "
+              f"written to {calibration_path(args.root)} (the dataset is not modified)")  # fmt: skip
+    elif args.command == "import-depth":
+        _import_depth(args)
+    elif args.command == "demo":
+        from gensplat_sim.demo import run_demo
+
+        run_demo(args.out, episodes=args.episodes, size=args.size, seed=args.seed, backend=args.backend)
+    elif args.command == "cache":
+        _cache(args)
+    elif args.command == "train-model":
+        _train_model(args)
+    elif args.command == "preview":
+        _preview(args)
+    elif args.command == "export-ply":
+        _export_ply(args)
+    return 0
+
+
+def _cache(args) -> None:
+    try:
+        from gensplat_lerobot import LeRobotSource, load_settings, prepare
+        from gensplat_lerobot.dataset import check_cameras, content_path, default_reconstructor
+    except ImportError as e:
+        raise SystemExit(f"gensplat cache needs the LeRobot extra: pip install 'gensplat-transforms[lerobot]' ({e})")
+    from gensplat_transforms.cache.distributed import Shard, gather
+    from gensplat_transforms.cache.store import size_text
+    from gensplat_transforms.core.atomic import read_json_object
+    from gensplat_transforms.data.format import GENSPLAT_DIR, depth_path
+    from gensplat_transforms.settings import config_from_arguments
+
+    check_cameras(args.root, args.cameras or ())
+    source = LeRobotSource(args.root, args.repo_id, tuple(args.cameras) if args.cameras else None)
+    cameras = source.camera_names
+    config = config_from_arguments(args, cameras=cameras)
+    spec = None if args.reconstructor is None else {"name": args.reconstructor}
+    if args.fill_depth:
+        if args.reconstructor not in (None, "rgbd") or not source.has_depth():
+            raise SystemExit("gensplat cache: --fill-depth fills the holes of measured depth: it needs the rgbd "
+                             "reconstructor and cameras with depth")  # fmt: skip
+        spec = {"name": "rgbd", "config": {"fill_depth_px": args.fill_depth}}
+    if args.model or args.max_pixels is not None:
+        if args.reconstructor == "rgbd":
+            raise SystemExit("gensplat cache: --model and --max-pixels need --reconstructor geometry or gensplat")
+        spec = {"name": args.reconstructor or "geometry", "model": args.model}
+        if args.max_pixels is not None:
+            spec["options"] = {"max_pixels": args.max_pixels}
+    name = (spec or default_reconstructor(source))["name"]
+    if args.batch_timesteps is not None and name != "geometry":
+        raise SystemExit(f"gensplat cache: --batch-timesteps batches the geometry reconstructor's model; this cache "
+                         f"uses {name} (the default where the cameras have depth; --reconstructor geometry to batch)")
+    shard = Shard.from_env()
+    start, cpu = time.perf_counter(), time.process_time()
+    if shard.rank == 0:
+        print(f"repo id {args.repo_id}, dataset root {args.root}; settings and cache in "
+              f"{Path(args.root) / GENSPLAT_DIR} (found by the dataset's content, whatever repo id training uses)")
+    stats = prepare(args.root, args.repo_id, config, spec, args.episodes, shard=shard, verify=args.verify,
+                    link_depth=args.link_depth, batch_timesteps=args.batch_timesteps)
+    ranks = gather(shard, (stats, time.perf_counter() - start, time.process_time() - cpu))
+    if ranks is None:
+        return
+    stats = {e: s for part, _, _ in ranks for e, s in part.items()}
+    built = {e: s for e, s in stats.items() if s is not None}
+    size = sum(s.bytes for s in built.values())
+    frames = sum(s.num_frames for s in built.values())
+    seconds, cpu_s = max(r[1] for r in ranks), sum(r[2] for r in ranks)
+    who = "" if len(ranks) == shard.world else f"rank {shard.rank} of {shard.world}: "
+    counts = ", ".join(str(sum(s is not None for s in part.values())) for part, _, _ in ranks)
+    per = "" if len(ranks) == 1 else f" [built per process: {counts}]"
+    print(f"{who}cached {len(built)} episode(s) ({len(stats) - len(built)} already valid) on {len(ranks)} "
+          f"process(es) in {seconds:.2f} s, {cpu_s:.2f} CPU s ({len(built) / seconds:.3f} episodes/s): "
+          f"{frames} timesteps, {size_text(size)}, {size_text(size / max(frames, 1))} per timestep{per}")
+    spec = load_settings(args.root)[1]
+    licence = read_json_object(content_path(args.root)).get("weights_licence")  # as prepare recorded it
+    if licence is not None:
+        from gensplat_transforms.weights import DEFAULT_MODEL_DIR
+
+        print(f"model weights {spec.get('model') or DEFAULT_MODEL_DIR}: licence {licence}")
+    sensed = [n for n in cameras if n in source.depth_features and not depth_path(args.root, n, 0).exists()]
+    if sensed and not args.fill_depth and spec["name"] == "rgbd":
+        print(f"tip: the depth of {', '.join(sensed)} is a sensor's (LeRobot depth maps): --fill-depth 8 gives its "
+              "small holes depth before the discs are built (+5.01 dB PSNR at the source pose, +0.67 dB at large "
+              "moves on a simulated RealSense; docs/reconstruction.md)")  # fmt: skip
+
+
+def _train_model(args) -> None:
+    from torch.utils.data import ConcatDataset
+
+    from gensplat_transforms.data.outputs import check_output
+    from gensplat_transforms.geometry.model import ModelConfig
+    from gensplat_transforms.geometry.model.data import ProceduralViews
+    from gensplat_transforms.geometry.model.losses import LossWeights
+    from gensplat_transforms.geometry.model.teacher import Pi3Teacher, TrueGeometryTeacher
+    from gensplat_transforms.training import LOG_FILE, TrainConfig, train
+
+    check_output(args.out, args.root, folder=True)  # against the dataset of --data lerobot
+    check_output(Path(args.out) / LOG_FILE, args.root)  # appended to; the other files are replaced atomically
+    loss = LossWeights(l1=args.l1, perceptual=args.perceptual, depth=args.l_depth, points=args.l_3d,
+                       camera=args.l_cam)  # fmt: skip
+    if args.no_distill:
+        loss = LossWeights(l1=args.l1, perceptual=args.perceptual, depth=0.0, points=0.0, camera=0.0)
+    config = TrainConfig(
+        out=args.out, steps=args.steps, batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup,
+        pretrained_lr_scale=args.pretrained_lr_scale, ema_decay=args.ema_decay, bf16=args.bf16, grad_checkpointing=args.grad_checkpointing, loss=loss,
+        render_views=args.render_views, render_crop=args.render_crop, seed=args.seed, log_every=args.log_every, save_every=args.save_every,
+        threads=args.threads,
+    )  # fmt: skip
+    model_config = ModelConfig.full() if args.model == "full" else ModelConfig.small()
+    datasets = []
+    for kind in dict.fromkeys(args.data):
+        if kind == "lerobot":
+            if not (args.root and args.repo_id):
+                raise SystemExit("gensplat train-model --data lerobot needs --root and --repo-id")
+            from gensplat_lerobot import LeRobotViews
+
+            cameras = tuple(args.cameras) if args.cameras else None
+            datasets.append(LeRobotViews(args.root, args.repo_id, args.size, cameras))
+        else:
+            length = args.scenes or args.steps * args.batch_size
+            datasets.append(ProceduralViews(length, args.size, args.views, seed=args.seed))
+    dataset = datasets[0] if len(datasets) == 1 else ConcatDataset(datasets)
+    teacher = None
+    if config.distills:
+        if args.teacher == "pi3":
+            if not args.teacher_weights:
+                raise SystemExit("--teacher pi3 needs --teacher-weights (Pi3 model.safetensors)")
+            teacher = Pi3Teacher(args.teacher_weights)
+        else:
+            teacher = TrueGeometryTeacher()
+    exported = train(config, model_config, dataset, teacher, args.init_weights)
+    print(f"trained {args.steps} steps; EMA model written to {exported}")
+
+
+def _lerobot_module(name: str, command: str):
+    """``gensplat_lerobot.<name>``, or exit saying the command needs the LeRobot extra."""
+    try:
+        return importlib.import_module(f"gensplat_lerobot.{name}")
+    except ImportError as e:
+        raise SystemExit(f"gensplat {command} needs the LeRobot extra: pip install 'gensplat-transforms[lerobot]' ({e})")
+
+
+def _preview(args) -> None:
+    preview = _lerobot_module("training_preview", "preview").write_lerobot_preview(
+        args.root, args.repo_id, args.out, episode=args.episode, frames=args.frames, draws=args.draws,
+        image_transforms=args.image_transforms, seed=args.seed,
+    )  # fmt: skip
+    print("wrote", preview.png, preview.mp4 or "(no MP4: PyAV is not installed)")
+
+
+def _estimate(args) -> None:
+    from gensplat_transforms.data.format import calibration_path
+
+    estimate = _lerobot_module("estimate", "calibrate --estimate")
+    repo_id = args.repo_id or f"local/{Path(args.root).name}"
+    rig = estimate.estimate_calibration(args.root, repo_id, tuple(args.cameras) if args.cameras else None,
+                                        args.timesteps, fov_deg=args.fov, focal_px=args.focal,
+                                        baseline_m=args.baseline, table_m=args.table_distance,
+                                        principal_point=args.principal_point, model=_model_source(args.model),
+                                        per_episode=args.per_episode)  # fmt: skip
+    print("\n".join(estimate.report(rig)))
+    print(f"estimated {', '.join(rig.names)}; written to {calibration_path(args.root)} (the dataset is not modified)")
+
+
+def _model_source(model: str | None) -> str | None:
+    """``--model``'s checkpoint: "shipped" is the shipped small model's directory."""
+    from gensplat_transforms.weights import DEFAULT_MODEL_DIR
+
+    return str(DEFAULT_MODEL_DIR) if model == "shipped" else model
+
+
+def _import_depth(args) -> None:
+    done = _lerobot_module("depth", "import-depth").import_dataset_depth(
+        args.root, args.repo_id, args.camera, args.source, args.units, args.episodes, args.overwrite,
+    )  # fmt: skip
+    written = {e: d for e, d in done.items() if not d.skipped}
+    if written:
+        frames = sum(d.frames for d in written.values())
+        invalid = sum(d.invalid * d.frames for d in written.values()) / frames
+        medians = sorted(d.median_m for d in written.values())
+        print(f"wrote the depth of {args.camera!r} for {len(written)} episode(s), {frames} frames, to "
+              f"{Path(args.root) / 'depth' / args.camera}: {invalid:.1%} of pixels without depth, median distance "
+              f"{medians[len(medians) // 2]:.3f} m")  # fmt: skip
+    print(f"{len(done) - len(written)} episode(s) already had depth (--overwrite replaces it)")
+
+
+def _export_ply(args) -> None:
+    path = _lerobot_module("export", "export-ply").export_ply(args.root, args.repo_id, args.episode, args.frame, args.out)
+    print("wrote", path)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
