@@ -35,7 +35,7 @@ from torch.utils.data import Dataset, default_collate
 
 from gensplat_transforms import GaussianCache, GenSplatConfig, RGBDReconstructor
 from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
-from gensplat_transforms.render.batched import render_batch
+from gensplat_transforms.rendering.batched import render_batch
 from gensplat_transforms.transform import GenSplatTransform
 
 

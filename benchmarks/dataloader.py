@@ -47,7 +47,7 @@ from torch.utils.data import DataLoader, RandomSampler
 from gensplat_transforms.cache.store import GaussianCache
 from gensplat_transforms.core.metrics import psnr
 from gensplat_transforms.geometry import Reconstructor, RGBDReconstructor
-from gensplat_transforms.render import render
+from gensplat_transforms.rendering import render
 from gensplat_transforms.transform import GenSplatConfig, render_view
 from gensplat_transforms.views.perturbation import PerturbationSampler
 

@@ -48,7 +48,7 @@ from gensplat_transforms.geometry import GenSplatReconstructor, RGBDReconstructo
 from gensplat_transforms.geometry.model import GenSplatModel
 from gensplat_transforms.geometry.model.losses import geodesic_angle, relative_poses
 from gensplat_transforms.geometry.model.teacher import camera_points
-from gensplat_transforms.render import render
+from gensplat_transforms.rendering import render
 from gensplat_transforms.views.perturbation import PerturbationSampler, pivot_point
 from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 

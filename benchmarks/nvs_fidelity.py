@@ -97,9 +97,9 @@ from gensplat_transforms.geometry import (
     Views,
 )
 from gensplat_transforms.geometry.base import nearest_pixels
-from gensplat_transforms.render import RenderOutput, render
-from gensplat_transforms.render.holes import fill_holes
-from gensplat_transforms.render.warp import forward_warp
+from gensplat_transforms.rendering import RenderOutput, render
+from gensplat_transforms.rendering.holes import fill_holes
+from gensplat_transforms.rendering.warp import forward_warp
 from gensplat_transforms.transform import GenSplatConfig
 from gensplat_transforms.views.perturbation import EVAL_LEVELS, PerturbationSampler
 from gensplat_transforms.weights import DEFAULT_MODEL_DIR

@@ -38,7 +38,7 @@ from nvs_fidelity import PLAIN, _mean, draw, heldout_dataset, sampled_frames, sa
 
 from gensplat_transforms.core.metrics import psnr
 from gensplat_transforms.geometry import RGBDReconstructor, Views
-from gensplat_transforms.render.warp import forward_warp
+from gensplat_transforms.rendering.warp import forward_warp
 from gensplat_transforms.views.perturbation import EVAL_LEVELS, PerturbationSampler
 
 RGBD = {"rgbd": {}, "rgbd_plain": PLAIN, "rgbd_left": {}, "rgbd_no_preference": {"view_preference": 0.0},

@@ -48,8 +48,8 @@ import torch
 from standard_scene import standard_scene
 
 from gensplat_transforms import render
-from gensplat_transforms.render import DILATION, project
-from gensplat_transforms.render.fast import render_fast
+from gensplat_transforms.rendering import DILATION, project
+from gensplat_transforms.rendering.fast import render_fast
 
 RESULTS = Path(__file__).resolve().parent / "results" / "render_speed.json"
 

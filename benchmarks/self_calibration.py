@@ -59,7 +59,7 @@ from gensplat_transforms.core.metrics import psnr, ssim
 from gensplat_transforms.core.views import nearest_pixels
 from gensplat_transforms.data.format import load_depth, save_depth
 from gensplat_transforms.geometry import GeometryReconstructor, RGBDReconstructor, Views
-from gensplat_transforms.render import render
+from gensplat_transforms.rendering import render
 from gensplat_transforms.views.perturbation import EVAL_LEVELS, PerturbationSampler, pivot_point
 from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 

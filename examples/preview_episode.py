@@ -13,7 +13,7 @@ from pathlib import Path
 from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
 from gensplat_transforms.cache.store import GaussianCache
 from gensplat_transforms.geometry import RGBDReconstructor
-from gensplat_transforms.render.preview import write_preview
+from gensplat_transforms.rendering.preview import write_preview
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 
 OUT = Path(__file__).resolve().parents[1] / "outputs" / "preview"

@@ -32,8 +32,8 @@ from .geometry import (
     Views,
     make_reconstructor,
 )
-from .render import RenderOutput, render
-from .render.batched import render_batch
+from .rendering import RenderOutput, render
+from .rendering.batched import render_batch
 from .transform import AugmentedDataset, GenSplatConfig, GenSplatTransform
 from .views.perturbation import LEVELS, Perturbation, PerturbationRange, PerturbationSampler, pivot_point
 

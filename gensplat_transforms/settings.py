@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 from dataclasses import asdict, dataclass, field, fields
 
-from .render import BACKENDS
-from .render.output import DEPTH_UNITS
+from .rendering import BACKENDS
+from .rendering.output import DEPTH_UNITS
 from .views.perturbation import SAMPLERS, PerturbationRange, _integer, get_range, make_sampler, sampler_kinds
 
 RENDER_IN = ("auto", "worker", "batch")

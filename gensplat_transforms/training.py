@@ -46,7 +46,7 @@ from .geometry.model.frames import estimate_focal
 from .geometry.model.gensplat import GenSplatModel, to_gaussians
 from .geometry.model.losses import LossWeights, camera_loss, depth_loss, points_loss, rgb_loss
 from .geometry.model.teacher import Teacher
-from .render import render
+from .rendering import render
 
 CHECKPOINT_FILE = "checkpoint.pt"
 LOG_FILE = "log.jsonl"

@@ -15,8 +15,8 @@ from .cache.reader import CacheReader
 from .cache.store import EpisodeSource, GaussianCache
 from .core.counters import SampleCounters
 from .data.format import DepthSensor
-from .render import render_size
-from .render.output import as_cache_images, render_depth, render_view, render_views
+from .rendering import render_size
+from .rendering.output import as_cache_images, render_depth, render_view, render_views
 from .settings import GenSplatConfig
 from .views.perturbation import AXES, ROW
 from .views.plan import BATCH_KEYS, ViewPlan

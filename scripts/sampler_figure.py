@@ -19,7 +19,7 @@ from gensplat_lerobot import prepare
 from gensplat_lerobot.training_preview import open_dataset, write_lerobot_preview
 
 from gensplat_transforms.core.images import save_grid
-from gensplat_transforms.render.preview import as_frame
+from gensplat_transforms.rendering.preview import as_frame
 from gensplat_transforms.settings import GenSplatConfig
 
 #: row label -> the settings that differ from GenSplatConfig's defaults

@@ -16,8 +16,8 @@ from gensplat_transforms.core.cameras import Cameras, rigid_inverse
 from gensplat_transforms.core.gaussians import Gaussians
 from gensplat_transforms.data.format import DepthSensor
 from gensplat_transforms.geometry import Reconstructor, RGBDConfig, RGBDReconstructor, Views
-from gensplat_transforms.render import gsplat_backend
-from gensplat_transforms.render.batched import disc_builder, render_batch
+from gensplat_transforms.rendering import gsplat_backend
+from gensplat_transforms.rendering.batched import disc_builder, render_batch
 from gensplat_transforms.transform import BATCH_KEYS, GenSplatConfig, GenSplatTransform
 
 LEFT, RIGHT = "observation.images.left", "observation.images.right"

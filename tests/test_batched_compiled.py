@@ -12,8 +12,8 @@ from gensplat_transforms.cache.depth_codec import depth_from_words
 from gensplat_transforms.cache.store import GaussianCache
 from gensplat_transforms.core.rotations import covariance_3d
 from gensplat_transforms.geometry import RGBDReconstructor
-from gensplat_transforms.render import batched
-from gensplat_transforms.render.batched import render_batch
+from gensplat_transforms.rendering import batched
+from gensplat_transforms.rendering.batched import render_batch
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 
 LEFT = "observation.images.left"

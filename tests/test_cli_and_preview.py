@@ -13,7 +13,7 @@ from PIL import Image
 from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
 from gensplat_transforms.cache.store import GaussianCache
 from gensplat_transforms.geometry import RGBDReconstructor
-from gensplat_transforms.render.preview import write_preview
+from gensplat_transforms.rendering.preview import write_preview
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 from gensplat_transforms.views.perturbation import EVAL_LEVELS
 

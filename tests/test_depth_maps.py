@@ -12,7 +12,7 @@ from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build
 from gensplat_transforms.cache.store import GaussianCache
 from gensplat_transforms.data.format import DepthSensor
 from gensplat_transforms.geometry import RGBDReconstructor
-from gensplat_transforms.render.batched import render_batch
+from gensplat_transforms.rendering.batched import render_batch
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 from gensplat_transforms.views.perturbation import AXES, Perturbation
 

@@ -23,8 +23,8 @@ from hard_cases import HARD_CASES, MAGNITUDES, SCALABLE_FIELDS, scaled
 
 from gensplat_transforms import Cameras, Gaussians, render
 from gensplat_transforms.core.cameras import look_at
-from gensplat_transforms.render import BACKENDS, fast
-from gensplat_transforms.render.projection import MAX_COLOR
+from gensplat_transforms.rendering import BACKENDS, fast
+from gensplat_transforms.rendering.projection import MAX_COLOR
 
 W, H = 45, 38  # not multiples of the 16-pixel tile: edge tiles are partial
 ATOL = 2e-5
@@ -321,7 +321,7 @@ def test_compiled_code_is_cached_for_new_processes():
     script = textwrap.dedent("""
         import torch
         from gensplat_transforms import Cameras, Gaussians, render
-        from gensplat_transforms.render import fast
+        from gensplat_transforms.rendering import fast
         g = Gaussians(torch.tensor([[0.0, 0.0, 2.0]]), torch.tensor([[1.0, 0, 0, 0]]),
                       torch.full((1, 3), 0.1), torch.tensor([0.5]), torch.zeros(1, 16, 3))
         cam = Cameras.from_intrinsics(40.0, 44.0, 22.8, 18.8, torch.eye(4, dtype=torch.float64), 45, 38)

@@ -11,7 +11,7 @@ from hard_cases import HARD_CASES
 from gensplat_transforms import render
 from gensplat_transforms.core.cameras import Cameras, look_at
 from gensplat_transforms.core.gaussians import Gaussians
-from gensplat_transforms.render import BACKENDS
+from gensplat_transforms.rendering import BACKENDS
 
 needs_gsplat = pytest.mark.skipif(
     not torch.cuda.is_available(), reason="the gsplat backend needs a CUDA device"

@@ -9,7 +9,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from gensplat_transforms.render.holes import _halve, _pull_push, fill_holes
+from gensplat_transforms.rendering.holes import _halve, _pull_push, fill_holes
 
 
 def constant(rgb, h=24, w=20, b=1):

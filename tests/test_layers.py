@@ -16,7 +16,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = "gensplat_transforms"
 #: the package's stage folders, lowest first (docs/architecture.md)
-STAGES = ("core", "data", "calibration", "geometry", "cache", "views", "render")
+STAGES = ("core", "data", "calibration", "geometry", "cache", "views", "rendering")
 #: the package's modules above every stage (and the package's ``__init__``)
 TOP = (f"{PACKAGE}.settings", f"{PACKAGE}.transform", f"{PACKAGE}.training")
 #: the shipped network's weights: package data beside the stages, read by the geometry stage
@@ -107,7 +107,7 @@ def test_every_module_belongs_to_a_layer():
     assert not [m for m in ALL_MODULES if rank(m) is None]
     assert all((ROOT / PACKAGE / stage / "__init__.py").is_file() for stage in STAGES)
     assert [rank(f"{PACKAGE}.{s}.x") for s in STAGES] == list(range(len(STAGES)))
-    order = [f"{PACKAGE}.render.batched", f"{PACKAGE}.transform", "gensplat_lerobot.plugin",
+    order = [f"{PACKAGE}.rendering.batched", f"{PACKAGE}.transform", "gensplat_lerobot.plugin",
              "gensplat_sim.demo", "gensplat_cli"]
     assert [rank(m) for m in order] == sorted({rank(m) for m in order})
 
@@ -202,16 +202,16 @@ def test_the_checks_see_function_level_and_type_only_imports():
 
 
 def test_the_batch_path_shares_the_workers_helpers_instead_of_reaching_into_the_transform():
-    """render/batched.py takes the plan's keys and the view helpers from the modules that hold
+    """rendering/batched.py takes the plan's keys and the view helpers from the modules that hold
     them; the config and the transform only as types (for annotations), from transform.py only
     the transform's type."""
-    name = f"{PACKAGE}.render.batched"
+    name = f"{PACKAGE}.rendering.batched"
     tree = ast.parse(MODULES[name].read_text())
     from_transform = {a.name for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module == "transform"
                       for a in n.names}  # fmt: skip
     assert from_transform == {"GenSplatTransform"}
     assert imports(name, MODULES[name], MODULES) >= {
-        f"{PACKAGE}.views.plan", f"{PACKAGE}.render.output", f"{PACKAGE}.views.perturbation"}
+        f"{PACKAGE}.views.plan", f"{PACKAGE}.rendering.output", f"{PACKAGE}.views.perturbation"}
     assert imports(name, MODULES[name], MODULES, types=True) == set(TYPES_FROM_ABOVE)
 
 

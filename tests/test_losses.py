@@ -19,7 +19,7 @@ from gensplat_transforms.geometry.model.losses import (
     points_loss,
     rgb_loss,
 )
-from gensplat_transforms.render import render
+from gensplat_transforms.rendering import render
 from gensplat_transforms.views.perturbation import axis_rotation
 
 

@@ -17,7 +17,7 @@ from gensplat_transforms.cache.store import GaussianCache
 from gensplat_transforms.core.cameras import look_at
 from gensplat_transforms.data.scenes import default_cameras
 from gensplat_transforms.geometry import RGBDReconstructor, Views
-from gensplat_transforms.render.batched import render_batch
+from gensplat_transforms.rendering.batched import render_batch
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 from gensplat_transforms.views.perturbation import Perturbation, move_rig, rig_pivot
 

@@ -9,7 +9,7 @@ from torch.utils.data import default_collate
 from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
 from gensplat_transforms.cache.store import GaussianCache
 from gensplat_transforms.geometry import RGBDReconstructor
-from gensplat_transforms.render.batched import render_batch
+from gensplat_transforms.rendering.batched import render_batch
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform, render_view
 from gensplat_transforms.views.perturbation import ROW, Perturbation, move_rig
 from gensplat_transforms.views.plan import ViewPlan

@@ -149,7 +149,7 @@ def test_views_from_a_geometry_cache_keep_the_images_detail(tmp_path, render_in)
 
     from gensplat_transforms.cache.builder import SceneDataset
     from gensplat_transforms.core.metrics import psnr, sharpness_ratio
-    from gensplat_transforms.render.batched import render_batch
+    from gensplat_transforms.rendering.batched import render_batch
     from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform, render_view
 
     source = SceneEpisodes(num_episodes=1, num_frames=1, size=56)

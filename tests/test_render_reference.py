@@ -11,8 +11,8 @@ from hard_cases import HARD_CASES, MAGNITUDES, SCALABLE_FIELDS, scaled
 
 from gensplat_transforms import Cameras, Gaussians
 from gensplat_transforms.core.sh import C0, eval_sh
-from gensplat_transforms.render import auto_backend
-from gensplat_transforms.render import render as render_any
+from gensplat_transforms.rendering import auto_backend
+from gensplat_transforms.rendering import render as render_any
 
 render = partial(render_any, backend="reference")  # the backend these tests cover
 
@@ -74,7 +74,7 @@ def test_single_gaussian_matches_analytic_footprint():
 
 def test_field_of_view_clamp_is_that_of_3dgs_and_gsplat():
     """Off-image centres use the Jacobian at x/z clamped to (W - cx) / fx + 0.3 tan(fov_x / 2)."""
-    from gensplat_transforms.render.projection import project
+    from gensplat_transforms.rendering.projection import project
 
     f, z, s = 40.0, 2.0, 1.0
     cam = Cameras.from_intrinsics(f, f, W / 2, H / 2, torch.eye(4, dtype=torch.float64), W, H)

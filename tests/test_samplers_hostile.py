@@ -11,7 +11,7 @@ from gensplat_transforms.cache.builder import SceneEpisodes, build_cache
 from gensplat_transforms.cache.store import GaussianCache
 from gensplat_transforms.core.cameras import FOCAL_MAX_PX, Cameras, look_at
 from gensplat_transforms.geometry import RGBDReconstructor
-from gensplat_transforms.render.output import render_view
+from gensplat_transforms.rendering.output import render_view
 from gensplat_transforms.settings import GenSplatConfig
 from gensplat_transforms.views.perturbation import (
     FOCAL_SCALE_LIMITS,

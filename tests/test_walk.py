@@ -18,7 +18,7 @@ from gensplat_transforms.views.plan import ViewPlan
 LEFT, RIGHT = "observation.images.left", "observation.images.right"
 TRANSFORM = GenSplatTransform.__module__
 STAGES = {"gensplat_transforms.views.plan": "plan", "gensplat_transforms.cache.reader": "reader",
-          "gensplat_transforms.render.output": "renderer"}  # fmt: skip
+          "gensplat_transforms.rendering.output": "renderer"}  # fmt: skip
 
 
 @pytest.fixture(scope="module")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from gensplat_transforms.core.cameras import Cameras
-from gensplat_transforms.render.warp import forward_warp
+from gensplat_transforms.rendering.warp import forward_warp
 
 H, W, F = 24, 32, 40.0
 

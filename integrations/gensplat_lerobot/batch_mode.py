@@ -13,7 +13,7 @@ import logging
 
 import torch
 
-from gensplat_transforms.render.batched import disc_builder, render_batch
+from gensplat_transforms.rendering.batched import disc_builder, render_batch
 from gensplat_transforms.transform import GenSplatTransform
 
 from .dataset import GenSplatLeRobotDataset
@@ -23,7 +23,7 @@ log = logging.getLogger(__name__)
 
 class BatchRenderer:
     """Called on each collated batch (on the training device): renders the augmented views
-    (:func:`~gensplat_transforms.render.batched.render_batch`), then applies LeRobot's 2D image
+    (:func:`~gensplat_transforms.rendering.batched.render_batch`), then applies LeRobot's 2D image
     transforms to every camera of every sample, as the dataset does in the worker mode."""
 
     def __init__(self, transform: GenSplatTransform, image_transforms, camera_keys: list[str]) -> None:

@@ -16,7 +16,7 @@ from gensplat_transforms.core.atomic import atomic_write_json, read_json_object
 from gensplat_transforms.data.format import GENSPLAT_DIR
 from gensplat_transforms.data.outputs import gensplat_subfolder
 from gensplat_transforms.geometry import make_reconstructor
-from gensplat_transforms.render.gsplat_backend import check_gsplat
+from gensplat_transforms.rendering.gsplat_backend import check_gsplat
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 from gensplat_transforms.views.perturbation import get_range
 

@@ -19,7 +19,7 @@ from lerobot.transforms import ImageTransforms, ImageTransformsConfig
 
 from gensplat_transforms.core.images import save_grid
 from gensplat_transforms.data.outputs import check_output
-from gensplat_transforms.render.preview import as_frame, save_video
+from gensplat_transforms.rendering.preview import as_frame, save_video
 from gensplat_transforms.views.perturbation import AXES
 
 from .dataset import enable_gensplat, load_settings

@@ -16,7 +16,7 @@ from gensplat_transforms.core.images import save_grid
 from gensplat_transforms.core.metrics import psnr
 from gensplat_transforms.data.format import GENSPLAT_DIR
 from gensplat_transforms.data.outputs import check_output
-from gensplat_transforms.render.preview import write_preview
+from gensplat_transforms.rendering.preview import write_preview
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform, render_view
 from gensplat_transforms.views.perturbation import EVAL_LEVELS, PerturbationSampler
 

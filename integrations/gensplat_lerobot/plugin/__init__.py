@@ -10,7 +10,7 @@ from dataclasses import replace
 
 from gensplat_transforms.cache.store import CacheError
 from gensplat_transforms.core.counters import SampleCounters
-from gensplat_transforms.render import render_size
+from gensplat_transforms.rendering import render_size
 from gensplat_transforms.settings import GenSplatConfig
 
 from .. import batch_mode

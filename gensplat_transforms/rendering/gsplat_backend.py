@@ -118,7 +118,7 @@ def render_gsplat_batch(
         means (M, N, 3), quats (M, N, 4), scales (M, N, 3), opacities (M, N), sh (M, N, K, 3):
             the Gaussians of each scene (float32; opacity 0 pads a scene: gsplat culls those);
         c2w (M, C, 4, 4), K (M, C, 3, 3): the cameras of each scene, sharing one image size;
-        background: (3,) RGB; near, dilation: as for :func:`~gensplat_transforms.render.render`
+        background: (3,) RGB; near, dilation: as for :func:`~gensplat_transforms.rendering.render`
         (opacities already multiplied by its ``saturation``).
     Returns:
         rgb (M, C, 3, H, W), alpha (M, C, 1, H, W) and, with ``return_depth``, the expected

@@ -8,11 +8,6 @@ and :func:`render_size`, the size the augmented views are rendered at. Beside it
 (``render_batch``: a whole collated batch at once, ``render_in="batch"``), :mod:`.warp`
 (forward warping, the baseline of the fidelity benchmarks) and :mod:`.preview` (preview
 images). Imports the stages below it; the transform's settings only as a type.
-
-The package's name is also that of the function: ``gensplat_transforms.render`` (the
-attribute) is :func:`render`. Import the stage's modules with ``from gensplat_transforms.render
-import fast`` or ``from gensplat_transforms.render.fast import ...``, not
-``import gensplat_transforms.render.fast as fast``.
 """
 
 from __future__ import annotations
