@@ -410,6 +410,9 @@ def policy_config(work: Path, args) -> Path:
 
 
 #: Training steps between checkpoints: a stopped training resumes from its last one.
+#: (Trainings run with OpenMP's passive wait policy unless the environment sets one: with its
+#: threads spinning, one other process on a core slowed a step from 0.36 s to 2-6 s here; passive,
+#: to 0.5 s, at about 0.1 s per step when the cores are free; benchmarks/README.md.)
 CHECKPOINT_EVERY = 500
 
 
@@ -452,7 +455,7 @@ def train(arm: str, root: Path, out: Path, args) -> dict:
         print(f"resuming {arm} from step {done}", flush=True)
     else:
         cmd = train_command(arm, root, out, policy_config(out.parent, args), args)
-    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}"}
+    env = {"OMP_WAIT_POLICY": "PASSIVE", **os.environ, "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}"}
     log = out.parent / f"train_{arm}.log"
     t0 = time.perf_counter()
     with open(log, "a" if done else "w") as f:
