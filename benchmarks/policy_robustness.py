@@ -412,7 +412,7 @@ def policy_config(work: Path, args) -> Path:
 #: Training steps between checkpoints: a stopped training resumes from its last one.
 #: (Trainings run with OpenMP's passive wait policy unless the environment sets one: with its
 #: threads spinning, one other process on a core slowed a step from 0.36 s to 2-6 s here; passive,
-#: to 0.5 s, at about 0.1 s per step when the cores are free; benchmarks/README.md.)
+#: to 0.5 s; benchmarks/README.md.)
 CHECKPOINT_EVERY = 500
 
 
