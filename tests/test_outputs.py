@@ -288,3 +288,29 @@ def test_a_file_where_the_cache_folder_belongs_is_a_clear_error(cached, tmp_path
         (root / "gensplat" / "cache").mkdir()
         (root / "gensplat" / "cache" / identity).write_text("a note")
     refused(capsys, ["cache", "--root", str(root), "--repo-id", REPO], "is a file, not a folder")
+
+
+def test_no_command_changes_a_byte_of_the_dataset(cached, tmp_path, capsys):
+    """Every entry outside ``gensplat/``, links included (a link inside the dataset to a file
+    elsewhere, whose target is watched too), is the same after each command that reads the
+    dataset, whether it succeeds or is refused."""
+    root, elsewhere = tmp_path / "ds", tmp_path / "elsewhere.txt"
+    shutil.copytree(cached, root, symlinks=True)
+    elsewhere.write_text("a file the dataset links to")
+    (root / "notes.txt").symlink_to(elsewhere)
+    snapshot = lambda: (dataset_snapshot(root), elsewhere.read_bytes())
+    before = snapshot()
+    commands = [
+        ["cache", "--root", str(root), "--repo-id", REPO],
+        ["cache", "--root", str(root), "--repo-id", REPO, "--sampler", "tilt", "--probability", "0.5"],
+        ["export-ply", "--root", str(root), "--repo-id", REPO, "--episode", "0", "--frame", "1",
+         "--out", str(tmp_path / "t.ply")],
+        ["preview", "--root", str(root), "--repo-id", REPO, "--draws", "1", "--out", str(tmp_path / "preview")],
+        ["export-ply", "--root", str(root), "--repo-id", REPO, "--episode", "0", "--frame", "1",
+         "--out", str(root / "notes.txt")],  # refused: through the link
+        ["calibrate", "--root", str(root), "--from", str(tmp_path / "missing.json")],  # refused
+    ]  # fmt: skip
+    for args in commands:
+        main(args)
+        capsys.readouterr()
+        assert snapshot() == before, args
