@@ -23,7 +23,7 @@ import torch
 from gensplat_transforms.core.cameras import Cameras
 
 from .control import ArmController, yaw_of
-from .rendering import OffscreenRenderer
+from .render import OffscreenRenderer
 from .scene import HOME_QPOS, CameraSpec, SceneConfig, build_model
 from .tasks import PALETTE, EpisodeSpec, Task, get_task
 
