@@ -1,6 +1,6 @@
 """Accuracy costs time: PSNR and SSIM against the full-quality render versus milliseconds.
 
-Usage: python benchmarks/accuracy_vs_time.py [--quick]
+Usage: python benchmarks/accuracy_vs_time.py [--quick] [--out DIR]
 
 On the standard scene (``standard_scene.py``), the full-quality render is the "fast" backend
 with every Gaussian (stride 1), SH degree 3, float32 storage, at 224x224. One knob at a time
@@ -21,7 +21,9 @@ departs from it:
 Times are medians of repeated frames after a warm-up, one thread for torch and numba
 (``threads=1``), as in a dataloader worker: wall-clock ``ms`` and process CPU time
 ``cpu_ms``. The machine may be shared: settings are timed in interleaved rounds so that load
-changes touch them alike, and the load average is recorded. Prints a table, writes benchmarks/results/accuracy_vs_time.json and .png.
+changes touch them alike, and the load average is recorded. Prints a table, writes
+accuracy_vs_time.json and .png into ``--out`` (default benchmarks/results/;
+outputs/benchmarks_quick/ with ``--quick``).
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ import torch
 import torch.nn.functional as F
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from machine import default_out, out_help
 from plotting import Panel, line_panels
 from standard_scene import standard_scene
 
@@ -49,7 +52,6 @@ from gensplat_transforms import render
 from gensplat_transforms.cache.store import dequantize, quantize
 from gensplat_transforms.core.metrics import psnr, ssim
 
-RESULTS = Path(__file__).resolve().parent / "results"
 SIZE = 224
 PLOT_MAX_DB = 60.0
 COLOURS = {"resolution": (31, 119, 180), "density": (255, 127, 14), "sh_degree": (44, 160, 44),
@@ -180,8 +182,9 @@ def plot(rows: list[dict], path: Path) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="3 repeats, no reference backend (< 1 min)")
-    parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--out", type=Path, help=out_help(""))
     args = parser.parse_args()
+    args.out = args.out or default_out("", args.quick)
     result = run(args.quick)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "accuracy_vs_time.json").write_text(json.dumps(result, indent=2, allow_nan=False) + "\n")

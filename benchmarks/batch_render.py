@@ -16,7 +16,7 @@ is render_batch's choice of the compiled disc rule (auto: its default). Beside i
 the dataloader workers would spend on that batch in total, after a first call that compiles
 the fast backend). ``--profile`` adds the operators that take one call's device time.
 Defaults: batch 64, 224x224, p = 0.5, 10 repeats (batch 4, 32x32, 2 repeats with --quick).
-Writes benchmarks/results/batch_render.json (or --out).
+Writes benchmarks/results/batch_render.json (outputs/benchmarks_quick/ with --quick; or --out).
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import torch
-from machine import cpu_model, write_result
+from machine import cpu_model, default_out, out_help, write_result
 from torch.utils.data import Dataset, default_collate
 
 from gensplat_transforms import GaussianCache, GenSplatConfig, RGBDReconstructor
@@ -96,8 +96,9 @@ def main() -> None:
                         help="render_batch's compiled disc rule (auto: its default, on CUDA)")
     parser.add_argument("--no-worker", action="store_true", help="skip timing the worker path")
     parser.add_argument("--profile", action="store_true", help="also record the ops that take the render's time")
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "batch_render.json")
+    parser.add_argument("--out", type=Path, help=out_help("batch_render.json"))
     args = parser.parse_args()
+    args.out = args.out or default_out("batch_render.json", args.quick)
     if args.quick:
         args.batch_size, args.size, args.repeats = 4, 32, 2
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")

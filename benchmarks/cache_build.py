@@ -1,6 +1,7 @@
 """Cache build throughput of ``gensplat cache`` with 1 and 2 processes on one machine.
 
-    python benchmarks/cache_build.py [--episodes 6] [--size 224] [--processes 1 2] [--repeats 3]
+    python benchmarks/cache_build.py [--quick] [--episodes 6] [--size 224] [--processes 1 2] [--repeats 3]
+        [--root DIR] [--out FILE]
 
 Records a simulated pick-and-place dataset once (MP4 video like LeRobot's default, depth
 sidecars of the two external cameras; reused when ``--root`` already holds it), then builds
@@ -19,7 +20,11 @@ timestep. For a plan at DROID's size, each reconstructor (rgbd, geometry and gen
 models being the shipped small one) also builds a few timesteps of the procedural scene
 seen by two 320x180 cameras, in this process with one thread: cache bytes and CPU seconds
 per timestep, and a depth build's peak memory against its episode's length (two 640x480
-cameras, 50 and 200 frames, each in a fresh process). Writes benchmarks/results/cache_build.json.
+cameras, 50 and 200 frames, each in a fresh process). Writes benchmarks/results/cache_build.json
+(or ``--out``). ``--quick`` is a smoke run whose figures mean little: 2 episodes at 32x32 (in
+outputs/benchmarks_quick/cache_build_ds unless ``--root``), one build linking the depth with one
+process and one copying it with two, one DROID-size timestep, episodes of 2 and 4 frames for the
+memory, written to outputs/benchmarks_quick/cache_build.json.
 """
 
 from __future__ import annotations
@@ -41,7 +46,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 import torch
 from gensplat_sim.record import RecordConfig, record
 from gensplat_sim.world import WorldConfig
-from machine import cpu_model
+from machine import cpu_model, default_out, out_help, write_result
 
 from gensplat_transforms.cache.builder import SceneEpisodes
 from gensplat_transforms.cache.store import GaussianCache
@@ -177,6 +182,7 @@ def main() -> None:
         print(round(episode_memory(int(sys.argv[2])), 1))
         return
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="a smoke run: tiny dataset, one round (seconds)")
     parser.add_argument("--episodes", type=int, default=6, help="episodes to record, if not reused (default: 6)")
     parser.add_argument("--size", type=int, default=224, help="image size to record, if not reused (default: 224)")
     parser.add_argument("--processes", type=int, nargs="+", default=[1, 2],
@@ -187,16 +193,23 @@ def main() -> None:
                         help="builds per process count; the fastest is reported (default: 3)")
     parser.add_argument("--droid-frames", type=int, default=8,
                         help="timesteps built at DROID's size per reconstructor (default: 8)")
-    parser.add_argument("--root", default="outputs/benchmarks/cache_build_ds",
-                        help="the dataset, recorded if absent (default: outputs/benchmarks/cache_build_ds)")
+    parser.add_argument("--root", help="the dataset, recorded if absent (default: outputs/benchmarks/"
+                        "cache_build_ds; with --quick outputs/benchmarks_quick/cache_build_ds)")
+    parser.add_argument("--out", type=Path, help=out_help("cache_build.json"))
     args = parser.parse_args()
-    root = Path(args.root)
+    memory_frames = (50, 200)
+    if args.quick:
+        args.episodes, args.size, args.repeats, args.droid_frames, memory_frames = 2, 32, 1, 1, (2, 4)
+    default_root = default_out("cache_build_ds", True) if args.quick else "outputs/benchmarks/cache_build_ds"
+    root = Path(args.root or default_root)
     if not (root / "meta" / "info.json").exists():
         record(RecordConfig(root, "pick_place", args.episodes, seed=0, repo_id=REPO,
                             world=WorldConfig(width=args.size, height=args.size)), progress=False)  # fmt: skip
     info = json.loads((root / "meta" / "info.json").read_text())
     runs = []
     settings = [(m, n) for m in args.modes for n in args.processes]
+    if args.quick:  # each mode once, each process count once
+        settings = [("link", 1), ("copy", 2)]
     for _ in range(args.repeats):  # alternated, so a busy spell of a shared machine hits every setting
         for mode, n in settings:
             load = os.getloadavg()[0]
@@ -207,7 +220,7 @@ def main() -> None:
         "dataset": {"episodes": info["total_episodes"], "timesteps": info["total_frames"],
                     "resolution": info["features"]["observation.images.left"]["shape"][:2], "reconstructed_cameras": 2, "video": True},
         "reconstructor": "rgbd", "best": best, "runs": runs, "droid_size": droid_size(args.droid_frames),
-        "build_memory": build_memory(),
+        "build_memory": build_memory(memory_frames), "quick": args.quick,
         "machine": {"cpus": os.cpu_count(), **cpu_model()}, "gpu": None,
     }  # fmt: skip
     print(f"best of {args.repeats} runs (fastest build)")
@@ -219,9 +232,7 @@ def main() -> None:
               f"{r['bytes_per_timestep']:>12}")
     print("at 320x180:", json.dumps(result["droid_size"]))
     print("a depth build's peak memory:", json.dumps(result["build_memory"]))
-    out = Path(__file__).parent / "results" / "cache_build.json"
-    out.write_text(json.dumps(result, indent=2) + "\n")
-    print("wrote", out)
+    write_result(result, args.out or default_out("cache_build.json", args.quick))
 
 
 if __name__ == "__main__":

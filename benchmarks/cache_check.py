@@ -1,7 +1,7 @@
 """What checking a cache before training costs per episode: every header read, against the
 index of files found valid before (``GaussianCache.statuses``).
 
-    python benchmarks/cache_check.py [--episodes 2000] [--frames 100] [--repeats 3]
+    python benchmarks/cache_check.py [--quick] [--episodes 2000] [--frames 100] [--repeats 3] [--out FILE]
 
 Builds a depth cache (stored depth, one tensor per frame, as a model reconstructor's or
 ``--copy-depth`` cache) of ``--episodes`` episodes of ``--frames`` frames each (the views of
@@ -22,7 +22,8 @@ The files are in the page cache in every round (a first check on a cold disk or 
 filesystem reads the headers from storage, and costs more). Medians of ``--repeats`` rounds;
 milliseconds per episode (per file for the digests) and the extrapolation to DROID's 76k
 episodes. Writes
-benchmarks/results/cache_check.json.
+benchmarks/results/cache_check.json (or ``--out``). ``--quick`` is a smoke run whose figures mean
+little: 4 episodes of 2 frames, one round, written to outputs/benchmarks_quick/cache_check.json.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ import time
 from pathlib import Path
 
 from gensplat_lerobot.source import files_digest
-from machine import cpu_model, write_result
+from machine import cpu_model, default_out, out_help, write_result
 from tqdm.auto import tqdm
 
 from gensplat_transforms.cache.builder import SceneEpisodes
@@ -71,12 +72,15 @@ def timed_ms(fn) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="a smoke run: 4 episodes of 2 frames, one round")
     parser.add_argument("--episodes", type=int, default=2000, help="episodes cached (default: 2000)")
     parser.add_argument("--frames", type=int, default=100, help="frames per episode (default: 100)")
     parser.add_argument("--repeats", type=int, default=3, help="rounds; medians reported (default: 3)")
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "cache_check.json",
-                        help="result file (default: benchmarks/results/cache_check.json)")
+    parser.add_argument("--out", type=Path, help=out_help("cache_check.json"))
     args = parser.parse_args()
+    if args.quick:
+        args.episodes, args.frames, args.repeats = 4, 2, 1
+    args.out = args.out or default_out("cache_check.json", args.quick)
     source = Repeated(args.episodes, args.frames, 16)
     root, rec = Path(tempfile.mkdtemp(prefix="cache_check_")), RGBDReconstructor()
     cache = GaussianCache(root, rec, source.fingerprint)
@@ -109,7 +113,7 @@ def main() -> None:
         rounds["digest_memo"].append(timed_ms(lambda: files_digest(root / "dataset", "depth/left", memo)))
     ms = {k: statistics.median(v) / args.episodes for k, v in rounds.items()}
     result = {
-        "episodes": args.episodes, "frames_per_episode": args.frames,
+        "quick": args.quick, "episodes": args.episodes, "frames_per_episode": args.frames,
         "episode_file_bytes": cache.path(0).stat().st_size, "index_bytes_per_episode": round(index.stat().st_size / args.episodes, 1),
         "ms_per_episode": {k: round(v, 4) for k, v in ms.items()},
         "indexed_speedup": round(ms["headers"] / ms["indexed"], 1),

@@ -1,6 +1,7 @@
 """What a training worker pays to read one timestep's depth from a stored-depth cache.
 
-    python benchmarks/cache_read.py [--episodes 8] [--frames 300] [--reads 400] [--cache DIR]
+    python benchmarks/cache_read.py [--quick] [--episodes 8] [--frames 300] [--reads 400] [--cache DIR]
+        [--out FILE]
 
 A stored-depth cache (what a model reconstructor or ``--copy-depth`` writes for an RGB-only
 or a network-stored dataset) of ``--episodes`` episodes of ``--frames`` frames, two 640x480
@@ -17,7 +18,9 @@ thread CPU time per read, medians of ``--repeats`` rounds:
 
 Each as ``read_depth_words`` (the int16 words batch-mode workers ship) and ``read_depth``
 (float32 metres, what the worker path builds Gaussians from). ``--cache DIR`` builds into
-DIR, or reuses the cache there. Writes benchmarks/results/cache_read.json.
+DIR, or reuses the cache there. Writes benchmarks/results/cache_read.json (or ``--out``).
+``--quick`` is a smoke run whose figures mean little: 2 episodes of 3 frames, 10 reads, one round,
+written to outputs/benchmarks_quick/cache_read.json.
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ import time
 from pathlib import Path
 
 import torch
-from machine import cpu_model, write_result
+from machine import cpu_model, default_out, out_help, write_result
 from tqdm.auto import tqdm
 
 from gensplat_transforms.cache.store import GaussianCache
@@ -73,14 +76,17 @@ def per_read_ms(read, picks) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="a smoke run: 2 episodes of 3 frames, 10 reads")
     parser.add_argument("--episodes", type=int, default=8, help="episodes cached (default: 8)")
     parser.add_argument("--frames", type=int, default=300, help="frames per episode (default: 300)")
     parser.add_argument("--reads", type=int, default=400, help="random reads per round (default: 400)")
     parser.add_argument("--repeats", type=int, default=3, help="rounds; medians reported (default: 3)")
     parser.add_argument("--cache", type=Path, help="build the cache here, or reuse it (default: a temporary folder)")
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "cache_read.json",
-                        help="result file (default: benchmarks/results/cache_read.json)")
+    parser.add_argument("--out", type=Path, help=out_help("cache_read.json"))
     args = parser.parse_args()
+    if args.quick:
+        args.episodes, args.frames, args.reads, args.repeats = 2, 3, 10, 1
+    args.out = args.out or default_out("cache_read.json", args.quick)
     torch.set_num_threads(1)
     source, rec = SyntheticDepth(args.episodes, args.frames), RGBDReconstructor()
     root = args.cache or Path(tempfile.mkdtemp(prefix="cache_read_"))
@@ -102,7 +108,8 @@ def main() -> None:
     ms = {k: round(statistics.median(v), 3) for k, v in rounds.items()}
     sizes = [cache.path(e).stat().st_size for e in range(args.episodes)]
     result = {
-        "episodes": args.episodes, "frames_per_episode": args.frames, "views": 2, "size": [WIDTH, HEIGHT],
+        "quick": args.quick, "episodes": args.episodes, "frames_per_episode": args.frames, "views": 2,
+        "size": [WIDTH, HEIGHT],
         "bytes_per_frame": round(sum(sizes) / (args.episodes * args.frames)), "reads_per_round": args.reads,
         "ms_per_read": ms, "rounds_ms": rounds, "torch_threads": torch.get_num_threads(),
         "machine": {"cpus": os.cpu_count(), **cpu_model()}, "load_average": os.getloadavg(),

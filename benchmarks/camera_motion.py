@@ -1,7 +1,7 @@
 """How far each camera move shifts the workspace in the image: the evaluation levels of the
 robustness protocols against what the policies are trained on.
 
-Usage: python benchmarks/camera_motion.py [--episodes N] [--size S] [--out PATH]
+Usage: python benchmarks/camera_motion.py [--quick] [--episodes N] [--size S] [--out PATH]
 
 On the simulated left camera at S x S (default 96, the robustness study's), workspace points
 (a 9 x 9 grid over the table workspace ``WORKSPACE_LOW .. WORKSPACE_HIGH`` at heights 0, 10
@@ -21,8 +21,10 @@ Per move: the median displacement of the points in the image (% of the width), t
 of the points that leave the image, and the viewpoint change: the angle at the workspace's
 centre between the nominal and the moved camera centres (parallax and occlusion grow with it,
 which image motion alone does not show). The table gives the median and 95th percentile
-over the moves; ``benchmarks/results/camera_motion.json`` holds them. Image motion is what a
-policy's encoder meets; neither figure says how hard a move is for the task.
+over the moves; ``benchmarks/results/camera_motion.json`` (or ``--out``) holds them. Image
+motion is what a policy's encoder meets; neither figure says how hard a move is for the task.
+``--quick`` is a smoke run (2 moves per level at 32x32, written to
+outputs/benchmarks_quick/camera_motion.json).
 """
 
 from __future__ import annotations
@@ -39,14 +41,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from gensplat_sim.evaluate import EvalConfig, PerturbedCameraEnv
 from gensplat_sim.scene import WORKSPACE_HIGH, WORKSPACE_LOW
 from gensplat_sim.world import WorldConfig
-from machine import write_result
+from machine import default_out, out_help, write_result
 from policy_robustness import MORE_OFTEN, PERSPECTIVE_DISTORTION, PROTOCOLS, SAMPLER_ARMS
 
 from gensplat_transforms.core.cameras import Cameras
 from gensplat_transforms.transform import GenSplatConfig
 from gensplat_transforms.views.perturbation import PerturbationSampler, scale_focal
-
-RESULTS = Path(__file__).resolve().parent / "results" / "camera_motion.json"
 
 
 def workspace_points() -> torch.Tensor:
@@ -137,10 +137,14 @@ def run(episodes: int, size: int) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="a smoke run: 2 moves per level at 32x32")
     parser.add_argument("--episodes", type=int, default=100, help="moves per level (default 100)")
     parser.add_argument("--size", type=int, default=96, help="image side in pixels (default 96)")
-    parser.add_argument("--out", type=Path, default=RESULTS, help=f"JSON path (default {RESULTS})")
+    parser.add_argument("--out", type=Path, help=out_help("camera_motion.json"))
     args = parser.parse_args()
+    if args.quick:
+        args.episodes, args.size = 2, 32
+    args.out = args.out or default_out("camera_motion.json", args.quick)
     result = run(args.episodes, args.size)
     print("median (95th percentile) over the moves")
     print(f"{'moves':<22}{'shift % of width':>20}{'points outside %':>20}{'view change deg':>20}")

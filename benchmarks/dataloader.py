@@ -19,8 +19,8 @@ default cache is compared with a compressed copy of the depth (``gensplat cache
 --copy-depth``) and with storing the quantised Gaussians themselves (the ``gaussians``
 encoding, what a non-depth reconstructor stores) in bytes, and in fidelity: PSNR against
 the simulator's true image at perturbed poses, rendered from the cached versus the raw
-Gaussians. Writes benchmarks/results/dataloader.json (or --out);
-``resolution`` is [height, width].
+Gaussians. Writes benchmarks/results/dataloader.json (outputs/benchmarks_quick/dataloader.json
+with --quick; or --out); ``resolution`` is [height, width].
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ from gensplat_sim.record import RecordConfig, record
 from gensplat_sim.truth import GroundTruth
 from gensplat_sim.world import WorldConfig
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
-from machine import cpu_model, write_result
+from machine import cpu_model, default_out, out_help, write_result
 from torch.utils.data import DataLoader, RandomSampler
 
 from gensplat_transforms.cache.store import GaussianCache
@@ -152,9 +152,9 @@ def main() -> None:
     parser.add_argument("--height", type=int, default=None, help="image height (default: 224, 96 with --quick)")
     parser.add_argument("--width", type=int, default=None, help="image width (default: 224, 96 with --quick)")
     parser.add_argument("--episodes", type=int, default=None, help="episodes recorded (default: 2, 1 with --quick)")
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "dataloader.json",
-                        help="result file (default: benchmarks/results/dataloader.json)")
+    parser.add_argument("--out", type=Path, help=out_help("dataloader.json"))
     args = parser.parse_args()
+    args.out = args.out or default_out("dataloader.json", args.quick)
     torch.set_num_threads(1)  # as in a dataloader worker
     size, episodes, batches, samples = (96, 1, 3, 4) if args.quick else (224, 2, 10, 12)
     height, width, episodes = args.height or size, args.width or size, args.episodes or episodes

@@ -22,7 +22,8 @@ from 900000). Per scene and camera, the sensor's own map is:
   thread, median): the hole-filled colour view, and the depth sensor's own map at the new
   pose (a second render, from the sensor beside the moved camera).
 
-Writes benchmarks/results/depth_registration.json and prints a table.
+Writes benchmarks/results/depth_registration.json (outputs/benchmarks_quick/ with ``--quick``; or
+``--out``) and prints a table.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ import time
 from pathlib import Path
 
 import torch
-from machine import cpu_model, write_result
+from machine import cpu_model, default_out, out_help, write_result
 
 from gensplat_transforms.core.cameras import Cameras
 from gensplat_transforms.core.metrics import psnr
@@ -121,9 +122,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="one scene")
     parser.add_argument("--scenes", type=int, default=None, help="scenes (default: 4, 1 with --quick)")
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "depth_registration.json",
-                        help="result file (default: benchmarks/results/depth_registration.json)")
+    parser.add_argument("--out", type=Path, help=out_help("depth_registration.json"))
     args = parser.parse_args()
+    args.out = args.out or default_out("depth_registration.json", args.quick)
     args.scenes = args.scenes or (1 if args.quick else 4)
     result = run(args)
     print(f"register_depth: {result['register_ms']} ms per 640x480 view (one thread)")

@@ -12,7 +12,8 @@ of random images at DROID's size (180x320, run at 182x322) and at 294x518, for
 tensor reaches 2**31 elements (``effective``). Each row: one warm-up pass at its batch size,
 then two batches' worth of timesteps (at least 16), CUDA synchronised; ms per timestep,
 timesteps/s and the peak GPU memory. A row that fails (e.g. out of memory) records its error
-instead. Writes benchmarks/results/geometry_build_<gpu>.json.
+instead. Writes benchmarks/results/geometry_build_<gpu>.json (``--quick``:
+outputs/benchmarks_quick/geometry_build_<gpu or cpu>_quick.json; or ``--out``).
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from machine import default_out, out_help
 
 from gensplat_transforms.data.scenes import default_cameras
 from gensplat_transforms.geometry import GeometryReconstructor, Views
@@ -76,7 +78,7 @@ def main() -> int:
     parser.add_argument("--sizes", nargs="+", default=None, help="HEIGHTxWIDTH inputs (default: 180x320 294x518)")
     parser.add_argument("--batches", nargs="+", default=None, help="batch_timesteps values or auto (default: "
                                                                       "1 8 32 64 auto; --quick: 1 2 auto)")
-    parser.add_argument("--out", default=None, help="result file (default: benchmarks/results/geometry_build_<gpu>.json)")
+    parser.add_argument("--out", default=None, help=out_help("geometry_build_<gpu>[_quick].json"))
     args = parser.parse_args()
     device = "cuda" if torch.cuda.is_available() else "cpu"
     if device == "cpu" and not args.quick:
@@ -104,7 +106,7 @@ def main() -> int:
               f"{r.get('peak_gpu_gb', '-')!s:>9}  {r.get('error', '')}")  # fmt: skip
     gpu = torch.cuda.get_device_name() if device == "cuda" else None
     name = re.sub(r"[^a-z0-9]+", "_", (gpu or "cpu").lower()).strip("_") + ("_quick" if args.quick else "")
-    out = Path(args.out) if args.out else Path(__file__).parent / "results" / f"geometry_build_{name}.json"
+    out = Path(args.out) if args.out else default_out(f"geometry_build_{name}.json", args.quick)
     result = {"rows": rows, "gpu": gpu, "device": device, "torch": torch.__version__,
               "config": "small" if args.quick else "full", "views": 2, "autocast": str(dtype) if dtype else None,
               "parameters_m": round(sum(p.numel() for p in model.parameters()) / 1e6, 1)}  # fmt: skip

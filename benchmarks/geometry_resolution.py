@@ -20,7 +20,8 @@ is its default). Per setting:
   ``psnr_large_small`` / ``sharpness_large_small``: the same view rendered from discs at the
   model's size and resized to the frame size (bilinear), for comparison.
 
-Writes benchmarks/results/geometry_resolution.json and prints a table.
+Writes benchmarks/results/geometry_resolution.json (outputs/benchmarks_quick/ with ``--quick``; or
+``--out``) and prints a table.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ from pathlib import Path
 
 import torch
 import torch.nn.functional as F
-from machine import cpu_model, write_result
+from machine import cpu_model, default_out, out_help, write_result
 
 from gensplat_transforms.core.metrics import psnr, sharpness_ratio
 from gensplat_transforms.data.scenes import TabletopScene, default_cameras
@@ -111,9 +112,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="224x224 only, two settings, one scene")
     parser.add_argument("--scenes", type=int, default=None, help="scenes per frame size (default: 4, 1 with --quick)")
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "geometry_resolution.json",
-                        help="result file (default: benchmarks/results/geometry_resolution.json)")
+    parser.add_argument("--out", type=Path, help=out_help("geometry_resolution.json"))
     args = parser.parse_args()
+    args.out = args.out or default_out("geometry_resolution.json", args.quick)
     args.scenes = args.scenes or (1 if args.quick else 4)
     write_result(run(args), args.out)
 

@@ -5,6 +5,25 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+#: committed results: what a full run writes unless ``--out`` says otherwise
+RESULTS = Path(__file__).resolve().parent / "results"
+#: where a ``--quick`` (smoke) run writes unless ``--out`` says otherwise: ``outputs/`` is git-ignored
+QUICK_RESULTS = Path(__file__).resolve().parents[1] / "outputs" / "benchmarks_quick"
+
+
+def default_out(name: str, quick: bool) -> Path:
+    """The result path ``name`` (a file, or "" for the folder itself) of a run without ``--out``:
+    under benchmarks/results/, or for a ``--quick`` run, whose figures mean little, under
+    outputs/benchmarks_quick/ (never beside the committed results)."""
+    return (QUICK_RESULTS if quick else RESULTS) / name
+
+
+def out_help(name: str) -> str:
+    """The help of ``--out`` where :func:`default_out` gives its default ``name``."""
+    if not name:
+        return "result folder (default: benchmarks/results; with --quick outputs/benchmarks_quick)"
+    return f"result file (default: benchmarks/results/{name}; with --quick outputs/benchmarks_quick/{name})"
+
 
 def cpu_model() -> dict:
     """CPU model, family (CPUs of one name differ by generation: AMD EPYC family 23 is Zen 1-2,
@@ -38,6 +57,6 @@ def avx2_features() -> str:
 
 def write_result(result: dict, out: Path) -> None:
     """Write a benchmark's result as indented JSON to ``out`` (its folder created) and say so."""
-    out.parent.mkdir(exist_ok=True)
+    out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2) + "\n")
     print("wrote", out)

@@ -1,6 +1,6 @@
 """Quality and speed of the feed-forward GenSplat model against exact ground truth.
 
-    python benchmarks/model_quality.py [--quick] [--model DIR] [--ablation NAME=DIR ...]
+    python benchmarks/model_quality.py [--quick] [--model DIR] [--ablation NAME=DIR ...] [--out FILE]
 
 Held-out procedural tabletops (``TabletopScene`` seeds from 100000 on; training used seeds
 below 10000) are seen by the two default external cameras (left, right) at 112x112, the
@@ -28,7 +28,8 @@ model's training size. Per scene:
 with vs without 3D-prior distillation), with their run's training settings when the directory
 is a ``gensplat train-model`` export; without it, the previous results' ``ablation`` section
 is kept. The model directory's ``training.json`` (how it was trained), when present,
-is copied into the results. Writes ``benchmarks/results/model_quality.json``.
+is copied into the results. Writes ``benchmarks/results/model_quality.json`` (``--quick``:
+``outputs/benchmarks_quick/model_quality.json``; or ``--out``).
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ import time
 from pathlib import Path
 
 import torch
+from machine import default_out, out_help, write_result
 
 from gensplat_transforms.core.metrics import psnr
 from gensplat_transforms.data.scenes import TabletopScene, default_cameras
@@ -55,7 +57,6 @@ from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 SIZE = 112
 FIRST_SEED = 100_000
 LEVELS = ("none", "small", "medium", "large")
-RESULTS = Path(__file__).parent / "results" / "model_quality.json"
 
 
 def geometry_errors(model: GenSplatModel, views: Views) -> dict[str, float]:
@@ -171,13 +172,15 @@ def print_table(result: dict) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="2 scenes, 1 draw per level (< 1 min)")
+    parser.add_argument("--quick", action="store_true", help="1 scene, 1 draw per level, 1 timed run (seconds)")
     parser.add_argument("--model", default=str(DEFAULT_MODEL_DIR), help="model directory (default: shipped)")
     parser.add_argument(
         "--ablation", nargs="+", default=[], metavar="NAME=DIR", help="further models to evaluate"
     )
+    parser.add_argument("--out", type=Path, help=out_help("model_quality.json"))
     args = parser.parse_args()
-    scenes, draws, repeats = (2, 1, 3) if args.quick else (12, 3, 10)
+    out = args.out or default_out("model_quality.json", args.quick)
+    scenes, draws, repeats = (1, 1, 1) if args.quick else (12, 3, 10)
 
     model = GenSplatModel.from_pretrained(args.model)
     result = {
@@ -199,12 +202,10 @@ def main() -> None:
             if run_config.is_file():
                 runs[name]["train_config"] = json.loads(run_config.read_text())["train"]
         result["ablation"] = {"settings": dict(result["settings"]), "runs": runs}
-    elif RESULTS.is_file() and "ablation" in (previous := json.loads(RESULTS.read_text())):
+    elif out.is_file() and "ablation" in (previous := json.loads(out.read_text())):
         result["ablation"] = previous["ablation"]
     print_table(result)
-    RESULTS.parent.mkdir(exist_ok=True)
-    RESULTS.write_text(json.dumps(result, indent=2) + "\n")
-    print("wrote", RESULTS)
+    write_result(result, out)
 
 
 if __name__ == "__main__":

@@ -59,7 +59,8 @@ beside ``none``: how faithful the views are that those arms train on.
 
 Writes ``benchmarks/results/nvs_fidelity.json`` (``nvs_fidelity_samplers.json`` with
 ``--samplers``; ``{method: {level: {psnr, ssim, ms, ...}}}`` plus ``settings`` and
-``unavailable``) and a plot beside it (PSNR vs level).
+``unavailable``) and a plot beside it (PSNR vs level); into ``--out`` when given, and into
+``outputs/benchmarks_quick/`` with ``--quick``.
 """
 
 from __future__ import annotations
@@ -84,6 +85,7 @@ from gensplat_sim.record import RecordConfig, record
 from gensplat_sim.sensor import SensorDepthConfig, sensor_depth
 from gensplat_sim.truth import GroundTruth
 from gensplat_sim.world import WorldConfig
+from machine import default_out, out_help
 from plotting import Panel, line_panels
 from policy_robustness import SAMPLER_ARMS
 
@@ -111,7 +113,6 @@ METHODS = ("rgbd", "rgbd_plain", "rgbd_fill", "rgbd_sensor", "rgbd_sensor_fill",
            "geometry_small", "geometry_small_metric", "geometry_small_metric_fill", "source_image", "homography")  # fmt: skip
 SENSOR = SensorDepthConfig()
 FILL_DEPTH_PX = 8  # rgbd_sensor_depth_fill: the sensor's holes filled before the discs (gensplat cache --fill-depth 8)
-RESULTS = Path(__file__).parent / "results"
 PLOT_MAX_DB = 40.0
 
 
@@ -349,15 +350,16 @@ def sampling_parser(description: str) -> argparse.ArgumentParser:
     parser.add_argument("--frames", type=int, help="frames per episode (default 4; quick 2)")
     parser.add_argument("--draws", type=int, help="perturbations per level and frame (default 4; quick 2)")
     parser.add_argument("--seed", type=int, default=0, help="perturbation seed")
-    parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--out", type=Path, help=out_help(""))
     return parser
 
 
 def with_defaults(args: argparse.Namespace) -> argparse.Namespace:
-    """Fill the unset sizes and counts (full or ``--quick``); torch on one thread."""
+    """Fill the unset sizes, counts and output folder (full or ``--quick``); torch on one thread."""
     defaults = (112, 1, 2, 2) if args.quick else (224, 3, 4, 4)
     for k, v in zip(("size", "episodes", "frames", "draws"), defaults):
         setattr(args, k, getattr(args, k) or v)
+    args.out = args.out or default_out("", args.quick)
     torch.set_num_threads(1)
     return args
 

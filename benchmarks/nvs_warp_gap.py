@@ -1,6 +1,6 @@
 """Where the RGB-D render gains or loses against the forward warp, on the pixels the warp fills.
 
-    python benchmarks/nvs_warp_gap.py [--quick] [--root DATASET]
+    python benchmarks/nvs_warp_gap.py [--quick] [--root DATASET] [--out DIR]
 
 The held-out episodes, frames and perturbations of ``nvs_fidelity.py`` (left camera moved,
 clean depth). On the pixels the forward warp of the left + right views fills, PSNR against
@@ -21,7 +21,8 @@ of a depth discontinuity of the true view: a relative depth step > 3 % in a 3x3 
 
 Writes ``benchmarks/results/nvs_warp_gap.json``: ``{variant: {level: {warp_mask, interior,
 edge}}}`` (mean PSNR in dB over comparisons; null: identical images), ``edge_share`` (the edge pixels' share of the
-warp mask per level) and ``settings``.
+warp mask per level) and ``settings``; into ``--out`` when given, and into ``outputs/benchmarks_quick/``
+with ``--quick``.
 """
 
 from __future__ import annotations

@@ -123,8 +123,8 @@ the size of the move within the wider levels (``move_markdown``).
 ``--quick`` (a few minutes): 2 demos, 4 steps at batch 4, a smaller U-Net, 2 episodes per
 level of at most 20 steps: it checks the pipeline end to end, its success rates mean nothing.
 
-Writes ``benchmarks/results/policy_robustness.json`` (``policy_robustness_quick.json`` with
-``--quick``) and a plot beside it (success and closest approach of every arm under both
+Writes ``benchmarks/results/policy_robustness.json`` (``outputs/benchmarks_quick/policy_robustness.json``
+with ``--quick``) and a plot beside it (success and closest approach of every arm under both
 protocols): ``{"arms": {arm: {level: success %}}, "levels", "progress": {arm: {level:
 {lift_percent, median_reach_cm}}}, "difference": {"vs_baseline": {arm: {level: {points,
 ci95, a_only, b_only, mcnemar_p}}}, "vs_2d": {2D arm: {GenSplat arm: {...}}}}, "best_2d",
@@ -177,6 +177,7 @@ from gensplat_sim.record import RecordConfig, record
 from gensplat_sim.tasks import TASKS
 from gensplat_sim.vista import SAMPLERS
 from gensplat_sim.world import CAMERA_NAMES, EXTERNAL_CAMERAS, STATE_NAMES, WorldConfig
+from machine import default_out
 from plotting import Panel, line_panels
 
 from gensplat_transforms.core.atomic import atomic_write_json, read_json_object
@@ -889,7 +890,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--table", type=Path, metavar="RESULT.json",
                         help="print a result's tables in Markdown and exit (runs nothing)")  # fmt: skip
     parser.add_argument("--out", type=Path, help="result JSON (default benchmarks/results/policy_robustness.json; "
-                        "with --quick policy_robustness_quick.json, so a check never replaces the result)")  # fmt: skip
+                        "with --quick outputs/benchmarks_quick/policy_robustness.json: a check never lands "
+                        "beside the committed results)")  # fmt: skip
     args = parser.parse_args(argv)
     for key, (full, quick) in DEFAULTS.items():
         if getattr(args, key) is None:
@@ -908,7 +910,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         parser.error("the perspective arm warps every camera LeRobot loads, the wrist camera too: "
                      "give it a policy that sees external cameras only")  # fmt: skip
     args.max_steps = args.max_steps or TASKS[args.task].max_steps
-    args.out = args.out or RESULTS / ("policy_robustness_quick.json" if args.quick else "policy_robustness.json")
+    args.out = args.out or default_out("policy_robustness.json", args.quick)
     args.work = args.work or ROOT / "outputs" / ("policy_robustness_quick" if args.quick else "policy_robustness")
     return args
 

@@ -1,6 +1,6 @@
 """Real images with known cameras: the calibration estimate and a geometry model against them.
 
-    python benchmarks/real_geometry.py [--model WEIGHTS_DIR_OR_HUB_ID]
+    python benchmarks/real_geometry.py [--quick] [--model WEIGHTS_DIR_OR_HUB_ID] [--droid DIR] [--out DIR]
 
 Two real pairs with known cameras:
 
@@ -27,7 +27,9 @@ direction of the centre), its focal length (relative error, where it predicts on
 Middlebury left view its depth against the ground truth (AbsRel after the median ratio, and as
 predicted where the model is metric).
 
-Writes ``benchmarks/results/real_geometry.json``.
+Writes ``benchmarks/results/real_geometry.json`` (into ``--out`` when given). ``--quick`` is a smoke
+run whose figures mean little: both pairs at half their size, written to
+``outputs/benchmarks_quick/real_geometry.json``.
 """
 
 from __future__ import annotations
@@ -41,7 +43,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-from machine import cpu_model, write_result
+from machine import cpu_model, default_out, out_help, write_result
 from PIL import Image
 
 from gensplat_transforms.calibration.estimate import estimate_rig, rotation_angle_deg
@@ -52,11 +54,11 @@ from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 
 REPO = Path(__file__).resolve().parents[1]
 DROID = REPO.parent / "shared" / "data" / "droid_sample"
-RESULTS = Path(__file__).parent / "results"
 
 
-def middlebury() -> dict:
-    """Images (2, H, W, 3) uint8, depths (2, H, W) metres, K (2, 3, 3), c2w (2, 4, 4)."""
+def middlebury(scale: float = 1.0) -> dict:
+    """Images (2, H, W, 3) uint8, depths (2, H, W) metres, K (2, 3, 3), c2w (2, 4, 4); at
+    ``scale`` times the size (bicubic images, nearest depth, the intrinsics scaled alike)."""
     from skimage.data import stereo_motorcycle
 
     left, right, disp = stereo_motorcycle()
@@ -72,15 +74,21 @@ def middlebury() -> dict:
                       [[f, 0, cx + doffs + 0.5], [0, f, cy + 0.5], [0, 0, 1]]], dtype=torch.float64)  # fmt: skip
     c2w = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
     c2w[1, 0, 3] = baseline
-    return {"images": np.stack([left, right]), "depths": np.stack([depth, moved]), "K": K, "c2w": c2w}
+    images, depths = [left, right], [depth, moved]
+    if scale != 1.0:
+        (h, w), size = depth.shape, (round(depth.shape[1] * scale), round(depth.shape[0] * scale))
+        images = [np.array(Image.fromarray(im).resize(size, Image.BICUBIC)) for im in images]
+        depths = [np.array(Image.fromarray(d).resize(size, Image.NEAREST)) for d in depths]
+        K[:, 0], K[:, 1] = K[:, 0] * size[0] / w, K[:, 1] * size[1] / h
+    return {"images": np.stack(images), "depths": np.stack(depths), "K": K, "c2w": c2w}
 
 
-def droid(width: int = 1280, height: int = 720) -> dict:
-    """The DROID sample at ``width x height``: images, K, c2w (OpenCV), no depth."""
-    frames = json.loads((DROID / "transforms.json").read_text())["frames"]
+def droid(width: int = 1280, height: int = 720, folder: Path = DROID) -> dict:
+    """The DROID sample (in ``folder``) at ``width x height``: images, K, c2w (OpenCV), no depth."""
+    frames = json.loads((folder / "transforms.json").read_text())["frames"]
     images, K, c2w = [], [], []
     for fr in frames:
-        image = Image.open(DROID / fr["file_path"]).convert("RGB")
+        image = Image.open(folder / fr["file_path"]).convert("RGB")
         sx, sy = width / image.width, height / image.height
         images.append(np.array(image.resize((width, height), Image.BICUBIC)))
         i = fr["intrinsics"]
@@ -159,19 +167,28 @@ def model_rows(name: str, pair: dict, reconstructor: GeometryReconstructor) -> d
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="a smoke run: both pairs at half their size")
     parser.add_argument("--model", default=str(DEFAULT_MODEL_DIR), help="geometry model weights (dir or hub id)")
-    parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--droid", type=Path, default=DROID, help=f"the DROID sample (default: {DROID})")
+    parser.add_argument("--out", type=Path, help=out_help(""))
     args = parser.parse_args()
+    if not (args.droid / "transforms.json").is_file():
+        parser.error(f"no DROID sample at {args.droid} (transforms.json and images/: the shared data folder "
+                     "beside the repository); --droid names its folder")  # fmt: skip
     torch.set_num_threads(1)
+    scale = 0.5 if args.quick else 1.0
+    droid_size = [round(1280 * scale), round(720 * scale)]
     reconstructor = GeometryReconstructor(args.model)
     result = {}
-    for name, load in (("middlebury", middlebury), ("droid", droid)):
+    pairs = {"middlebury": lambda: middlebury(scale), "droid": lambda: droid(*droid_size, args.droid)}
+    for name, load in pairs.items():
         pair = load()
         result[name] = {"calibration": calibration_rows(name, pair), "model": model_rows(name, pair, reconstructor)}
     model = Path(args.model)
     shown = str(model.relative_to(REPO)) if model.is_absolute() and model.is_relative_to(REPO) else args.model
-    result["settings"] = {"model": shown, "droid_size": [1280, 720], **cpu_model(), "torch_threads": 1}
-    write_result(result, args.out / "real_geometry.json")
+    result["settings"] = {"quick": args.quick, "model": shown, "droid_size": droid_size, **cpu_model(),
+                          "torch_threads": 1}  # fmt: skip
+    write_result(result, (args.out or default_out("", args.quick)) / "real_geometry.json")
 
 
 if __name__ == "__main__":

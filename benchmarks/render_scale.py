@@ -26,7 +26,7 @@ external cameras replaced) runs on the same samples with the same draws at every
   loses).
 
 Writes benchmarks/results/render_scale.json (render_scale_geometry.json for the geometry
-path, or --out) and prints a table.
+path; under outputs/benchmarks_quick/ with --quick; or --out) and prints a table.
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ from gensplat_sim.record import RecordConfig, record
 from gensplat_sim.truth import GroundTruth
 from gensplat_sim.world import WorldConfig
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
-from machine import cpu_model, write_result
+from machine import cpu_model, default_out, out_help, write_result
 
 from gensplat_transforms.core.metrics import psnr, sharpness_ratio, ssim
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform, render_size
@@ -146,11 +146,10 @@ def main() -> None:
     parser.add_argument("--samples", type=int, default=None, help="samples compared (default: 16, 4 with --quick)")
     parser.add_argument("--reconstructor", choices=("rgbd", "geometry"), default="rgbd",
                         help="rgbd: the recorded depth; geometry: RGB only, the shipped model's depth (default: rgbd)")
-    parser.add_argument("--out", type=Path, default=None,
-                        help="result file (default: benchmarks/results/render_scale.json, render_scale_geometry.json)")
+    parser.add_argument("--out", type=Path, help=out_help("render_scale[_geometry].json"))
     args = parser.parse_args()
     name = "render_scale" + ("" if args.reconstructor == "rgbd" else f"_{args.reconstructor}")
-    args.out = args.out or Path(__file__).parent / "results" / f"{name}.json"
+    args.out = args.out or default_out(f"{name}.json", args.quick)
     args.scales = [1.0, *(s for s in args.scales if s != 1.0)]
     args.samples = args.samples or (4 if args.quick else 16)
     torch.set_num_threads(1)  # as in a dataloader worker

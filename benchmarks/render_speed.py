@@ -9,7 +9,8 @@ against the reference (PSNR, depth error where alpha > 0.5). torch runs on one t
 in a dataloader worker. Where CUDA and gsplat are present it also times the "gsplat"
 backend (``gsplat`` in the JSON: the Gaussians resident on the GPU, and uploaded per frame)
 against the fast image; elsewhere ``gsplat.available`` is false with the reason. Prints a
-table and writes benchmarks/results/render_speed.json (``--out`` to write elsewhere).
+table and writes benchmarks/results/render_speed.json (``--out`` to write elsewhere; ``--quick``:
+outputs/benchmarks_quick/render_speed.json).
 The machine may be shared: figures are medians, and min/max are recorded beside them.
 
 ``--avx2`` compiles the fast backend for this CPU with its AVX-512 features off (numba's
@@ -38,7 +39,7 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch and numba load OpenMP
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from machine import avx2_features, cpu_model
+from machine import avx2_features, cpu_model, default_out, out_help
 
 if "--avx2" in sys.argv:  # before numba reads its configuration
     os.environ["NUMBA_CPU_FEATURES"] = avx2_features()
@@ -50,8 +51,6 @@ from standard_scene import standard_scene
 from gensplat_transforms import render
 from gensplat_transforms.rendering import DILATION, project
 from gensplat_transforms.rendering.fast import render_fast
-
-RESULTS = Path(__file__).resolve().parent / "results" / "render_speed.json"
 
 
 def _codegen() -> str:
@@ -263,8 +262,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer repetitions (under a minute)")
     parser.add_argument("--avx2", action="store_true", help="compile for this CPU without AVX-512")
-    parser.add_argument("--out", type=Path, default=RESULTS, help=f"JSON path (default {RESULTS})")
+    parser.add_argument("--out", type=Path, help=out_help("render_speed.json"))
     args = parser.parse_args()
+    args.out = args.out or default_out("render_speed.json", args.quick)
     result = run(args.quick)
     _print_table(result)
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -1,6 +1,6 @@
 """Calibration estimated from a recording's own frames, against the recorded calibration.
 
-    python benchmarks/self_calibration.py [--quick] [--root DATASET]
+    python benchmarks/self_calibration.py [--quick] [--root DATASET] [--out DIR]
 
 A held-out simulated pick-and-place recording (480x640 MP4 with depth sidecars; ``--root``:
 one recorded with ``gensplat record``) is copied with its calibration removed: with its
@@ -27,7 +27,8 @@ what is measured is the calibration's effect) and the same draws. The model copi
 geometry path: predicted at the model's size, read at the image's nearest pixels), what a user
 without depth trains on.
 
-Writes ``benchmarks/results/self_calibration.json``.
+Writes ``benchmarks/results/self_calibration.json`` (into ``--out`` when given, and into
+``outputs/benchmarks_quick/`` with ``--quick``).
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ from gensplat_sim.record import RecordConfig, record
 from gensplat_sim.sensor import SensorDepthConfig, sensor_depth
 from gensplat_sim.truth import GroundTruth
 from gensplat_sim.world import WorldConfig
-from machine import cpu_model, write_result
+from machine import cpu_model, default_out, out_help, write_result
 
 from gensplat_transforms.calibration.estimate import rotation_angle_deg
 from gensplat_transforms.core.cameras import Cameras
@@ -66,7 +67,6 @@ from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 REPO = "gensplat/sim_pick_place_heldout"
 HELDOUT_SEED = 1000
 NAMES = ("left", "right")
-RESULTS = Path(__file__).parent / "results"
 
 
 def uncalibrated_copy(root: Path, out: Path, depth: str) -> Path:
@@ -146,12 +146,13 @@ def novel_views(calibrated: LeRobotSource, estimated: LeRobotSource, truth: Grou
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="240x320, 1 episode, 4 timesteps, 1 draw")
+    parser.add_argument("--quick", action="store_true", help="240x320, 1 episode, 4 timesteps, 1 draw, 4 variants")
     parser.add_argument("--root", type=Path, help="a recorded simulated dataset (default: record held-out episodes)")
     parser.add_argument("--timesteps", type=int, default=16, help="timesteps the estimate samples (default: 16)")
     parser.add_argument("--draws", type=int, default=3, help="moves per level and frame (default: 3)")
-    parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--out", type=Path, help=out_help(""))
     args = parser.parse_args()
+    args.out = args.out or default_out("", args.quick)
     torch.set_num_threads(1)
     work = Path(tempfile.mkdtemp(prefix="self_calibration_"))
     height, width, episodes = (240, 320, 1) if args.quick else (480, 640, 3)
@@ -174,6 +175,8 @@ def main() -> None:
                 "rgb_fov_5pct_wide": ("none", {"fov_deg": fov * 1.05, "baseline_m": baseline}),
                 "rgb_model": ("none", {"model": str(DEFAULT_MODEL_DIR)}),  # focal lengths and scale from the model
                 "rgb_model_baseline": ("none", {"model": str(DEFAULT_MODEL_DIR), "baseline_m": baseline})}  # fmt: skip
+    if args.quick:  # one variant per kind of input: depth, the sensor's depth, RGB with what is given, the model
+        variants = {k: variants[k] for k in ("depth", "sensor_depth", "rgb_given_fov", "rgb_model")}
     for variant, (depth, given) in variants.items():
         copy = uncalibrated_copy(root, work / variant, depth)
         t0, cpu0 = time.perf_counter(), time.process_time()

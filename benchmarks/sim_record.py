@@ -8,14 +8,14 @@ Rows:
   rollout, rendering, LeRobot frame writing, AV1 encoding or PNG, depth and sim sidecars);
 * expert success per task over seeded episodes (physics only).
 
-Usage: ``python benchmarks/sim_record.py [--quick]`` (``--quick``: under a minute). Prints a
-table and writes ``benchmarks/results/sim_record.json``.
+Usage: ``python benchmarks/sim_record.py [--quick] [--out FILE]`` (``--quick``: under a minute, a
+smoke run whose figures mean little). Prints a table and writes ``benchmarks/results/sim_record.json``
+(``outputs/benchmarks_quick/sim_record.json`` with ``--quick``; or ``--out``).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import shutil
 import tempfile
@@ -27,8 +27,7 @@ from gensplat_sim.experts import run_expert
 from gensplat_sim.record import RecordConfig, record
 from gensplat_sim.tasks import TASKS, episode_seed
 from gensplat_sim.world import CAMERA_NAMES, SimWorld
-
-RESULTS = Path(__file__).resolve().parent / "results" / "sim_record.json"
+from machine import default_out, out_help, write_result
 
 
 def bench_physics_and_render(episodes: int) -> dict:
@@ -81,9 +80,10 @@ def bench_experts(episodes: int) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="fewer episodes (under a minute)")
+    parser.add_argument("--quick", action="store_true", help="1 recording (video), 2 per expert")
+    parser.add_argument("--out", type=Path, help=out_help("sim_record.json"))
     args = parser.parse_args()
-    n_record, n_expert = (1, 5) if args.quick else (5, 100)
+    n_record, n_expert = (1, 2) if args.quick else (5, 100)
 
     res = {
         "quick": args.quick,
@@ -93,7 +93,7 @@ def main() -> None:
     }
     res.update(bench_physics_and_render(2 if args.quick else 10))
     res["record_video"] = bench_record(n_record, use_videos=True)
-    if not args.quick:
+    if not args.quick:  # the same function with PNG images: left out of the smoke run (10 s more)
         res["record_images"] = bench_record(n_record, use_videos=False)
     res["experts"] = bench_experts(n_expert)
 
@@ -111,9 +111,7 @@ def main() -> None:
         print(
             f"{'expert success, ' + task:<38}{100 * r['success_rate']:>13.0f}%   ({r['successes']}/{r['episodes']})"
         )
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps(res, indent=2) + "\n")
-    print(f"wrote {RESULTS}")
+    write_result(res, args.out or default_out("sim_record.json", args.quick))
 
 
 if __name__ == "__main__":

@@ -2,12 +2,12 @@
 LeRobot's own step log (``updt_s``: forward, backward and optimiser step; ``data_s``: waiting
 for the batch), with LeRobot 0.6.1 as it is and with ``gensplat_lerobot.fast_rows``.
 
-    python benchmarks/training_step.py [--root DATASET] [--steps 30] [--quick]
+    python benchmarks/training_step.py [--root DATASET] [--steps 30] [--quick] [--out FILE]
 
 Without ``--root`` it records ``--demos`` demonstrations of the study's task first. Writes
 ``benchmarks/results/training_step.json``; ``--quick`` (under a minute: two demonstrations at
 48 px, 4 steps of one setting, figures that mean nothing) writes
-``outputs/training_step_quick.json`` instead.
+``outputs/training_step_quick.json`` instead (``--out``: elsewhere).
 """
 
 from __future__ import annotations
@@ -78,6 +78,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=30)
     parser.add_argument("--items", type=int, default=200)
     parser.add_argument("--quick", action="store_true", help="seconds-long check: 2 demos at 48 px, 4 steps")
+    parser.add_argument("--out", type=Path, help="result file (default: benchmarks/results/training_step.json; "
+                        "with --quick outputs/training_step_quick.json)")
     args = parser.parse_args()
     if args.quick:
         args.demos, args.size, args.steps, args.items = 2, 48, 4, 5
@@ -102,7 +104,7 @@ def main() -> None:
         rows.append({"setting": label, "workers": workers, "fast_rows": fast, "item_ms": round(items[fast], 2), **log,
                      "s_per_step": step})  # fmt: skip
         print(f"{label:>28} {items[fast]:8.1f} {log['updt_s'] or 0:7.3f} {log['data_s'] or 0:7.3f} {step or 0:7.3f}")
-    out = work.parent / "training_step_quick.json" if args.quick else pr.RESULTS / "training_step.json"
+    out = args.out or (work.parent / "training_step_quick.json" if args.quick else pr.RESULTS / "training_step.json")
     atomic_write_json(out, {"machine": cpu_model(), "size": args.size, "batch_size": 4 if args.quick else 32,
                             "steps": args.steps, "quick": args.quick, "rows": rows})  # fmt: skip
     print("wrote", out)

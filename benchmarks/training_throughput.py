@@ -32,7 +32,9 @@ LeRobot's Diffusion Policy at its default widths (no pretrained backbone: nothin
 downloaded). Before the runs, ``loader`` measures what each mode costs a dataloader worker
 per sample (``--loader-rounds`` rounds over the same batches, one thread, no GPU needed):
 while training waits on its loader, samples/s scale as its inverse.
-Writes benchmarks/results/training_throughput.json (or --out).
+Writes benchmarks/results/training_throughput.json (or --out). ``--quick`` is a smoke run whose
+figures mean little (batch 4, one worker, 64x64, one episode, one warm-up and one measured step,
+one round of each; written to outputs/benchmarks_quick/training_throughput.json).
 """
 
 from __future__ import annotations
@@ -58,7 +60,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 import torch
 from gensplat_lerobot import enable_gensplat, load_settings, prepare, save_settings
-from machine import cpu_model, write_result
+from machine import cpu_model, default_out, out_help, write_result
 
 from gensplat_transforms.transform import GenSplatConfig
 
@@ -206,10 +208,12 @@ def main() -> None:
     parser.add_argument("--loader-rounds", type=int, default=3, help="rounds of the loader-side cost (0: skip it)")
     parser.add_argument("--config", type=Path, default=HERE.parent / "policies" / "diffusion.json")
     parser.add_argument("--root", type=Path, help="dataset folder, reused when it holds a recording (default: temporary)")
-    parser.add_argument("--out", type=Path, default=HERE / "results" / "training_throughput.json")
+    parser.add_argument("--out", type=Path, help=out_help("training_throughput.json"))
     args = parser.parse_args()
+    args.out = args.out or default_out("training_throughput.json", args.quick)
     if args.quick:
-        args.batch_size, args.workers, args.steps, args.size, args.episodes, args.repeats = 4, 1, 2, 64, 1, 1
+        args.batch_size, args.workers, args.steps, args.size, args.episodes, args.repeats = 4, 1, 1, 64, 1, 1
+        args.loader_rounds = min(args.loader_rounds, 1)
     device = "cuda" if cuda else "cpu"
     args.modes = args.modes.split(",")
     if args.modes[0] != "plain" or not set(args.modes) <= {"plain", "worker", "batch"}:
