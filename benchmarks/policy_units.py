@@ -217,12 +217,15 @@ def summarise(task: str, units: Path = UNITS, seed: int = 0) -> dict:
         return {arm: {p: {lv: paired(per_level[arm][p, lv], per_level[reference][p, lv], rng) for lv in levels}
                       for p, levels in pr.PROTOCOLS.items()} for arm in arms if arm != reference}  # fmt: skip
 
-    walls = {f"{arm}@s{s}": f["timing"]["wall_seconds"] for arm in arms for s, f in sorted(found[arm].items())}
+    walls = {f"{arm}@s{s}": f["timing"] for arm in arms for s, f in sorted(found[arm].items())}
     return {
         "task": task, "arms": arms, "success": success, "best_2d": best_2d,
         "difference": {"vs_baseline": against("baseline" if "baseline" in found else None),
                        "vs_best_2d": against(best_2d)},
-        "units": {name: {"wall_seconds": w, "within_limit": w <= UNIT_LIMIT_S} for name, w in walls.items()},
+        "units": {name: {"wall_seconds": t["wall_seconds"], "within_limit": t["wall_seconds"] <= UNIT_LIMIT_S}
+                  | ({"resumed_from_step": t["train"]["resumed_from_step"]}
+                     if "resumed_from_step" in t.get("train", {}) else {})
+                  for name, t in walls.items()},
         "commits": sorted({f["commit"] for arm in arms for f in found[arm].values()}),
         "episodes_per_level": sorted({f["settings"]["episodes"] for arm in arms for f in found[arm].values()}),
     }  # fmt: skip
@@ -255,7 +258,10 @@ def markdown(summary: dict) -> str:
     if walls:
         longest = max(walls.values(), key=lambda u: u["wall_seconds"])["wall_seconds"]
         over = sum(not u["within_limit"] for u in walls.values())
-        lines += ["", f"{len(walls)} units; the longest took {longest / 60:.0f} min ({over} over {UNIT_LIMIT_S // 60} min)."]
+        resumed = [name for name, u in walls.items() if "resumed_from_step" in u]
+        lines += ["", f"Units: {len(walls)}; the longest took {longest / 60:.0f} min ({over} over {UNIT_LIMIT_S // 60} min)"
+                  + (f"; {', '.join(resumed)} resumed a stopped training, and its wall time counts only the steps "
+                     "after the resume" if resumed else "") + "."]  # fmt: skip
     return "\n".join(lines) + "\n"
 
 

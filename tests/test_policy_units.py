@@ -22,7 +22,8 @@ TASK = "reach_solo"
 LEVELS = [(p, lv) for p, levels in pr.PROTOCOLS.items() for lv in levels]
 
 
-def unit_file(unit: pu.Unit, wins: dict, episodes: int = 4, wall: float = 100.0, settings: dict | None = None) -> dict:
+def unit_file(unit: pu.Unit, wins: dict, episodes: int = 4, wall: float = 100.0, settings: dict | None = None,
+              train: dict | None = None) -> dict:
     """A made-up unit file: ``wins`` {(protocol, level): (episodes,) successes}, 0 where absent."""
     success = {p: {} for p in pr.PROTOCOLS}
     records = {p: [] for p in pr.PROTOCOLS}
@@ -32,7 +33,7 @@ def unit_file(unit: pu.Unit, wins: dict, episodes: int = 4, wall: float = 100.0,
         records[p] += [{"level": lv, "episode": i, "success": bool(w)} for i, w in enumerate(won)]
     return {"unit": {"task": unit.task, "arm": unit.arm, "seed": unit.seed, "name": unit.name},
             "settings": settings or {"episodes": episodes}, "commit": "c0ffee", "success": success,
-            "episodes": records, "timing": {"wall_seconds": wall}}  # fmt: skip
+            "episodes": records, "timing": {"wall_seconds": wall, **({"train": train} if train else {})}}  # fmt: skip
 
 
 def write(results: Path, unit: pu.Unit, **kwargs) -> None:
@@ -102,7 +103,11 @@ def test_summary_statistics_paired_over_seeds_and_episodes(tmp_path):
     assert pu.summarise(TASK, results) == s  # the bootstrap is seeded
     table = pu.markdown(s)
     assert "| gensplat | 0,1 | 100 (+100 [+100, +100])" in table and "| gensplat - perspective |" in table
-    assert "(1 over 60 min)" in table
+    assert "(1 over 60 min)." in table and "resumed" not in table
+    write(results, pu.Unit(TASK, "gensplat-tilt", 1), wins={}, episodes=8, train={"resumed_from_step": 1500})
+    s = pu.summarise(TASK, results)
+    assert s["units"]["gensplat-tilt@s1"] == {"wall_seconds": 100.0, "within_limit": True, "resumed_from_step": 1500}
+    assert "gensplat-tilt@s1 resumed a stopped training" in pu.markdown(s)
 
 
 def test_the_bootstrap_interval_covers_the_truth_at_its_rate():
