@@ -148,7 +148,7 @@ def test_compiled_pass_is_cached_for_new_processes():
     fill_holes(torch.rand(1, 3, 8, 8), torch.rand(1, 1, 8, 8))  # make sure this process compiled
     script = textwrap.dedent("""
         import torch
-        from gensplat_transforms import holes
+        from gensplat_transforms.rendering import holes
         holes.fill_holes(torch.rand(1, 3, 8, 8), torch.rand(1, 1, 8, 8))
         print(len(holes._pull_push_cpu.stats.cache_misses), len(holes._pull_push_cpu.stats.cache_hits))
     """)
