@@ -94,7 +94,7 @@ def test_a_pivot_depth_puts_the_pivot_of_any_rig_on_camera_0s_axis_in_both_paths
     assert not torch.allclose(move.move(cameras, 1).c2w, move.move(cameras, 1, pivot_depth=0.5).c2w)
     assert GenSplatConfig(pivot_depth=0.5).pivot_depth == 0.5  # two cameras take one too
     for bad in (0.0, -1.0, float("inf"), float("nan")):
-        with pytest.raises(ValueError, match=r"^GenSplatConfig.pivot_depth: a positive distance in metres, got"):
+        with pytest.raises(ValueError, match=r"^GenSplatConfig.pivot_depth: a positive distance in metres, at most 100, got"):
             GenSplatConfig(pivot_depth=bad)
 
 
@@ -121,4 +121,4 @@ def test_gensplat_cache_stores_the_pivot_on_camera_0s_axis_for_a_rig_whose_axes_
         main(["cache", "--root", str(root), "--repo-id", repo, "--pivot-depth", "far"])
     capsys.readouterr()
     assert main(["cache", "--root", str(root), "--repo-id", repo, "--pivot-depth", "-1"]) == 2
-    assert "GenSplatConfig.pivot_depth: a positive distance in metres, got -1.0" in capsys.readouterr().err
+    assert "GenSplatConfig.pivot_depth: a positive distance in metres, at most 100, got -1.0" in capsys.readouterr().err
