@@ -162,3 +162,26 @@ def test_npz_members_named_without_the_npy_suffix_are_read(tmp_path, depth_m):
         z.writestr("readme", b"no array here")
     with pytest.raises(ValueError, match=r"ep1.npz: unreadable depth array"):
         run(tmp_path, tmp_path / "ep{episode}.npz", {1: T})
+
+
+def test_an_npz_claiming_a_huge_array_is_refused_from_its_header(tmp_path):
+    """A member whose header says (61, 2500, 2500) (1.5 GB) is refused by its shape before any of
+    it is decompressed: memory stays small."""
+    import io
+    import tracemalloc
+    import zipfile
+
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(header, {"descr": "<f4", "fortran_order": False, "shape": (61, 2500, 2500)})
+    with (zipfile.ZipFile(tmp_path / "ep0.npz", "w", compression=zipfile.ZIP_DEFLATED) as z,
+          z.open("depth.npy", "w", force_zip64=True) as f):  # fmt: skip
+        f.write(header.getvalue())  # the magic and the header, as NumPy writes them
+        for _ in range(64):
+            f.write(bytes(1 << 20))  # 64 MB of zeros, a few kB compressed
+    assert (tmp_path / "ep0.npz").stat().st_size < 1 << 20
+    tracemalloc.start()
+    with pytest.raises(ValueError, match=r"depth of shape \(61, 2500, 2500\), expected"):
+        run(tmp_path, tmp_path / "ep{episode}.npz")
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 32 << 20
