@@ -365,6 +365,26 @@ def train_command(arm: str, root: Path, out: Path, config: Path, args) -> list[s
     ]  # fmt: skip
 
 
+def record_dataset(work: Path, args) -> None:
+    """Record the demonstrations into ``work/dataset`` unless a whole recording is there."""
+    root = work / "dataset"
+    if (root / "meta" / "info.json").is_file():
+        return
+    shutil.rmtree(root, ignore_errors=True)
+    res = record(RecordConfig(root, args.task, args.demos, args.seed, use_videos=False, repo_id=repo_id(args.task),
+                              world=WorldConfig(height=args.size, width=args.size)), progress=False)  # fmt: skip
+    print(f"recorded {res.episodes} demonstrations, {res.frames} frames, in {res.seconds:.0f} s", flush=True)
+
+
+def prepare_arm(work: Path, arm: str, args) -> None:
+    """For a GenSplat arm: its dataset root (:func:`dataset_root`), GenSplat settings and cache."""
+    if arm_kind(arm) not in GENSPLAT_ARMS:
+        return
+    if dataset_root(work, arm) != work / "dataset":
+        link_dataset(work / "dataset", dataset_root(work, arm))
+    prepare(dataset_root(work, arm), repo_id(args.task), gensplat_config(args, arm), progress=False)
+
+
 def check_work(work: Path, arms: tuple[str, ...], args) -> None:
     """Record the run settings and the arms' augmentation in ``work``, or refuse to resume a
     ``work`` made with other settings or another augmentation of one of ``arms``."""
@@ -937,7 +957,6 @@ def main() -> None:
         print(move_markdown(result))
         return
     arms, work = args.arms, args.work
-    root = work / "dataset"
     settings = result_settings(args)
     reused, timing, sources = reused_arms(args.reuse_from, arms, settings, args.episodes)
     if sources:
@@ -948,17 +967,10 @@ def main() -> None:
         check_work(work, to_run, args)
     t_start = time.perf_counter()
 
-    if to_run and not (root / "meta" / "info.json").is_file():
-        shutil.rmtree(root, ignore_errors=True)
-        res = record(RecordConfig(root, args.task, args.demos, args.seed, use_videos=False, repo_id=repo_id(args.task),
-                                  world=WorldConfig(height=args.size, width=args.size)), progress=False)  # fmt: skip
-        print(
-            f"recorded {res.episodes} demonstrations, {res.frames} frames, in {res.seconds:.0f} s", flush=True
-        )
-    for arm in (a for a in to_run if arm_kind(a) in GENSPLAT_ARMS):
-        if dataset_root(work, arm) != root:
-            link_dataset(root, dataset_root(work, arm))
-        prepare(dataset_root(work, arm), repo_id(args.task), gensplat_config(args, arm), progress=False)
+    if to_run:
+        record_dataset(work, args)
+    for arm in to_run:
+        prepare_arm(work, arm, args)
 
     with ThreadPoolExecutor(len(to_run) if args.parallel_train and to_run else 1) as pool:  # each in a subprocess
         trained = pool.map(lambda a: train(a, dataset_root(work, a), work / a, args), to_run)

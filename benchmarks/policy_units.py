@@ -29,7 +29,6 @@ benchmarks/README.md between the ``policy-units`` markers.
 from __future__ import annotations
 
 import argparse
-import shutil
 import subprocess
 import sys
 import time
@@ -114,18 +113,12 @@ def run_unit(unit: Unit, args) -> dict:
     work, name = args.work, unit.name
     lock = pr.lock_work(work)  # noqa: F841  (held until the unit ends)
     pr.check_work(work, (name,), args)
-    stages, root = {}, work / "dataset"
+    stages = {}
     t0 = time.perf_counter()
-    if not (root / "meta" / "info.json").is_file():
-        shutil.rmtree(root, ignore_errors=True)
-        pr.record(pr.RecordConfig(root, args.task, args.demos, args.seed, use_videos=False, repo_id=pr.repo_id(args.task),
-                                  world=pr.WorldConfig(height=args.size, width=args.size)), progress=False)  # fmt: skip
+    pr.record_dataset(work, args)
     stages["record_seconds"] = round(time.perf_counter() - t0, 1)
     t0 = time.perf_counter()
-    if pr.arm_kind(name) in pr.GENSPLAT_ARMS:
-        if pr.dataset_root(work, name) != root:
-            pr.link_dataset(root, pr.dataset_root(work, name))
-        pr.prepare(pr.dataset_root(work, name), pr.repo_id(args.task), pr.gensplat_config(args, name), progress=False)
+    pr.prepare_arm(work, name, args)
     stages["prepare_seconds"] = round(time.perf_counter() - t0, 1)
     train = pr.train(name, pr.dataset_root(work, name), work / name, args)
     t0 = time.perf_counter()
