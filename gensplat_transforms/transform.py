@@ -14,9 +14,10 @@ from torch.utils.data import Dataset
 from .cache.reader import CacheReader
 from .cache.store import EpisodeSource, GaussianCache
 from .core.counters import SampleCounters
+from .core.views import as_cache_images
 from .data.format import DepthSensor
 from .rendering import render_size
-from .rendering.output import as_cache_images, render_depth, render_view, render_views
+from .rendering.output import render_depth, render_view, render_views
 from .settings import GenSplatConfig
 from .views.perturbation import AXES, ROW
 from .views.plan import BATCH_KEYS, ViewPlan
@@ -115,7 +116,8 @@ class GenSplatTransform:
             stacks = self.reader.stacks(episode, frame, [(self._offsets(i), self._render_size(i)) for i in images],
                                         functools.partial(self._source_images, item, keys, episode))  # fmt: skip
             depths = [item[depth_keys[n]] if n in depth_keys else None for n in self.cfg.replace]
-            views = render_views(stacks, plan.moves, images, depths, self.cfg, self.depth_sensors)
+            moves = torch.tensor(plan.rows, dtype=torch.float64).reshape(len(plan.rows), ROW)
+            views = render_views(stacks, moves, images, depths, self.cfg, self.depth_sensors)
             for name, (image, depth) in zip(self.cfg.replace, views):
                 out[keys[name]] = image
                 if name in depth_keys:

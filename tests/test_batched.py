@@ -11,13 +11,14 @@ from torch.utils.data import default_collate
 
 from gensplat_transforms import render
 from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
+from gensplat_transforms.cache.reader import disc_builder
 from gensplat_transforms.cache.store import GaussianCache
 from gensplat_transforms.core.cameras import Cameras, rigid_inverse
 from gensplat_transforms.core.gaussians import Gaussians
 from gensplat_transforms.data.format import DepthSensor
 from gensplat_transforms.geometry import Reconstructor, RGBDConfig, RGBDReconstructor, Views
 from gensplat_transforms.rendering import gsplat_backend
-from gensplat_transforms.rendering.batched import disc_builder, render_batch
+from gensplat_transforms.rendering.batched import render_batch
 from gensplat_transforms.transform import BATCH_KEYS, GenSplatConfig, GenSplatTransform
 
 LEFT, RIGHT = "observation.images.left", "observation.images.right"
@@ -281,3 +282,26 @@ def test_on_cuda_a_named_backend_renders_scene_by_scene_on_the_batch_device(setu
     items = [ds[i] for i in (0, 5)]
     expected, got = both_ways(cache, items, seed=3, backend="reference", device="cuda", probability=1.0)
     assert_same_batch(expected, got, atol=1e-4)
+
+
+@pytest.mark.parametrize("sampler", ["paper", "tilt", "arc", "mix", "zoom"])
+@pytest.mark.parametrize("depth_maps", [None, "camera", "sensor"])
+def test_every_sampler_and_depth_setting_renders_the_worker_views(tmp_path, sampler, depth_maps):
+    """One render path: with discs built by the same PyTorch rule on both sides (``fast=False``),
+    the batch path's images and depth maps are the worker's to float round-off, for every
+    sampler (a focal-length change: "zoom") and every kind of depth map."""
+    source = SceneEpisodes(num_episodes=1, num_frames=4, size=24)
+    cache = GaussianCache(tmp_path, RGBDReconstructor(fast=False), source.fingerprint)
+    build_cache(cache, source, range(1), progress=False)
+    ds = SceneDataset(source)
+    items, sensors = with_depth_maps([ds[i] for i in range(4)], ds, depth_maps)
+    moves = {"sampler": "paper", "focal_scale": (0.8, 1.25)} if sampler == "zoom" else {"sampler": sampler}
+    expected, got = both_ways(cache, items, seed=3, probability=1.0, depth_sensors=sensors, depth_unit="mm",
+                              tilt_deg=8.0, arc_deg=20.0, **moves)  # fmt: skip
+    depth_key = LEFT + "_depth"
+    assert_same_batch({k: v for k, v in expected.items() if k != depth_key},
+                      {k: v for k, v in got.items() if k != depth_key}, atol=1e-5)  # fmt: skip
+    if depth_maps:  # millimetres at about 1 m: float32's round-off, relative
+        torch.testing.assert_close(got[depth_key], expected[depth_key], atol=1e-4, rtol=2e-6)
+    for key in (LEFT, RIGHT):  # every view was moved
+        assert (got[key] - torch.stack([item[key] for item in items])).abs().amax((1, 2, 3)).min() > 0.01

@@ -12,7 +12,7 @@ from gensplat_transforms.cache.depth_codec import depth_from_words
 from gensplat_transforms.cache.store import GaussianCache
 from gensplat_transforms.core.rotations import covariance_3d
 from gensplat_transforms.geometry import RGBDReconstructor
-from gensplat_transforms.rendering import batched
+from gensplat_transforms.geometry import rgbd as rule
 from gensplat_transforms.rendering.batched import render_batch
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 
@@ -40,8 +40,8 @@ def test_a_failing_compiler_warns_and_renders_with_the_plain_rule(prepared, monk
             raise RuntimeError("no compiler here")
         return compiled
 
-    monkeypatch.setattr(batched.torch, "compile", broken_compile)
-    monkeypatch.setattr(batched, "_COMPILED", {})
+    monkeypatch.setattr(rule.torch, "compile", broken_compile)
+    monkeypatch.setattr(rule, "_COMPILED", {})
     plain = render_batch(batch, transform, compiled=False)
     assert not calls
     with pytest.warns(RuntimeWarning, match="torch.compile of the disc rule failed.*no compiler here"):
@@ -63,12 +63,12 @@ def test_the_compiled_rule_is_called_when_asked_for(prepared, monkeypatch):
             return fn(*args)
         return compiled
 
-    monkeypatch.setattr(batched.torch, "compile", tracing_compile)
-    monkeypatch.setattr(batched, "_COMPILED", {})
+    monkeypatch.setattr(rule.torch, "compile", tracing_compile)
+    monkeypatch.setattr(rule, "_COMPILED", {})
     plain = render_batch(batch, transform)  # on the CPU: the plain rule by default
     assert not seen
     got = render_batch(batch, transform, compiled=True)
-    assert seen == [torch.Size([3, 1, 2, 24, 24])]  # (S, T, V, h, w) depth of the augmented samples
+    assert seen == [torch.Size([3, 2, 24, 24])]  # (S * T, V, h, w) depth of the augmented samples
     assert torch.equal(got[LEFT], plain[LEFT])
 
 
@@ -79,13 +79,13 @@ def test_on_cuda_the_compiled_rule_builds_the_plain_rules_discs(prepared, monkey
     depth = rgbd.disc_depth(depth_from_words(batch["gensplat.depth"], batch["gensplat.coded"].reshape(-1, 1, 1, 1, 1)))
     images = torch.rand(*depth.shape[:3], 3, *depth.shape[-2:])
     args = [t.cuda() for t in (depth, images, batch["gensplat.K"].float(), batch["gensplat.c2w"].float())]
-    monkeypatch.setattr(batched, "_COMPILED", {})
+    monkeypatch.setattr(rule, "_COMPILED", {})
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        compiled = batched._compiled_discs(*args, rgbd.cfg)
+        compiled = rule.compiled_discs(*args, rgbd.cfg)
     assert not [w for w in caught if "disc rule failed" in str(w.message)]  # a fallback would hide a failure
-    assert batched._COMPILED["rule"] is not batched.dense_discs
-    (means, quats, scales, dc, opacities, keep), plain = compiled, batched.dense_discs(*args, rgbd.cfg)
+    assert rule._COMPILED["rule"] is not rule.dense_discs
+    (means, quats, scales, dc, opacities, keep), plain = compiled, rule.dense_discs(*args, rgbd.cfg)
     assert torch.equal(keep, plain[5])
     torch.testing.assert_close(opacities, plain[4], rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(means, plain[0], rtol=1e-5, atol=1e-6)

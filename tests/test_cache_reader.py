@@ -8,8 +8,8 @@ import torch
 from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
 from gensplat_transforms.cache.reader import CacheReader
 from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.core.views import as_cache_images
 from gensplat_transforms.geometry import GenSplatReconstructor, RGBDReconstructor
-from gensplat_transforms.rendering.output import as_cache_images
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 
 

@@ -201,18 +201,20 @@ def test_the_checks_see_function_level_and_type_only_imports():
     assert names(module_level=False, types=True) == {"t"}
 
 
-def test_the_batch_path_shares_the_workers_helpers_instead_of_reaching_into_the_transform():
-    """rendering/batched.py takes the plan's keys and the view helpers from the modules that hold
-    them; the config and the transform only as types (for annotations), from transform.py only
-    the transform's type."""
+def test_the_batch_path_reads_and_renders_through_the_workers_interfaces():
+    """rendering/batched.py reaches no stage's internals: it reads the cache through the
+    transform's reader (``cache.reader``), takes the plan's keys from ``views.plan`` and renders
+    with the worker's own function (``rendering.output``); the config and the transform only as
+    types (for annotations), from transform.py only the transform's type."""
     name = f"{PACKAGE}.rendering.batched"
     tree = ast.parse(MODULES[name].read_text())
     from_transform = {a.name for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module == "transform"
                       for a in n.names}  # fmt: skip
     assert from_transform == {"GenSplatTransform"}
-    assert imports(name, MODULES[name], MODULES) >= {
-        f"{PACKAGE}.views.plan", f"{PACKAGE}.rendering.output", f"{PACKAGE}.views.perturbation"}
-    assert imports(name, MODULES[name], MODULES, types=True) == set(TYPES_FROM_ABOVE)
+    package = {m for m in imports(name, MODULES[name], MODULES) if m.startswith(PACKAGE)}
+    assert package == {f"{PACKAGE}.cache.reader", f"{PACKAGE}.views.plan", f"{PACKAGE}.rendering",
+                       f"{PACKAGE}.rendering.output", f"{PACKAGE}.core.views"}  # fmt: skip
+    assert imports(name, MODULES[name], MODULES, types=True) <= set(TYPES_FROM_ABOVE)
 
 
 def test_no_module_name_is_used_twice_within_a_stage():

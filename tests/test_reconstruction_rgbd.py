@@ -393,7 +393,7 @@ def test_pixel_ids_beyond_the_cameras_pixels_are_refused():
     with pytest.raises(ValueError, match=r"pixel_rays: need means \(N, 3\), pixel_ids \(N,\)"):
         pixel_rays(means, rec.pixel_ids[:-1], centers, 12 * 12)
     with pytest.raises(ValueError, match=r"preferred_means: means .* and rays .* differ in shape"):
-        preferred_means(means, rec._source_rays[:-1], centers[0], 0.02)
+        preferred_means(means, rec.rays[:-1], centers[0], 0.02)
 
 
 def test_compiled_preference_matches_the_tensor_rule():
@@ -417,6 +417,6 @@ def test_compiled_preference_matches_the_tensor_rule():
     rec = RGBDReconstructor()(views)
     camera = rec.cameras[1:]
     torch.testing.assert_close(rec.seen_from(camera).means,  # the worker's path: compiled
-                               preferred_means(rec.gaussians.means.double(), rec._source_rays.double(),
+                               preferred_means(rec.gaussians.means.double(), rec.rays.double(),
                                                camera.centers[0].double(), rec.view_preference).float(),
                                rtol=1e-6, atol=1e-6)  # fmt: skip

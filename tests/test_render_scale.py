@@ -14,7 +14,7 @@ from gensplat_transforms.cache.store import GaussianCache
 from gensplat_transforms.core.metrics import psnr
 from gensplat_transforms.geometry import Reconstructor, RGBDReconstructor, Views
 from gensplat_transforms.geometry.base import nearest_pixels
-from gensplat_transforms.rendering import output as view_output
+from gensplat_transforms.rendering import scenes as view_output
 from gensplat_transforms.rendering.batched import render_batch
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform, render_size
 

@@ -2,15 +2,19 @@
 once: the calls the transform's own code makes into the package's other modules during one
 item, recorded with ``sys.setprofile``."""
 
+import itertools
 import sys
 from collections import Counter
 
 import pytest
 import torch
+from torch.utils.data import default_collate
 
 from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
 from gensplat_transforms.cache.store import GaussianCache
 from gensplat_transforms.geometry import RGBDReconstructor
+from gensplat_transforms.rendering.batched import render_batch
+from gensplat_transforms.rendering.scenes import render_scenes
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 from gensplat_transforms.views.perturbation import Perturbation
 from gensplat_transforms.views.plan import ViewPlan
@@ -77,3 +81,42 @@ def test_the_batch_path_enters_the_reader_once_and_never_the_renderer(setup):
     config = GenSplatConfig(probability=1.0, report=True, frame_offsets=(-1, 0), render_in="batch")
     calls = entered(GenSplatTransform(config, cache), item)
     assert stages(calls) == ["plan", "reader"], Counter(calls)
+
+
+STAGE_ORDER = ("core", "data", "calibration", "geometry", "cache", "views", "rendering", "settings", "transform")
+
+
+def walk(fn) -> tuple[list[str], int]:
+    """The walk of ``fn()`` through the stages, as docs/layout.md counts it: the functions of the
+    stages above ``core`` (not dunders or dataclass-made methods) entered from another module,
+    in call order and each once, and its climbs, the calls into a higher stage than the call
+    before (counted over every such call)."""
+    calls = []
+
+    def profile(frame, event, arg):
+        module, code = frame.f_globals.get("__name__", ""), frame.f_code
+        if (event != "call" or not module.startswith("gensplat_transforms.") or code.co_name.startswith("__")
+                or "<" in code.co_qualname or module.split(".")[1] == "core"):  # fmt: skip
+            return
+        if frame.f_back is not None and frame.f_back.f_globals.get("__name__") != module:
+            calls.append((module, code.co_qualname))
+
+    sys.setprofile(profile)
+    try:
+        fn()
+    finally:
+        sys.setprofile(None)
+    stage = [STAGE_ORDER.index(m.split(".")[1]) for m, _ in calls]
+    return [f"{m}.{q}" for m, q in dict.fromkeys(calls)], sum(b > a for a, b in itertools.pairwise(stage))
+
+
+def test_a_batch_items_walk_is_short(setup):
+    """The batch path renders through the worker's interfaces: its walk visits at most 14
+    functions and climbs back up at most 4 times (the figures in docs/layout.md)."""
+    cache, item = setup
+    item = {k: v for k, v in item.items() if not k.endswith("_depth")}
+    transform = GenSplatTransform(GenSplatConfig(probability=1.0, frame_offsets=(-1, 0), render_in="batch"), cache)
+    batch = default_collate([transform(item), transform(item)])
+    functions, climbs = walk(lambda: render_batch(batch, transform))
+    assert len(functions) <= 14 and climbs <= 4, (len(functions), climbs, functions)
+    assert f"{render_scenes.__module__}.render_scenes" in functions  # the worker's render

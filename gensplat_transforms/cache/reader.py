@@ -18,7 +18,11 @@ from dataclasses import dataclass
 
 import torch
 
+from ..core.scenes import Scenes
 from ..core.views import Reconstruction, nearest_pixels
+from ..geometry import Reconstructor
+from ..geometry.rgbd import RGBDReconstructor
+from .depth_codec import depth_from_words
 from .store import CorruptCacheError, EpisodeSource, GaussianCache
 
 logger = logging.getLogger(__name__)
@@ -26,16 +30,17 @@ logger = logging.getLogger(__name__)
 
 @dataclass
 class DepthStack:
-    """The stored depth of T timesteps of V cameras, for :func:`.batched.render_batch`.
+    """The stored depth of T timesteps of V cameras (:meth:`CacheReader.depth`), or of a
+    collated batch of them (leading dimensions (S, T)), for :meth:`CacheReader.scenes`.
 
     Attributes:
-        words: (T, V, h, w) int16, as the cache stores it (:func:`.depth_codec.depth_from_words`).
-        coded: whether the words are log codes (else float16 bits).
-        K: (T, V, 3, 3) float64 intrinsics at the size asked for; c2w: (T, V, 4, 4) float64.
+        words: (..., T, V, h, w) int16, as the cache stores it (:func:`.depth_codec.depth_from_words`).
+        coded: whether the words are log codes (else float16 bits); a bool, or (...) bools.
+        K: (..., T, V, 3, 3) float64 intrinsics at the render size; c2w: (..., T, V, 4, 4) float64.
     """
 
     words: torch.Tensor
-    coded: bool
+    coded: bool | torch.Tensor
     K: torch.Tensor
     c2w: torch.Tensor
 
@@ -115,6 +120,24 @@ class CacheReader:
             stack.K[k], stack.c2w[k] = cameras.K, cameras.c2w
         return stack
 
+    def scenes(self, stack: DepthStack, images: torch.Tensor, compiled: bool = False) -> Scenes:
+        """The scenes of ``stack`` (what :meth:`depth` read, one item's or a collated batch's):
+        the Gaussians the cache's reconstructor rebuilds from that depth and the reconstructed
+        cameras' ``images`` (..., T, V, 3, h, w) float in [0, 1] at the render size h x w (the
+        depth taken at its pixels nearest theirs), one scene per timestep, flattened over the
+        leading dimensions (:meth:`.geometry.rgbd.RGBDReconstructor.scenes`; ``compiled``: its
+        compiled rule). Raises TypeError for a reconstructor whose Gaussians are not rebuilt
+        from depth by the RGB-D disc rule."""
+        discs = disc_builder(self.cache.reconstructor)
+        h, w = images.shape[-2:]
+        words = stack.words if stack.words.shape[-2:] == (h, w) else nearest_pixels(stack.words, w, h)
+        coded = stack.coded
+        if isinstance(coded, torch.Tensor):  # one per sample: broadcast over its (T, V, h, w)
+            coded = coded.to(words.device).reshape(*coded.shape, *(1,) * (words.ndim - coded.ndim))
+        depth = depth_from_words(words, coded)
+        flat = words.ndim - 3  # leading dimensions into one: (M, V, ...)
+        return discs.scenes(*(t.flatten(0, flat - 1) for t in (depth, images, stack.K, stack.c2w)), compiled=compiled)
+
     def _frames(self, episode: int, frame: int) -> int:
         """The number of frames of ``episode`` (built first if the cache lacks it), which must
         hold ``frame`` (IndexError)."""
@@ -155,3 +178,14 @@ def _clamped(frame: int, offsets: Sequence[int], frames: int) -> list[int]:
     """The frames ``frame + offset`` clamped to an episode of ``frames`` (a stack reaching past
     it repeats its ends, as LeRobot pads)."""
     return [min(max(frame + o, 0), frames - 1) for o in offsets]
+
+
+def disc_builder(reconstructor: Reconstructor) -> RGBDReconstructor:
+    """The RGB-D disc rule that ``reconstructor`` assembles its cached depth with (the
+    ``rgbd`` reconstructor itself, or the ``geometry`` reconstructor's discs); raises for
+    reconstructors whose Gaussians are not rebuilt from depth that way (TypeError)."""
+    discs = reconstructor if isinstance(reconstructor, RGBDReconstructor) else getattr(reconstructor, "discs", None)
+    if not isinstance(discs, RGBDReconstructor):
+        raise TypeError(f"render_in='batch' rebuilds RGB-D discs from cached depth; the {reconstructor.name!r} "
+                        "reconstructor's cache cannot be rendered that way: use render_in='worker'")  # fmt: skip
+    return discs

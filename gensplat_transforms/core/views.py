@@ -36,6 +36,15 @@ def nearest_pixels(x: torch.Tensor, width: int, height: int) -> torch.Tensor:
     return x[..., rows[:, None], cols]
 
 
+def as_cache_images(images: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """(N, 3, H, W) uint8 or float images as float in [0, 1] at ``height x width`` (what a depth
+    cache rebuilds the Gaussians from)."""
+    images = images.float() / 255 if images.dtype == torch.uint8 else images.float()
+    if images.shape[-2:] != (height, width):
+        images = F.interpolate(images, size=(height, width), mode="bilinear", antialias=True, align_corners=False)
+    return images.clamp(0, 1)
+
+
 @dataclass
 class Views:
     """The camera images of one timestep.
@@ -120,11 +129,11 @@ class Reconstruction:
         if not self.view_preference or self.pixel_ids is None:
             return self.gaussians
         g = self.gaussians
-        means = preferred_means(g.means, self._source_rays, camera.centers[0].to(g.means), self.view_preference)
+        means = preferred_means(g.means, self.rays, camera.centers[0].to(g.means), self.view_preference)
         return Gaussians(means, g.quats, g.scales, g.opacities, g.sh, validate=False).mark_checked()
 
     @cached_property
-    def _source_rays(self) -> torch.Tensor:
+    def rays(self) -> torch.Tensor:
         """(N, 3) unit directions from the camera that saw each Gaussian to it (computed once,
         whichever cameras render it)."""
         means = self.gaussians.means

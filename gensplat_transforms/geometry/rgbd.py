@@ -42,14 +42,18 @@ its simulated RealSense depth (``gensplat_sim.sensor``) and 0.02 on exact depth 
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import asdict, dataclass
 
 import torch
 import torch.nn.functional as F
 
+from ..core.cameras import Cameras
 from ..core.gaussians import Gaussians
 from ..core.rotations import rotmat_to_quat
+from ..core.scenes import Scenes
 from ..core.sh import num_sh_bases, rgb_to_sh_dc
+from ..core.views import source_rays
 from . import discs_fast
 from .base import DepthReconstructor, Reconstruction, Views, valid_depth
 from .depth_fill import fill_depth
@@ -204,6 +208,33 @@ class RGBDReconstructor(DepthReconstructor):
         return Reconstruction(g.mark_checked() if self.fast else g, views.cameras, pixel_ids,
                               **self.render_style(saturation))  # fmt: skip
 
+
+    def scenes(self, depths: torch.Tensor, images: torch.Tensor, K: torch.Tensor, c2w: torch.Tensor,
+               compiled: bool = False) -> Scenes:  # fmt: skip
+        """M timesteps of V views each, as :meth:`assemble` makes one, as M :class:`Scenes`
+        (the batch mode's): discs by the PyTorch rule (:func:`dense_discs`, in float32;
+        ``compiled``: by :func:`compiled_discs`) on every view's pixel grid, padded where a
+        pixel has no depth.
+
+        Args:
+            depths: (M, V, h, w) depth as stored (cleaned here, :meth:`disc_depth`);
+            images: (M, V, 3, h, w) float in [0, 1]; K (M, V, 3, 3), c2w (M, V, 4, 4).
+        """
+        f32, cfg = torch.float32, self.cfg
+        rule = compiled_discs if compiled else dense_discs
+        means, quats, scales, dc, saturation, keep = (t.flatten(1, 2) for t in rule(
+            self.disc_depth(depths), images, K.to(f32), c2w.to(f32), cfg))  # fmt: skip
+        M, N = keep.shape
+        sh = dc[:, :, None]
+        if cfg.sh_degree > 0:
+            sh = torch.cat([sh, sh.new_zeros(M, N, num_sh_bases(cfg.sh_degree) - 1, 3)], 2)
+        rays = None
+        if cfg.view_preference:  # each disc's camera centre, its view's n discs in a row
+            origins = c2w[..., :3, 3].to(means).repeat_interleave(N // K.shape[1], 1)
+            rays = source_rays(means, origins)
+        sources = Cameras(K.flatten(0, 1), c2w.flatten(0, 1), depths.shape[-1], depths.shape[-2])
+        return Scenes(means, quats, scales, torch.full_like(saturation, cfg.opacity), sh, keep, saturation, sources,
+                      rays, cfg.view_preference, {"dilation": cfg.dilation})  # fmt: skip
 
 #: RGBDConfig fields that shape only what is drawn, not what a cache stores (not part of its identity)
 RENDER_FIELDS = ("dilation", "saturation", "view_preference", "soften_noise")
@@ -379,3 +410,22 @@ def _surface_step(pts, valid, footprint, axis, max_stretch, edge_scale, dim):
     edge.narrow(dim, 0, n - 1).logical_or_(jump)
     edge.narrow(dim, 1, n - 1).logical_or_(jump)
     return torch.where(edge[..., None], step * edge_scale, step)
+
+
+_COMPILED: dict = {}  # the disc rule compiled by torch.compile, made once per process
+
+
+def compiled_discs(*args):
+    """:func:`dense_discs` compiled by ``torch.compile`` (dynamic shapes: one compilation for
+    any number of timesteps; fused kernels on CUDA); where compiling fails (no compiler, an
+    unsupported device), a warning and the plain rule from then on."""
+    if "rule" not in _COMPILED:
+        _COMPILED["rule"] = torch.compile(dense_discs, dynamic=True)
+    if _COMPILED["rule"] is not dense_discs:
+        try:
+            return _COMPILED["rule"](*args)
+        except Exception as e:  # noqa: BLE001 - any compiler failure: the plain rule still works
+            warnings.warn(f"torch.compile of the disc rule failed ({type(e).__name__}: {e}); using the plain rule",
+                          RuntimeWarning, stacklevel=3)  # fmt: skip
+            _COMPILED["rule"] = dense_discs
+    return dense_discs(*args)

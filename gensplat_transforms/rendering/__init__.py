@@ -1,13 +1,14 @@
 """The render stage: Gaussians into cameras, and the rendered views into an item's images.
 
-Here: :func:`render`, one entry point for several backends (:mod:`.reference`, differentiable
-PyTorch over :mod:`.projection`; :mod:`.fast`, the compiled CPU renderer; :mod:`.gsplat_backend`),
-and :func:`render_size`, the size the augmented views are rendered at. Beside it:
-:mod:`.output` (``render_views``: the worker path's views of an item, holes filled with
-:mod:`.holes`, resized and typed like the item's images and depth maps), :mod:`.batched`
-(``render_batch``: a whole collated batch at once, ``render_in="batch"``), :mod:`.warp`
-(forward warping, the baseline of the fidelity benchmarks) and :mod:`.preview` (preview
-images). Imports the stages below it; the transform's settings only as a type.
+Here: :func:`render`, one scene into its cameras, one entry point for several backends
+(:mod:`.reference`, differentiable PyTorch over :mod:`.projection`; :mod:`.fast`, the compiled
+CPU renderer; :mod:`.gsplat_backend`), and :func:`render_size`, the size the augmented views
+are rendered at. Beside it: :mod:`.scenes` (``render_scenes``: B scenes x C cameras, the one
+way the transform renders views, in a worker and for a whole batch; holes filled with
+:mod:`.holes`), :mod:`.output` (the views moved and sized like an item's images and depth
+maps), :mod:`.batched` (``render_batch``: a collated batch at once, ``render_in="batch"``),
+:mod:`.warp` (forward warping, the baseline of the fidelity benchmarks) and :mod:`.preview`
+(preview images). Imports the stages below it; the transform's settings only as a type.
 """
 
 from __future__ import annotations

@@ -362,6 +362,16 @@ def move_rig(c2w: torch.Tensor, moves: torch.Tensor, views: Sequence[int], pivot
     return _rigid("move_rig", _move_rig(c2w, moves, views, pivot_depth))
 
 
+def move_cameras(K: torch.Tensor, c2w: torch.Tensor, moves: torch.Tensor, views: Sequence[int],
+                 pivot_depth: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+    """K (..., R, 3, 3) and c2w (..., R, 4, 4) of the cameras ``views`` (R indices) of rigs of
+    (..., V, 3, 3) intrinsics ``K`` and (..., V, 4, 4) poses ``c2w``, each moved by its row of
+    ``moves`` (..., R, :data:`ROW`): its pose by :func:`move_rig`, its focal length by
+    :func:`scale_focal`. Raises as both do."""
+    moves = moves.to(c2w.device, torch.float64)
+    return scale_focal(K[..., list(views), :, :], moves[..., 8]), move_rig(c2w, moves, views, pivot_depth)
+
+
 def _move_rig(c2w: torch.Tensor, moves: torch.Tensor, views: Sequence[int], pivot_depth: float | None = None
               ) -> torch.Tensor:  # fmt: skip
     """:func:`move_rig`, unchecked: the pivot and the moves in float64 (the pivot of nearly

@@ -13,7 +13,8 @@ import logging
 
 import torch
 
-from gensplat_transforms.rendering.batched import disc_builder, render_batch
+from gensplat_transforms.cache.reader import disc_builder
+from gensplat_transforms.rendering.batched import render_batch
 from gensplat_transforms.transform import GenSplatTransform
 
 from .dataset import GenSplatLeRobotDataset
