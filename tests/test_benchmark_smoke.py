@@ -162,6 +162,18 @@ def test_real_geometry(tmp_path):
     assert result["settings"]["droid_size"] == [640, 360]
 
 
+def test_real_nvs(tmp_path):
+    pytest.importorskip("skimage", reason="the Middlebury pair needs scikit-image (the bench extra)")
+    result = quick("real_nvs.py", tmp_path)
+    [scale] = result["scales"].values()
+    rows = scale["rows"]
+    assert {"source_image", "forward_warp", "rgbd"} <= rows.keys() and 0.5 < scale["warp_coverage"] < 1
+    assert rows["forward_warp"]["psnr_warp"] > rows["source_image"]["psnr_warp"] + 5  # the pair moves the view
+    for name in result["settings"]:
+        filled, black = rows[name]["fill"]["true"], rows[name]["fill"]["false"]
+        assert filled["psnr_all"] > black["psnr_all"] and rows[name]["render_ms"] > 0
+
+
 # the LeRobot extra
 
 
