@@ -420,3 +420,25 @@ def test_compiled_preference_matches_the_tensor_rule():
                                preferred_means(rec.gaussians.means.double(), rec.rays.double(),
                                                camera.centers[0].double(), rec.view_preference).float(),
                                rtol=1e-6, atol=1e-6)  # fmt: skip
+
+
+@pytest.mark.parametrize("fast", [True, False])
+def test_only_the_nearer_side_of_a_depth_jump_shrinks_and_a_hole_is_no_edge(fast):
+    """A foreground disc beside a depth jump shrinks across it (it would overhang the
+    background); the background disc beside it keeps its size (it lies behind and fills the
+    view that opens there), and so do discs beside pixels without depth."""
+    H = W = 8
+    z = torch.ones(1, 1, H, W)
+    z[..., 4:] = 2.0  # columns 4.. twice as far: a jump between columns 3 and 4
+    z[..., 6, 1] = 0.0  # a pixel without depth in the near half
+    K = torch.tensor([[[10.0, 0, 4], [0, 10.0, 4], [0, 0, 1]]], dtype=torch.float64)
+    views = Views(torch.full((1, 3, H, W), 0.5), Cameras(K, torch.eye(4, dtype=torch.float64)[None], W, H), z)
+    rec = RGBDReconstructor(fast=fast, soften_noise=False).reconstruct(views)
+    footprint = rec.gaussians.scales[:, :2].amin(1) / rec.gaussians.means[:, 2]  # in-plane size / depth
+    size = dict(zip(rec.pixel_ids.tolist(), footprint.tolist()))
+    plain = size[2 * W + 1]  # an interior pixel of the near half
+    torch.testing.assert_close(torch.tensor(size[2 * W + 3]), torch.tensor(plain * RGBDConfig.edge_scale))  # near side
+    torch.testing.assert_close(torch.tensor(size[2 * W + 4]), torch.tensor(plain))  # far side: as inside
+    for beside_hole in (5 * W + 1, 6 * W + 0, 6 * W + 2, 7 * W + 1):
+        torch.testing.assert_close(torch.tensor(size[beside_hole]), torch.tensor(plain))
+    assert 6 * W + 1 not in size

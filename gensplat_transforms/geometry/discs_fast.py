@@ -47,13 +47,14 @@ def _step(f0, f1, f2, zf, c0, c1, c2, zb, ob, t, fall0, fall1, k, edge_k):
     image. ``t``: the squared stretch limit (max_stretch footprints, in units of the depth);
     (``fall0``, ``fall1``, 0): the fallback (the footprint along the axis). Times ``k``, or
     ``edge_k`` next to a depth edge. Where a difference is not finite (depths beyond
-    float32's range) the step falls back."""
+    float32's range) the step falls back. A depth edge is a step beyond the limit to a farther
+    neighbour (the third components: f2 > 0, c2 < 0); a nearer one or no depth is none."""
     zero, inf = _F(0), _F(np.inf)
     nf = f0 * f0 + f1 * f1 + f2 * f2
     nc = c0 * c0 + c1 * c1 + c2 * c2
     nf = nf if zf > zero else inf
     nc = nc if zb > zero else inf
-    edge = ((zf >= zero) & (nf > t)) | ((zb >= zero) & (nc > t))
+    edge = ((zf > zero) & (nf > t) & (f2 > zero)) | ((zb > zero) & (nc > t) & (c2 < zero))
     nb = nc * ob * ob if zb > zero else inf  # in units of the pixel's depth
     fwd = nf <= nb  # ties keep the forward step, as the reference
     ok = (nf if fwd else nb) <= t
