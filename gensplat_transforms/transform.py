@@ -19,7 +19,7 @@ from .data.format import DepthSensor
 from .rendering import render_size
 from .rendering.output import render_depth, render_view, render_views
 from .settings import GenSplatConfig
-from .views.perturbation import AXES, ROW
+from .views.perturbation import AXES, ROW, Moves
 from .views.plan import BATCH_KEYS, ViewPlan
 
 __all__ = ["BATCH_KEYS", "AugmentedDataset", "GenSplatConfig", "GenSplatTransform", "ViewPlan", "render_depth",
@@ -211,9 +211,10 @@ def _report(plan: ViewPlan) -> dict[str, torch.Tensor]:
         return {"gensplat.applied": torch.zeros(R, dtype=torch.bool), "gensplat.axis": torch.zeros(R, dtype=torch.long),
                 "gensplat.theta_deg": torch.zeros(R), "gensplat.mu_m": torch.zeros(R), "gensplat.move": torch.zeros(R, ROW)}  # fmt: skip
     rows = torch.tensor(plan.rows)
+    moves = Moves.of_rows(rows)
     axis = [AXES.index(p.axis) if isinstance(p.axis, str) else -1 for p in plan.moves]
     return {"gensplat.applied": torch.ones(R, dtype=torch.bool), "gensplat.axis": torch.tensor(axis),
-            "gensplat.theta_deg": rows[:, 3], "gensplat.mu_m": rows[:, 4], "gensplat.move": rows}  # fmt: skip
+            "gensplat.theta_deg": moves.theta_deg.float(), "gensplat.mu_m": moves.mu_m.float(), "gensplat.move": rows}  # fmt: skip
 
 
 def _check_images(item: dict, keys: dict[str, str], cameras: tuple[str, ...]) -> None:

@@ -14,7 +14,9 @@ from gensplat_transforms.views.perturbation import (
     AXES,
     EVAL_LEVELS,
     LEVELS,
+    ROW,
     ArcSampler,
+    Moves,
     Perturbation,
     PerturbationRange,
     PerturbationSampler,
@@ -527,3 +529,18 @@ def test_a_turn_about_the_camera_keeps_its_centre_and_moves_the_image():
     torch.testing.assert_close(both[1], Perturbation("y", -5.0, 0.02).move(cams, 1).c2w[0], rtol=0, atol=1e-12)
     with pytest.raises(ValueError, match="Perturbation.about must be one of"):
         Perturbation("x", 1.0, about="world")
+
+
+def test_moves_read_a_row_by_name_for_any_batch_shape():
+    p = Perturbation((0.0, 3.0, 4.0), 12.0, -0.02, (0.01, 0.0, -0.03), 1.25, about="camera")
+    rows = torch.tensor([p.as_row()] * 6, dtype=torch.float32).reshape(2, 3, ROW)
+    m = Moves.of_rows(rows)
+    assert m.axis.shape == m.shift_m.shape == (2, 3, 3) and m.theta_deg.shape == (2, 3)
+    assert m.theta_deg.dtype == torch.float64
+    torch.testing.assert_close(m.axis[1, 2], torch.tensor([0.0, 0.6, 0.8], dtype=torch.float64))
+    torch.testing.assert_close(m.shift_m[0, 0], torch.tensor([0.01, 0.0, -0.03], dtype=torch.float64))
+    assert (m.theta_deg == 12.0).all() and (m.focal_scale == 1.25).all() and (m.pivot == 0).all()
+    torch.testing.assert_close(m.mu_m, torch.full((2, 3), -0.02, dtype=torch.float64), rtol=0, atol=1e-8)
+    for bad in (torch.zeros(2, ROW - 1), torch.zeros(()), [p.as_row()]):
+        with pytest.raises(ValueError, match=rf"Moves: need \(\.\.\., {ROW}\) rows"):
+            Moves.of_rows(bad)

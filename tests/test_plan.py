@@ -111,7 +111,7 @@ def test_move_rig_moves_any_batch_of_rigs_as_perturbation_move_moves_one(setup):
         assert moved.shape == (5, 1, 4, 4)
         for m in moved:
             assert torch.equal(m, p.move(cameras, 1).c2w)
-    with pytest.raises(ValueError, match=rf"moves must be \(\.\.\., R, {ROW}\) rows"):
+    with pytest.raises(ValueError, match=rf"Moves: need \(\.\.\., {ROW}\) rows"):
         move_rig(rigs, torch.zeros(5, 1, 3, dtype=torch.float64), [1])
 
 

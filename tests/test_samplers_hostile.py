@@ -19,6 +19,7 @@ from gensplat_transforms.views.perturbation import (
     ROW,
     SAMPLERS,
     MixSampler,
+    Moves,
     Perturbation,
     PerturbationRange,
     PerturbationSampler,
@@ -224,7 +225,8 @@ def test_a_pivot_of_nearly_parallel_axes_is_found_in_float64_whatever_the_poses_
     cameras = Cameras(CAMS.K.to(dtype), rig, 96, 80)
     move = Perturbation("z", 20.0, 0.02)
     moved = move.move(cameras, 0).c2w
-    exact = _move_rig(rig.double(), torch.tensor([move.as_row()], dtype=F64), [0])  # the same poses in float64
+    row = Moves.of_rows(torch.tensor([move.as_row()], dtype=F64))
+    exact = _move_rig(rig.double(), row, [0])  # the same poses in float64
     assert moved.dtype == dtype and float((moved.double() - exact).abs().max()) < 8 * torch.finfo(dtype).eps
 
 

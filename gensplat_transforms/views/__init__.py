@@ -2,13 +2,22 @@
 
 :mod:`.perturbation` (the perturbation protocol: ``PerturbationSampler`` and the other
 samplers, ``make_sampler``, ``Perturbation`` and its ``move`` about the rig's pivot,
-``move_rig`` for a batch, the named ``LEVELS``) and :mod:`.plan` (``ViewPlan``: whether an
+``Moves`` (a batch of moves by name), ``move_rig`` and ``move_cameras`` for a batch, the named ``LEVELS``) and :mod:`.plan` (``ViewPlan``: whether an
 item is augmented and each replaced camera's move, drawn once and replayable). Imports only
 the core; the transform's settings only as a type.
 """
 
-from .perturbation import LEVELS, Perturbation, PerturbationRange, PerturbationSampler, make_sampler, move_rig
+from .perturbation import (
+    LEVELS,
+    Moves,
+    Perturbation,
+    PerturbationRange,
+    PerturbationSampler,
+    make_sampler,
+    move_cameras,
+    move_rig,
+)
 from .plan import ViewPlan
 
-__all__ = ["LEVELS", "Perturbation", "PerturbationRange", "PerturbationSampler", "ViewPlan", "make_sampler",
-           "move_rig"]
+__all__ = ["LEVELS", "Moves", "Perturbation", "PerturbationRange", "PerturbationSampler", "ViewPlan", "make_sampler",
+           "move_cameras", "move_rig"]

@@ -61,6 +61,40 @@ ABOUT = ("pivot", "camera")
 FOCAL_SCALE_LIMITS = (1e-3, 1e3)
 
 
+@dataclass(frozen=True)
+class Moves:
+    """Camera moves of any batch shape (...), by name: what rows of :data:`ROW` floats
+    (:meth:`Perturbation.as_row`; the form items and batches carry, ``plan.BATCH_KEYS``) hold.
+
+    Attributes:
+        axis: (..., 3) unit rotation axis (world); theta_deg, mu_m: (...) the rotation and the
+            step forward; shift_m: (..., 3) the world shift; focal_scale: (...) the focal-length
+            factor; pivot: (...) 1 where the rotation turns about the rig's pivot, 0 about the
+            camera's own centre.
+
+    Example:
+        >>> m = Moves.of_rows(torch.tensor([Perturbation("x", 5.0, 0.02).as_row()]))
+        >>> m.theta_deg, m.axis
+        (tensor([5.], dtype=torch.float64), tensor([[1., 0., 0.]], dtype=torch.float64))
+    """
+
+    axis: torch.Tensor
+    theta_deg: torch.Tensor
+    mu_m: torch.Tensor
+    shift_m: torch.Tensor
+    focal_scale: torch.Tensor
+    pivot: torch.Tensor
+
+    @classmethod
+    def of_rows(cls, rows: torch.Tensor) -> Moves:
+        """The moves of (..., :data:`ROW`) rows, in float64."""
+        if not isinstance(rows, torch.Tensor) or rows.ndim < 1 or rows.shape[-1] != ROW:
+            shape = tuple(rows.shape) if isinstance(rows, torch.Tensor) else type(rows).__name__
+            raise ValueError(f"Moves: need (..., {ROW}) rows (Perturbation.as_row), got {shape}")
+        r = rows.to(torch.float64)
+        return cls(r[..., 0:3], r[..., 3], r[..., 4], r[..., 5:8], r[..., 8], r[..., 9])
+
+
 def _real(name: str, value) -> float:
     """``value`` as a float, or ``TypeError`` naming ``name`` unless it is a number (a bool or a
     string is not)."""
@@ -238,9 +272,9 @@ class Perturbation:
         The move is taken in float64 (as the batch path's rows), whatever the cameras' dtype."""
         if not 0 <= index < len(cameras):
             raise IndexError(f"Perturbation.move: camera index {index} outside 0..{len(cameras) - 1}")
-        move = torch.tensor([self.as_row()], dtype=torch.float64)
+        move = Moves.of_rows(torch.tensor([self.as_row()], dtype=torch.float64))
         c2w = _move_rig(cameras.c2w, move, [index], pivot_depth)  # a rigid motion of a checked pose
-        return cameras._derive(scale_focal(cameras.K[index : index + 1], move[:, 8]), c2w)
+        return cameras._derive(scale_focal(cameras.K[index : index + 1], move.focal_scale), c2w)
 
     def as_row(self) -> list[float]:
         """The move as one row of :data:`ROW` floats: axis direction (3), theta_deg, mu_m,
@@ -356,10 +390,8 @@ def move_rig(c2w: torch.Tensor, moves: torch.Tensor, views: Sequence[int], pivot
 
     Raises as :func:`perturb_pose` does.
     """
-    if moves.shape[-1] != ROW:
-        raise ValueError(f"move_rig: moves must be (..., R, {ROW}) rows (Perturbation.as_row), got {tuple(moves.shape)}")
     _floating("move_rig", c2w)
-    return _rigid("move_rig", _move_rig(c2w, moves, views, pivot_depth))
+    return _rigid("move_rig", _move_rig(c2w, Moves.of_rows(moves.to(c2w.device)), views, pivot_depth))
 
 
 def move_cameras(K: torch.Tensor, c2w: torch.Tensor, moves: torch.Tensor, views: Sequence[int],
@@ -368,11 +400,11 @@ def move_cameras(K: torch.Tensor, c2w: torch.Tensor, moves: torch.Tensor, views:
     (..., V, 3, 3) intrinsics ``K`` and (..., V, 4, 4) poses ``c2w``, each moved by its row of
     ``moves`` (..., R, :data:`ROW`): its pose by :func:`move_rig`, its focal length by
     :func:`scale_focal`. Raises as both do."""
-    moves = moves.to(c2w.device, torch.float64)
-    return scale_focal(K[..., list(views), :, :], moves[..., 8]), move_rig(c2w, moves, views, pivot_depth)
+    focal = Moves.of_rows(moves.to(c2w.device)).focal_scale
+    return scale_focal(K[..., list(views), :, :], focal), move_rig(c2w, moves, views, pivot_depth)
 
 
-def _move_rig(c2w: torch.Tensor, moves: torch.Tensor, views: Sequence[int], pivot_depth: float | None = None
+def _move_rig(c2w: torch.Tensor, moves: Moves, views: Sequence[int], pivot_depth: float | None = None
               ) -> torch.Tensor:  # fmt: skip
     """:func:`move_rig`, unchecked: the pivot and the moves in float64 (the pivot of nearly
     parallel axes loses digits in a coarser dtype), the poses returned in ``c2w``'s dtype. The
@@ -381,12 +413,12 @@ def _move_rig(c2w: torch.Tensor, moves: torch.Tensor, views: Sequence[int], pivo
     pose = c2w.to(torch.float64)
     if pivot_depth is not None:
         _check_pivot_depth(pivot_depth)
-    if bool((moves[..., 9] == 0).all()):
+    if bool((moves.pivot == 0).all()):
         pivot = pose[..., list(views), :3, 3]  # (..., R, 3): each camera's own centre
     else:
         pivot = rig_pivot(pose, pivot_depth)[..., None, :]  # (..., 1, 3)
-    return _perturb_pose(pose[..., list(views), :, :], pivot, moves[..., :3], moves[..., 3], moves[..., 4],
-                         moves[..., 5:8], moves[..., 9]).to(c2w.dtype)  # fmt: skip
+    return _perturb_pose(pose[..., list(views), :, :], pivot, moves.axis, moves.theta_deg, moves.mu_m, moves.shift_m,
+                         moves.pivot).to(c2w.dtype)  # fmt: skip
 
 
 def _floating(name: str, c2w: torch.Tensor) -> None:
