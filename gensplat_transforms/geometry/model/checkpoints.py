@@ -158,3 +158,19 @@ def resolve(source: str | Path) -> Path:
         raise ValueError(f"{source!r} is not a local directory and could not be fetched from the Hugging Face "
                          f"hub ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}); download it where "
                          "the hub is reachable and pass the directory") from e
+
+
+def check_state(model: nn.Module, state: dict[str, torch.Tensor], source: Path, what: str,
+                optional: tuple[str, ...] = ()) -> None:  # fmt: skip
+    """``ValueError`` naming the keys of ``state`` that do not fit ``model`` (missing but for
+    ``optional``, unexpected, of another shape): ``{source}: does not fit {what}: ...``."""
+    own = model.state_dict()
+    missing = sorted(k for k in own.keys() - state.keys() if k not in optional)
+    unexpected = sorted(state.keys() - own.keys())
+    wrong = [f"{k}: file {tuple(state[k].shape)} vs model {tuple(v.shape)}"
+             for k, v in own.items() if k in state and state[k].shape != v.shape]  # fmt: skip
+    problems = [f"{label} ({len(keys)}): {', '.join(keys[:5])}{', ...' if len(keys) > 5 else ''}"
+                for label, keys in [("missing keys", missing), ("unexpected keys", unexpected),
+                                    ("shape mismatches", wrong)] if keys]  # fmt: skip
+    if problems:
+        raise ValueError(f"{source}: does not fit {what}: " + "; ".join(problems))

@@ -34,7 +34,7 @@ from torch import nn
 
 from ...core.atomic import atomic_write, atomic_write_json
 from ...core.rotations import quat_to_rotmat
-from .checkpoints import CONFIG_FILE, WEIGHTS_FILE, resolve
+from .checkpoints import CONFIG_FILE, WEIGHTS_FILE, check_state, resolve
 from .config import PATCH_SIZE
 from .encoder import PatchEmbed
 from .layers import Block
@@ -435,15 +435,7 @@ class DepthAnything3(nn.Module):
                 state[name] = state[alias]
             elif name in state and alias in state and not torch.equal(state[name], state[alias]):
                 raise ValueError(f"{weights_file}: {name} differs from {alias}; DA3 shares one LayerNorm there")
-        own = model.state_dict()
-        missing, unexpected = sorted(own.keys() - state.keys()), sorted(state.keys() - own.keys())
-        wrong = [f"{k}: file {tuple(state[k].shape)} vs model {tuple(v.shape)}"
-                 for k, v in own.items() if k in state and state[k].shape != v.shape]  # fmt: skip
-        problems = [f"{label} ({len(keys)}): {', '.join(keys[:5])}{', ...' if len(keys) > 5 else ''}"
-                    for label, keys in [("missing keys", missing), ("unexpected keys", unexpected),
-                                        ("shape mismatches", wrong)] if keys]  # fmt: skip
-        if problems:
-            raise ValueError(f"{weights_file}: does not fit {model.config.name}: " + "; ".join(problems))
+        check_state(model, state, weights_file, model.config.name)
         model.load_state_dict(state)
         return model.to(device).eval()
 
