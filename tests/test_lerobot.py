@@ -455,7 +455,7 @@ def test_max_pixels_caches_the_geometry_path_at_the_models_smaller_size(dataset_
     assert start_message(ds, small).splitlines()[4] == (
         "  `gensplat cache` with --render-scale 0.5 renders what the policy reads, 24x24: 4.0x fewer pixels a view "
         "(render time falls about in proportion)")
-    with pytest.raises(SystemExit, match="--max-pixels need --reconstructor geometry or gensplat"):
+    with pytest.raises(SystemExit, match="--max-pixels need --reconstructor geometry, gensplat or monocular"):
         main(["cache", "--root", str(dataset_root), "--repo-id", REPO, "--max-pixels", "1000",
               "--reconstructor", "rgbd"])  # fmt: skip
 

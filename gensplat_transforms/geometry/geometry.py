@@ -53,6 +53,7 @@ from .model.checkpoints import CONFIG_FILE, FORMAT_NAME, read_config, resolve
 from .model.config import check_max_pixels
 from .model.da3 import DepthAnything3, is_da3_checkpoint
 from .model.frames import align_similarity, estimate_focal, transform_poses
+from .model.moge import is_moge_checkpoint
 from .rgbd import RGBDConfig, RGBDReconstructor, disc_identity
 
 SCALES = ("auto", "metric", "fit")
@@ -66,10 +67,12 @@ def is_gensplat_checkpoint(source: str | Path) -> bool:
 
 def weights_licence(source: str | Path = DEFAULT_MODEL_DIR) -> str:
     """The licence of a checkpoint's weights, read from its config (nothing loaded): Depth
-    Anything 3 Small/Base and the shipped model are Apache-2.0, Pi3's are CC BY-NC 4.0; a
+    Anything 3 Small/Base and the shipped model are Apache-2.0, MoGe-2's MIT, Pi3's CC BY-NC 4.0; a
     checkpoint trained with ``gensplat train-model`` carries its trainer's."""
     if is_da3_checkpoint(source):
         return "Apache-2.0 (Depth Anything 3)"
+    if is_moge_checkpoint(source):
+        return "MIT (MoGe-2)"
     if not is_gensplat_checkpoint(source):
         return "CC BY-NC 4.0 (Pi3's weights: non-commercial use only)"
     if resolve(source).resolve() == Path(DEFAULT_MODEL_DIR).resolve():

@@ -10,6 +10,7 @@ from ..weights import DEFAULT_MODEL_DIR
 from .base import Reconstructor
 from .feedforward import GenSplatReconstructor
 from .geometry import GeometryReconstructor
+from .monocular import MonocularReconstructor
 from .rgbd import RGBDReconstructor
 
 #: name -> factory(spec, device); ``spec`` as in :func:`make_reconstructor`
@@ -19,7 +20,16 @@ RECONSTRUCTORS: dict[str, Callable[[dict, torch.device | None], Reconstructor]] 
                                                            **spec.get("options", {})),
     "gensplat": lambda spec, device: GenSplatReconstructor(spec.get("model") or DEFAULT_MODEL_DIR, device=device,
                                                            **spec.get("options", {})),
+    "monocular": lambda spec, device: MonocularReconstructor(_model(spec), device=device, **spec.get("options", {})),
 }
+
+
+def _model(spec: dict) -> str:
+    """The MoGe-2 folder the "monocular" reconstructor needs (it has no default weights)."""
+    if not spec.get("model"):
+        raise ValueError("the monocular reconstructor needs model: a MoGe-2 checkpoint folder (model.pt of "
+                         "Ruicheng/moge-2-vits-normal or -vitl-normal, downloaded beforehand)")  # fmt: skip
+    return spec["model"]
 
 
 def make_reconstructor(spec: dict, device: torch.device | str | None = None) -> Reconstructor:
@@ -27,7 +37,8 @@ def make_reconstructor(spec: dict, device: torch.device | str | None = None) -> 
 
     ``spec``: ``{"name": "rgbd", "config": {RGBDConfig fields}}``, or ``{"name": "geometry" |
     "gensplat", "model": <weights directory or hub id; default: the shipped small model>,
-    "options": {keyword arguments}}``. ``device``: where a model runs (default: the CPU).
+    "options": {keyword arguments}}``, or ``{"name": "monocular", "model": <MoGe-2 folder>,
+    "options": {...}}``. ``device``: where a model runs (default: the CPU).
 
     Example:
         >>> make_reconstructor({"name": "rgbd", "config": {"sigma_px": 0.5}}).cfg.sigma_px

@@ -71,10 +71,11 @@ def build_parser() -> argparse.ArgumentParser:
                        help="rgbd: give pixels without depth within PIXELS of measured depth the farthest depth "
                             "around them before the discs are built, for a depth sensor's holes (e.g. 8; "
                             "benchmarks/nvs_fidelity.py, rgbd_sensor_depth_fill; default: 0, none)")
-    cache.add_argument("--reconstructor", choices=["rgbd", "geometry", "gensplat"], default=None,
+    cache.add_argument("--reconstructor", choices=["rgbd", "geometry", "gensplat", "monocular"], default=None,
                        help="rgbd: the dataset's depth; geometry: depth from a Pi3-compatible model, RGB-D discs; "
-                            "gensplat: the model's own Gaussian head (default: rgbd when the cameras have depth, "
-                            "else geometry)")
+                            "gensplat: the model's own Gaussian head; monocular: each image's metric depth from "
+                            "MoGe-2 (--model: its checkpoint folder), RGB-D discs (default: rgbd when the cameras "
+                            "have depth, else geometry)")
     cache.add_argument("--max-pixels", type=int, default=None,
                        help="geometry and gensplat: run the model on at most this many pixels per view, aspect kept "
                             "(benchmarks/geometry_resolution.py; default: geometry, the size the checkpoint was trained "
@@ -370,9 +371,13 @@ def _cache(args) -> None:
             raise SystemExit("gensplat cache: --fill-depth fills the holes of measured depth: it needs the rgbd "
                              "reconstructor and cameras with depth")  # fmt: skip
         spec = {"name": "rgbd", "config": {"fill_depth_px": args.fill_depth}}
+    if args.reconstructor == "monocular" and (not args.model or args.max_pixels is not None):
+        raise SystemExit("gensplat cache: --reconstructor monocular needs --model <MoGe-2 checkpoint folder> "
+                         "(model.pt as published) and takes no --max-pixels")  # fmt: skip
     if args.model or args.max_pixels is not None:
         if args.reconstructor == "rgbd":
-            raise SystemExit("gensplat cache: --model and --max-pixels need --reconstructor geometry or gensplat")
+            raise SystemExit("gensplat cache: --model and --max-pixels need --reconstructor geometry, gensplat or "
+                             "monocular")  # fmt: skip
         spec = {"name": args.reconstructor or "geometry", "model": args.model}
         if args.max_pixels is not None:
             spec["options"] = {"max_pixels": args.max_pixels}

@@ -249,6 +249,8 @@ def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructo
     reconstructor = reconstructor or default_reconstructor(source)
     if reconstructor["name"] == "gensplat" and shard.device.type == "cuda":
         rec = OnDevice(make_reconstructor(reconstructor), shard.device)
+    elif reconstructor["name"] == "monocular":  # it returns its depth on the CPU itself
+        rec = make_reconstructor(reconstructor, shard.device)
     elif reconstructor["name"] == "geometry":  # it returns its depth on the CPU itself
         options = {**reconstructor.get("options", {}), "batch_timesteps": batch_timesteps}
         rec = make_reconstructor({**reconstructor, "options": options}, shard.device)

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import functools
 import itertools
+import json
 import math
 import warnings
 from dataclasses import dataclass
@@ -750,3 +751,16 @@ def _read_official(path: Path) -> tuple[dict, dict[str, torch.Tensor]]:
     if not all(isinstance(v, torch.Tensor) for v in ckpt["model"].values()):
         raise ValueError(f"{path}: 'model' is not a state dict of tensors")
     return ckpt["model_config"], ckpt["model"]
+
+
+def is_moge_checkpoint(source: str | Path) -> bool:
+    """Whether a folder holds a MoGe-2 checkpoint: the published ``model.pt`` or the
+    ``config.json`` that :meth:`MoGe2.save_pretrained` writes (nothing is loaded)."""
+    folder = Path(source).expanduser()
+    if (folder / OFFICIAL_FILE).is_file():
+        return True
+    try:
+        meta = json.loads((folder / CONFIG_FILE).read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(meta, dict) and meta.get("architecture") == "moge-2"

@@ -1,0 +1,83 @@
+"""Gaussians from RGB only, one image at a time: MoGe-2's metric depth, discs by the RGB-D rule.
+
+MoGe-2 (:mod:`.model.moge`: MIT code and weights) predicts each view's metric point map from
+that image alone. Calibrated views give it their horizontal field of view (the point map is
+then fitted to the calibrated focal length; MoGe-2 assumes the principal point at the image
+centre) and keep their cameras; the depth is used as predicted, in metres. An uncalibrated
+timestep of one view gets MoGe-2's focal length, the principal point at the image centre and
+the camera at the world origin. A single-image model gives no relative pose, so an
+uncalibrated timestep of several views is refused: calibrate the cameras first (``gensplat
+calibrate``). Each view's scale is its own prediction: frames of one camera are not aligned to
+each other here.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import torch
+
+from ..core.cameras import Cameras
+from .base import DepthReconstructor, Reconstruction, Views
+from .feedforward import weights_hash
+from .model.moge import MoGe2, intrinsics_in_pixels
+from .rgbd import RGBDConfig, RGBDReconstructor, disc_identity
+
+
+class MonocularReconstructor(DepthReconstructor):
+    """Images (calibrated, or one uncalibrated view) -> MoGe-2 depth -> RGB-D surface discs.
+
+    Args:
+        model: a :class:`.model.moge.MoGe2` or its checkpoint folder (``model.pt`` as published,
+            or ``save_pretrained``'s pair); nothing is downloaded.
+        num_tokens: ViT patches per image (the official default: 3600, ``resolution_level`` 9;
+            fewer run faster and coarser).
+        discs: the surface-disc settings (``RGBDConfig``; default with ``soften_noise`` off, as
+            for the geometry reconstructor: model depth is smooth).
+        device: where the model runs (default: the CPU).
+
+    """
+
+    name = "monocular"
+
+    def __init__(self, model: MoGe2 | str | Path, *, num_tokens: int | None = None, discs: RGBDConfig | None = None,
+                 device: str | torch.device | None = None) -> None:  # fmt: skip
+        if not isinstance(model, MoGe2):
+            model = MoGe2.from_pretrained(model)
+        self.model = (model if device is None else model.to(device)).eval()
+        self.num_tokens = self.model.num_tokens() if num_tokens is None else num_tokens
+        if type(self.num_tokens) is not int or self.num_tokens < 1:
+            raise ValueError(f"MonocularReconstructor: num_tokens must be a positive integer, got {num_tokens!r}")
+        self.discs = RGBDReconstructor(discs or RGBDConfig(soften_noise=False))
+        self._weights = weights_hash(self.model)  # once: build a new reconstructor after changing weights
+
+    def config(self) -> dict:
+        return {"model": self.model.config.to_dict(), "weights": self._weights, "num_tokens": self.num_tokens,
+                "discs": disc_identity(self.discs.cfg)}  # fmt: skip
+
+    @torch.no_grad()
+    def predict_depth(self, views: Views) -> Views:
+        """The views with MoGe-2's depth (V, 1, H, W) in metres (0 off its mask) and their cameras
+        (the given ones, or for one uncalibrated view MoGe-2's), on the CPU."""
+        V, _, H, W = views.images.shape
+        if views.cameras is None and V > 1:
+            raise ValueError(f"MonocularReconstructor: {V} uncalibrated views; a single-image model gives no "
+                             "relative pose between them: calibrate the cameras first (gensplat calibrate)")  # fmt: skip
+        fov_x = None
+        if views.cameras is not None:
+            fx = views.cameras.K[:, 0, 0].double()
+            fov_x = torch.rad2deg(2 * torch.atan(W / (2 * fx))).float()
+        out = self.model.infer(views.images, num_tokens=self.num_tokens, fov_x=fov_x)
+        cameras = views.cameras
+        if cameras is None:
+            K = intrinsics_in_pixels(out["intrinsics"].double().cpu(), W, H)
+            fx = float(K[0, 0, 0])
+            if not (math.isfinite(fx) and fx > 0 and float(out["mask"].float().mean()) > 0):
+                raise ValueError(f"MonocularReconstructor: MoGe-2 gave no usable camera for this image (fx = {fx:g} "
+                                 "px, or nothing valid in its mask): give the camera's intrinsics (gensplat calibrate)")  # fmt: skip
+            cameras = Cameras(K, torch.eye(4, dtype=torch.float64)[None], W, H)
+        return Views(views.images, cameras, out["depth"][:, None].float().cpu())
+
+    def assemble(self, views: Views) -> Reconstruction:
+        return self.discs.assemble(views)
