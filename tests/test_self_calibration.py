@@ -647,3 +647,43 @@ def test_weights_licence_is_read_from_the_checkpoint(tmp_path):
         (tmp_path / name / "config.json").write_text(json.dumps(config))
         assert weights_licence(tmp_path / name).startswith(licence)
     assert weights_licence().startswith("Apache-2.0 (the small model shipped")
+
+
+class _SingleImage(_Model):
+    """A stand-in single-image model (MoGe-2's kind): one view per call, its own focal length."""
+
+    single_image = True
+
+    def predict_depth(self, views):
+        assert len(views.images) == 1 and views.cameras is None
+        out = super().predict_depth(views)
+        self.focal += 1.0  # each call its own camera: the views are predicted apart
+        return out
+
+
+def test_a_single_image_model_predicts_each_camera_alone():
+    step = {"a": (np.zeros((60, 80, 3), np.uint8), None), "b": (np.zeros((30, 40, 3), np.uint8), None)}
+    model = _SingleImage(focal=21.0, depth=1.5)
+    out = predict_cameras(model, ("a", "b"), [step])
+    assert model.seen == [(1, 3, 30, 30)] * 2
+    assert out.focals == pytest.approx([21.0 * 60 / 28, 22.0 * 30 / 28])
+    assert (out.depths[0]["b"][:, 5:35] == 1.5).all()
+
+
+def test_estimate_with_a_moge_checkpoint_uses_it_and_refuses_an_unusable_camera(simulated, tmp_path, capsys):
+    """``--model <MoGe-2 folder>`` runs the monocular reconstructor on each camera; random weights
+    predict a focal length below zero, which the estimate refuses, naming the model."""
+    from tiny_moge import TINY, randomize
+
+    from gensplat_transforms.geometry.model.moge import MoGe2, MoGe2Config
+
+    folder = randomize(MoGe2(MoGe2Config.from_dict({**TINY, "num_tokens_range": [16, 16]}))).save_pretrained(
+        tmp_path / "moge")  # fmt: skip
+    root = tmp_path / "rgb"
+    shutil.copytree(simulated, root, ignore=shutil.ignore_patterns("gensplat", "depth"))
+    _strip_calibration(root)
+    assert main(["calibrate", "--root", str(root), "--estimate", "--repo-id", REPO, "--timesteps", "2", "--model",
+                 str(folder), "--cameras", "left"]) == 2  # fmt: skip
+    err = capsys.readouterr().err
+    assert "prediction of cameras ['left'] is unusable (MonocularReconstructor: MoGe-2 gave no usable camera" in err
+    assert "Traceback" not in err and not calibration_path(root).exists()

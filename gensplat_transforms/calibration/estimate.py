@@ -132,7 +132,8 @@ class ModelPrediction:
 
 
 def predict_cameras(model, names: tuple[str, ...], timesteps: list[dict]) -> ModelPrediction:
-    """The focal lengths and depth ``model`` (a :class:`.geometry.GeometryReconstructor`)
+    """The focal lengths and depth ``model`` (a :class:`.geometry.GeometryReconstructor`, or a
+    single-image one such as :class:`.geometry.MonocularReconstructor`, run on each camera alone)
     predicts for cameras ``names`` at each of ``timesteps`` (``{name: (image (H, W, 3) uint8,
     ...)}``, as :func:`estimate_rig` takes them). The model sees the central square of every
     image (the aspect the shipped model was trained at; a crop keeps the focal length in
@@ -140,8 +141,6 @@ def predict_cameras(model, names: tuple[str, ...], timesteps: list[dict]) -> Mod
     at the image centre. Raises ValueError where its cameras are unusable (non-finite) or it
     predicts no depth for a camera."""
     import torch.nn.functional as F
-
-    from ..core.views import Views
 
     sides = [min(timesteps[0][n][0].shape[:2]) for n in names]
     focals, depths = [], []
@@ -152,7 +151,7 @@ def predict_cameras(model, names: tuple[str, ...], timesteps: list[dict]) -> Mod
             crops.append(F.interpolate(image[None], size=(min(sides),) * 2, mode="bilinear", antialias=True,
                                        align_corners=False)[0])  # fmt: skip
         try:
-            out = model.predict_depth(Views(torch.stack(crops).clamp(0, 1), None))
+            out = _predict(model, torch.stack(crops).clamp(0, 1))
         except ValueError as e:  # e.g. non-finite cameras
             raise ValueError(f"the geometry model's prediction of cameras {list(names)} is unusable ({e}): check "
                              "its weights and the images") from e  # fmt: skip
@@ -173,6 +172,22 @@ def predict_cameras(model, names: tuple[str, ...], timesteps: list[dict]) -> Mod
     median = focals.median(0).values
     spread = (focals / median - 1).abs().median(0).values
     return ModelPrediction(median.tolist(), spread.tolist(), depths)
+
+
+def _predict(model, crops: torch.Tensor):
+    """``model.predict_depth`` of one timestep's (V, 3, S, S) crops, uncalibrated: all at once, or
+    one at a time for a single-image model (``model.single_image``, e.g. MoGe-2's), whose views
+    share nothing."""
+    from ..core.cameras import Cameras
+    from ..core.views import Views
+
+    if not getattr(model, "single_image", False):
+        return model.predict_depth(Views(crops, None))
+    outs = [model.predict_depth(Views(crop[None], None)) for crop in crops]
+    first = outs[0].cameras
+    cameras = Cameras(torch.cat([o.cameras.K for o in outs]), torch.cat([o.cameras.c2w for o in outs]), first.width,
+                      first.height)  # fmt: skip
+    return Views(torch.cat([o.images for o in outs]), cameras, torch.cat([o.depths for o in outs]))
 
 
 def _central_square(image: np.ndarray) -> np.ndarray:

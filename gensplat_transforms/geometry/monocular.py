@@ -40,6 +40,10 @@ class MonocularReconstructor(DepthReconstructor):
     """
 
     name = "monocular"
+    #: each view is predicted alone (``calibration.estimate.predict_cameras`` runs it per camera)
+    single_image = True
+    #: its depth is in metres
+    metric = True
 
     def __init__(self, model: MoGe2 | str | Path, *, num_tokens: int | None = None, discs: RGBDConfig | None = None,
                  device: str | torch.device | None = None) -> None:  # fmt: skip

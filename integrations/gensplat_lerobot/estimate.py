@@ -209,12 +209,13 @@ def per_episode_rig(rigs: dict[int, RigEstimate]) -> RigEstimate:
 
 
 def _geometry_model(model: str | Path):
-    """The geometry reconstructor of checkpoint directory or hub id ``model``, with the error
-    a user can act on where it cannot be loaded."""
-    from gensplat_transforms.geometry import GeometryReconstructor
+    """The geometry reconstructor of checkpoint directory or hub id ``model`` (a MoGe-2 folder:
+    the monocular reconstructor), with the error a user can act on where it cannot be loaded."""
+    from gensplat_transforms.geometry import GeometryReconstructor, MonocularReconstructor
+    from gensplat_transforms.geometry.model.moge import is_moge_checkpoint
 
     try:
-        return GeometryReconstructor(model)
+        return MonocularReconstructor(model) if is_moge_checkpoint(model) else GeometryReconstructor(model)
     except (OSError, ValueError, KeyError) as e:
         raise ValueError(f"--model {model}: cannot load a geometry model from it ({e})") from e
 
