@@ -661,6 +661,15 @@ class _SingleImage(_Model):
         return out
 
 
+class _Doubling(_Model):
+    """A stand-in model whose focal length doubles with every call."""
+
+    def predict_depth(self, views):
+        out = super().predict_depth(views)
+        self.focal *= 2
+        return out
+
+
 def test_a_single_image_model_predicts_each_camera_alone():
     step = {"a": (np.zeros((60, 80, 3), np.uint8), None), "b": (np.zeros((30, 40, 3), np.uint8), None)}
     model = _SingleImage(focal=21.0, depth=1.5)
@@ -668,6 +677,10 @@ def test_a_single_image_model_predicts_each_camera_alone():
     assert model.seen == [(1, 3, 30, 30)] * 2
     assert out.focals == pytest.approx([21.0 * 60 / 28, 22.0 * 30 / 28])
     assert (out.depths[0]["b"][:, 5:35] == 1.5).all()
+    # a camera whose focal length the model doubles from one timestep to the next: 10, 20, 40
+    jumpy = _Doubling(focal=10.0, depth=1.5)
+    with pytest.raises(ValueError, match=r"focal lengths disagree across the sampled timesteps: camera\(s\) a \(50%\)"):
+        predict_cameras(jumpy, ("a",), [step, step, step])
 
 
 def test_estimate_with_a_moge_checkpoint_uses_it_and_refuses_an_unusable_camera(simulated, tmp_path, capsys):

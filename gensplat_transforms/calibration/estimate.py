@@ -113,6 +113,11 @@ class RigEstimate:
     episodes: dict[int, torch.Tensor] | None = None
 
 
+#: a geometry model's focal lengths of one camera may deviate from their median over the sampled
+#: timesteps by this much (the median relative deviation) before the estimate refuses them
+MAX_FOCAL_SPREAD = 0.2
+
+
 @dataclass
 class ModelPrediction:
     """What a geometry model predicts of the sampled timesteps (:func:`predict_cameras`).
@@ -138,8 +143,9 @@ def predict_cameras(model, names: tuple[str, ...], timesteps: list[dict]) -> Mod
     ...)}``, as :func:`estimate_rig` takes them). The model sees the central square of every
     image (the aspect the shipped model was trained at; a crop keeps the focal length in
     pixels), all cameras of a timestep in one pass, uncalibrated; the principal point is taken
-    at the image centre. Raises ValueError where its cameras are unusable (non-finite) or it
-    predicts no depth for a camera."""
+    at the image centre. Raises ValueError where its cameras are unusable (non-finite), it
+    predicts no depth for a camera, or a camera's focal lengths spread wider than
+    :data:`MAX_FOCAL_SPREAD` over the timesteps."""
     import torch.nn.functional as F
 
     sides = [min(timesteps[0][n][0].shape[:2]) for n in names]
@@ -171,6 +177,11 @@ def predict_cameras(model, names: tuple[str, ...], timesteps: list[dict]) -> Mod
                          "check its weights and the images")  # fmt: skip
     median = focals.median(0).values
     spread = (focals / median - 1).abs().median(0).values
+    wide = [f"{n} ({float(s):.0%})" for n, s in zip(names, spread) if not float(s) <= MAX_FOCAL_SPREAD]
+    if wide:
+        raise ValueError(f"the geometry model's focal lengths disagree across the sampled timesteps: camera(s) "
+                         f"{', '.join(wide)} deviate from their median by more than {MAX_FOCAL_SPREAD:.0%} (the "
+                         "median deviation): give the field of view (--fov) or the focal length (--focal)")  # fmt: skip
     return ModelPrediction(median.tolist(), spread.tolist(), depths)
 
 
