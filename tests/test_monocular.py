@@ -87,7 +87,7 @@ def test_a_checkpoint_folder_through_make_reconstructor(moge, tmp_path):
         MonocularReconstructor(tmp_path / "missing")
 
 
-def test_gensplat_cache_builds_a_depth_cache_with_it_and_refuses_it_without_a_model(moge, tmp_path):
+def test_gensplat_cache_builds_a_depth_cache_with_it_and_refuses_it_without_a_model(moge, tmp_path, capsys):
     pytest.importorskip("lerobot", reason="gensplat cache reads LeRobot datasets (the lerobot extra)")
     from gensplat_cli import main
     from gensplat_lerobot.scene_dataset import record_scene_dataset
@@ -101,3 +101,6 @@ def test_gensplat_cache_builds_a_depth_cache_with_it_and_refuses_it_without_a_mo
     main(["cache", "--root", str(root), "--repo-id", repo, "--reconstructor", "monocular", "--model", str(folder)])
     caches = list((root / "gensplat" / "cache").iterdir())
     assert len(caches) == 1 and any(caches[0].glob("*episode*"))
+    out = capsys.readouterr().out
+    assert "path: MoGe-2's metric depth of each image, then RGB-D discs;" in out and "ms per timestep built" in out
+    assert "licence MIT (MoGe-2)" in out

@@ -407,6 +407,9 @@ def _cache(args) -> None:
           f"process(es) in {seconds:.2f} s, {cpu_s:.2f} CPU s ({len(built) / seconds:.3f} episodes/s): "
           f"{frames} timesteps, {size_text(size)}, {size_text(size / max(frames, 1))} per timestep{per}")
     spec = load_settings(args.root)[1]
+    if frames:
+        print(f"path: {CACHE_PATHS.get(spec['name'], spec['name'])}; {1000 * seconds / frames:.1f} ms per timestep "
+              "built (reading, depth and encoding)")  # fmt: skip
     licence = read_json_object(content_path(args.root)).get("weights_licence")  # as prepare recorded it
     if licence is not None:
         from gensplat_transforms.weights import DEFAULT_MODEL_DIR
@@ -417,6 +420,12 @@ def _cache(args) -> None:
         print(f"tip: the depth of {', '.join(sensed)} is a sensor's (LeRobot depth maps): --fill-depth 8 gives its "
               "small holes depth before the discs are built (+5.01 dB PSNR at the source pose, +0.67 dB at large "
               "moves on a simulated RealSense; docs/reconstruction.md)")  # fmt: skip
+
+
+#: what each reconstructor's cache is made of (``gensplat cache`` says which path built it)
+CACHE_PATHS = {"rgbd": "RGB-D, the dataset's depth", "geometry": "a geometry model's depth, then RGB-D discs",
+               "monocular": "MoGe-2's metric depth of each image, then RGB-D discs",
+               "gensplat": "the GenSplat model's own Gaussians"}
 
 
 def _train_model(args) -> None:
