@@ -305,3 +305,18 @@ def test_every_sampler_and_depth_setting_renders_the_worker_views(tmp_path, samp
         torch.testing.assert_close(got[depth_key], expected[depth_key], atol=1e-4, rtol=2e-6)
     for key in (LEFT, RIGHT):  # every view was moved
         assert (got[key] - torch.stack([item[key] for item in items])).abs().amax((1, 2, 3)).min() > 0.01
+
+
+def test_render_scenes_refuses_cameras_that_do_not_divide_among_the_scenes(setup):
+    from gensplat_transforms.core.scenes import Scenes
+    from gensplat_transforms.rendering.scenes import render_scenes
+
+    cache, ds = setup
+    rec = cache.read(0, 0, ds.episodes.views(0, 0).images)
+    scenes = Scenes.of([rec, rec])
+    with pytest.raises(ValueError, match="render_scenes: 2 scenes need B x C cameras"):
+        render_scenes(scenes, rec.cameras[:1], GenSplatConfig())  # one camera for two scenes
+    out = render_scenes(scenes, Cameras(rec.cameras.K.repeat(2, 1, 1), rec.cameras.c2w.repeat(2, 1, 1), 32, 32),
+                        GenSplatConfig(), depth=True)  # fmt: skip
+    assert out.rgb.shape == (2, 2, 3, 32, 32) and out.depth[0].shape == (2, 1, 32, 32)
+    torch.testing.assert_close(out.rgb[0], out.rgb[1])  # one scene twice: the same views

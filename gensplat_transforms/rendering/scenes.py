@@ -79,6 +79,8 @@ def render_scenes(scenes: Scenes, cameras: Cameras, config: GenSplatConfig, *, d
             is installed, else ``config.backend`` scene by scene.
     """
     B = len(scenes)
+    if B == 0 or len(cameras) % B:
+        raise ValueError(f"render_scenes: {B} scenes need B x C cameras (C >= 1), got {len(cameras)}")
     C = len(cameras) // B
     depth = (depth,) * C if isinstance(depth, bool) else tuple(depth)
     sensors = tuple(sensors) if sensors is not None else (None,) * C
