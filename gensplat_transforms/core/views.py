@@ -170,8 +170,8 @@ def source_rays(means: torch.Tensor, origins: torch.Tensor) -> torch.Tensor:
 def pixel_rays(means: torch.Tensor, pixel_ids: torch.Tensor, centers: torch.Tensor, pixels: int) -> torch.Tensor:
     """:func:`source_rays` (N, 3) of pixel-aligned Gaussians (N, 3) from the centres (V, 3)
     of the cameras whose pixels (``pixel_ids // pixels``, ``pixels`` per view) they came
-    from. Float32 CPU means (a dataloader worker's) take a compiled pass, 0.4 ms per 100k
-    Gaussians on one thread; anything else tensor operations (1.7 ms there)."""
+    from. Float32 CPU means (a dataloader worker's) take a compiled pass; anything else
+    tensor operations."""
     if means.ndim != 2 or means.shape[1] != 3 or pixel_ids.shape != means.shape[:1] or centers.shape[-1:] != (3,):
         raise ValueError(f"pixel_rays: need means (N, 3), pixel_ids (N,) and centres (V, 3), got "
                          f"{tuple(means.shape)}, {tuple(pixel_ids.shape)}, {tuple(centers.shape)}")  # fmt: skip
@@ -209,8 +209,7 @@ def preferred_means(means: torch.Tensor, rays: torch.Tensor, center: torch.Tenso
     the camera whose view is closest to this one is drawn in front (front-to-back compositing
     sorts by depth), while the other's Gaussians still show where it alone saw the surface. At
     a source camera's own pose, its Gaussians stay put. One camera's (N, 3) float32 CPU means
-    (a dataloader worker's) take a compiled pass, 0.45 ms per 100k Gaussians on one thread;
-    anything else the tensor rule below (1.7 ms there)."""
+    (a dataloader worker's) take a compiled pass; anything else the tensor rule below."""
     if means.shape != rays.shape:
         raise ValueError(f"preferred_means: means {tuple(means.shape)} and rays {tuple(rays.shape)} differ in shape")
     if (means.ndim == 2 and center.ndim == 1 and means.device.type == "cpu" and means.dtype == torch.float32
@@ -240,7 +239,7 @@ def _prefer(means, rays, cx, cy, cz, strength, full, out):
 
 def _preferred_means_cpu(means: torch.Tensor, rays: torch.Tensor, center: torch.Tensor, strength: float) -> torch.Tensor:
     """:func:`preferred_means` for one camera, compiled, for (N, 3) float32 CPU tensors (a
-    dataloader worker's Gaussians): about 4x faster than the tensor operations."""
+    dataloader worker's Gaussians)."""
     m, r = means.contiguous().numpy(), rays.contiguous().numpy()
     out = np.empty_like(m)
     cx, cy, cz = (np.float32(c) for c in center.reshape(3).tolist())

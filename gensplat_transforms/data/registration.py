@@ -10,9 +10,8 @@ transform and projected) fills the colour pixels whose centres it covers with it
 along the colour camera's axis; where footprints overlap the nearest wins; colour pixels
 no footprint reaches get 0 (no depth).
 
-The rule runs as one compiled (numba) pass over the depth pixels, in float64 (about 4 ms per
-640x480 view on one thread; see ``benchmarks/depth_registration.py``), since it runs once
-per camera and timestep when a cache is built.
+The rule runs as one compiled (numba) pass over the depth pixels, in float64, since it runs
+once per camera and timestep when a cache is built (its cost: ``benchmarks/depth_registration.py``).
 """
 
 from __future__ import annotations

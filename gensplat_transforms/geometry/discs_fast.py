@@ -3,7 +3,7 @@
 The same per-pixel rule as ``rgbd._surface_step`` and ``rgbd._disc_shape`` (see the module
 docstring of :mod:`.rgbd`), fused into one pass over each image row instead of some 150
 full-image tensor operations, so that a dataloader worker can rebuild a timestep's
-Gaussians from cached depth for every sample (two 224x224 views: about 2 ms on one thread).
+Gaussians from cached depth for every sample.
 
 Each row is computed in blocks of pixels by a branch-free loop (every condition a select)
 in float32 lanes only, which the compiler turns into SIMD code of the machine's full width;
