@@ -104,3 +104,31 @@ def test_gensplat_cache_builds_a_depth_cache_with_it_and_refuses_it_without_a_mo
     out = capsys.readouterr().out
     assert "path: MoGe-2's metric depth of each image, then RGB-D discs;" in out and "ms per timestep built" in out
     assert "licence MIT (MoGe-2)" in out
+
+
+def test_the_frames_of_a_run_are_aligned_in_scale_to_its_first_frames(moge, views, monkeypatch):
+    """Frame k of a run predicted at (1 + 0.1 k) times one depth: the run's frames come out at one
+    scale (the median of its first frames'), beyond the first ALIGN_FRAMES too; one timestep alone
+    keeps its own; a camera with almost no depth is left as predicted."""
+    from gensplat_transforms.geometry import monocular
+
+    base = torch.linspace(0.5, 1.5, 28 * 28).reshape(28, 28)
+    calls = []
+
+    def wavering(images, **kwargs):
+        k = len(calls)
+        calls.append(k)
+        depth = base.expand(len(images), 28, 28) * (1 + 0.1 * k)
+        depth = torch.where(torch.arange(len(images))[:, None, None] == 1, depth * (base > 1.49), depth)  # view 1: sparse
+        return {"depth": depth, "mask": depth > 0, "intrinsics": None}
+
+    monkeypatch.setattr(moge, "infer", wavering)
+    rec = MonocularReconstructor(moge)
+    frames = list(rec.predict_depths(views for _ in range(monocular.ALIGN_FRAMES + 4)))
+    assert len(frames) == monocular.ALIGN_FRAMES + 4
+    median = 1 + 0.1 * 7  # of the first 16 frames' factors 1.0 .. 2.5 (torch: the lower middle one)
+    for f in frames:
+        torch.testing.assert_close(f.depths[0, 0], base * median)
+    assert not torch.equal(frames[0].depths[1], frames[-1].depths[1])  # too little depth to align: as predicted
+    alone = rec.predict_depth(views).depths[0, 0]
+    torch.testing.assert_close(alone, base * (1 + 0.1 * len(calls[:-1])))  # its own scale

@@ -59,7 +59,9 @@ class DepthReconstructor(Reconstructor):
         """:meth:`predict_depth` of each of ``views`` (timesteps, in order), yielded as they come:
         the views are read lazily, so that a caller consuming the results one at a time holds
         one timestep (a batching subclass: one batch). Subclasses may run several timesteps at
-        once; what they yield must be what :meth:`predict_depth` returns."""
+        once; what they yield must be what :meth:`predict_depth` returns, but for a scale
+        aligned across the run's frames where a single timestep's is its own (the monocular
+        reconstructor's)."""
         for v in views:
             yield self.predict_depth(v)
 

@@ -7,13 +7,21 @@ centre) and keep their cameras; the depth is used as predicted, in metres. An un
 timestep of one view gets MoGe-2's focal length, the principal point at the image centre and
 the camera at the world origin. A single-image model gives no relative pose, so an
 uncalibrated timestep of several views is refused: calibrate the cameras first (``gensplat
-calibrate``). Each view's scale is its own prediction: frames of one camera are not aligned to
-each other here.
+calibrate``).
+
+A single image's metric scale is its own prediction, which wavers from frame to frame. The
+frames of one run (:meth:`MonocularReconstructor.predict_depths`: a cache build's episode) are
+aligned to each other: each camera's reference is the per-pixel median depth of the run's first
+:data:`ALIGN_FRAMES` frames, and every frame's depth is divided by the median ratio of its
+depth to the reference where both have depth (moving parts, a minority of the pixels, do not
+move the median). :meth:`~MonocularReconstructor.predict_depth` of one timestep is its own
+prediction, unaligned.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import torch
@@ -23,6 +31,11 @@ from .base import DepthReconstructor, Reconstruction, Views
 from .feedforward import weights_hash
 from .model.moge import MoGe2, intrinsics_in_pixels
 from .rgbd import RGBDConfig, RGBDReconstructor, disc_identity
+
+#: frames of a run whose per-pixel median depth is each camera's reference scale
+ALIGN_FRAMES = 16
+#: the share of a view's pixels that must have depth in a frame and its reference to align it
+MIN_SHARED = 0.05
 
 
 class MonocularReconstructor(DepthReconstructor):
@@ -83,5 +96,44 @@ class MonocularReconstructor(DepthReconstructor):
             cameras = Cameras(K, torch.eye(4, dtype=torch.float64)[None], W, H)
         return Views(views.images, cameras, out["depth"][:, None].float().cpu())
 
+    def predict_depths(self, views: Iterable[Views]) -> Iterator[Views]:
+        """:meth:`predict_depth` of each of ``views`` (the timesteps of one run, in order), each
+        camera's depth aligned in scale to the run's first frames (module docstring). Holds at
+        most :data:`ALIGN_FRAMES` timesteps."""
+        first, reference = [], None
+        for v in views:
+            out = self.predict_depth(v)
+            if reference is not None:
+                yield _aligned(out, reference)
+                continue
+            first.append(out)
+            if len(first) == ALIGN_FRAMES:
+                reference = _reference(first)
+                yield from (_aligned(o, reference) for o in first)
+        if reference is None and first:
+            reference = _reference(first)
+            yield from (_aligned(o, reference) for o in first)
+
     def assemble(self, views: Views) -> Reconstruction:
         return self.discs.assemble(views)
+
+
+def _reference(frames: list[Views]) -> torch.Tensor:
+    """(V, 1, H, W) per-pixel median of the frames' depth where they have it (0 where none has)."""
+    depth = torch.stack([f.depths for f in frames])  # (F, V, 1, H, W)
+    return torch.nanmedian(torch.where(depth > 0, depth, torch.nan), 0).values.nan_to_num(0.0)
+
+
+def _aligned(frame: Views, reference: torch.Tensor) -> Views:
+    """``frame`` with each camera's depth divided by the median ratio of it to ``reference`` on
+    the pixels both have (unchanged where they share fewer than ``MIN_SHARED`` of its pixels)."""
+    if reference.shape != frame.depths.shape:
+        raise ValueError(f"MonocularReconstructor: the views of one run must share their shape, got "
+                         f"{tuple(frame.depths.shape)} after {tuple(reference.shape)}")  # fmt: skip
+    depths = frame.depths.clone()
+    for c in range(len(depths)):
+        both = (depths[c] > 0) & (reference[c] > 0)
+        if both.float().mean() >= MIN_SHARED:
+            depths[c] /= (depths[c][both] / reference[c][both]).median()
+    return Views(frame.images, frame.cameras, depths)
+
