@@ -97,6 +97,15 @@ def test_gensplat_cache_builds_a_depth_cache_with_it_and_refuses_it_without_a_mo
     with pytest.raises(SystemExit, match="--reconstructor monocular needs --model <MoGe-2 checkpoint folder>"):
         main(["cache", "--root", str(root), "--repo-id", repo, "--reconstructor", "monocular"])
     assert not (root / "gensplat").exists()  # refused before anything was written
+    truncated = tmp_path / "truncated"
+    truncated.mkdir()
+    (truncated / "model.pt").write_bytes(b"PK\x03\x04 cut short")
+    for model, message in ((tmp_path / "missing", "no such directory"), (truncated, "not a readable torch checkpoint")):
+        capsys.readouterr()
+        assert main(["cache", "--root", str(root), "--repo-id", repo, "--reconstructor", "monocular", "--model",
+                     str(model)]) == 2  # fmt: skip
+        err = capsys.readouterr().err
+        assert err.startswith("gensplat: error: ") and message in err and "Traceback" not in err
     folder = moge.save_pretrained(tmp_path / "moge")
     main(["cache", "--root", str(root), "--repo-id", repo, "--reconstructor", "monocular", "--model", str(folder)])
     caches = list((root / "gensplat" / "cache").iterdir())

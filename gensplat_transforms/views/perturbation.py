@@ -400,8 +400,10 @@ def move_cameras(K: torch.Tensor, c2w: torch.Tensor, moves: torch.Tensor, views:
     (..., V, 3, 3) intrinsics ``K`` and (..., V, 4, 4) poses ``c2w``, each moved by its row of
     ``moves`` (..., R, :data:`ROW`): its pose by :func:`move_rig`, its focal length by
     :func:`scale_focal`. Raises as both do."""
-    focal = Moves.of_rows(moves.to(c2w.device)).focal_scale
-    return scale_focal(K[..., list(views), :, :], focal), move_rig(c2w, moves, views, pivot_depth)
+    _floating("move_cameras", c2w)
+    m = Moves.of_rows(moves.to(c2w.device))
+    return scale_focal(K[..., list(views), :, :], m.focal_scale), _rigid("move_cameras", _move_rig(c2w, m, views,
+                                                                                                  pivot_depth))
 
 
 def _move_rig(c2w: torch.Tensor, moves: Moves, views: Sequence[int], pivot_depth: float | None = None
