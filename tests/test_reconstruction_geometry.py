@@ -100,7 +100,7 @@ def test_a_pi3_checkpoint_directory_loads_by_path_and_through_the_registry(tmp_p
 
 
 def test_registry_names_every_reconstructor():
-    assert sorted(RECONSTRUCTORS) == ["gensplat", "geometry", "rgbd"]
+    assert sorted(RECONSTRUCTORS) == ["gensplat", "geometry", "monocular", "rgbd"]
     assert isinstance(make_reconstructor({"name": "rgbd"}), RGBDReconstructor)
     with pytest.raises(ValueError, match="available"):
         make_reconstructor({"name": "nope"})
