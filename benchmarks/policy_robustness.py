@@ -366,13 +366,16 @@ def train_command(arm: str, root: Path, out: Path, config: Path, args) -> list[s
 
 
 def record_dataset(work: Path, args) -> None:
-    """Record the demonstrations into ``work/dataset`` unless a whole recording is there."""
-    root = work / "dataset"
-    if (root / "meta" / "info.json").is_file():
+    """Record the demonstrations into ``work/dataset`` unless it is there. The recording is made
+    in ``work/dataset.partial`` and renamed when whole, so a run killed while recording leaves no
+    ``work/dataset`` (LeRobot writes ``meta/info.json`` first: its presence proves nothing)."""
+    root, partial = work / "dataset", work / "dataset.partial"
+    if root.is_dir():
         return
-    shutil.rmtree(root, ignore_errors=True)
-    res = record(RecordConfig(root, args.task, args.demos, args.seed, use_videos=False, repo_id=repo_id(args.task),
+    shutil.rmtree(partial, ignore_errors=True)
+    res = record(RecordConfig(partial, args.task, args.demos, args.seed, use_videos=False, repo_id=repo_id(args.task),
                               world=WorldConfig(height=args.size, width=args.size)), progress=False)  # fmt: skip
+    partial.rename(root)
     print(f"recorded {res.episodes} demonstrations, {res.frames} frames, in {res.seconds:.0f} s", flush=True)
 
 

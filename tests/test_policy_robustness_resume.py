@@ -42,6 +42,28 @@ def test_a_stopped_training_resumes_from_its_last_checkpoint(tmp_path, monkeypat
     assert pr.train("baseline", root, out, args) == timing  # finished: not trained again
 
 
+def test_a_recording_killed_midway_is_not_taken_for_a_dataset(tmp_path, monkeypatch):
+    args = pr.parse_args(["--quick", "--size", "48", "--demos", "2", "--work", str(tmp_path)])
+
+    def killed(config, progress):  # LeRobot writes meta/info.json first, then the episodes
+        (config.root / "meta").mkdir(parents=True)
+        (config.root / "meta" / "info.json").write_text("{}")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pr, "record", killed)
+    with pytest.raises(KeyboardInterrupt):
+        pr.record_dataset(tmp_path, args)
+    assert not (tmp_path / "dataset").exists()
+    monkeypatch.undo()
+    pr.record_dataset(tmp_path, args)  # starts over in a clean partial folder
+    root = tmp_path / "dataset"
+    assert not (tmp_path / "dataset.partial").exists()
+    info = json.loads((root / "meta" / "info.json").read_text())
+    assert info["total_episodes"] == 2
+    texts = [p.read_text(errors="ignore") for p in root.rglob("*.json")]
+    assert texts and not any("dataset.partial" in t for t in texts)  # nothing points at the old name
+
+
 def test_a_damaged_checkpoint_step_is_reported_not_retrained(tmp_path):
     last = tmp_path / "checkpoints" / "last"
     (last / "pretrained_model").mkdir(parents=True)
