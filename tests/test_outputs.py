@@ -5,6 +5,7 @@ record`` refuses bad sizes up front and leaves no partial dataset when it fails.
 import hashlib
 import os
 import shutil
+import stat
 
 import pytest
 
@@ -152,6 +153,19 @@ def test_a_folder_for_a_file_or_a_file_for_a_folder_is_a_clear_error(cached, tmp
     refused(capsys, ["record", "--out", str(a_file / "ds")], "is a file, not a folder")
     assert a_file.read_text() == "mine"
 
+
+
+def test_a_device_or_pipe_for_a_file_is_refused_not_replaced(cached, tmp_path, capsys):
+    """``--out /dev/null`` (run as root) replaced the device with a regular file: an output that
+    is not a regular file is refused and stays what it is; here a named pipe stands in for it."""
+    pipe = tmp_path / "pipe.ply"
+    os.mkfifo(pipe)
+    refused(capsys, ply_args(cached, pipe), "is not a regular file (a device, a pipe or a socket)")
+    (tmp_path / "p").mkdir()
+    os.mkfifo(tmp_path / "p" / "preview.mp4")
+    refused(capsys, ["preview", "--root", str(cached), "--repo-id", REPO, "--draws", "1", "--out",
+                     str(tmp_path / "p")], "is not a regular file")  # fmt: skip
+    assert stat.S_ISFIFO(os.lstat(pipe).st_mode) and stat.S_ISFIFO(os.lstat(tmp_path / "p" / "preview.mp4").st_mode)
 
 @pytest.mark.parametrize(
     ("options", "message"),

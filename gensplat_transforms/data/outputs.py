@@ -5,7 +5,8 @@ when it lies inside the dataset the command reads, taken literally or with every
 in it followed (a final one included), except under ``<dataset>/gensplat/``, GenSplat's own
 folder (which may be a link to another disk), where the entries GenSplat keeps itself
 (``GENSPLAT_OWNED``: settings, calibration, cache, ...) are refused too; a folder where a file
-is expected, or a file where a folder is expected (or in the way of one), is refused as well.
+is expected, a file where a folder is expected (or in the way of one), and a device, pipe or
+socket where a file is written (the rename would replace ``/dev/null`` itself) are refused as well.
 Files are then written with :func:`.atomic.atomic_write`, which replaces a symbolic link instead
 of writing through it. GenSplat's own folders below ``<dataset>/gensplat/`` (the cache) are used
 only where every link in them followed keeps them in the real ``gensplat/`` folder
@@ -41,6 +42,9 @@ def check_output(path: str | Path, dataset: str | Path | None = None, folder: bo
                                  "output never replaces: give another output path")  # fmt: skip
     if not folder and path.is_dir():
         raise ValueError(f"{path} is a folder: give the name of a file to write")
+    if not folder and os.path.lexists(path) and not (path.is_symlink() or path.is_file()):
+        raise ValueError(f"{path} is not a regular file (a device, a pipe or a socket), which the output would "
+                         "replace: give the path of a file to write")  # fmt: skip
     for p in ([path] if folder else []) + list(path.parents):
         if p.exists() and not p.is_dir():
             raise ValueError(f"{p} is a file, not a folder: give another path than {path}")
