@@ -144,6 +144,22 @@ def novel_views(calibrated: LeRobotSource, estimated: LeRobotSource, truth: Grou
                     for name, v in by.items()} for level, by in rows.items()}  # fmt: skip
 
 
+def heldout_run(args, work: Path) -> tuple[Path, LeRobotSource, GroundTruth, list[tuple[int, int]]]:
+    """The recording a run scores on: ``args.root``, or held-out episodes recorded into ``work``
+    (480x640 MP4, 3 episodes; 240x320, 1 with ``args.quick``); its calibrated source, its truth
+    and the frames the novel views are scored at (two inner frames per episode)."""
+    root = args.root
+    if root is None:
+        height, width, episodes = (240, 320, 1) if args.quick else (480, 640, 3)
+        root = work / "recorded"
+        record(RecordConfig(root, "pick_place", episodes, HELDOUT_SEED, repo_id=REPO,
+                            world=WorldConfig(height=height, width=width)), progress=False)  # fmt: skip
+    calibrated = LeRobotSource(root, REPO, NAMES)
+    total = calibrated.dataset.meta.total_episodes
+    frames = [(ep, round(k * (calibrated.num_frames(ep) - 1) / 3)) for ep in range(total) for k in (1, 2)]
+    return root, calibrated, GroundTruth(root), frames
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="240x320, 1 episode, 4 timesteps, 1 draw, 4 variants")
@@ -155,17 +171,9 @@ def main() -> None:
     args.out = args.out or default_out("", args.quick)
     torch.set_num_threads(1)
     work = Path(tempfile.mkdtemp(prefix="self_calibration_"))
-    height, width, episodes = (240, 320, 1) if args.quick else (480, 640, 3)
-    timesteps, draws = (4, 1) if args.quick else (args.timesteps, args.draws)
-    root = args.root
-    if root is None:
-        root = work / "recorded"
-        record(RecordConfig(root, "pick_place", episodes, HELDOUT_SEED, repo_id=REPO,
-                            world=WorldConfig(height=height, width=width)), progress=False)  # fmt: skip
-    calibrated = LeRobotSource(root, REPO, NAMES)
-    truth = GroundTruth(root)
+    root, calibrated, truth, frames = heldout_run(args, work)
     total = calibrated.dataset.meta.total_episodes
-    frames = [(ep, round(k * (calibrated.num_frames(ep) - 1) / 3)) for ep in range(total) for k in (1, 2)]
+    timesteps, draws = (4, 1) if args.quick else (args.timesteps, args.draws)
     result = {}
     K, c2w = calibrated.cameras.K, calibrated.cameras.c2w
     fov = math.degrees(2 * math.atan(calibrated.cameras.width / 2 / float(K[0, 0, 0])))

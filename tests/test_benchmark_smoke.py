@@ -11,8 +11,8 @@ modules. gpu_checks.sh runs on CUDA machines only.
 
 The module is marked ``slow`` (``pytest -m "not slow"`` leaves it out): about 5 minutes on a
 2-core CPU, 4:43 beside another training job with the DROID sample absent (real_geometry.py adds
-30 s); self_calibration.py (four estimates) and training_throughput.py (two lerobot-train runs)
-take about 45 s each.
+30 s); self_calibration.py (four estimates), monocular_path.py (two) and training_throughput.py
+(two lerobot-train runs) take about 45-60 s each.
 """
 
 from __future__ import annotations
@@ -282,6 +282,24 @@ def test_self_calibration(tmp_path):
         assert r["rotation_error_deg"] < 5 and r["matches"] >= 30 and max(r["focal_error"]) < 0.2
         assert set(r["novel_views"]) == LEVELS and positive(r["novel_views"]["large"]["estimated"]["psnr"])
     assert "estimated_geometry" in result["rgb_model"]["novel_views"]["large"]
+
+
+def test_monocular_path(tmp_path):
+    needs_sim()
+    needs_lerobot()
+    result = quick("monocular_path.py", tmp_path, name="monocular_path.json")
+    assert set(result) == {"perfect", "noisy", "network_cost", "settings"}
+    perfect, noisy = result["perfect"], result["noisy"]
+    assert perfect["max_lookup_distance"] == 0 == noisy["max_lookup_distance"]  # the oracle found every image
+    # the truth through MoGe-2's focal recovery: the focal lengths exact, the pose as well as the matches allow
+    assert max(perfect["focal_error"]) < 1e-3 and perfect["rotation_error_deg"] < 2 and perfect["scale_error"] < 0.05
+    for level in LEVELS - {"none"}:
+        nv = perfect["novel_views"][level]
+        assert abs(nv["monocular"]["psnr"] - nv["rgbd_true"]["psnr"]) < 1.0  # true depth through the RGB-only path
+        assert nv["monocular_unaligned"] == nv["monocular"]  # perfect scales: the alignment changes nothing
+        assert positive(noisy["novel_views"][level]["monocular"]["psnr"])
+    assert noisy["scale_noise"] > 0 and noisy["novel_views"]["large"]["monocular_unaligned"] != \
+        noisy["novel_views"]["large"]["monocular"]
 
 
 def test_training_step(tmp_path):

@@ -21,18 +21,20 @@ import warnings
 import pytest
 import torch
 from safetensors.torch import load_file, save_file
-from tiny_moge import TINY, official_config, randomize
+from tiny_moge import TINY, randomize
 
 from gensplat_transforms.geometry.model.moge import (
     MoGe2,
+    VITL_CONFIG,
     MoGe2Config,
     intrinsics_in_pixels,
+    model_config,
     recover_focal_shift,
     token_grid,
 )
 
 #: the released MoGe-2 ViT-L (normal) architecture, configs/train/v2.json
-VITL = official_config("dinov2_vitl14", [1024, 256, 128, 64, 32], [1024, 1024, 1024, 1], [5, 11, 17, 23])
+VITL = VITL_CONFIG
 #: a subset of the ViT-L state dict: (key, shape) as the official modules name and shape them
 VITL_KEYS = {
     "encoder.image_mean": (1, 3, 1, 1),
@@ -99,7 +101,7 @@ def test_state_dict_matches_the_official_layout():
     assert {k: tuple(state[k].shape) for k in VITL_KEYS if k in state} == VITL_KEYS
     assert not set(VITL_ABSENT) & state.keys()
     assert (len(state), sum(v.numel() for v in state.values())) == VITL_TOTALS
-    reg = official_config("dinov2_vits14_reg", [384, 64, 32, 16, 8], [384, 1], 4, normal=False)
+    reg = model_config("dinov2_vits14_reg", [384, 64, 32, 16, 8], [384, 1], 4, normal=False)
     with torch.device("meta"):
         state = MoGe2(MoGe2Config.from_dict(reg)).state_dict()
     assert state["encoder.backbone.register_tokens"].shape == (1, 4, 384)

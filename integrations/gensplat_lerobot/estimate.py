@@ -32,6 +32,7 @@ from gensplat_transforms.data.format import (
     load_depth,
 )
 from gensplat_transforms.data.outputs import gensplat_folder
+from gensplat_transforms.geometry.base import DepthReconstructor
 
 from .source import _is_depth_map, episode_table, read_info, video_backend
 
@@ -58,7 +59,8 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
                          timesteps: int = 16, progress: bool = True, fov_deg: float | None = None,
                          focal_px: float | None = None, baseline_m: float | None = None,
                          table_m: float | None = None, principal_point: list | None = None,
-                         model: str | Path | None = None, per_episode: bool = False) -> RigEstimate:
+                         model: str | Path | DepthReconstructor | None = None,
+                         per_episode: bool = False) -> RigEstimate:
     """Estimate the external ``cameras`` (default: every colour camera whose name does not
     contain "wrist"; the first is the reference) of the dataset at ``root`` from ``timesteps``
     frames spread over its episodes and write ``<root>/gensplat/calibration.json``.
@@ -69,7 +71,8 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
     (``fov_deg``, the horizontal field of view, or ``focal_px``) and so is one distance for the
     scale (``baseline_m`` between the first two cameras, or ``table_m`` from the first camera
     down to the table), or ``model``, a geometry model's checkpoint directory or hub id
-    (:class:`~gensplat_transforms.geometry.GeometryReconstructor`), predicts the focal
+    (:class:`~gensplat_transforms.geometry.GeometryReconstructor`; a MoGe-2 folder:
+    :class:`~gensplat_transforms.geometry.MonocularReconstructor`) or such a reconstructor, predicts the focal
     lengths (:func:`~gensplat_transforms.calibration.estimate.predict_cameras`) and, where it is
     metric and no distance is given, the scale (and one camera's table). ``principal_point``:
     (cx, cy) in pixels (pixel centres at +0.5, the image centre (W / 2, H / 2); OpenCV's cx +
@@ -208,22 +211,28 @@ def per_episode_rig(rigs: dict[int, RigEstimate]) -> RigEstimate:
                                episodes={e: r.c2w for e, r in rigs.items()})  # fmt: skip
 
 
-def _geometry_model(model: str | Path):
+def _geometry_model(model: str | Path | DepthReconstructor) -> DepthReconstructor:
     """The geometry reconstructor of checkpoint directory or hub id ``model`` (a MoGe-2 folder:
-    the monocular reconstructor), with the error a user can act on where it cannot be loaded."""
+    the monocular reconstructor; a reconstructor as it is), with the error a user can act on
+    where it cannot be loaded."""
     from gensplat_transforms.geometry import GeometryReconstructor, MonocularReconstructor
     from gensplat_transforms.geometry.model.moge import is_moge_checkpoint
 
+    if isinstance(model, DepthReconstructor):
+        return model
     try:
         return MonocularReconstructor(model) if is_moge_checkpoint(model) else GeometryReconstructor(model)
     except (OSError, ValueError, KeyError) as e:
         raise ValueError(f"--model {model}: cannot load a geometry model from it ({e})") from e
 
 
-def _model_record(model: str | Path) -> dict:
-    """The geometry model an estimate used: where from, and its weights' licence."""
+def _model_record(model: str | Path | DepthReconstructor) -> dict:
+    """The geometry model an estimate used: where from, and its weights' licence (unknown for a
+    reconstructor passed as an object)."""
     from gensplat_transforms.geometry.geometry import weights_licence
 
+    if isinstance(model, DepthReconstructor):
+        return {"source": f"{type(model).__name__} object", "licence": "unknown (passed as an object)"}
     return {"source": str(model), "licence": weights_licence(model)}
 
 

@@ -120,6 +120,34 @@ class ConvStackConfig:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in self.__dict__.items()}
 
 
+def _conv_stack_dict(dims: list[int], dim_in: list[int | None], dim_out: list[int | None] | None) -> dict:
+    """An official ``ConvStack`` entry: the neck (``dim_out`` None) or a head."""
+    return {"dim_in": dim_in, "dim_out": dim_out, "dim_res_blocks": dims, "num_res_blocks": [0, 2, 2, 2, 0]
+            if dim_out is None else [0, 1, 1, 1, 0], "res_block_in_norm": "none", "res_block_hidden_norm": "none",
+            "resamplers": ["conv_transpose"] * 3 + ["bilinear"]}  # fmt: skip
+
+
+def model_config(backbone: str, dims: list[int], scale_dims: list[int], layers: int | list[int],
+                 normal: bool = True) -> dict:  # fmt: skip
+    """A ``model_config`` of the released MoGe-2 form (the official ``configs/train/v2.json``) with
+    the given widths: ``dims`` the neck's and heads' channels per level (5), ``scale_dims`` the
+    scale MLP's, ``layers`` the DINOv2 blocks taken. To build or time an architecture without its
+    checkpoint (:data:`VITL_CONFIG`), or a small one for tests."""
+    heads = {"points_head": 3, "mask_head": 1, **({"normal_head": 3} if normal else {})}
+    return {
+        "encoder": {"backbone": backbone, "intermediate_layers": layers, "dim_out": dims[0]},
+        "neck": _conv_stack_dict(dims, [dims[0] + 2, 2, 2, 2, 2], None),
+        **{name: _conv_stack_dict(dims, dims, [None] * 4 + [out]) for name, out in heads.items()},
+        "scale_head": {"dims": scale_dims},
+        "remap_output": "exp",
+        "num_tokens_range": [1200, 3600],
+    }
+
+
+#: the released MoGe-2 ViT-L (moge-2-vitl-normal: 326M parameters), configs/train/v2.json
+VITL_CONFIG = model_config("dinov2_vitl14", [1024, 256, 128, 64, 32], [1024, 1024, 1024, 1], [5, 11, 17, 23])
+
+
 @dataclass(frozen=True)
 class MoGe2Config:
     """A MoGe-2 architecture: :meth:`from_dict` of the ``model_config`` a checkpoint stores.
