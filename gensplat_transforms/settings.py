@@ -77,10 +77,9 @@ class GenSplatConfig:
         report: add ``gensplat.*`` keys describing the perturbation to the item.
         render_scale: build and render the augmented views at this fraction of the item's
             image size, in (0, 1], then resize them to the image size (see
-            :func:`.render.render_size`): about scale^2 of the render's time, for about 1 dB PSNR
-            per halving of the side, also at the size a policy shrinks the frames to
-            (``benchmarks/render_scale.py``: 640x480 frames seen at 224x168, 27.6 dB at 1,
-            26.4 at 0.5, 25.3 at 0.35). Render no smaller than the policy reads. Cached
+            :func:`.render.render_size`): about scale^2 of the render's time, for some fidelity
+            also at the size a policy shrinks the frames to (docs/transform.md, "Cost";
+            ``benchmarks/render_scale.py``). Render no smaller than the policy reads. Cached
             depth of another size (a geometry cache holds it at the model's input size) is
             taken at the pixels nearest the render's, so the views keep the images' detail.
         depth_unit: the unit of the depth maps an item carries for the replaced cameras, at

@@ -49,7 +49,7 @@ from typing import Protocol
 import torch
 from safetensors.torch import save
 
-from ..core.atomic import atomic_write, read_json_object, stat_stamp
+from ..core.atomic import atomic_write, read_json_object, replaceable, stat_stamp
 from ..core.cameras import Cameras
 from ..geometry import DepthReconstructor, Reconstruction, Reconstructor, Views
 from .format import (
@@ -202,6 +202,7 @@ class GaussianCache:
         """Reconstruct and write one episode (the caller holds its lock); None when the episode
         file's :func:`_stat_key` is not ``found`` any more (given: [] for none), as another builder
         replaced it since."""
+        replaceable(self.path(episode))
         if source.fingerprint != self.dataset:
             raise StaleCacheError(
                 f"{self.root}: the source's fingerprint {source.fingerprint!r} is not this cache's {self.dataset!r}"
@@ -334,7 +335,7 @@ class GaussianCache:
             try:
                 text = json.dumps({"for": identity, "files": listed}, separators=(",", ":"))
                 atomic_write(index_path, lambda tmp: Path(tmp).write_text(text))
-            except OSError as e:
+            except (OSError, ValueError) as e:  # a read-only folder, a folder in the way
                 logger.info("GaussianCache: cannot write %s (%s): the next check opens every file again", index_path, e)
         return found
 

@@ -42,8 +42,8 @@ FOV_RANGE_DEG = (15.0, 150.0)
 #: fewest feature matches a camera pair's estimate rests on
 MIN_MATCHES = 30
 #: largest standard deviation of a log focal length the depth-based fit may leave: beyond it the
-#: views cannot tell the focal length from the distance (measured: 0.07 % for the simulated rig's
-#: cameras 67 deg apart, 3.9 % for a rectified stereo pair, whose fit was 4.4x off)
+#: views cannot tell the focal length from the distance (a rectified stereo pair's fit; the
+#: figures: docs/calibration.md, "Limits")
 FOCAL_SD_MAX = 0.01
 
 

@@ -15,8 +15,9 @@ def atomic_write(path: str | Path, write: Callable[[str], object]) -> Path:
 
     The file gets the mode a plain ``open(path, "w")`` would, 0o666 less the umask, whatever
     mode ``write`` leaves (safetensors makes its files private to their owner). The temporary
-    file is removed when ``write`` fails. Returns ``path``."""
-    path = Path(path)
+    file is removed when ``write`` fails. Returns ``path``; ``ValueError`` where a folder is in
+    its way (:func:`replaceable`)."""
+    path = replaceable(Path(path))
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.parent / f".{path.name}.{secrets.token_hex(6)}.tmp"
     fd = os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)  # the umask applies
@@ -29,6 +30,14 @@ def atomic_write(path: str | Path, write: Callable[[str], object]) -> Path:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+    return path
+
+
+def replaceable(path: Path) -> Path:
+    """``path``, once a new file can be renamed over whatever is there (nothing, a file, a
+    symbolic link); a folder there is refused with ``ValueError``, before any work is done."""
+    if path.is_dir() and not path.is_symlink():
+        raise ValueError(f"{path} is a folder where GenSplat writes a file: move it away")
     return path
 
 

@@ -51,10 +51,9 @@ class GenSplatReconstructor(Reconstructor):
         min_conf: drop pixels with sigmoid(conf) below this.
         placement: ``"per_view"`` or ``"similarity"``, for calibrated views (see above).
         metric: with ``per_view``, keep the model's scale (True) or use the camera spread's.
-        max_pixels: run the model on at most this many pixels per view (default: no limit.
-            Unlike the geometry path's, the head's Gaussians lose more from fewer pixels than
-            their depth gains: the shipped model at 112x112 instead of 224x224 is 0.6-1.1 dB
-            below in ``benchmarks/nvs_fidelity.py``, if 13x faster).
+        max_pixels: run the model on at most this many pixels per view (default: no limit;
+            unlike the geometry path's depth, the head's Gaussians lose more from fewer pixels
+            than they gain in speed: docs/reconstruction.md).
         device: where the model runs (default: where its weights are).
         autocast_dtype: e.g. torch.bfloat16 to run the transformer under autocast.
 
@@ -190,9 +189,8 @@ def run_model(model: GenSplatModel | DepthAnything3, images: torch.Tensor, autoc
     return out, (images if lead else images[0])
 
 
-#: the most timesteps an automatic batch holds (:func:`timesteps_per_pass`): the full model
-#: at DROID's 182x322, two views, on an H200 took 65.8 ms a timestep one at a time, 9.35 ms
-#: in batches of 8 and 7.55 ms in batches of 32
+#: the most timesteps an automatic batch holds (:func:`timesteps_per_pass`; the GPU timings
+#: that chose it: docs/cache_at_scale.md)
 MAX_BATCH_TIMESTEPS = 32
 #: a tensor must hold fewer elements than this: CUDA kernels that index with 32-bit integers
 #: refuse more (``upsample_bilinear2d_nhwc only supports output tensors with less than INT_MAX

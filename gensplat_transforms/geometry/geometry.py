@@ -91,8 +91,8 @@ class GeometryReconstructor(DepthReconstructor):
         min_conf: drop pixels whose sigmoid(confidence) is below this.
         scale: ``"auto"``, ``"metric"`` or ``"fit"`` (see the module docstring).
         discs: the surface-disc settings (``RGBDConfig``); default ``RGBDConfig`` with
-            ``soften_noise`` off: a model's depth errors are not a sensor's noise, and plain
-            discs on them cost the hole-filled view 1.3 dB at the source pose, 0.2 dB moved.
+            ``soften_noise`` off: a model's depth errors are not a sensor's noise
+            (docs/reconstruction.md gives what softening them costs).
         max_pixels: run the model on at most this many pixels per view (its input shrunk,
             aspect kept, to :func:`.feedforward.model_size`; the depth, and so the cache, at that size).
             Default: the model's own (``GenSplatModel.max_pixels``, the size it was trained at:
@@ -100,8 +100,7 @@ class GeometryReconstructor(DepthReconstructor):
         device, autocast_dtype: where the model runs, and e.g. torch.bfloat16 for autocast.
         batch_timesteps: timesteps per forward pass in :meth:`predict_depths` (a cache build).
             None (default): automatic, as many as keep every intermediate tensor of the model
-            below 2**31 elements, at most 32, on CUDA (a 32-timestep batch of the full model at
-            182x322 takes 7.55 ms a timestep on an H200, one at a time 65.8 ms); 1 on the CPU,
+            below 2**31 elements, at most 32, on CUDA (docs/cache_at_scale.md); 1 on the CPU,
             where batching gains nothing. A given number is capped by the same 2**31 rule, so
             no value can overflow the 32-bit indexing of CUDA kernels; see
             :func:`.feedforward.timesteps_per_pass`. The model runs without its Gaussian head.

@@ -135,8 +135,8 @@ def render(
     Args:
         gaussians: the scene (any float dtype; half precision is computed in float32);
             checked in full on every call (``Gaussians.check(force=True)``: writes through
-            ``.data`` or a NumPy view are caught too; about 0.5 ms per 150k Gaussians at SH
-            degree 0, 3 ms at degree 3; see ``recheck``), then passed through ``projection.precondition``
+            ``.data`` or a NumPy view are caught too; its cost: docs/numerical_stability.md;
+            see ``recheck``), then passed through ``projection.precondition``
             (float64 values beyond float32's range are clamped, float64 quaternions
             normalised) for every backend.
         cameras: B cameras (OpenCV convention) sharing one image size.

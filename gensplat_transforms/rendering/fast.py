@@ -42,7 +42,7 @@ threads and restores numba's thread count afterwards. The image does not depend 
 thread count. numba's OpenMP layer shares the OpenMP runtime with torch and changes its
 thread count, which is restored after each call. Its idle threads busy-wait between
 parallel regions, which on a small, busy machine takes the CPU from the serial parts
-(measured on a shared 2-core machine: 2-thread frames 2x slower); start such processes with
+(docs/rendering.md, "threads and compiled code"); start such processes with
 ``OMP_WAIT_POLICY=PASSIVE`` in the environment (read when torch loads OpenMP) or
 ``NUMBA_THREADING_LAYER=workqueue``.
 
@@ -331,8 +331,7 @@ def _project_range(lo, hi, means, quats, scales, opacities, sh, degree, cam, nea
     opacity, geometry, box, visibility, colour: rows ``_B_*``), so that the compiler sees that
     nothing in ``_geometry``'s loop overlaps, and vectorises it. The per-splat rest of a
     block runs over lists of its lanes made by branch-free compaction: with the box shrink
-    inside one plain loop, the compiler computes its logarithm for every Gaussian (measured
-    20x slower).
+    inside one plain loop, the compiler computes its logarithm for every Gaussian.
     """
     blk = np.zeros((_B_ROWS, _BLOCK))
     lanes = np.empty(_BLOCK, np.int64)

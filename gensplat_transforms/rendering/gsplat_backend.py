@@ -24,8 +24,8 @@ Conventions (ours -> gsplat), which match so that no data is reordered:
   radius 3 sqrt(lambda_max) around each centre and does not cut at the 3-sigma ellipse,
   whereas ours keeps only pixels with Mahalanobis q <= 9 (and a tighter box for opacity
   below 0.36). The differences touch only pixels where a splat's weight is small or
-  alpha saturates, so images agree closely but not bit for bit (52.6 dB PSNR on the
-  standard scene). gsplat neither culls centres beyond ``MAX_DEPTH`` (1e32 m) nor clamps
+  alpha saturates, so images agree closely but not bit for bit (docs/rendering.md gives
+  the figure on the standard scene). gsplat neither culls centres beyond ``MAX_DEPTH`` (1e32 m) nor clamps
   colours at ``MAX_COLOR`` (1e32), so only scenes beyond those limits differ there. gsplat
   projects in float32: an extremely anisotropic splat (scales 1e3 and 1e-12, the "needle"
   hard case) loses its 2D covariance to cancellation and is dropped, where our float64

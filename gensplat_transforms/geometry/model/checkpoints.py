@@ -97,7 +97,10 @@ def check_pi3_file(path: Path, shapes: dict[str, torch.Size]) -> None:
 
 
 def read_config(path: Path) -> dict:
-    """A checkpoint's config.json as a dict; ``ValueError`` naming the file when it is not a JSON object."""
+    """A checkpoint's config.json as a dict; ``ValueError`` naming the file when it is not a JSON object,
+    ``FileNotFoundError`` when it is not a file."""
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file (a checkpoint folder holds config.json beside its weights)")
     try:
         meta = json.loads(path.read_bytes())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
