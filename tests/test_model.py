@@ -362,3 +362,15 @@ def test_a_foreign_checkpoint_is_refused_from_its_header_before_the_model_is_bui
         is_gensplat_checkpoint(tmp_path)
     with pytest.raises(ValueError, match=r"config.json: expected a JSON object, got list"):
         GeometryReconstructor(tmp_path)
+
+
+@pytest.mark.parametrize("config", ["missing", "a folder"])
+def test_a_checkpoint_folder_without_a_config_file_is_a_clear_error(tmp_path, config):
+    """``gensplat cache --reconstructor geometry --model DIR`` of an empty folder was a raw
+    FileNotFoundError traceback from pathlib (IsADirectoryError for a folder named config.json)."""
+    from gensplat_transforms.geometry.geometry import GeometryReconstructor
+
+    if config == "a folder":
+        (tmp_path / "config.json").mkdir()
+    with pytest.raises(FileNotFoundError, match=r"config.json: no such file \(a checkpoint folder holds config.json"):
+        GeometryReconstructor(tmp_path)

@@ -304,6 +304,30 @@ def test_a_file_where_the_cache_folder_belongs_is_a_clear_error(cached, tmp_path
     refused(capsys, ["cache", "--root", str(root), "--repo-id", REPO], "is a file, not a folder")
 
 
+@pytest.mark.parametrize("owned", ["config.json", "dataset.json", "cache/{identity}/episode_000000.safetensors"])
+def test_a_folder_where_gensplat_keeps_a_file_is_a_clear_error(cached, tmp_path, capsys, owned):
+    """A folder in the way of one of GenSplat's own files was an IsADirectoryError traceback
+    (after the work, at the rename): one line naming it; where the digests' memo goes, a folder
+    only costs the memo."""
+    root = tmp_path / "ds"
+    shutil.copytree(cached, root)
+    (identity,) = [p.name for p in (root / "gensplat" / "cache").iterdir()]
+    path = root / "gensplat" / owned.format(identity=identity)
+    path.unlink()
+    path.mkdir()
+    for args in (["cache", "--root", str(root), "--repo-id", REPO], ply_args(root, tmp_path / "t.ply")):
+        if owned == "dataset.json" and args[0] == "export-ply":
+            continue  # export-ply neither reads nor writes it
+        assert main(args) == 2
+        err = capsys.readouterr().err  # after the progress bars
+        assert err.splitlines()[-1].startswith(f"gensplat: error: {path}") and "Traceback" not in err, err
+    shutil.rmtree(root / "gensplat")
+    shutil.copytree(cached / "gensplat", root / "gensplat")
+    (root / "gensplat" / "digests.json").unlink()
+    (root / "gensplat" / "digests.json").mkdir()
+    assert main(["cache", "--root", str(root), "--repo-id", REPO]) == 0
+
+
 def test_no_command_changes_a_byte_of_the_dataset(cached, tmp_path, capsys):
     """Every entry outside ``gensplat/``, links included (a link inside the dataset to a file
     elsewhere, whose target is watched too), is the same after each command that reads the

@@ -73,7 +73,7 @@ def load_settings(root: str | Path, repo_id: str | None = None) -> tuple[GenSpla
     try:
         data = json.loads(path.read_text())
         return GenSplatConfig.from_dict(data["transform"]), dict(data["reconstructor"])
-    except (ValueError, TypeError, KeyError, AttributeError) as e:  # not JSON, a key or field missing or wrong
+    except (ValueError, TypeError, KeyError, AttributeError, IsADirectoryError) as e:  # not JSON, fields wrong, a folder
         raise ValueError(f"{path}: not GenSplat settings ({type(e).__name__}: {e}); rewrite them with "
                          f"`{cache_command(root, repo_id)}`") from e  # fmt: skip
 

@@ -352,7 +352,7 @@ def files_digest(root: Path, folder: str, memo: Path | None = None, sample: int 
     if memo is not None and memo.parent.is_dir():
         try:
             atomic_write_json(memo, {**memos, folder: {"listing": listing, "digest": digest}})
-        except OSError as e:
+        except (OSError, ValueError) as e:  # a read-only folder, a folder in the way
             log.info("cannot write %s (%s): the next check reads the files again", memo, e)
     return digest
 
