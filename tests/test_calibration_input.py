@@ -45,6 +45,34 @@ def test_yaml_aliases_are_refused_before_they_are_expanded(tmp_path, monkeypatch
     assert not calibration_path(root).exists()
 
 
+def test_deeply_nested_yaml_is_refused_as_it_is_parsed(tmp_path):
+    """PyYAML scans nested brackets in quadratic time: 60 kB of them took a minute, a 1 MB file
+    days. Refused at the 33rd level, at once."""
+    root = tmp_path / "ds"
+    write_info(root)
+    source = tmp_path / "calibration.yaml"
+    source.write_text("left: " + "[" * 30_000 + "]" * 30_000)
+    start = time.perf_counter()
+    with pytest.raises(ValueError, match=r"calibration.yaml: nested deeper than 32 levels at line 1"):
+        calibrate(root, source)
+    assert time.perf_counter() - start < 5
+
+
+@pytest.mark.parametrize("text, message", [
+    ("? [left, right]\n: {K: [[30, 0, 16], [0, 30, 12], [0, 0, 1]]}\n", "found unhashable key"),  # a raw TypeError
+    ("left:\n\tK: 1\n", "found character '\\t' that cannot start any token"),  # PyYAML's message spans lines
+])  # fmt: skip
+def test_malformed_yaml_is_one_error_line(text, message, tmp_path, capsys):
+    root = tmp_path / "ds"
+    write_info(root)
+    source = tmp_path / "calibration.yaml"
+    source.write_text(text)
+    assert main(["calibrate", "--root", str(root), "--from", str(source)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"gensplat: error: {source}: not valid YAML (") and err.count("\n") == 1, err
+    assert message in err, err
+
+
 @pytest.mark.parametrize("suffix", ["json", "yaml"])
 def test_a_key_given_twice_is_refused_naming_it(truth, tmp_path, suffix):
     """The same camera (or episode) given twice: a parser keeps the last silently; refused."""

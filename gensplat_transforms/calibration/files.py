@@ -21,7 +21,8 @@ Conventions of the input file (JSON, or YAML when it ends in ``.yaml``/``.yml``)
 Distortion coefficients must be zero: GenSplat renders pinhole views of undistorted images.
 Focal lengths must give a field of view 2 atan(size / 2f) within :data:`FOV_RANGE` (fx on
 the width, fy on the height; 1 to 179 degrees: f from 0.0044 to 57 times the size), and K
-no skew. A file is at most :data:`MAX_FILE_BYTES`, UTF-8, and a YAML file has no aliases.
+no skew. A file is at most :data:`MAX_FILE_BYTES`, UTF-8, and a YAML file has no aliases and
+at most :data:`MAX_YAML_DEPTH` levels of nesting.
 
 ``depth`` (``gensplat`` and ``opencv-w2c``; optional): the camera's depth maps are its depth
 sensor's own, not registered to the colour image (LeRobot 0.6 records a RealSense's depth so):
@@ -50,6 +51,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Hashable
 from pathlib import Path
 
 import numpy as np
@@ -81,6 +83,9 @@ _DISTORTION = ("dist", "k1", "k2", "k3", "k4", "p1", "p2")
 _STORED = {"camera.intrinsics": "K", "camera.extrinsics": "c2w", "camera.mount": "mount",
            "camera.depth": "depth", "camera.episodes": "episodes"}  # fmt: skip
 MAX_FILE_BYTES = 1_000_000
+#: levels of nesting a YAML calibration file may have (it needs 6); PyYAML scans deep nesting in
+#: quadratic time (60 kB of brackets ran past a minute)
+MAX_YAML_DEPTH = 32
 #: degrees: a focal length outside it is a unit or typing mistake (black or degenerate views)
 FOV_RANGE = (1.0, 179.0)
 #: ``<POSE_FEATURE><camera>``: a float feature (6,) x, y, z, roll, pitch, yaw (DROID's LeRobot port)
@@ -381,6 +386,8 @@ def _yaml_loader():
             seen = set()
             for key_node, _ in node.value:
                 key = self.construct_object(key_node, deep=deep)
+                if not isinstance(key, Hashable):  # a list as a key: PyYAML's own error names it
+                    break
                 if key in seen:
                     raise _RepeatedKey(f"key {key!r} appears twice in one mapping (line {key_node.start_mark.line + 1}): "
                                        "keep one")  # fmt: skip
@@ -403,15 +410,23 @@ def _load(path: Path):
     if path.suffix.lower() in (".yaml", ".yml"):
         import yaml
 
-        try:  # aliases are refused before any is expanded (nested ones grow exponentially)
-            if any(isinstance(e, yaml.AliasEvent) for e in yaml.parse(text, Loader=yaml.SafeLoader)):
-                raise ValueError(f"{path}: YAML aliases (*name) are not allowed in a calibration file; "
-                                 "write the values out")  # fmt: skip
+        try:  # aliases and deep nesting are refused as they are parsed, before anything is built
+            depth = 0
+            for event in yaml.parse(text, Loader=yaml.SafeLoader):
+                depth += isinstance(event, yaml.CollectionStartEvent) - isinstance(event, yaml.CollectionEndEvent)
+                if isinstance(event, yaml.AliasEvent):  # nested aliases expand exponentially
+                    problem = "YAML aliases (*name) are not allowed in a calibration file; write the values out"
+                elif depth > MAX_YAML_DEPTH:
+                    problem = (f"nested deeper than {MAX_YAML_DEPTH} levels at line {event.start_mark.line + 1}; "
+                               "a calibration file has at most 6")  # fmt: skip
+                else:
+                    continue
+                raise ValueError(f"{path}: {problem}")
             return yaml.load(text, Loader=_yaml_loader())  # a SafeLoader that refuses repeated keys
         except _RepeatedKey as e:
             raise ValueError(f"{path}: {e}") from None
-        except (yaml.YAMLError, RecursionError) as e:
-            raise ValueError(f"{path}: not valid YAML ({e})") from None
+        except (yaml.YAMLError, RecursionError) as e:  # PyYAML's message spans lines: one line here
+            raise ValueError(f"{path}: not valid YAML ({' '.join(str(e).split())})") from None
     try:
         return json.loads(text, object_pairs_hook=_unique_pairs)
     except _RepeatedKey as e:
