@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from dataclasses import asdict, dataclass, field, fields
 
+from .data.format import distinct_cameras
 from .rendering import BACKENDS
 from .rendering.output import DEPTH_UNITS
 from .views.perturbation import SAMPLERS, PerturbationRange, _integer, get_range, make_sampler, sampler_kinds
@@ -156,8 +157,8 @@ class GenSplatConfig:
         "(benchmarks/render_scale.py)"))  # fmt: skip
 
     def __post_init__(self) -> None:
-        self.cameras = tuple(self.cameras)
-        self.replace = tuple(self.cameras if self.replace is None else self.replace)
+        self.cameras = distinct_cameras(self.cameras, "GenSplatConfig.cameras")
+        self.replace = distinct_cameras(self.cameras if self.replace is None else self.replace, "GenSplatConfig.replace")
         if not self.cameras:
             raise ValueError("GenSplatConfig.cameras: need at least one external camera")
         if self.pivot_depth is not None and not 0 < self.pivot_depth <= MAX_PIVOT_DEPTH_M:

@@ -233,6 +233,8 @@ def test_a_file_where_the_depth_folder_goes_is_refused(root, tmp_path, capsys):
     (["--cameras", "nope", "right"], "no camera(s) ['nope']; its cameras: ['left', 'right', 'front']"),
     (["--level", "bogus"], "unknown perturbation level 'bogus'"),
     (["--probability", "1.5"], "probability must be in [0, 1], got 1.5"),
+    (["--cameras", "left", "left"], "--cameras names ['left'] more than once"),  # reconstructed twice before
+    (["--replace", "right", "right"], "GenSplatConfig.replace names ['right'] more than once"),
 ])  # fmt: skip
 def test_cache_options_are_checked_before_anything_is_written(root, capsys, options, message):
     assert cache(root, *options) == 2

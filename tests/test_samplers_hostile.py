@@ -259,3 +259,11 @@ def test_move_settings_that_render_no_picture_are_refused(settings, match):
     edge = {"shift_m": 1.0, "level": PerturbationRange((0.0, 5.0), (-1.0, 1.0)), "pivot_depth": 100.0,
             "views_per_source": 1000}  # fmt: skip
     GenSplatConfig(**{k: edge[k] for k in settings if k in edge})  # the bounds themselves are taken
+
+
+@pytest.mark.parametrize("settings", [{"cameras": ("left", "left")}, {"replace": ("right", "right")}])
+def test_a_camera_named_twice_is_refused(settings):
+    """A camera reconstructed (or replaced) twice was accepted: its Gaussians doubled, the pivot
+    placed as if the camera were a pair."""
+    with pytest.raises(ValueError, match=rf"GenSplatConfig.{next(iter(settings))} names \['\w+'\] more than once"):
+        GenSplatConfig(**settings)

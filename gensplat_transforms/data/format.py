@@ -109,9 +109,10 @@ def camera_info(K: torch.Tensor, c2w: torch.Tensor | None, mount: str, depth: De
     return info
 
 
-def distinct_cameras(names) -> tuple[str, ...]:
-    """``names`` as a tuple, or ``ValueError`` naming the cameras given more than once (a camera
-    estimated against itself, a feature read twice).
+def distinct_cameras(names, what: str = "--cameras") -> tuple[str, ...]:
+    """``names`` as a tuple, or ``ValueError`` naming the cameras ``what`` (the option or field)
+    gives more than once (a camera estimated against itself, a feature read twice, a camera
+    reconstructed twice).
 
     Example:
         >>> distinct_cameras(["left", "right"])
@@ -120,7 +121,7 @@ def distinct_cameras(names) -> tuple[str, ...]:
     names = tuple(names)
     twice = sorted({n for n in names if names.count(n) > 1})
     if twice:
-        raise ValueError(f"--cameras names {twice} more than once: name each camera once")
+        raise ValueError(f"{what} names {twice} more than once: name each camera once")
     return names
 
 

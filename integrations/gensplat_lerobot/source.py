@@ -29,6 +29,7 @@ from gensplat_transforms.data.format import (
     camera_info,
     depth_path,
     digests_path,
+    distinct_cameras,
     load_depth,
     open_depth,
 )
@@ -316,8 +317,9 @@ def image_names(features: dict) -> list[str]:
 
 
 def check_cameras(root: str | Path, cameras, features: dict | None = None) -> None:
-    """ValueError naming the dataset's cameras when one of ``cameras`` is not among them
-    (``features``: those of its ``info.json``, read when not given)."""
+    """ValueError naming the dataset's cameras when one of ``cameras`` is not among them, or
+    naming one given twice (``features``: those of its ``info.json``, read when not given)."""
+    distinct_cameras(cameras)
     names = image_names(read_info(Path(root))["features"] if features is None else features)
     unknown = [c for c in cameras if c not in names]
     if unknown:
