@@ -251,6 +251,22 @@ def test_cache_folders_linked_into_the_dataset_are_refused(cached, tmp_path, cap
     assert dataset_snapshot(root) == before
 
 
+def test_a_link_where_the_cache_keeps_a_lock_file_is_refused(cached, tmp_path, capsys):
+    """A dangling link in place of an episode's lock file: opening the lock created the link's
+    target, a new file in the dataset's meta/ folder."""
+    root = tmp_path / "ds"
+    shutil.copytree(cached, root)
+    (folder,) = (root / "gensplat" / "cache").iterdir()
+    (folder / "episode_000000.safetensors").unlink()
+    (folder / ".episode_000000.lock").unlink(missing_ok=True)
+    (folder / ".episode_000000.lock").symlink_to(root / "meta" / "new_file")
+    before = dataset_snapshot(root)
+    assert main(["cache", "--root", str(root), "--repo-id", REPO]) == 2
+    err = capsys.readouterr().err  # after the progress bars
+    assert err.splitlines()[-1].endswith("is a symbolic link where GenSplat keeps a lock file: remove it"), err
+    assert dataset_snapshot(root) == before and not os.path.lexists(root / "meta" / "new_file")
+
+
 @pytest.mark.parametrize("owned", ["calibration.json", "config.json", "dataset.json", "cache/x.ply"])
 def test_outputs_never_replace_gensplat_s_own_files(cached, tmp_path, capsys, owned):
     root = tmp_path / "ds"

@@ -268,9 +268,12 @@ class GaussianCache:
         removed are waited for; unlocked ones (a builder was killed) are removed. Two builders
         let in by a deleted lock file build once: the temporary file is created exclusively
         before a build, and a builder that finds the episode file replaced since it looked
-        does not build (see :meth:`ensure`)."""
+        does not build (see :meth:`ensure`). A symbolic link where the lock file goes is
+        refused with ``ValueError``."""
         self.root.mkdir(parents=True, exist_ok=True)
         path = self.root / f".episode_{int(episode):06d}.lock"
+        if path.is_symlink():  # opening it would create its target, wherever it points (the dataset)
+            raise ValueError(f"{path} is a symbolic link where GenSplat keeps a lock file: remove it")
         while True:
             fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o666)
             fcntl.flock(fd, fcntl.LOCK_EX)
