@@ -4,7 +4,7 @@
 # holds an older gensplat_transforms package; skipped when unset), the geometry cache build per
 # batch size, and the CUDA tests. Needs the package with the gsplat extra importable
 # (pip install -e '.[dev,gsplat]'); results go to OUT (default: benchmarks/results). QUICK=1 is the
-# smoke run of tests/test_benchmark_smoke.py (seconds): both scripts with --quick, no baseline and no
+# smoke run of tests/benchmarks/test_benchmark_smoke.py (seconds): both scripts with --quick, no baseline and no
 # CUDA tests (the test suite runs those itself), results in OUT (default: outputs/benchmarks_quick).
 #
 #     OUT=/tmp/gpu BASELINE=/tmp/old bash benchmarks/gpu_checks.sh
@@ -38,8 +38,8 @@ step "geometry cache build per batch size"
 timeout 240 python3 benchmarks/geometry_build.py $q --out "$OUT/geometry_build_${card}.json"
 if [ -z "$QUICK" ]; then
     step "CUDA tests"
-    timeout 300 python3 -m pytest -q -p no:cacheprovider -o addopts="-ra" tests/test_batched.py \
-        tests/test_batched_compiled.py tests/test_gsplat_backend.py \
-        tests/test_render_reference.py::test_auto_backend_on_cuda_is_gsplat_when_installed
+    timeout 300 python3 -m pytest -q -p no:cacheprovider -o addopts="-ra" tests/rendering/test_batched.py \
+        tests/rendering/test_batched_compiled.py tests/rendering/test_gsplat_backend.py \
+        tests/rendering/test_render_reference.py::test_auto_backend_on_cuda_is_gsplat_when_installed
 fi
 step done

@@ -1,15 +1,30 @@
-"""Shared pytest fixtures."""
+"""Shared pytest fixtures.
+
+The tests mirror the package: ``tests/<stage>/test_<module>.py`` for the stages of
+``gensplat_transforms`` (core, data, calibration, geometry with geometry/model, cache, views,
+rendering), ``tests/integrations/<cli|lerobot|sim>``, ``tests/benchmarks`` and ``tests/examples``
+for the scripts, and ``tests/`` itself for what crosses the stages (the transform, the public API,
+the layers, the walk of an item, training). The folders have no ``__init__.py``: pytest imports
+each test file by its name (the default "prepend" import mode), so a test file's name must be
+unique in the whole of ``tests/``. Loading this file puts ``tests/`` on ``sys.path``, so every test
+imports the helper modules beside it by name (``helpers``, ``tiny_model``, ``tiny_moge``); a
+folder's own helpers (``rendering/hard_cases.py``) are imported from that folder's tests only.
+"""
 
 from __future__ import annotations
 
 import json
 import random
+import shutil
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+
+pytest.register_assert_rewrite("helpers")
 
 from gensplat_transforms.core.cameras import Cameras
 
@@ -79,3 +94,46 @@ def droid_dir() -> Path:
     if not DROID_DIR.is_dir():
         pytest.skip(f"real DROID sample not found: expected the folder {DROID_DIR}")
     return DROID_DIR
+
+
+@pytest.fixture(scope="session")
+def scene_dataset(tmp_path_factory) -> Callable[..., Path]:
+    """The small LeRobot dataset the LeRobot tests read, recorded once per session.
+
+    ``scene_dataset(repo, episodes=, frames=, size=)`` records the procedural tabletop
+    (``SceneEpisodes(episodes, frames, size, seed)``, ``gensplat_lerobot.record_scene_dataset``)
+    and returns its root: cameras ``left`` and ``right`` (external, calibrated in their
+    features' ``info``, depth as sidecars, or LeRobot's depth features with ``depth_as``) and
+    ``front``, PNG images of ``size x size``; ``observation.state`` and ``action``. Each set of
+    arguments is recorded once and then shared by every test that asks for it: read it, or copy
+    it (``dataset_copy``) before changing anything. Skips the test without the LeRobot extra.
+    """
+    recorded: dict[tuple, Path] = {}
+
+    def record(repo: str = "local/gensplat_scene", *, episodes: int, frames: int, size: int, seed: int = 0,
+               depth_as: str = "sidecars") -> Path:  # fmt: skip
+        key = (repo, episodes, frames, size, seed, depth_as)
+        if key not in recorded:
+            pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
+            from gensplat_lerobot.scene_dataset import record_scene_dataset
+
+            from gensplat_transforms.cache.builder import SceneEpisodes
+
+            root = tmp_path_factory.mktemp("scene_dataset") / "ds"
+            source = SceneEpisodes(num_episodes=episodes, num_frames=frames, size=size, seed=seed)
+            record_scene_dataset(root, source, repo, progress=False, depth_as=depth_as)
+            recorded[key] = root
+        return recorded[key]
+
+    return record
+
+
+@pytest.fixture
+def dataset_copy(tmp_path) -> Callable[..., Path]:
+    """``dataset_copy(root, name="ds")``: a copy of the dataset at ``root`` as ``tmp_path / name``,
+    for a test that changes it (``scene_dataset``'s recordings are shared)."""
+
+    def copy(root: Path, name: str = "ds") -> Path:
+        return Path(shutil.copytree(root, tmp_path / name))
+
+    return copy

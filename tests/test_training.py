@@ -319,16 +319,12 @@ def test_resized_views_keep_intrinsics_consistent():
     assert views.resized(56, 56) is views
 
 
-def test_lerobot_views_train_with_the_recorded_geometry(tmp_path, monkeypatch):
+def test_lerobot_views_train_with_the_recorded_geometry(scene_dataset, dataset_copy, tmp_path, monkeypatch):
     pytest.importorskip("lerobot", reason="the LeRobot extra is not installed")
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     from gensplat_lerobot import LeRobotViews
-    from gensplat_lerobot.scene_dataset import record_scene_dataset
 
-    from gensplat_transforms.cache.builder import SceneEpisodes
-
-    record_scene_dataset(tmp_path / "ds", SceneEpisodes(num_episodes=1, num_frames=3, size=42), "local/t",
-                         progress=False)  # fmt: skip
+    dataset_copy(scene_dataset("local/t", episodes=1, frames=3, size=42))
     data = LeRobotViews(tmp_path / "ds", "local/t", size=SIZE)
     assert len(data) == 3
     views = data[2]
@@ -352,16 +348,12 @@ def test_cli_trains_and_exports(tmp_path):
     assert model.max_pixels == 28 * 28  # the size it was trained at: the geometry path keeps to it
 
 
-def test_cli_mixes_procedural_and_lerobot_data(tmp_path, monkeypatch):
+def test_cli_mixes_procedural_and_lerobot_data(scene_dataset, dataset_copy, tmp_path, monkeypatch):
     pytest.importorskip("lerobot", reason="the LeRobot extra is not installed")
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
-    from gensplat_lerobot.scene_dataset import record_scene_dataset
-
     from gensplat_transforms import training as train_module
-    from gensplat_transforms.cache.builder import SceneEpisodes
 
-    record_scene_dataset(tmp_path / "ds", SceneEpisodes(num_episodes=1, num_frames=3, size=42), "local/t",
-                         progress=False)  # fmt: skip
+    dataset_copy(scene_dataset("local/t", episodes=1, frames=3, size=42))
     seen = {}
 
     def capture(config, model_config, dataset, teacher=None, init_weights=None, progress=True):

@@ -1,5 +1,5 @@
 """A MoGe-2 of the official form with random weights and a narrow neck, for fast tests
-(tests/test_moge.py, tests/test_monocular.py)."""
+(tests/geometry/model/test_moge.py, tests/geometry/test_monocular.py)."""
 
 from __future__ import annotations
 

@@ -6,7 +6,7 @@ decodes whole rows: every image of every queried frame, to keep one non-image co
 three PNG cameras and a 16-step action horizon that is 51 image decodes per item where 3 are
 used, 70 % of a training step on a 2-core CPU (benchmarks/README.md, "Policy robustness").
 Importing this module replaces that method with one that reads each queried column alone;
-the items are unchanged (``tests/test_fast_rows.py``). LeRobot fixed this after 0.6.1, so the
+the items are unchanged (``tests/integrations/lerobot/test_fast_rows.py``). LeRobot fixed this after 0.6.1, so the
 replacement applies to 0.6.1 only and leaves any other version as it is.
 
 Turn it on in ``lerobot-train`` with ``--fast_rows.discover_packages_path=gensplat_lerobot.fast_rows``

@@ -1,0 +1,130 @@
+"""benchmarks/policy_units.py: a unit whose file holds the current settings is skipped, any
+other is run and written; the summary's statistics, read from made-up unit files."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import gensplat_sim  # noqa: F401  (selects the headless GL backend before MuJoCo loads)
+import numpy as np
+import pytest
+
+pytest.importorskip("lerobot", reason="the LeRobot extra is not installed (pip install -e '.[lerobot]')")
+pytest.importorskip("mujoco", reason="the study needs the 'sim' extra (mujoco)")
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+import policy_robustness as pr
+import policy_units as pu
+
+from gensplat_transforms.core.atomic import atomic_write_json
+
+TASK = "reach_solo"
+LEVELS = [(p, lv) for p, levels in pr.PROTOCOLS.items() for lv in levels]
+
+
+def unit_file(unit: pu.Unit, wins: dict, episodes: int = 4, wall: float = 100.0, settings: dict | None = None,
+              train: dict | None = None) -> dict:
+    """A made-up unit file: ``wins`` {(protocol, level): (episodes,) successes}, 0 where absent."""
+    success = {p: {} for p in pr.PROTOCOLS}
+    records = {p: [] for p in pr.PROTOCOLS}
+    for p, lv in LEVELS:
+        won = np.asarray(wins.get((p, lv), np.zeros(episodes)), dtype=bool)
+        success[p][lv] = 100 * float(won.mean())
+        records[p] += [{"level": lv, "episode": i, "success": bool(w)} for i, w in enumerate(won)]
+    return {"unit": {"task": unit.task, "arm": unit.arm, "seed": unit.seed, "name": unit.name},
+            "settings": settings or {"episodes": episodes}, "commit": "c0ffee", "success": success,
+            "episodes": records, "timing": {"wall_seconds": wall, **({"train": train} if train else {})}}  # fmt: skip
+
+
+def write(results: Path, unit: pu.Unit, **kwargs) -> None:
+    atomic_write_json(unit.path(results), unit_file(unit, **kwargs))
+
+
+def test_units_done_are_skipped_and_the_others_run(tmp_path, monkeypatch, capsys):
+    results, work = tmp_path / "results", tmp_path / "work"
+    units = {arm: pu.Unit(TASK, arm, 1) for arm in ("baseline", "perspective", "gensplat", "gensplat-tilt")}
+    current = {arm: pu.unit_settings(u, pu.unit_args(u, work)) for arm, u in units.items()}
+    assert current["baseline"]["augmentation"] == {"train_seed": 1}  # seed 1 trains the replicate baseline@s1
+    assert current["gensplat"] != current["gensplat-tilt"]
+    write(results, units["baseline"], wins={}, settings=current["baseline"])  # done
+    write(results, units["perspective"], wins={}, settings={**current["perspective"], "steps": 1})  # stale
+    units["gensplat"].path(results).write_text('{"unit": ')  # a stopped write of another tool: unreadable
+    assert [pu.state(u, current[a], results) for a, u in units.items()] == ["done", "stale", "unreadable", "missing"]
+
+    ran = []
+
+    def run_unit(unit, args):
+        ran.append(unit.name)
+        assert args.work == work / TASK and args.steps == 5000 and args.episodes == 50
+        return unit_file(unit, wins={("paper", "none"): [1, 1, 0, 1]}, settings=pu.unit_settings(unit, args))
+
+    monkeypatch.setattr(pu, "run_unit", run_unit)
+    pu.main(["run", "--tasks", TASK, "--seeds", "1", "--results", str(results), "--work", str(work)])
+    assert ran == ["perspective@s1", "gensplat@s1", "gensplat-tilt@s1"]
+    assert [pu.state(u, current[a], results) for a, u in units.items()] == ["done"] * 4
+    ran.clear()
+    pu.main(["run", "--tasks", TASK, "--seeds", "1", "--results", str(results), "--work", str(work)])
+    assert ran == []  # a second run (a fresh machine with the committed files) trains nothing
+    assert "none 75 %" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["run", "--tasks", "fly"], "--tasks: unknown"), (["run", "--arms", "magic"], "--arms: unknown"),
+    (["run", "--seeds", "x"], "--seeds: integers"), (["run", "--seeds", "-1"], "each in 0-99"),
+])  # fmt: skip
+def test_bad_command_lines_are_refused(argv, message, capsys):
+    with pytest.raises(SystemExit):
+        pu.parse_args(argv)
+    assert message in capsys.readouterr().err
+
+
+def test_summary_statistics_paired_over_seeds_and_episodes(tmp_path):
+    results = tmp_path / "results"
+    base = {0: [1, 0, 0, 1, 0, 0, 0, 0], 1: [1, 1, 0, 0, 0, 0, 0, 0]}  # large: 25 % on each seed
+    for seed, won in base.items():
+        write(results, pu.Unit(TASK, "baseline", seed), wins={("paper", "large"): won}, episodes=8)
+        write(results, pu.Unit(TASK, "perspective", seed), wins={("paper", "large"): won}, episodes=8)  # the same
+        write(results, pu.Unit(TASK, "gensplat", seed), wins={(p, lv): [1] * 8 for p, lv in LEVELS}, episodes=8,
+              wall=4000.0 if seed else 100.0)  # fmt: skip
+    write(results, pu.Unit(TASK, "gensplat-tilt", 0), wins={("paper", "large"): [1, 1, 1, 1, 0, 0, 0, 0]}, episodes=8)
+    s = pu.summarise(TASK, results)
+    assert s["arms"] == ["baseline", "perspective", "gensplat", "gensplat-tilt"] and s["best_2d"] == "perspective"
+    assert s["success"]["baseline"]["paper"]["large"] == {"mean": 25.0, "per_seed": {0: 25.0, 1: 25.0}}
+    vs = s["difference"]["vs_baseline"]
+    assert vs["perspective"]["paper"]["large"] == {"points": 0.0, "ci95": [0.0, 0.0], "seeds": [0, 1]}
+    big = vs["gensplat"]["paper"]["large"]
+    assert big["points"] == 75.0 and 50 <= big["ci95"][0] < 75 < big["ci95"][1] <= 100
+    assert vs["gensplat"]["paper"]["none"] == {"points": 100.0, "ci95": [100.0, 100.0], "seeds": [0, 1]}
+    # one seed in common: tilt - baseline on seed 0 is (4 - 2) / 8 = +25 points
+    tilt = vs["gensplat-tilt"]["paper"]["large"]
+    assert tilt["points"] == 25.0 and tilt["seeds"] == [0] and tilt["ci95"][0] < 25 < tilt["ci95"][1]
+    assert s["difference"]["vs_best_2d"]["gensplat"]["paper"]["large"]["points"] == 75.0
+    assert s["units"]["gensplat@s1"] == {"wall_seconds": 4000.0, "within_limit": False}
+    assert pu.summarise(TASK, results) == s  # the bootstrap is seeded
+    table = pu.markdown(s)
+    assert "| gensplat | 0,1 | 100 (+100 [+100, +100])" in table and "| gensplat - perspective |" in table
+    assert "(1 over 60 min)." in table and "resumed" not in table
+    write(results, pu.Unit(TASK, "gensplat-tilt", 1), wins={}, episodes=8, train={"resumed_from_step": 1500})
+    s = pu.summarise(TASK, results)
+    assert s["units"]["gensplat-tilt@s1"] == {"wall_seconds": 100.0, "within_limit": True, "resumed_from_step": 1500}
+    assert "gensplat-tilt@s1 resumed a stopped training" in pu.markdown(s)
+
+
+def test_the_bootstrap_interval_covers_the_truth_at_its_rate():
+    """Paired seeds x episodes with a true difference of +20 points: the 95 % interval holds it
+    in about 95 % of repeated studies."""
+    rng = np.random.default_rng(1)
+    hits = 0
+    for _ in range(200):
+        b = {s: rng.random(50) < 0.4 for s in range(3)}
+        a = {s: rng.random(50) < 0.6 for s in range(3)}
+        lo, hi = pu.paired(a, b, rng, resamples=400)["ci95"]
+        hits += lo <= 20 <= hi
+    assert 0.88 <= hits / 200 <= 0.995
+
+
+def test_summary_rewrites_only_the_readme_between_its_markers(tmp_path):
+    readme = tmp_path / "README.md"
+    readme.write_text(f"# B\n\nbefore\n{pu.MARKERS[0]}\nold table\n{pu.MARKERS[1]}\nafter\n")
+    pu.write_readme("| new |\n", readme)
+    assert readme.read_text() == f"# B\n\nbefore\n{pu.MARKERS[0]}\n| new |\n{pu.MARKERS[1]}\nafter\n"
