@@ -6,7 +6,7 @@ MoGe-2's released weights cannot be fetched here, and random weights say nothing
 quality. So the network is replaced by an oracle of its outputs (:class:`OracleMoGe2`: for the
 image it is shown, the simulator's true camera-frame points, a mask where there is depth and a
 metric scale), and everything after the network runs as shipped: MoGe-2's focal and shift
-recovery, :class:`MonocularReconstructor`, ``gensplat calibrate --estimate --model`` and the
+recovery, :class:`MonocularReconstructor`, ``gensplat calibrate estimate --model`` and the
 cache build's per-episode scale alignment. The oracle is perfect (``perfect``) or, as a
 single-image metric model wavers, each image's scale is off by a log-normal factor of
 ``--scale-noise`` (default 0.1: about 10 %; ``noisy``). A held-out recording (MP4, as users'

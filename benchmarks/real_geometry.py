@@ -12,7 +12,7 @@ Two real pairs with known cameras:
   81 deg apart, calibrated, no depth; DROID's own extrinsics are known to be off by a few
   degrees in places).
 
-Calibration estimate (``calibration.estimate.estimate_rig``, as ``gensplat calibrate --estimate``):
+Calibration estimate (``calibration.estimate.estimate_rig``, as ``gensplat calibrate estimate``):
 with the Middlebury depth and no focal length (a rectified pair: expected to be refused, as
 depth tells only focal length x distance there), with its depth and the focal length given,
 with its depth, the focal length and the true principal points given (``--principal-point``:

@@ -8,9 +8,9 @@ exact depth (``depth``), with the depth a RealSense D435-like sensor measures th
 (``sensor_depth``: noise, holes, 1 mm steps; ``gensplat_sim.sensor``, seeded per frame), and RGB only
 with the cameras' true field of view and distance given (``rgb_given_fov``) or the field of
 view 5 % too wide (``rgb_fov_5pct_wide``), and RGB only with nothing given: the shipped
-model's focal lengths and metric depth (``rgb_model``, ``gensplat calibrate --estimate
+model's focal lengths and metric depth (``rgb_model``, ``gensplat calibrate estimate
 --model``), or its focal lengths and the true distance (``rgb_model_baseline``). On each copy
-``gensplat calibrate --estimate``
+``gensplat calibrate estimate``
 (``estimate_calibration``) runs, and is scored against the
 recorded calibration: focal lengths (relative error), the right camera's rotation and centre
 seen from the left camera, the world's up direction and the pivot (both seen from the left

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import argparse
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 
+from .core.config_flags import add_flags, config_from_flags, flag
 from .data.format import distinct_cameras
 from .rendering import BACKENDS
 from .rendering.output import DEPTH_UNITS
@@ -20,13 +21,6 @@ MODES = ("episode", "frame")
 MAX_SHIFT_M = 1.0
 MAX_PIVOT_DEPTH_M = 100.0
 MAX_VIEWS_PER_SOURCE = 1000
-def _cli(help: str, **argparse_options) -> dict:
-    """A field's metadata giving it a command-line flag (``gensplat cache``): ``help`` and
-    argparse options (the flag defaults to ``--<field-name>``; type and default come from the
-    field, see :func:`add_config_arguments`)."""
-    return {"cli": {"help": help, **argparse_options}}
-
-
 def _sampler_argument(text: str) -> str:
     """``--sampler``'s value, checked (:func:`.perturbation.sampler_kinds`)."""
     try:
@@ -110,48 +104,48 @@ class GenSplatConfig:
 
     # what is reconstructed and replaced
     cameras: tuple[str, ...] = ("left", "right")
-    replace: tuple[str, ...] | None = field(default=None, metadata=_cli("cameras whose image is replaced", nargs="+"))
+    replace: tuple[str, ...] | None = field(default=None, metadata=flag("cameras whose image is replaced", nargs="+"))
     image_key: str = "observation.images.{name}"
     # how the cameras move
-    probability: float = field(default=0.5, metadata=_cli("chance a training sample is augmented"))
-    sampler: str = field(default="paper", metadata=_cli(
+    probability: float = field(default=0.5, metadata=flag("chance a training sample is augmented"))
+    sampler: str = field(default="paper", metadata=flag(
         "paper: the paper's --level moves; tilt: random-axis turns about the camera and shifts; "
         "arc: turns about the vertical; mix: one of the three per move; or several of them separated by "
         "commas, one of those per move (e.g. tilt,arc)", metavar="{" + ",".join(SAMPLERS) + "}",
         type=_sampler_argument))  # fmt: skip
-    level: str | PerturbationRange = field(default="train", metadata=_cli("perturbation level of the paper sampler"))
-    tilt_deg: float = field(default=10.0, metadata=_cli("tilt sampler: largest rotation, degrees"))
-    arc_deg: float = field(default=45.0, metadata=_cli("arc sampler: largest turn either way, degrees"))
-    shift_m: float = field(default=0.03, metadata=_cli("tilt and arc samplers: largest shift, metres"))
-    focal_scale: tuple[float, float] = field(default=(1.0, 1.0), metadata=_cli(
+    level: str | PerturbationRange = field(default="train", metadata=flag("perturbation level of the paper sampler"))
+    tilt_deg: float = field(default=10.0, metadata=flag("tilt sampler: largest rotation, degrees"))
+    arc_deg: float = field(default=45.0, metadata=flag("arc sampler: largest turn either way, degrees"))
+    shift_m: float = field(default=0.03, metadata=flag("tilt and arc samplers: largest shift, metres"))
+    focal_scale: tuple[float, float] = field(default=(1.0, 1.0), metadata=flag(
         "range of focal-length factors drawn for every move (0.001 to 1000), e.g. 0.8 1.25", nargs=2, type=float,
         metavar=("LOW", "HIGH")))  # fmt: skip
-    mode: str = field(default="episode", metadata=_cli(
+    mode: str = field(default="episode", metadata=flag(
         "episode: one perturbation per trajectory and view; frame: a new one every frame", choices=MODES))
-    views_per_source: int = field(default=3, metadata=_cli("distinct perturbed cameras per trajectory"))
-    seed: int = field(default=0, metadata=_cli("seed fixing the set of perturbations"))
-    pivot_depth: float | None = field(default=None, metadata=_cli(
+    views_per_source: int = field(default=3, metadata=flag("distinct perturbed cameras per trajectory"))
+    seed: int = field(default=0, metadata=flag("seed fixing the set of perturbations"))
+    pivot_depth: float | None = field(default=None, metadata=flag(
         "metres along the first camera's axis to the point the moves turn about; unset, gensplat cache places it "
         "where the first two cameras' axes cross at the scene, else at the scene's median depth", type=float,
         metavar="M"))  # fmt: skip
     # the item's layout
     frame_offsets: tuple[int, ...] | None = None
-    depth_unit: str | None = field(default=None, metadata=_cli(
+    depth_unit: str | None = field(default=None, metadata=flag(
         "leave the replaced cameras' depth-map features (observation.images.<camera>_depth) as recorded instead of "
         "rendering them at the new pose (default: rendered)", flag="--keep-depth-maps", action="store_const",
         const="keep"))  # fmt: skip
     report: bool = False
     # how a view is rendered
-    backend: str = field(default="fast", metadata=_cli("render backend used in the workers"))
+    backend: str = field(default="fast", metadata=flag("render backend used in the workers"))
     render_options: dict = field(default_factory=dict)
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    fill_holes: bool = field(default=True, metadata=_cli(
+    fill_holes: bool = field(default=True, metadata=flag(
         "paint pixels no source camera saw black instead of filling them", flag="--no-fill-holes",
         action="store_false"))  # fmt: skip
-    render_in: str = field(default="auto", metadata=_cli(
+    render_in: str = field(default="auto", metadata=flag(
         "worker: render in the dataloader workers; batch: render each batch on the training device after "
         "collation; auto: batch when training on CUDA", choices=RENDER_IN))  # fmt: skip
-    render_scale: float = field(default=1.0, metadata=_cli(
+    render_scale: float = field(default=1.0, metadata=flag(
         "render the augmented views at this fraction of the frame size, then resize them to it: about scale^2 of "
         "the render time, e.g. 0.5 for 640x480 frames that the policy shrinks to 320x240 "
         "(benchmarks/render_scale.py)"))  # fmt: skip
@@ -219,23 +213,12 @@ def _tuples(d: dict) -> dict:
 
 
 def add_config_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add a flag for every :class:`GenSplatConfig` field that has one (see ``_cli``), with the
-    field's default and type: the command line and the config cannot drift apart."""
-    for f in fields(GenSplatConfig):
-        if "cli" not in f.metadata:
-            continue
-        options = dict(f.metadata["cli"])
-        flag = options.pop("flag", "--" + f.name.replace("_", "-"))
-        shown = "all" if f.default is None and options.get("nargs") else f.default
-        shown = " ".join(map(str, shown)) if isinstance(shown, tuple) else shown  # as typed: --flag 1.0 1.0
-        if options.get("action") is None:
-            options.setdefault("type", type(f.default) if f.default is not None else str)
-            options["help"] += f" (default: {shown})"
-        parser.add_argument(flag, dest=f.name, default=f.default, **options)
+    """Add ``gensplat cache``'s flag for every :class:`GenSplatConfig` field that has one
+    (:func:`.core.config_flags.flag`), with the field's default and type."""
+    add_flags(parser, GenSplatConfig)
 
 
 def config_from_arguments(args: argparse.Namespace, **fixed) -> GenSplatConfig:
     """The :class:`GenSplatConfig` of the flags :func:`add_config_arguments` added, parsed into
     ``args``, and the ``fixed`` fields (e.g. the cameras of the dataset)."""
-    given = {f.name: getattr(args, f.name) for f in fields(GenSplatConfig) if "cli" in f.metadata}
-    return GenSplatConfig(**given, **fixed)
+    return config_from_flags(args, GenSplatConfig, **fixed)

@@ -39,6 +39,7 @@ from tqdm.auto import tqdm
 
 from .core.atomic import atomic_write, atomic_write_json
 from .core.cameras import Cameras
+from .core.config_flags import flag, nested
 from .core.views import Views
 from .geometry.model.checkpoints import GAUSSIAN_PREFIX, load_pi3_weights
 from .geometry.model.config import ModelConfig
@@ -78,27 +79,34 @@ class TrainConfig:
         threads: torch CPU threads (None: leave torch's default).
     """
 
-    out: str | Path
-    steps: int = 1000
-    batch_size: int = 4
-    lr: float = 2e-4
-    pretrained_lr_scale: float = 0.1
+    # the flags of ``gensplat train-model`` (:mod:`.core.config_flags`)
+    out: str | Path = field(metadata=flag("run directory (resumes when it holds a checkpoint)"))
+    steps: int = field(default=1000, metadata=flag("optimiser steps", required=True))
+    batch_size: int = field(default=4, metadata=flag("samples per step"))
+    lr: float = field(default=2e-4, metadata=flag("peak learning rate, cosine decay after the warm-up"))
+    pretrained_lr_scale: float = field(default=0.1, metadata=flag(
+        "learning-rate factor of the parts initialised from --init-weights"))
     weight_decay: float = 0.05
-    warmup_steps: int = 100
+    warmup_steps: int = field(default=100, metadata=flag("linear warm-up steps", flag="--warmup"))
     min_lr_ratio: float = 0.01
-    ema_decay: float = 0.999
+    ema_decay: float = field(default=0.999, metadata=flag(
+        "decay of the exported exponential moving average of the weights"))
     grad_clip: float = 1.0
-    bf16: bool = False
-    grad_checkpointing: bool = False
-    loss: LossWeights = field(default_factory=LossWeights)
-    render_views: int | None = None
-    render_crop: int | None = None
+    bf16: bool = field(default=False, metadata=flag("bfloat16 autocast", action="store_true"))
+    grad_checkpointing: bool = field(default=False, metadata=flag(
+        "recompute transformer activations in the backward pass (less memory, slower)", action="store_true"))
+    loss: LossWeights = field(default_factory=LossWeights, metadata=nested())
+    render_views: int | None = field(default=None, metadata=flag(
+        "context views rendered per sample", type=int, shown="all"))
+    render_crop: int | None = field(default=None, metadata=flag(
+        "render only a random square window of this side", type=int, shown="whole views"))
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     depth_min_alpha: float = 0.5
-    seed: int = 0
-    log_every: int = 10
-    save_every: int = 100
-    threads: int | None = None
+    seed: int = field(default=0, metadata=flag("seed of the initialisation, data order and view subsets"))
+    log_every: int = field(default=10, metadata=flag("steps between log lines"))
+    save_every: int = field(default=100, metadata=flag("steps between checkpoints"))
+    threads: int | None = field(default=None, metadata=flag("torch CPU threads", type=int,
+                                                            shown="torch's own choice"))
 
     def __post_init__(self) -> None:
         if isinstance(self.loss, dict):

@@ -4,7 +4,7 @@
 checks it and stores it beside the dataset (``calibrate``, ``calibrate_from_features``), and
 gives a dataset's cameras, from its features or that stored file (``load_calibration``);
 :mod:`.estimate` estimates the calibration from the dataset's own frames (``estimate_rig``,
-``gensplat calibrate --estimate``). Imports only the core and the data stage.
+``gensplat calibrate estimate``). Imports only the core and the data stage.
 """
 
 from .estimate import estimate_rig

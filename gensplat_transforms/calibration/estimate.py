@@ -1,4 +1,4 @@
-"""Camera calibration estimated from a dataset's own frames (``gensplat calibrate --estimate``).
+"""Camera calibration estimated from a dataset's own frames (``gensplat calibrate estimate``).
 
 For static external cameras (:func:`estimate_rig`; docs/calibration.md):
 

@@ -279,7 +279,7 @@ def saved_calibration(root: str | Path, sizes: dict[str, tuple[int, int]],
     path = calibration_path(root)
     if not path.is_file():
         return {}
-    fix = f"write it again with `gensplat calibrate --root {root} --from FILE`"
+    fix = f"write it again with `gensplat calibrate from-file --root {root} FILE`"
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except (ValueError, RecursionError) as e:  # not JSON, not UTF-8

@@ -6,6 +6,7 @@ import argparse
 import importlib
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 
@@ -23,29 +24,21 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="gensplat", description="GenSplat camera-pose augmentation tools")
     sub = parser.add_subparsers(dest="command", required=True)
 
+    from gensplat_sim.demo import DemoConfig
+
+    from gensplat_transforms.core.config_flags import add_flags
+    from gensplat_transforms.settings import add_config_arguments
+
     demo = sub.add_parser("demo", help="the main job: simulated dataset -> Gaussian cache -> augmentation preview")
-    demo.add_argument("--out", default="outputs/demo", help="output folder (default: outputs/demo)")
-    demo.add_argument("--episodes", type=int, default=2, help="demonstrations to record (default: 2)")
-    demo.add_argument("--size", type=int, default=224, help="image size in pixels (default: 224)")
-    demo.add_argument("--seed", type=int, default=0, help="seed of the recording and the perturbations (default: 0)")
-    demo.add_argument("--backend", default="fast", help="render backend (default: fast)")
+    add_flags(demo, DemoConfig)
 
     record = sub.add_parser("record", help="record scripted demonstrations of the simulated tabletop (LeRobot v3)")
-    record.add_argument("--out", required=True, help="dataset root to create (must not exist)")
-    record.add_argument("--task", default="pick_place", help="pick_place or stack (default: pick_place)")
-    record.add_argument("--episodes", type=int, default=10, help="demonstrations to record (default: 10)")
-    record.add_argument("--seed", type=int, default=0, help="run seed (default: 0)")
-    record.add_argument("--size", type=int, default=224, help="square image side in pixels (default: 224)")
-    record.add_argument("--height", type=int, default=None, help="image height in pixels (default: --size)")
-    record.add_argument("--width", type=int, default=None, help="image width in pixels (default: --size)")
-    record.add_argument("--fps", type=int, default=10, help="control and recording rate (default: 10)")
-    record.add_argument("--images", action="store_true",
-                        help="store lossless PNG images (default: MP4 video, LeRobot's default)")
-    record.add_argument("--shadows", action="store_true", help="render shadows and reflections (slower)")
-    record.add_argument(
-        "--sensor-depth", action="store_true",
-        help="record depth as a RealSense D435 measures it (noise, holes, 1 mm steps, 1 px shift)",
-    )  # fmt: skip
+    try:
+        from gensplat_sim.record import add_record_flags
+    except ImportError as e:  # its flags are RecordConfig's fields, which need the sim extra (MuJoCo)
+        record.description = f"needs the sim extra: pip install 'gensplat-transforms[sim]' ({e})"
+    else:
+        add_record_flags(record)
 
     cache = sub.add_parser(
         "cache", help="write GenSplat settings beside a LeRobot dataset and build its Gaussian cache",
@@ -55,12 +48,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "docs/cache_at_scale.md). Resumable: valid episodes are skipped.",
     )  # fmt: skip
     _dataset_arguments(cache)
-    cache.add_argument("--cameras", nargs="+", default=None,
-                       help="external cameras to reconstruct (default: those with depth, else every external camera)")
-    from gensplat_transforms.settings import add_config_arguments
-
+    _cameras_argument(cache, "external cameras to reconstruct", "those with depth, else every external camera")
     add_config_arguments(cache)  # the transform's settings: one flag per GenSplatConfig field that has one
-    cache.add_argument("--episodes", type=int, nargs="+", default=None, help="only these episodes (default: all)")
+    _episodes_argument(cache)
     cache.add_argument("--trust-headers", dest="verify", action="store_false",
                        help="resume without reading cached data: skip every episode whose header is valid (data "
                             "checksums are still checked on every read; default: check every checksum)")
@@ -106,11 +96,18 @@ def build_parser() -> argparse.ArgumentParser:
     depth.add_argument("--units", default=None,
                        help="metres per stored value: mm, cm, m or a number (default: mm for integer data, m for "
                             "floats, refused when the median distance is implausible)")
-    depth.add_argument("--episodes", type=int, nargs="+", default=None, help="only these episodes (default: all)")
+    _episodes_argument(depth)
     depth.add_argument("--overwrite", action="store_true", help="replace existing depth sidecars")
 
     calibrate = sub.add_parser(
         "calibrate", help="store camera calibration beside a LeRobot dataset whose features carry none",
+        description="Write the external cameras' intrinsics and poses to ROOT/gensplat/calibration.json (the "
+                    "dataset itself is not modified), from a calibration file, from the dataset's "
+                    "camera_extrinsics features, or estimated from its own frames.",
+    )  # fmt: skip
+    way = calibrate.add_subparsers(dest="calibrate", required=True, metavar="{" + ",".join(CALIBRATE_WAYS) + "}")
+    from_file = way.add_parser(
+        "from-file", help="intrinsics and poses from a calibration file",
         description="Read intrinsics and camera poses from FILE, check them against the dataset's cameras and "
                     "write ROOT/gensplat/calibration.json (the dataset itself is not modified). Conventions: "
                     "gensplat ({camera: {K | fx, fy, cx, cy, c2w, mount}}, OpenCV axes, camera-to-world), "
@@ -118,60 +115,58 @@ def build_parser() -> argparse.ArgumentParser:
                     "nerfstudio (transforms.json: OpenGL camera-to-world per frame, the file_path's name naming "
                     "the camera). JSON, or YAML for files ending in .yaml/.yml.",
     )  # fmt: skip
-    calibrate.add_argument("--root", required=True, help="local LeRobot dataset root")
-    given = calibrate.add_mutually_exclusive_group(required=True)
-    given.add_argument("--from", dest="source", metavar="FILE",
-                       help="calibration file (JSON, or YAML ending in .yaml/.yml)")
-    given.add_argument("--estimate", action="store_true",
-                       help="estimate the external cameras' intrinsics and poses from the dataset's own frames and "
-                            "depth, or without depth from a field of view or a geometry model (--model) "
-                            "(docs/calibration.md)")
-    given.add_argument("--from-features", action="store_true",
-                       help="each external camera's pose per episode from the dataset's camera_extrinsics.<camera> "
-                            "features (x, y, z, roll, pitch, yaw, as in DROID's LeRobot port; docs/lerobot.md), "
-                            "intrinsics from --intrinsics, --fov or --focal")
-    calibrate.add_argument("--intrinsics", metavar="FILE", default=None,
-                           help="--from-features: a calibration file giving each camera's K (no poses needed)")
-    calibrate.add_argument("--fov", type=float, default=None, metavar="DEG",
-                           help="--from-features, and --estimate without depth or of one camera: every camera's "
-                                "horizontal field of view in degrees (square pixels, principal point at the image "
-                                "centre)")
-    calibrate.add_argument("--focal", type=float, default=None, metavar="PX",
-                           help="as --fov, every camera's focal length in pixels")
-    calibrate.add_argument("--model", nargs="?", const="shipped", default=None, metavar="DIR_OR_HUB_ID",
-                           help="--estimate without depth: a geometry model predicts the focal lengths and, when it "
-                                "is metric and neither --baseline nor --table-distance is given, the scale; a "
-                                "checkpoint directory or hub id (Depth Anything 3: Apache-2.0; Pi3: CC BY-NC 4.0, "
-                                "non-commercial), or alone the shipped small model (trained on simulated tabletops "
-                                "only)")
-    calibrate.add_argument("--per-episode", action="store_true",
-                           help="--estimate: cameras that move between episodes; every episode is estimated apart "
-                                "from --timesteps of its own frames and gets its own poses")
-    calibrate.add_argument("--principal-point", type=_pixel_point, nargs="+", default=None, metavar="CX,CY",
-                           help="--estimate: the principal point in pixels instead of the image centre (cropped "
-                                "images), one for every camera or one per camera in --cameras order; the image "
-                                "centre is W/2,H/2 (OpenCV's cx, cy + 0.5)")
-    calibrate.add_argument("--repo-id", default=None, help="--estimate: the dataset's repo id (default: local/<root name>)")
-    calibrate.add_argument("--cameras", nargs="+", default=None,
-                           help="--estimate, --from-features: the external cameras (--estimate: the first the "
-                                "reference; default: every colour camera whose name does not contain 'wrist', with "
-                                "--from-features one with a camera_extrinsics.<camera> feature)")
-    calibrate.add_argument("--timesteps", type=int, default=16,
-                           help="--estimate: timesteps sampled across the episodes (default: 16)")
-    calibrate.add_argument("--baseline", type=float, default=None,
-                           help="--estimate without depth: the distance between the first two cameras, metres "
-                                "(sets the scale)")
-    calibrate.add_argument("--table-distance", type=float, default=None,
-                           help="--estimate without depth: the distance from the first camera down to the table, "
-                                "metres (sets the scale)")
-    calibrate.add_argument("--convention", choices=["auto", "gensplat", "opencv-w2c", "nerfstudio"], default="auto",
+    _dataset_arguments(from_file, repo_id=None)
+    from_file.add_argument("source", metavar="FILE", help="calibration file (JSON, or YAML ending in .yaml/.yml)")
+    from_file.add_argument("--convention", choices=["auto", "gensplat", "opencv-w2c", "nerfstudio"], default="auto",
                            help="how FILE states the cameras; auto: nerfstudio when it has frames, opencv-w2c when "
                                 "cameras have R or rvec, else gensplat (default: auto)")
+    features = way.add_parser(
+        "from-features", help="each external camera's pose per episode from the dataset's camera_extrinsics "
+                              "features",
+        description="Each external camera's pose per episode from the dataset's camera_extrinsics.<camera> "
+                    "features (x, y, z, roll, pitch, yaw, as in DROID's LeRobot port; docs/lerobot.md), "
+                    "intrinsics from --intrinsics, --fov or --focal.",
+    )  # fmt: skip
+    _dataset_arguments(features, repo_id=None)
+    features.add_argument("--intrinsics", metavar="FILE", default=None,
+                          help="a calibration file giving each camera's K (no poses needed)")
+    _field_of_view_arguments(features, "")
+    _cameras_argument(features, "the external cameras", "those with a camera_extrinsics.<camera> feature")
+    estimate = way.add_parser(
+        "estimate", help="the external cameras' intrinsics and poses estimated from the dataset's own frames",
+        description="Estimate the external cameras' intrinsics and poses from the dataset's own frames and "
+                    "depth, or without depth from a field of view or a geometry model (--model) "
+                    "(docs/calibration.md).",
+    )  # fmt: skip
+    _dataset_arguments(estimate, repo_id="local/<root name>")
+    _field_of_view_arguments(estimate, "without depth or of one camera: ")
+    estimate.add_argument("--model", nargs="?", const="shipped", default=None, metavar="DIR_OR_HUB_ID",
+                          help="without depth: a geometry model predicts the focal lengths and, when it is metric "
+                               "and neither --baseline nor --table-distance is given, the scale; a checkpoint "
+                               "directory or hub id (Depth Anything 3: Apache-2.0; Pi3: CC BY-NC 4.0, "
+                               "non-commercial), or alone the shipped small model (trained on simulated tabletops "
+                               "only)")
+    estimate.add_argument("--per-episode", action="store_true",
+                          help="cameras that move between episodes; every episode is estimated apart from "
+                               "--timesteps of its own frames and gets its own poses")
+    estimate.add_argument("--principal-point", type=_pixel_point, nargs="+", default=None, metavar="CX,CY",
+                          help="the principal point in pixels instead of the image centre (cropped images), one for "
+                               "every camera or one per camera in --cameras order; the image centre is W/2,H/2 "
+                               "(OpenCV's cx, cy + 0.5)")
+    _cameras_argument(estimate, "the external cameras, the first the reference",
+                      "every colour camera whose name does not contain 'wrist'")
+    estimate.add_argument("--timesteps", type=int, default=16,
+                          help="timesteps sampled across the episodes (default: 16)")
+    estimate.add_argument("--baseline", type=float, default=None,
+                          help="without depth: the distance between the first two cameras, metres (sets the scale)")
+    estimate.add_argument("--table-distance", type=float, default=None,
+                          help="without depth: the distance from the first camera down to the table, metres (sets "
+                               "the scale)")
 
     train = sub.add_parser("train-model", help="train the GenSplat model with 3D-prior distillation")
-    train.add_argument("--out", required=True, help="run directory (resumes when it holds a checkpoint)")
-    train.add_argument("--steps", type=int, required=True, help="optimiser steps")
-    train.add_argument("--batch-size", type=int, default=4, help="samples per step (default: 4)")
+    from gensplat_transforms.training import TrainConfig
+
+    add_flags(train, TrainConfig)  # the run's settings: one flag per TrainConfig (and LossWeights) field with one
     train.add_argument("--size", type=int, default=112, help="image side, a multiple of 14 (default: 112)")
     train.add_argument("--model", choices=["small", "full"], default="small",
                        help="small: 128 wide, 4 + 4 blocks, trains on a CPU; full: Pi3 size, about 1 B parameters "
@@ -179,41 +174,17 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--init-weights", default=None,
                        help="Pi3 (or GenSplat) model.safetensors to initialise from; its geometry parts train at "
                             "--pretrained-lr-scale x lr (default: random initialisation)")
-    train.add_argument("--pretrained-lr-scale", type=float, default=0.1,
-                       help="learning-rate factor of the parts initialised from --init-weights (default: 0.1)")
     train.add_argument("--data", choices=["procedural", "lerobot"], nargs="+", default=["procedural"],
                        help="one or both: both mixes the samples, in proportion to the datasets' lengths "
                             "(set the procedural one with --scenes; default: procedural)")
     train.add_argument("--views", type=int, default=2, help="procedural: cameras per sample (default: 2)")
     train.add_argument("--scenes", type=int, default=None, help="procedural: distinct scenes (default: one per sample)")
-    train.add_argument("--root", default=None, help="lerobot: local dataset root")
-    train.add_argument("--repo-id", default=None, help="lerobot: the dataset's repo id")
-    train.add_argument("--cameras", nargs="+", default=None, help="lerobot: external cameras (default: all)")
+    _dataset_arguments(train, when="lerobot: ")
+    _cameras_argument(train, "lerobot: external cameras", "all")
     train.add_argument("--teacher", choices=["true", "pi3"], default="true",
                        help="true: the data's depth and calibration; pi3: a frozen Pi3 model (default: true)")
     train.add_argument("--teacher-weights", default=None, help="Pi3 model.safetensors for --teacher pi3 (default: none)")
     train.add_argument("--no-distill", action="store_true", help="L_rgb only (l_depth = l_3D = l_cam = 0)")
-    train.add_argument("--l1", type=float, default=1.0, help="L1 weight inside L_rgb (default: 1.0)")
-    train.add_argument("--perceptual", type=float, default=0.2, help="SSIM (or LPIPS) weight inside L_rgb (default: 0.2)")
-    train.add_argument("--l-depth", type=float, default=0.1, help="weight of the depth distillation loss (default: 0.1)")
-    train.add_argument("--l-3d", type=float, default=1.0, help="weight of the 3D point-map loss (default: 1.0)")
-    train.add_argument("--l-cam", type=float, default=1.0, help="weight of the camera-pose loss (default: 1.0)")
-    train.add_argument("--lr", type=float, default=2e-4,
-                       help="peak learning rate, cosine decay after the warm-up (default: 0.0002)")
-    train.add_argument("--warmup", type=int, default=100, help="linear warm-up steps (default: 100)")
-    train.add_argument("--ema-decay", type=float, default=0.999,
-                       help="decay of the exported exponential moving average of the weights (default: 0.999)")
-    train.add_argument("--render-views", type=int, default=None, help="context views rendered per sample (default: all)")
-    train.add_argument("--render-crop", type=int, default=None,
-                       help="render only a random square window of this side (default: whole views)")
-    train.add_argument("--bf16", action="store_true", help="bfloat16 autocast")
-    train.add_argument("--grad-checkpointing", action="store_true",
-                       help="recompute transformer activations in the backward pass (less memory, slower)")
-    train.add_argument("--seed", type=int, default=0,
-                       help="seed of the initialisation, data order and view subsets (default: 0)")
-    train.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's own choice)")
-    train.add_argument("--log-every", type=int, default=10, help="steps between log lines (default: 10)")
-    train.add_argument("--save-every", type=int, default=100, help="steps between checkpoints (default: 100)")
 
     preview = sub.add_parser(
         "preview", help="grid PNG and MP4 of what the policy gets from a LeRobot dataset (GenSplat forced on)",
@@ -249,17 +220,49 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _dataset_arguments(parser: argparse.ArgumentParser, root_note: str = "") -> None:
-    """--root and --repo-id of a local LeRobot dataset."""
-    parser.add_argument("--root", required=True, help=f"local LeRobot dataset root{root_note}")
-    parser.add_argument("--repo-id", required=True, help="the dataset's repo id")
+def _dataset_arguments(parser: argparse.ArgumentParser, root_note: str = "", *, repo_id: str | None = "",
+                       when: str = "") -> None:
+    """--root and --repo-id of a local LeRobot dataset, required unless ``when`` says when they
+    are read (e.g. "lerobot: "); ``repo_id``: None for no --repo-id, else the default it states
+    ("": required)."""
+    parser.add_argument("--root", required=not when, default=None, help=f"{when}local LeRobot dataset root{root_note}")
+    if repo_id is not None:
+        default = f" (default: {repo_id})" if repo_id else ""
+        parser.add_argument("--repo-id", required=not (when or repo_id), default=None,
+                            help=f"{when}the dataset's repo id{default}")
+
+
+def _cameras_argument(parser: argparse.ArgumentParser, what: str, default: str) -> None:
+    """--cameras: the external cameras a command works on; ``default`` says which when not given."""
+    parser.add_argument("--cameras", nargs="+", default=None, help=f"{what} (default: {default})")
+
+
+def _episodes_argument(parser: argparse.ArgumentParser) -> None:
+    """--episodes: only these episodes of the dataset."""
+    parser.add_argument("--episodes", type=int, nargs="+", default=None, help="only these episodes (default: all)")
+
+
+def _field_of_view_arguments(parser: argparse.ArgumentParser, when: str) -> None:
+    """--fov and --focal: every camera's intrinsics from a field of view or a focal length."""
+    parser.add_argument("--fov", type=float, default=None, metavar="DEG",
+                        help=f"{when}every camera's horizontal field of view in degrees (square pixels, principal "
+                             "point at the image centre)")
+    parser.add_argument("--focal", type=float, default=None, metavar="PX",
+                        help="as --fov, every camera's focal length in pixels")
 
 
 def main(argv: list[str] | None = None) -> int:
     """Run a command; a user mistake (:func:`_user_error`) ends as ``gensplat: error: <message>``
     on stderr with exit status 2, anything else raises."""
-    args = build_parser().parse_args(argv)
+    argv = _current_spelling(sys.argv[1:] if argv is None else list(argv))
+    parser = build_parser()
+    args, unknown = parser.parse_known_args(argv)
     try:
+        if unknown:
+            message = _not_read(parser, args, unknown)
+            if message is None:
+                parser.parse_args(argv)  # argparse's own usage error
+            raise ValueError(message)
         return _dispatch(args)
     except Exception as e:
         if not _user_error(e):
@@ -285,40 +288,63 @@ def _user_error(e: Exception) -> bool:
     return tb.tb_frame.f_globals.get("__name__", "").split(".")[0] in _OWN_PACKAGES
 
 
-#: the options each way of ``gensplat calibrate`` reads; one it does not read is refused, not ignored
-_CALIBRATE_READS = {
-    "--from": ("convention",),
-    "--from-features": ("intrinsics", "fov", "focal", "cameras"),
-    "--estimate": ("fov", "focal", "model", "per_episode", "principal_point", "repo_id", "cameras", "timesteps",
-                   "baseline", "table_distance"),
-}  # fmt: skip
+#: ``gensplat calibrate``'s subcommands, one per source of the calibration
+CALIBRATE_WAYS = ("from-file", "from-features", "estimate")
+#: the old spelling of each (one ``calibrate`` parser, the source an option), still understood
+_OLD_CALIBRATE = {"--from": "from-file", "--from-features": "from-features", "--estimate": "estimate"}
 
 
-def _check_calibrate_options(args) -> None:
-    """Raise ``ValueError`` naming the options given to ``calibrate`` that its way of
-    calibrating (``--from``, ``--from-features`` or ``--estimate``) would not read."""
-    way = "--estimate" if args.estimate else "--from-features" if args.from_features else "--from"
-    defaults = vars(build_parser().parse_args(["calibrate", "--root", ".", "--estimate"]))
-    options = {name for names in _CALIBRATE_READS.values() for name in names} - set(_CALIBRATE_READS[way])
-    given = sorted("--" + name.replace("_", "-") for name in options if getattr(args, name) != defaults[name])
-    if given:
-        readers = {flag: [w for w, names in _CALIBRATE_READS.items() if flag[2:].replace("-", "_") in names]
-                   for flag in given}  # fmt: skip
-        raise ValueError(f"calibrate {way} does not read " + "; ".join(f"{flag} (only {' and '.join(readers[flag])})"
-                                                                       for flag in given))  # fmt: skip
+def _current_spelling(argv: list[str]) -> list[str]:
+    """``argv`` with the old ``calibrate --from FILE`` / ``--from-features`` / ``--estimate``
+    rewritten as its subcommand, noting the new spelling on stderr; other argv unchanged."""
+    if argv[:1] != ["calibrate"] or argv[1:2] and argv[1] in (*CALIBRATE_WAYS, "-h", "--help"):
+        return argv
+    old = [i for i, a in enumerate(argv) if a.split("=")[0] in _OLD_CALIBRATE]
+    if len(old) != 1:
+        return argv  # none, or several: argparse names what is wrong
+    i = old[0]
+    name, _, value = argv[i].partition("=")
+    way, rest = _OLD_CALIBRATE[name], argv[1:i] + argv[i + 1:]
+    if way == "from-file" and not value and i + 1 < len(argv):
+        value, rest = argv[i + 1], argv[1:i] + argv[i + 2:]
+    new = ["calibrate", way, *([value] if way == "from-file" and value else []), *rest]
+    shown = f"{name} FILE" if way == "from-file" else name
+    print(f"gensplat: note: `calibrate {shown}` is deprecated; it is now `gensplat calibrate {way}"
+          f"{' FILE' if way == 'from-file' else ''}`", file=sys.stderr)
+    return new
+
+
+def _options_of(parser: argparse.ArgumentParser) -> set[str]:
+    return {o for a in parser._actions for o in a.option_strings}
+
+
+def _not_read(parser: argparse.ArgumentParser, args, unknown: list[str]) -> str | None:
+    """For options one ``calibrate`` subcommand was given but does not read: which of the others
+    read them (None when one of them is no option of any)."""
+    if args.command != "calibrate":
+        return None
+    ways = next(a for a in parser._subparsers._group_actions[0].choices["calibrate"]._actions
+                if isinstance(a, argparse._SubParsersAction)).choices
+    given = [o.split("=")[0] for o in unknown if o.startswith("--")]
+    readers = {o: [w for w in CALIBRATE_WAYS if o in _options_of(ways[w])] for o in given}
+    if not given or not all(readers.values()):
+        return None
+    return f"calibrate {args.calibrate} does not read " + "; ".join(
+        f"{o} (only {' and '.join(r)})" for o, r in readers.items())
 
 
 def _dispatch(args) -> int:
-    if args.command == "calibrate":
-        _check_calibrate_options(args)
     if args.command == "record":
-        from gensplat_sim.record import record_from_cli
+        try:
+            from gensplat_sim.record import record_from_cli
+        except ImportError as e:
+            raise SystemExit(f"gensplat record needs the sim extra: pip install 'gensplat-transforms[sim]' ({e})")
 
         root, repo_id = record_from_cli(args).root, f"gensplat/sim_{args.task}"
         print(f"repo id {repo_id}, dataset root {root}; next: gensplat cache --root {root} --repo-id {repo_id}")
-    elif args.command == "calibrate" and args.estimate:
+    elif args.command == "calibrate" and args.calibrate == "estimate":
         _estimate(args)
-    elif args.command == "calibrate" and args.from_features:
+    elif args.command == "calibrate" and args.calibrate == "from-features":
         from gensplat_transforms.calibration.files import calibrate_from_features
         from gensplat_transforms.data.format import calibration_path
 
@@ -335,9 +361,11 @@ def _dispatch(args) -> int:
     elif args.command == "import-depth":
         _import_depth(args)
     elif args.command == "demo":
-        from gensplat_sim.demo import run_demo
+        from gensplat_sim.demo import DemoConfig, run_demo
 
-        run_demo(args.out, episodes=args.episodes, size=args.size, seed=args.seed, backend=args.backend)
+        from gensplat_transforms.core.config_flags import config_from_flags
+
+        run_demo(config_from_flags(args, DemoConfig))
     elif args.command == "cache":
         _cache(args)
     elif args.command == "train-model":
@@ -431,6 +459,7 @@ CACHE_PATHS = {"rgbd": "RGB-D, the dataset's depth", "geometry": "a geometry mod
 def _train_model(args) -> None:
     from torch.utils.data import ConcatDataset
 
+    from gensplat_transforms.core.config_flags import config_from_flags
     from gensplat_transforms.data.outputs import check_output
     from gensplat_transforms.geometry.model import ModelConfig
     from gensplat_transforms.geometry.model.data import ProceduralViews
@@ -440,16 +469,10 @@ def _train_model(args) -> None:
 
     check_output(args.out, args.root, folder=True)  # against the dataset of --data lerobot
     check_output(Path(args.out) / LOG_FILE, args.root)  # appended to; the other files are replaced atomically
-    loss = LossWeights(l1=args.l1, perceptual=args.perceptual, depth=args.l_depth, points=args.l_3d,
-                       camera=args.l_cam)  # fmt: skip
+    loss = config_from_flags(args, LossWeights)
     if args.no_distill:
-        loss = LossWeights(l1=args.l1, perceptual=args.perceptual, depth=0.0, points=0.0, camera=0.0)
-    config = TrainConfig(
-        out=args.out, steps=args.steps, batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup,
-        pretrained_lr_scale=args.pretrained_lr_scale, ema_decay=args.ema_decay, bf16=args.bf16, grad_checkpointing=args.grad_checkpointing, loss=loss,
-        render_views=args.render_views, render_crop=args.render_crop, seed=args.seed, log_every=args.log_every, save_every=args.save_every,
-        threads=args.threads,
-    )  # fmt: skip
+        loss = replace(loss, depth=0.0, points=0.0, camera=0.0)
+    config = config_from_flags(args, TrainConfig, loss=loss)
     model_config = ModelConfig.full() if args.model == "full" else ModelConfig.small()
     datasets = []
     for kind in dict.fromkeys(args.data):
@@ -495,7 +518,7 @@ def _preview(args) -> None:
 def _estimate(args) -> None:
     from gensplat_transforms.data.format import calibration_path
 
-    estimate = _lerobot_module("estimate", "calibrate --estimate")
+    estimate = _lerobot_module("estimate", "calibrate estimate")
     repo_id = args.repo_id or f"local/{Path(args.root).name}"
     rig = estimate.estimate_calibration(args.root, repo_id, tuple(args.cameras) if args.cameras else None,
                                         args.timesteps, fov_deg=args.fov, focal_px=args.focal,

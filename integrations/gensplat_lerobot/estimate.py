@@ -1,4 +1,4 @@
-"""Calibration of a LeRobot dataset estimated from its own frames (``gensplat calibrate --estimate``):
+"""Calibration of a LeRobot dataset estimated from its own frames (``gensplat calibrate estimate``):
 frames sampled across episodes and time, :func:`gensplat_transforms.calibration.estimate.estimate_rig`,
 the result written to ``<root>/gensplat/calibration.json`` as a given calibration would be,
 with the estimate's spread beside it."""

@@ -80,9 +80,9 @@ class LeRobotSource:
             raise ValueError(
                 f"{self.root}: GenSplat needs a calibrated external camera; calibrated external: "
                 f"{list(external)}, image features: {image_names(info['features'])}. Estimate it from the frames with "
-                f"`gensplat calibrate --root {self.root} --estimate` (with depth; RGB only: add --model, or --fov and "
-                "--baseline), or give it with `gensplat calibrate --root "
-                f"{self.root} --from FILE` (either is stored in {calibration_path(self.root)}, the dataset is not "
+                f"`gensplat calibrate estimate --root {self.root}` (with depth; RGB only: add --model, or --fov and "
+                "--baseline), or give it with `gensplat calibrate from-file "
+                f"--root {self.root} FILE` (either is stored in {calibration_path(self.root)}, the dataset is not "
                 "modified), or put it in the image features' info (gensplat_transforms.data.format)"
             )
         shape = info["features"][IMAGE_KEY_PREFIX + self.camera_names[0]]["shape"]  # (H, W, C)

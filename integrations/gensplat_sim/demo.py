@@ -6,12 +6,14 @@ from __future__ import annotations
 
 import os
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 
 from gensplat_transforms.cache.store import size_text
 from gensplat_transforms.core.atomic import atomic_write_json
+from gensplat_transforms.core.config_flags import flag
 from gensplat_transforms.core.images import save_grid
 from gensplat_transforms.core.metrics import psnr
 from gensplat_transforms.data.format import GENSPLAT_DIR
@@ -24,11 +26,24 @@ from gensplat_transforms.views.perturbation import EVAL_LEVELS, PerturbationSamp
 REPO_ID = "gensplat/sim_pick_place"
 
 
-def run_demo(out_dir: str | Path, episodes: int = 2, size: int = 224, seed: int = 0, backend: str = "fast",
-             log=print) -> dict:
+@dataclass
+class DemoConfig:
+    """Settings of :func:`run_demo`, each a flag of ``gensplat demo``
+    (:mod:`gensplat_transforms.core.config_flags`)."""
+
+    out: str | Path = field(default="outputs/demo", metadata=flag("output folder", type=str))
+    episodes: int = field(default=2, metadata=flag("demonstrations to record"))
+    size: int = field(default=224, metadata=flag("image size in pixels"))
+    seed: int = field(default=0, metadata=flag("seed of the recording and the perturbations"))
+    backend: str = field(default="fast", metadata=flag("render backend"))
+
+
+def run_demo(config: DemoConfig | None = None, log=print) -> dict:
     """Write ``sim_dataset/`` (unless present), ``preview.png``/``preview.mp4``,
-    ``levels.png`` and ``demo.json`` to ``out_dir`` (a folder: :func:`.outputs.check_output`);
+    ``levels.png`` and ``demo.json`` to ``config.out`` (a folder: :func:`.outputs.check_output`);
     return the summary."""
+    config = DemoConfig() if config is None else config
+    episodes, size, seed = config.episodes, config.size, config.seed
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     from gensplat_lerobot import enable_gensplat, prepare, video_backend
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -37,7 +52,7 @@ def run_demo(out_dir: str | Path, episodes: int = 2, size: int = 224, seed: int 
     from .truth import GroundTruth
     from .world import WorldConfig
 
-    out_dir = check_output(out_dir, folder=True)
+    out_dir = check_output(config.out, folder=True)
     root = out_dir / "sim_dataset"
     summary: dict = {"dataset": str(root)}
     if (root / "meta" / "info.json").exists():
@@ -50,7 +65,7 @@ def run_demo(out_dir: str | Path, episodes: int = 2, size: int = 224, seed: int 
             f"{size}x{size}, RGB + depth) in {time.perf_counter() - t0:.0f} s")
     log(f"repo id {REPO_ID}, dataset root {root}; GenSplat settings and cache in {root / GENSPLAT_DIR}")
     t0 = time.perf_counter()
-    stats = prepare(root, REPO_ID, GenSplatConfig(backend=backend))  # the training settings
+    stats = prepare(root, REPO_ID, GenSplatConfig(backend=config.backend))  # the training settings
     built = [s for s in stats.values() if s is not None]
     if built:
         per_step = sum(s.bytes for s in built) / sum(s.num_frames for s in built)

@@ -27,6 +27,7 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
+from gensplat_transforms.core.config_flags import add_flags, config_from_flags, flag, nested
 from gensplat_transforms.data.format import IMAGE_KEY_PREFIX, camera_info, save_depth
 from gensplat_transforms.data.outputs import new_folder
 
@@ -61,17 +62,21 @@ class RecordConfig:
         (:mod:`.sensor`); None (default) records the exact depth.
     """
 
-    root: Path
-    task: str = "pick_place"
-    episodes: int = 10
-    seed: int = 0
-    use_videos: bool = True
+    # the flags of ``gensplat record`` (:func:`add_record_flags`)
+    root: Path = field(metadata=flag("dataset root to create (must not exist)", flag="--out", type=Path))
+    task: str = field(default="pick_place", metadata=flag("pick_place or stack"))
+    episodes: int = field(default=10, metadata=flag("demonstrations to record"))
+    seed: int = field(default=0, metadata=flag("run seed"))
+    use_videos: bool = field(default=True, metadata=flag(
+        "store lossless PNG images (default: MP4 video, LeRobot's default)", flag="--images", action="store_false"))
     repo_id: str | None = None
     max_attempts: int | None = None
     max_frames: int | None = None
-    world: WorldConfig = field(default_factory=WorldConfig)
+    world: WorldConfig = field(default_factory=WorldConfig, metadata=nested())
     expert: ExpertConfig = field(default_factory=ExpertConfig)
-    sensor_depth: SensorDepthConfig | None = None
+    sensor_depth: SensorDepthConfig | None = field(default=None, metadata=flag(
+        "record depth as a RealSense D435 measures it (noise, holes, 1 mm steps, 1 px shift)",
+        action="store_const", const=SensorDepthConfig()))  # fmt: skip
 
 
 @dataclass
@@ -224,26 +229,20 @@ def _record(config: RecordConfig, root: Path, progress: bool) -> RecordResult:
     return RecordResult(root, saved, attempts, frames, time.perf_counter() - start)
 
 
+def add_record_flags(parser) -> None:
+    """``gensplat record``'s flags: :class:`RecordConfig`'s and :class:`.world.WorldConfig`'s
+    fields that have one, and ``--size``, the side of square images."""
+    add_flags(parser, RecordConfig)
+    side = WorldConfig.__dataclass_fields__["height"].default
+    parser.add_argument("--size", type=int, default=side, help=f"square image side in pixels (default: {side})")
+
+
 def record_from_cli(args) -> RecordResult:
     """``gensplat record``: build the config from parsed arguments, record, print a summary."""
-    world = WorldConfig(
-        height=args.size if args.height is None else args.height,
-        width=args.size if args.width is None else args.width,
-        fps=args.fps,
-        shadows=args.shadows,
-        reflections=args.shadows,
-    )
-    result = record(
-        RecordConfig(
-            Path(args.out),
-            task=args.task,
-            episodes=args.episodes,
-            seed=args.seed,
-            use_videos=not args.images,
-            world=world,
-            sensor_depth=SensorDepthConfig() if args.sensor_depth else None,
-        )
-    )
+    world = config_from_flags(args, WorldConfig, height=args.size if args.height is None else args.height,
+                              width=args.size if args.width is None else args.width, reflections=args.shadows)
+    config = config_from_flags(args, RecordConfig, world=world)
+    result = record(config)
     print(
         f"recorded {result.episodes} {args.task} episode(s), {result.frames} frames, into {result.root} "
         f"(expert success {result.episodes}/{result.attempts}, {result.frames_per_second:.1f} frames/s)"

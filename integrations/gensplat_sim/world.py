@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from gensplat_transforms.core.cameras import Cameras
+from gensplat_transforms.core.config_flags import flag
 
 from .control import ArmController, yaw_of
 from .render import OffscreenRenderer
@@ -44,10 +45,13 @@ class WorldConfig:
     scene: camera placements and textures.
     """
 
-    height: int = 224
-    width: int = 224
-    fps: int = 10
-    shadows: bool = False
+    # flags of ``gensplat record`` (:mod:`gensplat_transforms.core.config_flags`); its --size sets
+    # both sides, --shadows both passes
+    height: int = field(default=224, metadata=flag("image height in pixels", default=None, shown="--size"))
+    width: int = field(default=224, metadata=flag("image width in pixels", default=None, shown="--size"))
+    fps: int = field(default=10, metadata=flag("control and recording rate"))
+    shadows: bool = field(default=False, metadata=flag("render shadows and reflections (slower)",
+                                                       action="store_true"))
     reflections: bool = False
     scene: SceneConfig = field(default_factory=SceneConfig)
 

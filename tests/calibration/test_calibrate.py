@@ -150,16 +150,16 @@ def test_cli_prints_the_error_alone_and_keeps_internal_errors(truth, tmp_path, c
     write_info(root)
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps(entry(truth, "left", mount="ceiling")))
-    assert main(["calibrate", "--root", str(root), "--from", str(bad)]) == 2
+    assert main(["calibrate", "from-file", "--root", str(root), str(bad)]) == 2
     assert capsys.readouterr().err == (f"gensplat: error: {bad}: camera 'left': field 'mount' must be 'external' "
                                        "or 'wrist', got 'ceiling'\n")  # fmt: skip
     good = convention_file("opencv-w2c", truth, tmp_path)
-    assert main(["calibrate", "--root", str(root), "--from", str(good)]) == 0
+    assert main(["calibrate", "from-file", "--root", str(root), str(good)]) == 0
     assert f"written to {calibration_path(root)}" in capsys.readouterr().out
     # a ValueError raised outside this project's code is a bug: its traceback is kept
     monkeypatch.setattr("gensplat_transforms.calibration.files.calibrate", lambda *a: json.loads("{"))
     with pytest.raises(json.JSONDecodeError):
-        main(["calibrate", "--root", str(root), "--from", str(good)])
+        main(["calibrate", "from-file", "--root", str(root), str(good)])
 
 
 def test_lerobot_source_uses_the_stored_calibration_and_the_dataset_is_untouched(truth, scene_dataset,
@@ -173,14 +173,14 @@ def test_lerobot_source_uses_the_stored_calibration_and_the_dataset_is_untouched
     calibrated = LeRobotSource(root, repo)
     strip_calibration(root, NAMES)  # a dataset recorded without calibration
     shutil.rmtree(root / "depth")
-    with pytest.raises(ValueError, match=r"a calibrated external camera; .* `gensplat calibrate --root .* --estimate`"):
+    with pytest.raises(ValueError, match=r"a calibrated external camera; .* `gensplat calibrate estimate --root .*`"):
         LeRobotSource(root, repo)
     files = {f: f.read_bytes() for f in root.rglob("*") if f.is_file()}
 
     truth32 = {n: (calibrated.calibration[n].K, calibrated.calibration[n].c2w) for n in NAMES}
     source = tmp_path / "transforms.json"
     source.write_text(json.dumps(nerfstudio(truth32, 1.0, 32, 32)))
-    assert main(["calibrate", "--root", str(root), "--from", str(source)]) == 0
+    assert main(["calibrate", "from-file", "--root", str(root), str(source)]) == 0
     assert {f: f.read_bytes() for f in root.rglob("*") if f.is_file() and "gensplat" not in f.parts} == files
     stored = LeRobotSource(root, repo)
     assert stored.camera_names == NAMES  # every calibrated external camera (no depth here)

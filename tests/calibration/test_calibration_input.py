@@ -155,7 +155,7 @@ def test_cli_reports_malformed_files_as_an_error_line(case, message, truth, tmp_
     source = tmp_path / "calibration.json"
     text, extra = cli_case(case, truth)
     source.write_bytes(text)
-    assert main(["calibrate", "--root", str(root), "--from", str(source), *extra]) == 2
+    assert main(["calibrate", "from-file", "--root", str(root), str(source), *extra]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"gensplat: error: {source}: ") and err.count("\n") == 1
     assert re.search(message, err), err
@@ -171,7 +171,7 @@ def test_calibrate_refuses_cameras_whose_features_carry_calibration(truth, tmp_p
     (root / "meta" / "info.json").write_text(json.dumps({"features": features}))
     source = tmp_path / "calibration.json"
     source.write_text(json.dumps(entry(truth, "left") | entry(truth, "right")))
-    assert main(["calibrate", "--root", str(root), "--from", str(source)]) == 2
+    assert main(["calibrate", "from-file", "--root", str(root), str(source)]) == 2
     assert capsys.readouterr().err == (
         f"gensplat: error: {source}: camera(s) ['left'] already carry calibration in "
         f"{root / 'meta' / 'info.json'} (camera.intrinsics in their feature's info), which is used "
@@ -216,6 +216,6 @@ def test_a_hand_edited_calibration_json_names_file_camera_field_and_fix(case, me
     else:
         left["camera.intrinsics"][0][0] = 1e308
     path.write_text(json.dumps(data))
-    fix = rf"; write it again with `gensplat calibrate --root {re.escape(str(root))} --from FILE`$"
+    fix = rf"; write it again with `gensplat calibrate from-file --root {re.escape(str(root))} FILE`$"
     with pytest.raises(ValueError, match=message + ".*" + fix):
         load_calibration(features, root)

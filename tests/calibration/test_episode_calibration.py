@@ -89,7 +89,7 @@ def test_views_carry_each_episodes_poses(form, dataset, tmp_path):
     if form == "yaml-int-keys":
         data = {n: {**e, "episodes": {int(k): v for k, v in e["episodes"].items()}} for n, e in data.items()}
     path = write(tmp_path, data, "calibration.yaml" if form == "yaml-int-keys" else "calibration.json")
-    assert main(["calibrate", "--root", str(root), "--from", str(path)]) == 0
+    assert main(["calibrate", "from-file", "--root", str(root), str(path)]) == 0
     stored = json.loads(calibration_path(root).read_text())["cameras"]
     assert set(stored["left"]["camera.episodes"]) == {"0", "1"} and "camera.extrinsics" not in stored["left"]
     assert set(stored["right"]["camera.episodes"]) == {"0"} and "camera.extrinsics" in stored["right"]
@@ -194,7 +194,7 @@ def test_droid_camera_extrinsics_features_become_per_episode_poses(given, tmp_pa
         file = write(tmp_path, {n: {"fx": 20.0, "fy": 21.0, "cx": 15.0, "cy": 11.0, "R": [[1, 0, 0], [0, 1, 0], [0, 0, 1]],
                                     "t": [0, 0, 0]} for n in ("exterior_1_left", "exterior_2_left")})  # fmt: skip
         option, K = ["--intrinsics", str(file)], torch.tensor([[20.0, 0, 15.5], [0, 21, 11.5], [0, 0, 1]], dtype=torch.float64)
-    assert main(["calibrate", "--root", str(root), "--from-features", *option]) == 0
+    assert main(["calibrate", "from-features", "--root", str(root), *option]) == 0
     assert "exterior_1_left (2 episodes), exterior_2_left (2 episodes)" in capsys.readouterr().out
     info = json.loads((root / "meta" / "info.json").read_text())
     calib = load_calibration(info["features"], root, 2)
@@ -253,17 +253,17 @@ def test_a_stored_calibration_for_episodes_the_dataset_lacks_is_refused(dataset,
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--from-features", "--fov", "60", "--principal-point", "100,90"],
-     r"calibrate --from-features does not read --principal-point \(only --estimate\)$"),
-    (["--from", "calibration.json", "--fov", "60", "--timesteps", "4"],
-     r"calibrate --from does not read --fov \(only --from-features and --estimate\); --timesteps \(only --estimate\)$"),
-    (["--estimate", "--convention", "gensplat", "--intrinsics", "k.json"],
-     r"calibrate --estimate does not read --convention \(only --from\); --intrinsics \(only --from-features\)$"),
+    (["from-features", "--fov", "60", "--principal-point", "100,90"],
+     r"calibrate from-features does not read --principal-point \(only estimate\)$"),
+    (["from-file", "calibration.json", "--fov", "60", "--timesteps", "4"],
+     r"calibrate from-file does not read --fov \(only from-features and estimate\); --timesteps \(only estimate\)$"),
+    (["estimate", "--convention", "gensplat", "--intrinsics", "k.json"],
+     r"calibrate estimate does not read --convention \(only from-file\); --intrinsics \(only from-features\)$"),
 ])  # fmt: skip
 def test_calibrate_refuses_options_its_way_does_not_read(args, message, tmp_path, capsys):
-    """An option the chosen way of calibrating ignores would be silently dropped: refused,
-    naming the way that reads it, before anything is read or written."""
-    assert main(["calibrate", "--root", str(tmp_path / "none"), *args]) == 2
+    """An option the chosen way of calibrating does not read is refused, naming the ways that
+    read it, before anything is read or written."""
+    assert main(["calibrate", *args, "--root", str(tmp_path / "none")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("gensplat: error: ") and err.count("\n") == 1 and re.search(message, err.strip())
 
@@ -277,7 +277,7 @@ def test_droid_features_errors(case, message, tmp_path, capsys):
     root = droid_like(tmp_path / "droid", DROID_POSES, drift=0.01 if case == "drift" else 0.0)
     args = {"drift": ["--fov", "60"], "no_intrinsics": [], "no_feature": ["--fov", "60", "--cameras", "front"]}[case]
     capsys.readouterr()
-    assert main(["calibrate", "--root", str(root), "--from-features", *args]) == 2
+    assert main(["calibrate", "from-features", "--root", str(root), *args]) == 2
     err = capsys.readouterr().err
     assert re.search(message, err) and err.startswith("gensplat: error: ") and err.count("\n") == 1
     assert not calibration_path(root).exists()
@@ -315,7 +315,7 @@ def test_feature_poses_that_are_not_poses_are_named(case, message, tmp_path, cap
         _rewrite_rows(root, key, lambda e, f, r: r[:5])
     cameras = ["--cameras", "exterior_1_left", "exterior_1_left"] if case == "twice" else []
     capsys.readouterr()
-    assert main(["calibrate", "--root", str(root), "--from-features", "--fov", "60", *cameras]) == 2
+    assert main(["calibrate", "from-features", "--root", str(root), "--fov", "60", *cameras]) == 2
     err = capsys.readouterr().err
     assert re.search(message, err) and err.startswith("gensplat: error: ") and err.count("\n") == 1, err
     assert not calibration_path(root).exists()

@@ -1,4 +1,4 @@
-"""Calibration estimated from a dataset's own frames and depth (``gensplat calibrate --estimate``)."""
+"""Calibration estimated from a dataset's own frames and depth (``gensplat calibrate estimate``)."""
 
 from __future__ import annotations
 
@@ -296,7 +296,7 @@ def test_level_frame_without_a_plane_uses_image_up():
 
 
 # --------------------------------------------------------------------------- on a LeRobot dataset
-lerobot = pytest.importorskip("lerobot", reason="gensplat calibrate --estimate reads LeRobot datasets")
+lerobot = pytest.importorskip("lerobot", reason="gensplat calibrate estimate reads LeRobot datasets")
 REPO = "gensplat/sim_pick_place"
 
 
@@ -331,7 +331,7 @@ def test_estimate_on_a_recording_without_calibration_matches_the_truth(simulated
     shutil.copytree(simulated, root, ignore=shutil.ignore_patterns("gensplat"))
     _strip_calibration(root)
     before = {p: p.read_bytes() for p in root.rglob("*") if p.is_file()}
-    assert main(["calibrate", "--root", str(root), "--estimate", "--repo-id", REPO, "--timesteps", "8"]) == 0
+    assert main(["calibrate", "estimate", "--root", str(root), "--repo-id", REPO, "--timesteps", "8"]) == 0
     out = capsys.readouterr().out
     assert "metric, from the dataset's depth" in out and "written to" in out
     assert {p: p.read_bytes() for p in before} == before  # the dataset is not modified
@@ -374,7 +374,7 @@ def test_estimate_with_the_field_of_view_given(simulated, tmp_path, capsys, scal
     features = json.loads((simulated / "meta" / "info.json").read_text())["features"]
     truth = load_calibration(features)
     fov = math.degrees(2 * math.atan(160 / float(truth["left"].K[0, 0])))
-    args = ["calibrate", "--root", str(root), "--estimate", "--repo-id", REPO, "--timesteps", "6", "--fov", f"{fov}"]
+    args = ["calibrate", "estimate", "--root", str(root), "--repo-id", REPO, "--timesteps", "6", "--fov", f"{fov}"]
     assert main([*args, *scale]) == 0
     assert "metric, from the" in capsys.readouterr().out
     est = load_calibration(json.loads((root / "meta" / "info.json").read_text())["features"], root)
@@ -394,7 +394,7 @@ def test_estimate_rgb_only_from_the_shipped_model(simulated, tmp_path, capsys, c
     root = tmp_path / "rgb"
     shutil.copytree(simulated, root, ignore=shutil.ignore_patterns("gensplat", "depth"))
     _strip_calibration(root)
-    assert main(["calibrate", "--root", str(root), "--estimate", "--repo-id", REPO, "--timesteps", "6", "--model",
+    assert main(["calibrate", "estimate", "--root", str(root), "--repo-id", REPO, "--timesteps", "6", "--model",
                  "--cameras", *cameras]) == 0  # fmt: skip
     out = capsys.readouterr().out
     assert "metric, from the geometry model's depth" in out and "(the geometry model's median), spread" in out
@@ -418,7 +418,7 @@ def test_estimate_rgb_only_from_the_shipped_model(simulated, tmp_path, capsys, c
 @pytest.mark.parametrize("cameras", [("left", "right"), ("left",)])
 def test_a_dataset_without_calibration_or_depth_from_the_estimate_to_lerobot_train(simulated, tmp_path, capsys,
                                                                                      cameras):  # fmt: skip
-    """RGB only, no calibration, nothing given: gensplat calibrate --estimate --model, then
+    """RGB only, no calibration, nothing given: gensplat calibrate estimate --model, then
     gensplat cache (the geometry path), preview and lerobot-train with the one line; with two
     external cameras, and with one."""
     from helpers import train_diffusion
@@ -426,7 +426,7 @@ def test_a_dataset_without_calibration_or_depth_from_the_estimate_to_lerobot_tra
     root = tmp_path / "rgb"
     shutil.copytree(simulated, root, ignore=shutil.ignore_patterns("gensplat", "depth"))
     _strip_calibration(root)
-    assert main(["calibrate", "--root", str(root), "--estimate", "--repo-id", REPO, "--timesteps", "4", "--model",
+    assert main(["calibrate", "estimate", "--root", str(root), "--repo-id", REPO, "--timesteps", "4", "--model",
                  "--cameras", *cameras]) == 0  # fmt: skip
     assert main(["cache", "--root", str(root), "--repo-id", REPO, "--probability", "1", "--episodes", "0"]) == 0
     assert "licence Apache-2.0 (the small model shipped with gensplat-transforms)" in capsys.readouterr().out
@@ -448,7 +448,7 @@ def test_estimate_of_one_camera_with_depth_and_its_field_of_view(simulated, tmp_
     root = tmp_path / "one"
     shutil.copytree(simulated, root, ignore=shutil.ignore_patterns("gensplat"))
     _strip_calibration(root)
-    args = ["calibrate", "--root", str(root), "--estimate", "--repo-id", REPO, "--timesteps", "2", "--cameras", "left"]
+    args = ["calibrate", "estimate", "--root", str(root), "--repo-id", REPO, "--timesteps", "2", "--cameras", "left"]
     assert main(args) == 2
     assert "its focal length is not observable" in capsys.readouterr().err
     assert main([*args, "--focal", "230.5"]) == 0
@@ -476,7 +476,7 @@ def test_estimate_of_one_camera_with_depth_and_its_field_of_view(simulated, tmp_
 def test_estimate_refuses_what_it_cannot_do(simulated, tmp_path, capsys):
     """Clear error lines: calibrated features, one camera, unknown cameras, no depth."""
     def error(root, *extra):
-        assert main(["calibrate", "--root", str(root), "--estimate", "--repo-id", REPO, *extra]) == 2
+        assert main(["calibrate", "estimate", "--root", str(root), "--repo-id", REPO, *extra]) == 2
         return capsys.readouterr().err
 
     assert "carry calibration in their features" in error(simulated)
@@ -504,7 +504,7 @@ def test_estimate_never_writes_what_the_readers_refuse(simulated, tmp_path, caps
     root = tmp_path / "rgb"
     shutil.copytree(simulated, root, ignore=shutil.ignore_patterns("gensplat", "depth"))
     _strip_calibration(root)
-    args = ["calibrate", "--root", str(root), "--estimate", "--repo-id", REPO, "--timesteps", "4"]
+    args = ["calibrate", "estimate", "--root", str(root), "--repo-id", REPO, "--timesteps", "4"]
     assert main([*args, "--fov", "69", "--baseline", "0.8"]) == 0
     good = calibration_path(root).read_bytes()
     capsys.readouterr()
@@ -587,7 +587,7 @@ def test_cameras_that_move_between_episodes_are_estimated_per_episode(moving, ca
     gets its own poses, each within 0.5 deg, 1 cm and 1 deg (world up) of its recording's
     calibration, and the cache builds the moved episode with them."""
     root, truth = moving
-    args = ["calibrate", "--root", str(root), "--estimate", "--repo-id", REPO, "--timesteps", "4"]
+    args = ["calibrate", "estimate", "--root", str(root), "--repo-id", REPO, "--timesteps", "4"]
     assert main(args) == 0
     assert "the episodes disagree" in capsys.readouterr().out
     assert main([*args, "--per-episode"]) == 0
@@ -623,7 +623,7 @@ def test_a_per_episode_estimate_that_fails_names_its_episode(simulated, tmp_path
 
     real = estimate.estimate_rig
     monkeypatch.setattr(estimate, "estimate_rig", fail_second)
-    args = ["calibrate", "--root", str(root), "--estimate", "--repo-id", REPO, "--timesteps", "2", "--per-episode"]
+    args = ["calibrate", "estimate", "--root", str(root), "--repo-id", REPO, "--timesteps", "2", "--per-episode"]
     assert main(args) == 2
     assert "episode 1: cameras 'left' and 'right': 3 feature matches" in capsys.readouterr().err
     assert not calibration_path(root).exists()
@@ -634,7 +634,7 @@ def test_estimate_names_an_episode_without_depth(simulated, tmp_path, capsys):
     shutil.copytree(simulated, root, ignore=shutil.ignore_patterns("gensplat"))
     _strip_calibration(root)
     (root / "depth" / "right" / "episode_000001.safetensors").unlink()  # episode 0 has it, episode 1 not
-    assert main(["calibrate", "--root", str(root), "--estimate", "--repo-id", REPO, "--timesteps", "4"]) == 2
+    assert main(["calibrate", "estimate", "--root", str(root), "--repo-id", REPO, "--timesteps", "4"]) == 2
     assert "camera 'right' has no depth for episode 1" in capsys.readouterr().err
 
 
@@ -695,7 +695,7 @@ def test_estimate_with_a_moge_checkpoint_uses_it_and_refuses_an_unusable_camera(
     root = tmp_path / "rgb"
     shutil.copytree(simulated, root, ignore=shutil.ignore_patterns("gensplat", "depth"))
     _strip_calibration(root)
-    assert main(["calibrate", "--root", str(root), "--estimate", "--repo-id", REPO, "--timesteps", "2", "--model",
+    assert main(["calibrate", "estimate", "--root", str(root), "--repo-id", REPO, "--timesteps", "2", "--model",
                  str(folder), "--cameras", "left"]) == 2  # fmt: skip
     err = capsys.readouterr().err
     assert "prediction of cameras ['left'] is unusable (MonocularReconstructor: MoGe-2 gave no usable camera" in err

@@ -132,7 +132,7 @@ def test_gensplat_folder_linked_into_the_dataset_is_refused(cached, tmp_path, ca
     info = root / "meta" / "info.json"
     info.write_text(info.read_text().replace('"camera.intrinsics"', '"was.intrinsics"'))  # left uncalibrated
     before = {p.name for p in (root / "meta").iterdir()}, dataset_hashes(root)
-    refused(capsys, ["calibrate", "--root", str(root), "--from", str(calibration)], "inside the dataset")
+    refused(capsys, ["calibrate", "from-file", "--root", str(root), str(calibration)], "inside the dataset")
     assert ({p.name for p in (root / "meta").iterdir()}, dataset_hashes(root)) == before
 
 
@@ -360,7 +360,7 @@ def test_no_command_changes_a_byte_of_the_dataset(cached, tmp_path, capsys):
         ["preview", "--root", str(root), "--repo-id", REPO, "--draws", "1", "--out", str(tmp_path / "preview")],
         ["export-ply", "--root", str(root), "--repo-id", REPO, "--episode", "0", "--frame", "1",
          "--out", str(root / "notes.txt")],  # refused: through the link
-        ["calibrate", "--root", str(root), "--from", str(tmp_path / "missing.json")],  # refused
+        ["calibrate", "from-file", "--root", str(root), str(tmp_path / "missing.json")],  # refused
     ]  # fmt: skip
     for args in commands:
         main(args)

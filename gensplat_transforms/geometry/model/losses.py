@@ -7,13 +7,14 @@ available offline); otherwise the perceptual term is 1 - SSIM, so the default ru
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import kornia
 import torch
 import torch.nn.functional as F
 
 from ...core.cameras import rigid_inverse
+from ...core.config_flags import flag
 
 
 @dataclass(frozen=True)
@@ -21,11 +22,11 @@ class LossWeights:
     """l1 and perceptual weigh the terms inside L_rgb; depth, points and camera are l_depth,
     l_3D and l_cam."""
 
-    l1: float = 1.0
-    perceptual: float = 0.2
-    depth: float = 0.1
-    points: float = 1.0
-    camera: float = 1.0
+    l1: float = field(default=1.0, metadata=flag("L1 weight inside L_rgb"))
+    perceptual: float = field(default=0.2, metadata=flag("SSIM (or LPIPS) weight inside L_rgb"))
+    depth: float = field(default=0.1, metadata=flag("weight of the depth distillation loss", flag="--l-depth"))
+    points: float = field(default=1.0, metadata=flag("weight of the 3D point-map loss", flag="--l-3d"))
+    camera: float = field(default=1.0, metadata=flag("weight of the camera-pose loss", flag="--l-cam"))
 
     def combine(self, rgb=None, depth=None, points=None, camera=None) -> torch.Tensor:
         """L = L_rgb + depth * L_depth + points * L_3D + camera * L_cam; a term left out (None)

@@ -64,10 +64,13 @@ def test_every_option_says_what_it_does_and_its_default():
     parser = build_parser()
     (commands,) = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
     assert {"demo", "record", "cache", "train-model", "preview", "export-ply"} <= set(commands.choices)
-    problems = []
-    for name, sub in commands.choices.items():
+    problems, subcommands = [], list(commands.choices.items())
+    for name, sub in subcommands:
         for action in sub._actions:
             if isinstance(action, argparse._HelpAction):
+                continue
+            if isinstance(action, argparse._SubParsersAction):  # calibrate from-file, from-features, estimate
+                subcommands += [(f"{name} {way}", parser) for way, parser in action.choices.items()]
                 continue
             option = f"{name} {'/'.join(action.option_strings)}"
             text = (action.help or "") % {**vars(action), "prog": sub.prog}

@@ -273,7 +273,7 @@ def test_cli_user_mistakes_end_with_the_message(dataset_root, tmp_path, capsys):
     assert main(["cache", "--root", str(dataset_root), "--repo-id", REPO]) == 2
     err = capsys.readouterr().err
     assert err.startswith("gensplat: error: ") and "needs a calibrated external camera" in err
-    assert f"gensplat calibrate --root {dataset_root}" in err and err.count("\n") == 1
+    assert f"gensplat calibrate estimate --root {dataset_root}" in err and err.count("\n") == 1
 
 
 def test_cache_command_writes_settings_and_cache(dataset_root, capsys):
