@@ -24,8 +24,8 @@ from safetensors.torch import load_file, save_file
 from tiny_moge import TINY, randomize
 
 from gensplat_transforms.geometry.model.moge import (
-    MoGe2,
     VITL_CONFIG,
+    MoGe2,
     MoGe2Config,
     intrinsics_in_pixels,
     model_config,

@@ -110,12 +110,12 @@ def test_each_field_with_a_flag_has_exactly_one_with_the_fields_default():
     for command, config in _configs().items():
         parser = commands[(command,)]
         for f in flag_fields(config):
-            flag, options = flag_options(f)
+            flag, _options = flag_options(f)
             actions = [a for a in parser._actions if a.dest == f.name]
             assert [a.option_strings for a in actions] == [[flag]], (command, f.name)
             stated = "default" in f.metadata["cli"] or actions[0].required  # the flag states another default
             assert stated or actions[0].default == field_default(f), (command, f.name)
-    parse = lambda *argv: commands[argv[:1]].parse_args(argv[1:])  # noqa: E731
+    parse = lambda *argv: commands[argv[:1]].parse_args(argv[1:])
     demo, train = _configs()["demo"], _configs()["train-model"]
     assert config_from_flags(parse("demo"), demo) == demo()
     assert config_from_flags(parse("train-model", "--out", "run", "--steps", "5"), train) == train(out="run", steps=5)
