@@ -22,6 +22,7 @@ zero-pads): a folder of frame images, a glob of them (``.../ep{episode}/*.png``)
 from __future__ import annotations
 
 import glob
+import os
 import re
 import zipfile
 from contextlib import contextmanager
@@ -84,6 +85,10 @@ def import_depth(root: str | Path, camera: str, source: str, lengths: dict[int, 
     for p in (folder, folder.parent):
         if p.exists() and not p.is_dir():
             raise ValueError(f"{p} is a file where the folder of depth sidecars goes: move it away")
+    real, dataset = Path(os.path.realpath(folder)), Path(os.path.realpath(root))
+    if real.is_relative_to(dataset) and real != dataset / folder.relative_to(root):
+        raise ValueError(f"{folder} leads through a symbolic link to {real}, another of the dataset's folders, "
+                         "which import-depth never writes into: remove the link")  # fmt: skip
     done = {}
     for episode, length in tqdm(sorted(lengths.items()), desc=f"depth of {camera}", unit="episode",
                                 disable=not progress):  # fmt: skip

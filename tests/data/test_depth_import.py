@@ -185,3 +185,32 @@ def test_an_npz_claiming_a_huge_array_is_refused_from_its_header(tmp_path):
     peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
     assert peak < 32 << 20
+
+
+@pytest.mark.parametrize("link", ["camera", "depth"])
+def test_a_depth_folder_linked_into_the_dataset_is_refused(tmp_path, depth_m, link):
+    """depth/<camera> (or depth/) linked to another of the dataset's folders: the sidecars would
+    land there (found by a hostile probe: files written into meta/)."""
+    np.save(tmp_path / "ep0.npy", depth_m.numpy())
+    meta = tmp_path / "ds" / "meta"
+    meta.mkdir(parents=True)
+    (meta / "info.json").write_text("{}")
+    if link == "camera":
+        (tmp_path / "ds" / "depth").mkdir()
+        (tmp_path / "ds" / "depth" / "left").symlink_to(meta, target_is_directory=True)
+    else:
+        (meta / "left").mkdir()
+        (tmp_path / "ds" / "depth").symlink_to(meta, target_is_directory=True)
+    with pytest.raises(ValueError, match="symbolic link.*never writes into"):
+        run(tmp_path, tmp_path / "ep{episode}.npy")
+    assert sorted(p.name for p in meta.rglob("*")) == sorted(["info.json"] + (["left"] if link == "depth" else []))
+
+
+def test_a_depth_folder_linked_to_another_disk_is_used(tmp_path, depth_m):
+    np.save(tmp_path / "ep0.npy", depth_m.numpy())
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (tmp_path / "ds").mkdir()
+    (tmp_path / "ds" / "depth").symlink_to(elsewhere, target_is_directory=True)
+    run(tmp_path, tmp_path / "ep{episode}.npy")
+    assert (elsewhere / "left" / "episode_000000.safetensors").is_file()
