@@ -67,7 +67,7 @@ def test_malformed_yaml_is_one_error_line(text, message, tmp_path, capsys):
     write_info(root)
     source = tmp_path / "calibration.yaml"
     source.write_text(text)
-    assert main(["calibrate", "--root", str(root), "--from", str(source)]) == 2
+    assert main(["calibrate", "from-file", "--root", str(root), str(source)]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"gensplat: error: {source}: not valid YAML (") and err.count("\n") == 1, err
     assert message in err, err
