@@ -396,22 +396,22 @@ def _cache(args) -> None:
     spec = None if args.reconstructor is None else {"name": args.reconstructor}
     if args.fill_depth:
         if args.reconstructor not in (None, "rgbd") or not source.has_depth():
-            raise SystemExit("gensplat cache: --fill-depth fills the holes of measured depth: it needs the rgbd "
+            raise ValueError("--fill-depth fills the holes of measured depth: it needs the rgbd "
                              "reconstructor and cameras with depth")  # fmt: skip
         spec = {"name": "rgbd", "config": {"fill_depth_px": args.fill_depth}}
     if args.reconstructor == "monocular" and (not args.model or args.max_pixels is not None):
-        raise SystemExit("gensplat cache: --reconstructor monocular needs --model <MoGe-2 checkpoint folder> "
+        raise ValueError("--reconstructor monocular needs --model <MoGe-2 checkpoint folder> "
                          "(model.pt as published) and takes no --max-pixels")  # fmt: skip
     if args.model or args.max_pixels is not None:
         if args.reconstructor == "rgbd":
-            raise SystemExit("gensplat cache: --model and --max-pixels need --reconstructor geometry, gensplat or "
+            raise ValueError("--model and --max-pixels need --reconstructor geometry, gensplat or "
                              "monocular")  # fmt: skip
         spec = {"name": args.reconstructor or "geometry", "model": args.model}
         if args.max_pixels is not None:
             spec["options"] = {"max_pixels": args.max_pixels}
     name = (spec or default_reconstructor(source))["name"]
     if args.batch_timesteps is not None and name != "geometry":
-        raise SystemExit(f"gensplat cache: --batch-timesteps batches the geometry reconstructor's model; this cache "
+        raise ValueError(f"--batch-timesteps batches the geometry reconstructor's model; this cache "
                          f"uses {name} (the default where the cameras have depth; --reconstructor geometry to batch)")
     shard = Shard.from_env()
     start, cpu = time.perf_counter(), time.process_time()
@@ -478,7 +478,7 @@ def _train_model(args) -> None:
     for kind in dict.fromkeys(args.data):
         if kind == "lerobot":
             if not (args.root and args.repo_id):
-                raise SystemExit("gensplat train-model --data lerobot needs --root and --repo-id")
+                raise ValueError("train-model --data lerobot needs --root and --repo-id")
             from gensplat_lerobot import LeRobotViews
 
             cameras = tuple(args.cameras) if args.cameras else None
@@ -491,7 +491,7 @@ def _train_model(args) -> None:
     if config.distills:
         if args.teacher == "pi3":
             if not args.teacher_weights:
-                raise SystemExit("--teacher pi3 needs --teacher-weights (Pi3 model.safetensors)")
+                raise ValueError("--teacher pi3 needs --teacher-weights (Pi3 model.safetensors)")
             teacher = Pi3Teacher(args.teacher_weights)
         else:
             teacher = TrueGeometryTeacher()

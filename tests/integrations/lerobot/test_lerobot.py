@@ -300,9 +300,10 @@ def test_cache_command_writes_settings_and_cache(dataset_root, capsys):
     assert ds.gensplat.cache.reconstructor.cfg.fill_depth_px == 8 and ds.gensplat.cache.status(0) == "ok"
     sampler = ds.gensplat.sampler  # the sampler the training workers draw from, as the settings say
     assert type(sampler).__name__ == "ArcSampler" and (sampler.limit_deg, sampler.focal_scale) == (30.0, (0.9, 1.2))
-    with pytest.raises(SystemExit, match="--fill-depth fills the holes of measured depth"):
-        main(["cache", "--root", str(dataset_root), "--repo-id", REPO, "--fill-depth", "8", "--reconstructor",
-              "geometry"])  # fmt: skip
+    capsys.readouterr()
+    assert main(["cache", "--root", str(dataset_root), "--repo-id", REPO, "--fill-depth", "8", "--reconstructor",
+                 "geometry"]) == 2  # fmt: skip
+    assert capsys.readouterr().err.startswith("gensplat: error: --fill-depth fills the holes of measured depth")
 
 
 def test_missing_settings_or_depth_raise_clear_errors(dataset_root):
@@ -422,7 +423,7 @@ def test_the_dataset_record_keeps_the_licence_of_the_model_weights(dataset_root,
     assert what_differs(source) == f"cache files built for other content; the content now is {source.fingerprint}"
 
 
-def test_max_pixels_caches_the_geometry_path_at_the_models_smaller_size(dataset_root):
+def test_max_pixels_caches_the_geometry_path_at_the_models_smaller_size(dataset_root, capsys):
     """gensplat cache --max-pixels: the model sees 28x28 of the 48x48 frames and the depth cache
     holds that size; the views are still rendered at the frames' size (the images' detail kept),
     and the policy is told when it reads less than half that."""
@@ -451,18 +452,22 @@ def test_max_pixels_caches_the_geometry_path_at_the_models_smaller_size(dataset_
     assert start_message(ds, small).splitlines()[4] == (
         "  `gensplat cache` with --render-scale 0.5 renders what the policy reads, 24x24: 4.0x fewer pixels a view "
         "(render time falls about in proportion)")
-    with pytest.raises(SystemExit, match="--max-pixels need --reconstructor geometry, gensplat or monocular"):
-        main(["cache", "--root", str(dataset_root), "--repo-id", REPO, "--max-pixels", "1000",
-              "--reconstructor", "rgbd"])  # fmt: skip
+    capsys.readouterr()
+    assert main(["cache", "--root", str(dataset_root), "--repo-id", REPO, "--max-pixels", "1000",
+                 "--reconstructor", "rgbd"]) == 2  # fmt: skip
+    assert "--max-pixels need --reconstructor geometry, gensplat or monocular" in capsys.readouterr().err
 
 
-def test_batch_timesteps_is_refused_where_no_geometry_model_runs(dataset_root):
-    """With depth the default reconstructor is rgbd: a model batch size is refused, not ignored."""
+def test_batch_timesteps_is_refused_where_no_geometry_model_runs(dataset_root, capsys):
+    """With depth the default reconstructor is rgbd: a model batch size is refused, not ignored,
+    as one error line."""
     from gensplat_cli import main
 
     for given in ([], ["--reconstructor", "rgbd"], ["--reconstructor", "gensplat"]):
-        with pytest.raises(SystemExit, match="--batch-timesteps batches the geometry reconstructor's model; this"):
-            main(["cache", "--root", str(dataset_root), "--repo-id", REPO, "--batch-timesteps", "4", *given])
+        assert main(["cache", "--root", str(dataset_root), "--repo-id", REPO, "--batch-timesteps", "4", *given]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("gensplat: error: --batch-timesteps batches the geometry reconstructor's model; this")
+        assert err.count("\n") == 1
     assert not (dataset_root / "gensplat").exists()  # refused before anything was written
 
 
