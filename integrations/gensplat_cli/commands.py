@@ -143,9 +143,9 @@ def build_parser() -> argparse.ArgumentParser:
     estimate.add_argument("--model", nargs="?", const="shipped", default=None, metavar="DIR_OR_HUB_ID",
                           help="without depth: a geometry model predicts the focal lengths and, when it is metric "
                                "and neither --baseline nor --table-distance is given, the scale; a checkpoint "
-                               "directory or hub id (Depth Anything 3: Apache-2.0; Pi3: CC BY-NC 4.0, "
-                               "non-commercial), or alone the shipped small model (trained on simulated tabletops "
-                               "only)")
+                               "directory or hub id (a MoGe-2 folder, MIT: metric, nothing else needed; Depth "
+                               "Anything 3: Apache-2.0; Pi3: CC BY-NC 4.0, non-commercial), or alone the shipped "
+                               "small model (trained on simulated tabletops only)")
     estimate.add_argument("--per-episode", action="store_true",
                           help="cameras that move between episodes; every episode is estimated apart from "
                                "--timesteps of its own frames and gets its own poses")
