@@ -34,7 +34,6 @@ Writes ``benchmarks/results/monocular_path.json`` (into ``--out`` when given, in
 
 from __future__ import annotations
 
-import argparse
 import os
 import shutil
 import tempfile
@@ -49,9 +48,9 @@ import torch.nn.functional as F
 from gensplat_lerobot import LeRobotSource
 from gensplat_lerobot.estimate import estimate_calibration
 from gensplat_sim.truth import GroundTruth
-from machine import cpu_model, default_out, out_help, write_result
+from machine import cpu_model, default_out, write_result
 from nvs_fidelity import draw, frame_size_geometry, score
-from self_calibration import NAMES, REPO, errors, heldout_run, uncalibrated_copy
+from self_calibration import NAMES, REPO, errors, heldout_parser, heldout_run, uncalibrated_copy
 
 from gensplat_transforms.core.cameras import Cameras
 from gensplat_transforms.geometry import (
@@ -214,14 +213,9 @@ def network_cost(repeats: int) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="240x320, 1 episode, 4 timesteps, 1 draw, no network cost")
-    parser.add_argument("--root", type=Path, help="a recorded simulated dataset (default: record held-out episodes)")
-    parser.add_argument("--timesteps", type=int, default=16, help="timesteps the estimate samples (default: 16)")
-    parser.add_argument("--draws", type=int, default=3, help="moves per level and frame (default: 3)")
+    parser = heldout_parser(__doc__.splitlines()[0], "240x320, 1 episode, 4 timesteps, 1 draw, no network cost")
     parser.add_argument("--scale-noise", type=float, default=0.1, help="the noisy oracle's log-scale sigma")
     parser.add_argument("--repeats", type=int, default=2, help="network cost: forwards per size (best kept)")
-    parser.add_argument("--out", type=Path, help=out_help(""))
     args = parser.parse_args()
     args.out = args.out or default_out("", args.quick)
     work = Path(tempfile.mkdtemp(prefix="monocular_path_"))

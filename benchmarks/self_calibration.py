@@ -160,13 +160,20 @@ def heldout_run(args, work: Path) -> tuple[Path, LeRobotSource, GroundTruth, lis
     return root, calibrated, GroundTruth(root), frames
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="240x320, 1 episode, 4 timesteps, 1 draw, 4 variants")
+def heldout_parser(description: str, quick: str) -> argparse.ArgumentParser:
+    """The options of a run on :func:`heldout_run`'s recording: ``--quick`` (``quick`` says what
+    it runs), ``--root``, ``--timesteps`` the estimate samples, ``--draws`` and ``--out``."""
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--quick", action="store_true", help=quick)
     parser.add_argument("--root", type=Path, help="a recorded simulated dataset (default: record held-out episodes)")
     parser.add_argument("--timesteps", type=int, default=16, help="timesteps the estimate samples (default: 16)")
     parser.add_argument("--draws", type=int, default=3, help="moves per level and frame (default: 3)")
     parser.add_argument("--out", type=Path, help=out_help(""))
+    return parser
+
+
+def main() -> None:
+    parser = heldout_parser(__doc__.splitlines()[0], "240x320, 1 episode, 4 timesteps, 1 draw, 4 variants")
     args = parser.parse_args()
     args.out = args.out or default_out("", args.quick)
     torch.set_num_threads(1)
