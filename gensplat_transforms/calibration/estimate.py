@@ -474,10 +474,37 @@ def estimate_rig(names: tuple[str, ...], sizes: list[tuple[int, int]], timesteps
     camera pair; ``groups`` (a label per timestep, e.g. its episode; default: four interleaved
     groups) are estimated apart from it too, and their deviation from it is the spread.
     Raises ValueError naming what is missing or why a camera cannot be estimated."""
-    from tqdm.auto import tqdm
-
     check_principal_points(names, sizes, principal_points)
     centres = principal_points or [(w / 2, h / 2) for w, h in sizes]
+    timesteps, depth, by_model = _depth_source(names, timesteps, focals, scale, predicted)
+    groups = list(groups) if groups is not None else [i % 4 for i in range(len(timesteps))]
+    pairs = []
+    for k in range(1, len(names)):
+        found = _matched(timesteps, names[0], names[k], predicted if by_model else None, depth, progress)
+        if focals:
+            pairs.append(_rgb_pair(found, groups, _K(focals[0], sizes[0], centres[0]),
+                                   _K(focals[k], sizes[k], centres[k])))
+        else:
+            pairs.append(_depth_pair(found, groups, sizes[0], sizes[k], names[0], names[k],
+                                     (centres[0], centres[k])))  # fmt: skip
+    estimated = not focals
+    if estimated:
+        focals = [float(torch.tensor([p.final.focal_a for p in pairs]).median())] + [p.final.focal_b for p in pairs]
+    elif pairs:
+        pairs = _metric_pairs(pairs, names, scale)
+    K = torch.stack([_K(f, s, c) for f, s, c in zip(focals, sizes, centres)])
+    c2w = _rig(pairs)
+    world_from_ref, levelled = level_frame(_table_points(timesteps, names, K, c2w, pairs, depth), c2w)
+    return RigEstimate(names=names, K=K, c2w=world_from_ref @ c2w, sizes=[tuple(s) for s in sizes], levelled=levelled,
+                       scale=_scale_source(depth, by_model, scale), principal_given=principal_points is not None,
+                       **_camera_statistics(pairs, estimated, len(names), len(timesteps)))  # fmt: skip
+
+
+def _depth_source(names: tuple[str, ...], timesteps: list[dict], focals: list[float] | None,
+                  scale: tuple[str, float] | None, predicted: list[dict] | None) -> tuple[list[dict], bool, bool]:
+    """(timesteps, depth, by_model): whether the estimate rests on depth, and whether on a geometry
+    model's (``predicted``, where the dataset has none), which for one camera takes the dataset's
+    place in ``timesteps``; ValueError where what is given does not determine the cameras."""
     depth = all(step[n][1] is not None for step in timesteps for n in names)
     by_model = predicted is not None and not depth
     if by_model and (scale is not None or len(predicted) != len(timesteps)):
@@ -498,56 +525,66 @@ def estimate_rig(names: tuple[str, ...], sizes: list[tuple[int, int]], timesteps
         raise ValueError("the cameras' depth gives the scale: leave out --baseline and --table-distance")
     if not depth and len(names) > 2 and not by_model:
         raise ValueError("without depth, one distance scales one camera pair: estimate two cameras at a time")
-    groups = list(groups) if groups is not None else [i % 4 for i in range(len(timesteps))]
-    pairs = []
-    for k in range(1, len(names)):
-        steps = tqdm(timesteps, desc=f"matching {names[0]}-{names[k]}", unit="timestep", disable=not progress)
-        found = [match_pair(s[names[0]][0], s[names[k]][0], s[names[0]][1], s[names[k]][1]) for s in steps]
-        if by_model:
-            found = [_with_depth(m, p[names[0]], p[names[k]]) for m, p in zip(found, predicted)]
-        if len(Matches.cat(found)) < MIN_MATCHES:
-            raise ValueError(f"cameras {names[0]!r} and {names[k]!r}: {len(Matches.cat(found))} feature matches "
-                             f"{'with depth ' if depth else ''}in {len(timesteps)} sampled timesteps (need "
-                             f"{MIN_MATCHES}): the cameras may see too little in common, or the frames too little "
-                             "texture")  # fmt: skip
-        if focals:
-            pairs.append(_rgb_pair(found, groups, _K(focals[0], sizes[0], centres[0]),
-                                   _K(focals[k], sizes[k], centres[k])))
-        else:
-            pairs.append(_depth_pair(found, groups, sizes[0], sizes[k], names[0], names[k],
-                                     (centres[0], centres[k])))  # fmt: skip
-    estimated = not focals
-    if estimated:
-        focals = [float(torch.tensor([p.final.focal_a for p in pairs]).median())] + [p.final.focal_b for p in pairs]
-    elif pairs:  # unit translations: metric by the depth of each pair, or by the one distance given
-        unit = _unit_distance(scale[0], torch.cat([p.points for p in pairs]), _rig(pairs)) if scale else None
-        lost = [names[k + 1] for k, p in enumerate(pairs) if unit is None and not p.depth_scale > 0]
-        if lost:
-            raise ValueError(f"camera(s) {lost}: no triangulated match has depth to scale it by (the model's depth "
-                             "covers the central square of each image): give --baseline or --table-distance")  # fmt: skip
-        pairs = [p.scaled(p.depth_scale if unit is None else scale[1] / unit) for p in pairs]
-    K = torch.stack([_K(f, s, c) for f, s, c in zip(focals, sizes, centres)])
-    c2w = _rig(pairs)
+    return timesteps, depth, by_model
+
+
+def _matched(timesteps: list[dict], a: str, b: str, predicted: list[dict] | None, depth: bool,
+             progress: bool) -> list[Matches]:
+    """Every timestep's feature matches of cameras ``a`` and ``b`` (:func:`match_pair`; with a
+    geometry model's depth, ``predicted``, their depth the model's); ValueError for fewer than
+    :data:`MIN_MATCHES` in all."""
+    from tqdm.auto import tqdm
+
+    steps = tqdm(timesteps, desc=f"matching {a}-{b}", unit="timestep", disable=not progress)
+    found = [match_pair(s[a][0], s[b][0], s[a][1], s[b][1]) for s in steps]
+    if predicted is not None:
+        found = [_with_depth(m, p[a], p[b]) for m, p in zip(found, predicted)]
+    if len(Matches.cat(found)) < MIN_MATCHES:
+        raise ValueError(f"cameras {a!r} and {b!r}: {len(Matches.cat(found))} feature matches "
+                         f"{'with depth ' if depth else ''}in {len(timesteps)} sampled timesteps (need "
+                         f"{MIN_MATCHES}): the cameras may see too little in common, or the frames too little "
+                         "texture")  # fmt: skip
+    return found
+
+
+def _metric_pairs(pairs: list[_Pair], names: tuple[str, ...], scale: tuple[str, float] | None) -> list[_Pair]:
+    """Essential-matrix ``pairs`` (unit translations) made metric: all by the one distance
+    ``scale`` gives, else each by the depth at its matches."""
+    unit = _unit_distance(scale[0], torch.cat([p.points for p in pairs]), _rig(pairs)) if scale else None
+    lost = [names[k + 1] for k, p in enumerate(pairs) if unit is None and not p.depth_scale > 0]
+    if lost:
+        raise ValueError(f"camera(s) {lost}: no triangulated match has depth to scale it by (the model's depth "
+                         "covers the central square of each image): give --baseline or --table-distance")  # fmt: skip
+    return [p.scaled(p.depth_scale if unit is None else scale[1] / unit) for p in pairs]
+
+
+def _table_points(timesteps: list[dict], names: tuple[str, ...], K: torch.Tensor, c2w: torch.Tensor,
+                  pairs: list[_Pair], depth: bool) -> torch.Tensor:
+    """(N, 3) points in the reference frame to find the table among: with ``depth``, the
+    cameras' depth at the first four timesteps, else the pairs' triangulated points."""
     if depth:
-        points = _scene_points(timesteps[: min(len(timesteps), 4)], names, K, c2w)
-    else:
-        points = torch.cat([p.points for p in pairs])
-    world_from_ref, levelled = level_frame(points, c2w)
+        return _scene_points(timesteps[: min(len(timesteps), 4)], names, K, c2w)
+    return torch.cat([p.points for p in pairs])
+
+
+def _scale_source(depth: bool, by_model: bool, scale: tuple[str, float] | None) -> str:
+    """What makes the estimate metric (:attr:`RigEstimate.scale`)."""
     given = "between the first two cameras" if scale and scale[0] == "baseline" else "from the first camera to the table"
-    return RigEstimate(
-        names=names, K=K, c2w=world_from_ref @ c2w,
-        focal_spread=[max(p.focal_spread[0] for p in pairs)] + [p.focal_spread[1] for p in pairs] if estimated
-                     else [math.nan] * len(names),
-        rotation_spread_deg=[0.0] + [p.rotation_spread for p in pairs],
-        center_spread_m=[0.0] + [p.center_spread for p in pairs],
-        timesteps=[max([p.used for p in pairs], default=len(timesteps))] + [p.used for p in pairs],
-        matches=[max([p.final.matches for p in pairs], default=0)] + [p.final.matches for p in pairs],
-        rms_px=[pairs[0].final.rms_px if pairs else math.nan] + [p.final.rms_px for p in pairs],
-        sizes=[tuple(s) for s in sizes], levelled=levelled,
-        scale="metric, from the geometry model's depth" if by_model else "metric, from the dataset's depth" if depth
-              else f"metric, from the {scale[1]} m given {given}",
-        principal_given=principal_points is not None,
-    )  # fmt: skip
+    return ("metric, from the geometry model's depth" if by_model else "metric, from the dataset's depth" if depth
+            else f"metric, from the {scale[1]} m given {given}")  # fmt: skip
+
+
+def _camera_statistics(pairs: list[_Pair], estimated: bool, cameras: int, timesteps: int) -> dict:
+    """Per camera, the reference first, the :class:`RigEstimate` fields that say how well it is
+    estimated: its spreads (a NaN focal spread where the focal lengths were given, not
+    ``estimated``), timesteps, matches and RMS reprojection error."""
+    return {"focal_spread": [max(p.focal_spread[0] for p in pairs)] + [p.focal_spread[1] for p in pairs] if estimated
+                            else [math.nan] * cameras,
+            "rotation_spread_deg": [0.0] + [p.rotation_spread for p in pairs],
+            "center_spread_m": [0.0] + [p.center_spread for p in pairs],
+            "timesteps": [max([p.used for p in pairs], default=timesteps)] + [p.used for p in pairs],
+            "matches": [max([p.final.matches for p in pairs], default=0)] + [p.final.matches for p in pairs],
+            "rms_px": [pairs[0].final.rms_px if pairs else math.nan] + [p.final.rms_px for p in pairs]}  # fmt: skip
 
 
 def _rig(pairs: list[_Pair]) -> torch.Tensor:
