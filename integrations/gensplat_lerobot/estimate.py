@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from functools import cached_property
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -35,6 +37,9 @@ from gensplat_transforms.data.outputs import gensplat_folder
 from gensplat_transforms.geometry.base import DepthReconstructor
 
 from .source import _is_depth_map, episode_table, read_info, video_backend
+
+if TYPE_CHECKING:
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 #: spreads of a pooled estimate beyond which the report suggests ``--per-episode`` (the static
 #: simulated rig's: at most 0.8 deg and 0.6 cm)
@@ -83,6 +88,25 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
     or wrong (see :func:`~gensplat_transforms.calibration.estimate.estimate_rig`)."""
     root = Path(root)
     features = read_info(root)["features"]
+    names = _chosen_cameras(root, features, cameras)
+    _check_options(timesteps, fov_deg, focal_px, baseline_m, table_m, model)
+    sizes = [(features[IMAGE_KEY_PREFIX + n]["shape"][1], features[IMAGE_KEY_PREFIX + n]["shape"][0]) for n in names]
+    principal_point = _principal_points(names, sizes, principal_point)
+    gensplat_folder(root)  # before minutes of matching, not after
+    _check_uncalibrated(root, features, names)
+    frames = _Frames.open(root, repo_id, features, names)
+    geometry = _geometry_for(root, names, model, frames.depth, scaled=baseline_m is not None or table_m is not None)
+    scale = ("baseline", baseline_m) if baseline_m is not None else ("table", table_m) if table_m is not None else None
+    estimator = _Estimator(frames, sizes, _given_focals(names, sizes, fov_deg, focal_px), scale, principal_point,
+                           geometry, model)  # fmt: skip
+    rig = estimator.per_episode(timesteps, progress) if per_episode else estimator.pooled(timesteps, progress)
+    write_estimate(root, rig)
+    return rig
+
+
+def _chosen_cameras(root: Path, features: dict, cameras: tuple[str, ...] | None) -> tuple[str, ...]:
+    """The cameras to estimate: ``cameras``, by default every colour camera whose name does not
+    contain "wrist"; ValueError for none, or for one that is no colour image feature."""
     colour = [k[len(IMAGE_KEY_PREFIX) :] for k, ft in features.items()
               if k.startswith(IMAGE_KEY_PREFIX) and not _is_depth_map(ft)]  # fmt: skip
     names = distinct_cameras(cameras) if cameras else tuple(n for n in colour if "wrist" not in n)
@@ -91,6 +115,13 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
         raise ValueError(f"{root}: camera(s) {unknown} are not colour image features of the dataset ({colour})")
     if not names:
         raise ValueError(f"{root}: no external camera to estimate among {colour} (choose them with --cameras)")
+    return names
+
+
+def _check_options(timesteps: int, fov_deg: float | None, focal_px: float | None, baseline_m: float | None,
+                   table_m: float | None, model) -> None:
+    """ValueError for fewer than 2 ``timesteps``, a field of view, focal length or distance out
+    of range, or more than one source of the focal lengths or of the scale."""
     if timesteps < 2:
         raise ValueError(f"--timesteps must be at least 2, got {timesteps}")
     for option, value in (("--fov", fov_deg), ("--focal", focal_px)):
@@ -103,89 +134,154 @@ def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...
                              f"{DISTANCE_RANGE_M[0]:g} to {DISTANCE_RANGE_M[1]:g} m, got {value:g}")  # fmt: skip
     if sum(v is not None for v in (fov_deg, focal_px, model)) > 1 or baseline_m is not None and table_m is not None:
         raise ValueError("give one of --fov, --focal and --model, and one of --baseline and --table-distance")
-    sizes = [(features[IMAGE_KEY_PREFIX + n]["shape"][1], features[IMAGE_KEY_PREFIX + n]["shape"][0]) for n in names]
-    if principal_point is not None and len(principal_point) == 1:
-        principal_point = list(principal_point) * len(names)
-    check_principal_points(names, sizes, principal_point)
-    gensplat_folder(root)  # before minutes of matching, not after
+
+
+def _principal_points(names: tuple[str, ...], sizes: list[tuple[int, int]], given: list | None) -> list | None:
+    """The ``given`` principal points, one for every camera or one per camera, as one per camera,
+    checked against the images (None: the image centres)."""
+    if given is not None and len(given) == 1:
+        given = list(given) * len(names)
+    check_principal_points(names, sizes, given)
+    return given
+
+
+def _check_uncalibrated(root: Path, features: dict, names: tuple[str, ...]) -> None:
+    """ValueError where a camera's feature carries calibration (which GenSplat uses)."""
     calibrated = [n for n in names if "camera.intrinsics" in (features[IMAGE_KEY_PREFIX + n].get("info") or {})]
     if calibrated:
         raise ValueError(f"{root}: camera(s) {calibrated} carry calibration in their features, which GenSplat uses; "
                          "nothing to estimate")  # fmt: skip
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    dataset = LeRobotDataset(repo_id, root=root, video_backend=video_backend(), depth_output_unit="m")
-    depth_keys = {n: f"{IMAGE_KEY_PREFIX}{n}_depth" for n in names}
-    registered = {n: depth_path(root, n, 0).exists() or (_is_depth_map(features.get(depth_keys[n])) and
-                     "camera.depth" not in (features[depth_keys[n]].get("info") or {})) for n in names}  # fmt: skip
-    use_depth = all(registered.values())
-    if model is not None and use_depth:
+
+def _geometry_for(root: Path, names: tuple[str, ...], model: str | Path | DepthReconstructor | None, depth: bool,
+                  scaled: bool) -> DepthReconstructor | None:
+    """The reconstructor of ``model`` (None for none); ValueError where the cameras have
+    ``depth`` or where it is not metric and no distance gives the scale (``scaled``)."""
+    if model is not None and depth:
         raise ValueError(f"{root}: cameras {list(names)} have depth, from which the estimate takes their focal "
                          "lengths and scale: leave out --model (it is for datasets without depth)")  # fmt: skip
     geometry = None if model is None else _geometry_model(model)
-    if geometry is not None and not geometry.metric and baseline_m is None and table_m is None:
+    if geometry is not None and not geometry.metric and not scaled:
         raise ValueError(f"--model {model}: its depth is up to scale (not metric): give --baseline or "
                          "--table-distance for the scale")  # fmt: skip
-    focals = None
-    if fov_deg is not None or focal_px is not None:
-        focals = [focal_px or focal_from_fov(fov_deg, w) for w, _ in sizes]
-        for n, f, (w, h) in zip(names, focals, sizes):
-            fov = [math.degrees(2 * math.atan(side / 2 / f)) for side in (w, h)]
-            if not all(FOV_RANGE[0] <= a <= FOV_RANGE[1] for a in fov):
-                given = f"--fov {fov_deg:g}" if fov_deg is not None else f"--focal {focal_px:g}"
-                raise ValueError(f"{given} gives camera {n!r} ({w}x{h}) a field of view of {fov[0]:.3g} x {fov[1]:.3g} "
-                                 f"degrees; calibrations hold {FOV_RANGE[0]:g} to {FOV_RANGE[1]:g} degrees")  # fmt: skip
-    scale = ("baseline", baseline_m) if baseline_m is not None else ("table", table_m) if table_m is not None else None
-    table = episode_table(dataset.meta)
+    return geometry
 
-    def read(pairs: list[tuple[int, int]]) -> list[dict]:
-        """The sampled timesteps ``pairs`` (episode, frame) as :func:`estimate_rig` takes them."""
+
+def _given_focals(names: tuple[str, ...], sizes: list[tuple[int, int]], fov_deg: float | None,
+                  focal_px: float | None) -> list[float] | None:
+    """Every camera's focal length in pixels from ``fov_deg`` (horizontal) or ``focal_px`` (None
+    for neither); ValueError where it gives a camera a field of view no calibration holds."""
+    if fov_deg is None and focal_px is None:
+        return None
+    focals = [focal_px or focal_from_fov(fov_deg, w) for w, _ in sizes]
+    for n, f, (w, h) in zip(names, focals, sizes):
+        fov = [math.degrees(2 * math.atan(side / 2 / f)) for side in (w, h)]
+        if not all(FOV_RANGE[0] <= a <= FOV_RANGE[1] for a in fov):
+            given = f"--fov {fov_deg:g}" if fov_deg is not None else f"--focal {focal_px:g}"
+            raise ValueError(f"{given} gives camera {n!r} ({w}x{h}) a field of view of {fov[0]:.3g} x {fov[1]:.3g} "
+                             f"degrees; calibrations hold {FOV_RANGE[0]:g} to {FOV_RANGE[1]:g} degrees")  # fmt: skip
+    return focals
+
+
+def _depth_key(name: str) -> str:
+    """The LeRobot depth-map feature of camera ``name``."""
+    return f"{IMAGE_KEY_PREFIX}{name}_depth"
+
+
+@dataclasses.dataclass
+class _Frames:
+    """The frames of cameras ``names`` of the LeRobot ``dataset`` at ``root``, with their metric
+    depth where every camera has depth registered to its images (``depth``)."""
+
+    root: Path
+    names: tuple[str, ...]
+    dataset: LeRobotDataset
+    depth: bool
+
+    @classmethod
+    def open(cls, root: Path, repo_id: str, features: dict, names: tuple[str, ...]) -> _Frames:
+        """The dataset's frames; depth from depth sidecars, or from depth-map features without a
+        ``camera.depth`` sensor block."""
+        from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+        dataset = LeRobotDataset(repo_id, root=root, video_backend=video_backend(), depth_output_unit="m")
+        registered = [depth_path(root, n, 0).exists() or (_is_depth_map(features.get(_depth_key(n))) and
+                      "camera.depth" not in (features[_depth_key(n)].get("info") or {})) for n in names]  # fmt: skip
+        return cls(root, names, dataset, all(registered))
+
+    @cached_property
+    def table(self) -> dict[str, list[int]]:
+        """Every episode's ``length`` and ``dataset_from_index`` (:func:`episode_table`)."""
+        return episode_table(self.dataset.meta)
+
+    def read(self, pairs: list[tuple[int, int]]) -> list[dict]:
+        """The timesteps ``pairs`` (episode, frame) as :func:`estimate_rig` takes them: per camera
+        (image (H, W, 3) uint8, depth (H, W) float32 metres or None)."""
         samples = []
         for episode, frame in pairs:
-            item = dataset[int(table["dataset_from_index"][episode]) + frame]
-            step = {}
-            for n in names:
-                image = (item[IMAGE_KEY_PREFIX + n].permute(1, 2, 0).clamp(0, 1) * 255).round().byte().numpy()
-                depth = None
-                if use_depth and depth_path(root, n, episode).exists():
-                    depth = load_depth(root, n, episode, frame)[0].numpy()
-                elif use_depth and depth_keys[n] in item:
-                    depth = item[depth_keys[n]].reshape(image.shape[:2]).float().numpy()
-                elif use_depth:
-                    raise ValueError(f"{root}: camera {n!r} has no depth for episode {episode} "
-                                     f"({depth_path(root, n, episode)} is missing)")  # fmt: skip
-                step[n] = (image, None if depth is None else np.asarray(depth, dtype=np.float32))
-            samples.append(step)
+            item = self.dataset[int(self.table["dataset_from_index"][episode]) + frame]
+            samples.append({n: self._view(item, n, episode, frame) for n in self.names})
         return samples
 
-    def estimate(pairs: list[tuple[int, int]], groups: list | None, show: bool) -> RigEstimate:
-        """The estimate from the timesteps ``pairs``, the spread over ``groups`` (None: four
-        interleaved groups)."""
-        samples = read(pairs)
-        prediction = predict_cameras(geometry, names, samples) if geometry is not None else None
-        rig = estimate_rig(names, sizes, samples, groups, progress=show, focals=prediction.focals if prediction
-                           else focals, scale=scale, principal_points=principal_point,
-                           predicted=prediction.depths if prediction and scale is None else None)  # fmt: skip
-        if prediction is None:
-            return rig
-        return dataclasses.replace(rig, focal_spread=prediction.focal_spread, model=_model_record(model))
+    def _view(self, item: dict, name: str, episode: int, frame: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """Camera ``name``'s image and depth in the dataset's ``item`` (``frame`` of ``episode``)."""
+        image = (item[IMAGE_KEY_PREFIX + name].permute(1, 2, 0).clamp(0, 1) * 255).round().byte().numpy()
+        depth = None
+        if self.depth and depth_path(self.root, name, episode).exists():
+            depth = load_depth(self.root, name, episode, frame)[0].numpy()
+        elif self.depth and _depth_key(name) in item:
+            depth = item[_depth_key(name)].reshape(image.shape[:2]).float().numpy()
+        elif self.depth:
+            raise ValueError(f"{self.root}: camera {name!r} has no depth for episode {episode} "
+                             f"({depth_path(self.root, name, episode)} is missing)")  # fmt: skip
+        return image, None if depth is None else np.asarray(depth, dtype=np.float32)
 
-    if per_episode:
+
+@dataclasses.dataclass
+class _Estimator:
+    """How the rig is estimated from ``frames``: each camera's image size (``sizes``, (width,
+    height)), the given ``focals`` (pixels), ``scale`` and ``principal_point`` (None: not
+    given), and the ``geometry`` reconstructor of ``model`` (None: none)."""
+
+    frames: _Frames
+    sizes: list[tuple[int, int]]
+    focals: list[float] | None
+    scale: tuple[str, float] | None
+    principal_point: list | None
+    geometry: DepthReconstructor | None
+    model: str | Path | DepthReconstructor | None
+
+    def pooled(self, timesteps: int, progress: bool) -> RigEstimate:
+        """The estimate from ``timesteps`` frames spread over the episodes, its spread over the episodes."""
+        pairs = sample_timesteps(self.frames.table["length"], timesteps)
+        return self.estimate(pairs, [e for e, _ in pairs], progress)
+
+    def per_episode(self, timesteps: int, progress: bool) -> RigEstimate:
+        """Every episode estimated apart from ``timesteps`` of its own frames (:func:`per_episode_rig`);
+        ValueError naming the episode whose estimate fails."""
         from tqdm.auto import tqdm
 
+        lengths = self.frames.table["length"]
         rigs = {}
-        for episode in tqdm(range(len(table["length"])), desc="estimating", unit="episode", disable=not progress):
-            frames = sample_timesteps([int(table["length"][episode])], timesteps)
+        for episode in tqdm(range(len(lengths)), desc="estimating", unit="episode", disable=not progress):
+            sampled = sample_timesteps([int(lengths[episode])], timesteps)
             try:
-                rigs[episode] = estimate([(episode, f) for _, f in frames], None, False)
+                rigs[episode] = self.estimate([(episode, f) for _, f in sampled], None, False)
             except ValueError as e:
                 raise ValueError(f"episode {episode}: {e}") from e
-        rig = per_episode_rig(rigs)
-    else:
-        pairs = sample_timesteps(table["length"], timesteps)
-        rig = estimate(pairs, [e for e, _ in pairs], progress)
-    write_estimate(root, rig)
-    return rig
+        return per_episode_rig(rigs)
+
+    def estimate(self, pairs: list[tuple[int, int]], groups: list | None, show: bool) -> RigEstimate:
+        """The estimate from the timesteps ``pairs`` (episode, frame), the spread over ``groups``
+        (None: four interleaved groups); ``show``: progress bars."""
+        names, samples = self.frames.names, self.frames.read(pairs)
+        prediction = predict_cameras(self.geometry, names, samples) if self.geometry is not None else None
+        rig = estimate_rig(names, self.sizes, samples, groups, progress=show, focals=prediction.focals if prediction
+                           else self.focals, scale=self.scale, principal_points=self.principal_point,
+                           predicted=prediction.depths if prediction and self.scale is None else None)  # fmt: skip
+        if prediction is None:
+            return rig
+        return dataclasses.replace(rig, focal_spread=prediction.focal_spread, model=_model_record(self.model))
 
 
 def per_episode_rig(rigs: dict[int, RigEstimate]) -> RigEstimate:
