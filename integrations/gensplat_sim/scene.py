@@ -180,6 +180,20 @@ def build_spec(objects: list[ObjectSpec], config: SceneConfig) -> mujoco.MjSpec:
     """Compose the scene. Camera names: the keys of ``config.external``, ``wrist`` and ``probe``
     (a spare world camera that :class:`~.world.SimWorld` moves to render arbitrary poses)."""
     spec = mujoco.MjSpec.from_file(str(robot_assets_dir() / "panda.xml"))
+    _set_options(spec, config.max_image_size)
+    _servo_arm(spec)
+    table_mat, wall_mat = _add_materials(spec, config.texture_seed)
+    _add_table(spec.worldbody, table_mat)
+    _add_room(spec.worldbody, wall_mat)
+    _add_lights(spec.worldbody)
+    _add_cameras(spec, config)
+    _add_objects(spec.worldbody, objects)
+    return spec
+
+
+def _set_options(spec: mujoco.MjSpec, max_image_size: int) -> None:
+    """Physics (2 ms implicit steps, elliptic friction cones) and rendering settings (offscreen
+    framebuffer of side ``max_image_size``, clip planes, shadows, headlight)."""
     spec.option.timestep = 0.002
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     spec.option.noslip_iterations = 5
@@ -187,7 +201,7 @@ def build_spec(objects: list[ObjectSpec], config: SceneConfig) -> mujoco.MjSpec:
     spec.option.impratio = 10
     spec.stat.center = [0.5, 0.0, 0.2]
     spec.stat.extent = 1.5
-    spec.visual.global_.offwidth = spec.visual.global_.offheight = config.max_image_size
+    spec.visual.global_.offwidth = spec.visual.global_.offheight = max_image_size
     spec.visual.map.znear = 0.01
     spec.visual.map.zfar = 4.0
     spec.visual.quality.shadowsize = 2048
@@ -195,9 +209,12 @@ def build_spec(objects: list[ObjectSpec], config: SceneConfig) -> mujoco.MjSpec:
     spec.visual.headlight.ambient = [0.35, 0.35, 0.35]
     spec.visual.headlight.diffuse = [0.25, 0.25, 0.25]
     spec.visual.headlight.specular = [0.0, 0.0, 0.0]
-    _servo_arm(spec)
 
-    rng = np.random.default_rng(config.texture_seed)
+
+def _add_materials(spec: mujoco.MjSpec, seed: int) -> tuple[str, str]:
+    """The procedural table and wall materials (textures drawn with ``seed``), and the checkered
+    ``floor`` material; returns the table's and the wall's names."""
+    rng = np.random.default_rng(seed)
     table_mat = _add_texture(spec, "table", _wood_texture(rng), (1.5, 1.5))
     wall_mat = _add_texture(spec, "wall", _wall_texture(rng), (0.6, 0.6))
     floor = spec.add_texture(
@@ -207,15 +224,23 @@ def build_spec(objects: list[ObjectSpec], config: SceneConfig) -> mujoco.MjSpec:
     floor.rgb1, floor.rgb2 = [0.35, 0.35, 0.38], [0.25, 0.25, 0.28]
     floor_mat = spec.add_material(name="floor", texrepeat=[4, 4], texuniform=True)
     floor_mat.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = "floor"
+    return table_mat, wall_mat
 
-    world = spec.worldbody
+
+def _add_table(world: mujoco.MjsBody, material: str) -> None:
+    """The table: a 1.4 x 1.3 m box whose top is the plane z = 0."""
     world.add_geom(
         name="table",
         type=mujoco.mjtGeom.mjGEOM_BOX,
         size=[0.7, 0.65, 0.02],
         pos=[0.35, 0, -0.02],
-        material=table_mat,
+        material=material,
     )
+
+
+def _add_room(world: mujoco.MjsBody, wall_material: str) -> None:
+    """The floor 0.75 m below the table top and the room's four walls and ceiling (visual only:
+    nothing collides with them)."""
     world.add_geom(
         name="floor",
         type=mujoco.mjtGeom.mjGEOM_PLANE,
@@ -239,11 +264,14 @@ def build_spec(objects: list[ObjectSpec], config: SceneConfig) -> mujoco.MjSpec:
             type=mujoco.mjtGeom.mjGEOM_BOX,
             size=size,
             pos=pos,
-            material=wall_mat,
+            material=wall_material,
             contype=0,
             conaffinity=0,
         )
 
+
+def _add_lights(world: mujoco.MjsBody) -> None:
+    """Two directional lights: ``top``, which casts shadows, and a dimmer, shadowless ``fill``."""
     world.add_light(
         name="top",
         pos=[0.6, 0.3, 1.6],
@@ -263,6 +291,11 @@ def build_spec(objects: list[ObjectSpec], config: SceneConfig) -> mujoco.MjSpec:
         castshadow=False,
     )
 
+
+def _add_cameras(spec: mujoco.MjSpec, config: SceneConfig) -> None:
+    """The external cameras of ``config``, the spare world camera ``probe`` and the ``wrist``
+    camera on the gripper base."""
+    world = spec.worldbody
     for name, cam in config.external.items():
         world.add_camera(
             name=name, pos=list(cam.eye), quat=list(look_at_quat(cam.eye, cam.target)), fovy=cam.fovy
@@ -278,6 +311,9 @@ def build_spec(objects: list[ObjectSpec], config: SceneConfig) -> mujoco.MjSpec:
         fovy=config.wrist_fovy,
     )
 
+
+def _add_objects(world: mujoco.MjsBody, objects: list[ObjectSpec]) -> None:
+    """Every object as a grey free body at (0.5, 0) on the table (episodes place and colour them)."""
     geom_type = {
         "box": mujoco.mjtGeom.mjGEOM_BOX,
         "cylinder": mujoco.mjtGeom.mjGEOM_CYLINDER,
@@ -295,7 +331,6 @@ def build_spec(objects: list[ObjectSpec], config: SceneConfig) -> mujoco.MjSpec:
             condim=4,
             rgba=[0.5, 0.5, 0.5, 1],
         )
-    return spec
 
 
 def build_model(objects: list[ObjectSpec], config: SceneConfig) -> mujoco.MjModel:
