@@ -91,6 +91,7 @@ from policy_robustness import SAMPLER_ARMS
 
 from gensplat_transforms.core.cameras import Cameras
 from gensplat_transforms.core.metrics import psnr, ssim
+from gensplat_transforms.core.scenes import Scenes
 from gensplat_transforms.geometry import (
     GenSplatReconstructor,
     GeometryReconstructor,
@@ -99,8 +100,8 @@ from gensplat_transforms.geometry import (
     Views,
 )
 from gensplat_transforms.geometry.base import nearest_pixels
-from gensplat_transforms.rendering import RenderOutput, render
-from gensplat_transforms.rendering.holes import fill_holes
+from gensplat_transforms.rendering import RenderOutput
+from gensplat_transforms.rendering.scenes import render_scenes
 from gensplat_transforms.rendering.warp import forward_warp
 from gensplat_transforms.transform import GenSplatConfig
 from gensplat_transforms.views.perturbation import EVAL_LEVELS, PerturbationSampler
@@ -222,10 +223,16 @@ def frame_size_geometry(rec: GeometryReconstructor, images: torch.Tensor, camera
 PLAIN = {"dilation": 0.3, "saturation": 1.0, "view_preference": 0.0}
 
 
-def draw(rec: Reconstruction, target: Cameras) -> RenderOutput:
-    """``rec`` rendered into one camera with the fast backend as the transform draws it (its
-    Gaussians as that camera composites them, with its render options), without depth."""
-    return render(rec.seen_from(target), target, backend="fast", return_depth=False, **rec.render_options)
+#: how the transform draws views: holes left over black, or filled (its default)
+DRAWN = {False: GenSplatConfig(fill_holes=False), True: GenSplatConfig()}
+
+
+def draw(rec: Reconstruction, target: Cameras, fill: bool = False) -> RenderOutput:
+    """``rec`` rendered into one camera as the transform draws it (:func:`render_scenes`, the
+    fast backend: its Gaussians as that camera composites them, with its render options), the
+    holes over black or filled, without depth."""
+    views = render_scenes(Scenes.of([rec]), target, DRAWN[fill])
+    return RenderOutput(rgb=views.rgb[0], alpha=views.alpha[0])
 
 
 def compare_frame(views: Views, truth: GroundTruth, ep: int, fr: int, model, args, rows: list) -> None:
@@ -250,17 +257,16 @@ def compare_frame(views: Views, truth: GroundTruth, ep: int, fr: int, model, arg
             views_of = {"rgbd": (out.rgb[0], rgbd_ms, ms), "source_image": (views.images[0], 0.0, 0.0)}
             out_p, ms_p = timed(draw, plain, target)
             views_of["rgbd_plain"] = (out_p.rgb[0], rgbd_ms, ms_p)
-            filled, fill_ms = timed(fill_holes, out.rgb, out.alpha)
-            views_of["rgbd_fill"] = (filled[0], rgbd_ms, ms + fill_ms)
+            filled, fill_ms = timed(draw, rgbd, target, True)
+            views_of["rgbd_fill"] = (filled.rgb[0], rgbd_ms, fill_ms)
             warped, ms = timed(homography_warp, views.images[0], cams[0], target)
             views_of["homography"] = (warped, 0.0, ms)
             out_s, ms = timed(draw, rgbd_s, target)
             views_of["rgbd_sensor"] = (out_s.rgb[0], rgbd_s_ms, ms)
-            filled_s, fill_ms = timed(fill_holes, out_s.rgb, out_s.alpha)
-            views_of["rgbd_sensor_fill"] = (filled_s[0], rgbd_s_ms, ms + fill_ms)
-            out_sd, ms = timed(draw, rgbd_sd, target)
-            filled_sd, fill_ms = timed(fill_holes, out_sd.rgb, out_sd.alpha)
-            views_of["rgbd_sensor_depth_fill"] = (filled_sd[0], rgbd_sd_ms, ms + fill_ms)
+            filled_s, ms = timed(draw, rgbd_s, target, True)
+            views_of["rgbd_sensor_fill"] = (filled_s.rgb[0], rgbd_s_ms, ms)
+            filled_sd, ms = timed(draw, rgbd_sd, target, True)
+            views_of["rgbd_sensor_depth_fill"] = (filled_sd.rgb[0], rgbd_sd_ms, ms)
             (fw, warp_mask), ms = timed(forward_warp, views.images, views.depths, cams, target)
             views_of["forward_warp"] = (fw[0], 0.0, ms)
             (fw_s, warp_mask_s), ms = timed(forward_warp, sensor.images, sensor.depths, cams, target)
@@ -270,11 +276,12 @@ def compare_frame(views: Views, truth: GroundTruth, ep: int, fr: int, model, arg
                 out_m, ms = timed(draw, mrec, mtarget)
                 views_of["gensplat_small"] = (out_m.rgb[0], model_ms, ms)
                 for name, (grec, grec_ms) in geometry.items():  # calibrated cameras: move them as for rgbd
-                    out_g, ms = timed(draw, grec, p.move(grec.cameras, 0))
+                    gtarget = p.move(grec.cameras, 0)
+                    out_g, ms = timed(draw, grec, gtarget)
                     views_of[name] = (out_g.rgb[0], grec_ms, ms)
                     if name == "geometry_small_metric":  # what the transform shows: holes filled
-                        filled_g, fill_ms = timed(fill_holes, out_g.rgb, out_g.alpha)
-                        views_of[name + "_fill"] = (filled_g[0], grec_ms, ms + fill_ms)
+                        filled_g, ms = timed(draw, grec, gtarget, True)
+                        views_of[name + "_fill"] = (filled_g.rgb[0], grec_ms, ms)
             coverage = float(seen.float().mean())
             for method, (image, rec_ms, ren_ms) in views_of.items():
                 mask = warp_mask_s[0] if "_sensor" in method else warp_mask[0]

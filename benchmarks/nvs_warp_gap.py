@@ -15,9 +15,12 @@ of a depth discontinuity of the true view: a relative depth step > 3 % in a 3x3 
   off);
 * ``rgbd_unsaturated``: plain alpha (``saturation`` 1);
 * ``rgbd_dilation_0.3``: the renderer's usual 0.3 px^2 dilation;
-* ``rgbd_sigma_0.3``: smaller footprints (``RGBDConfig.sigma_px``, 0.4 by default);
-* ``rgbd_edge_scale_1``: splats not shrunk across depth edges (``edge_scale`` 1, 0.25 by
-  default).
+* ``rgbd_sigma_0.4``: wider footprints (``RGBDConfig.sigma_px``, 0.3 by default);
+* ``rgbd_edge_scale_1``: splats not shrunk across depth edges (``edge_scale`` 1, 0.5 by
+  default);
+* ``rgbd_sigma_0.4_edge_scale_0.25``: wider footprints shrunk more at edges, together;
+* ``rgbd_cover_1``: partly covered pixels as composited (``cover`` 1; the views here are not
+  hole-filled).
 
 Writes ``benchmarks/results/nvs_warp_gap.json``: ``{variant: {level: {warp_mask, interior,
 edge}}}`` (mean PSNR in dB over comparisons; null: identical images), ``edge_share`` (the edge pixels' share of the
@@ -45,7 +48,8 @@ from gensplat_transforms.views.perturbation import EVAL_LEVELS, PerturbationSamp
 RGBD = {"rgbd": {}, "rgbd_plain": PLAIN, "rgbd_left": {}, "rgbd_no_preference": {"view_preference": 0.0},
         "rgbd_no_soften": {"soften_noise": False},
         "rgbd_unsaturated": {"saturation": 1.0}, "rgbd_dilation_0.3": {"dilation": 0.3},
-        "rgbd_sigma_0.3": {"sigma_px": 0.3}, "rgbd_edge_scale_1": {"edge_scale": 1.0}}  # fmt: skip
+        "rgbd_sigma_0.4": {"sigma_px": 0.4}, "rgbd_edge_scale_1": {"edge_scale": 1.0},
+        "rgbd_sigma_0.4_edge_scale_0.25": {"sigma_px": 0.4, "edge_scale": 0.25}, "rgbd_cover_1": {"cover": 1.0}}  # fmt: skip
 
 
 def depth_edges(depth: torch.Tensor) -> torch.Tensor:

@@ -379,13 +379,20 @@ def record_dataset(work: Path, args) -> None:
     print(f"recorded {res.episodes} demonstrations, {res.frames} frames, in {res.seconds:.0f} s", flush=True)
 
 
+#: the RGB-D discs every GenSplat arm of the study draws, fixed here rather than taken from the
+#: library's defaults so that units run at different commits train on the same views (wider
+#: discs than the default, partly covered pixels as composited)
+STUDY_RECONSTRUCTOR = {"name": "rgbd", "config": {"sigma_px": 0.4, "edge_scale": 0.25, "cover": 1.0}}
+
+
 def prepare_arm(work: Path, arm: str, args) -> None:
     """For a GenSplat arm: its dataset root (:func:`dataset_root`), GenSplat settings and cache."""
     if arm_kind(arm) not in GENSPLAT_ARMS:
         return
     if dataset_root(work, arm) != work / "dataset":
         link_dataset(work / "dataset", dataset_root(work, arm))
-    prepare(dataset_root(work, arm), repo_id(args.task), gensplat_config(args, arm), progress=False)
+    prepare(dataset_root(work, arm), repo_id(args.task), gensplat_config(args, arm), STUDY_RECONSTRUCTOR,
+            progress=False)
 
 
 def check_work(work: Path, arms: tuple[str, ...], args) -> None:

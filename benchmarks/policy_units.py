@@ -132,6 +132,7 @@ def run_unit(unit: Unit, args) -> dict:
     return {
         "unit": {"task": unit.task, "arm": unit.arm, "seed": unit.seed, "name": name},
         "settings": unit_settings(unit, args), "commit": head_commit(), "machine": cpu_model(),
+        "reconstructor": pr.STUDY_RECONSTRUCTOR if pr.arm_kind(name) in pr.GENSPLAT_ARMS else None,
         "success": {p: {lv: r["success"] for lv, r in evaluated[p][name].items()} for p in pr.PROTOCOLS},
         "progress": {p: {lv: r["progress"] for lv, r in evaluated[p][name].items()} for p in pr.PROTOCOLS},
         "timing": {"train": train, **stages, "wall_seconds": round(wall, 1)},

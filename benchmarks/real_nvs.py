@@ -13,10 +13,10 @@ depth fills (``warp``) and on all pixels (``all``), in PSNR and SSIM:
 * ``source_image``: the left image unchanged (what an unaugmented policy sees);
 * ``forward_warp``: every left pixel with depth moved to the nearest right pixel (a z-buffer),
   nothing elsewhere (:func:`gensplat_transforms.rendering.warp.forward_warp`);
-* one row per RGB-D reconstructor setting, each rendered over black (``fill: false``) and
-  with the holes filled as the transform does (``fill: true``), and its time: discs built
-  (``build_ms``) and rendered (``render_ms``, the fast CPU renderer, one thread; medians of
-  ``REPEATS``).
+* one row per RGB-D reconstructor setting, each drawn as the transform draws it
+  (``render_scenes``) over black (``fill: false``) and with the holes filled (``fill: true``,
+  the transform's default), and its time: discs built (``build_ms``) and drawn with the holes
+  filled (``render_ms``, the fast CPU renderer, one thread; medians of ``REPEATS``).
 
 No other real RGB-D pair ships in a package on PyPI as far as we found (scikit-image's is the
 one), so the pair is this one at several scales. Writes benchmarks/results/real_nvs.json
@@ -36,21 +36,29 @@ from real_geometry import middlebury
 
 from gensplat_transforms.core.cameras import Cameras
 from gensplat_transforms.core.metrics import psnr, ssim
+from gensplat_transforms.core.scenes import Scenes
 from gensplat_transforms.geometry import RGBDReconstructor, Views
-from gensplat_transforms.rendering import render
-from gensplat_transforms.rendering.holes import fill_holes
+from gensplat_transforms.rendering.scenes import render_scenes
 from gensplat_transforms.rendering.warp import forward_warp
+from gensplat_transforms.settings import GenSplatConfig
 
-#: reconstructor settings compared (RGBDConfig overrides), the default first
+#: reconstructor settings compared (RGBDConfig overrides): the default first, then its disc
+#: size, edge shrinking and cover changed one at a time, and wider discs that shrink more at
+#: edges (sigma_px 0.4, edge_scale 0.25) together
 SETTINGS = {
     "rgbd": {},
-    "rgbd_no_soften": {"soften_noise": False},
+    "rgbd_sigma_0.4_edge_scale_0.25": {"sigma_px": 0.4, "edge_scale": 0.25},
+    "rgbd_sigma_0.4": {"sigma_px": 0.4},
+    "rgbd_sigma_0.25": {"sigma_px": 0.25},
+    "rgbd_edge_scale_0.25": {"edge_scale": 0.25},
     "rgbd_edge_scale_1": {"edge_scale": 1.0},
-    "rgbd_edge_scale_1_no_soften": {"edge_scale": 1.0, "soften_noise": False},
-    "rgbd_sigma_0.3_edge_scale_1_no_soften": {"sigma_px": 0.3, "edge_scale": 1.0, "soften_noise": False},
+    "rgbd_cover_1": {"cover": 1.0},
+    "rgbd_no_soften": {"soften_noise": False},
 }
-QUICK_SETTINGS = ("rgbd", "rgbd_edge_scale_1_no_soften")
-REPEATS = 3
+QUICK_SETTINGS = ("rgbd", "rgbd_sigma_0.4_edge_scale_0.25")
+#: how the transform draws views: holes left over black, or filled (its default)
+DRAWN = {False: GenSplatConfig(fill_holes=False), True: GenSplatConfig()}
+REPEATS = 7
 
 
 def pair(scale: float) -> tuple[torch.Tensor, torch.Tensor, Cameras]:
@@ -67,30 +75,32 @@ def scores(view: torch.Tensor, truth: torch.Tensor, warp_mask: torch.Tensor) -> 
             "ssim_warp": round(ssim(view, truth, warp_mask), 4), "ssim_all": round(ssim(view, truth), 4)}  # fmt: skip
 
 
-def timed(fn):
-    """``fn()`` and the median of its wall times over ``REPEATS`` calls, in ms."""
-    times, out = [], None
-    for _ in range(REPEATS):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(1000 * (time.perf_counter() - t0))
-    return out, round(statistics.median(times), 2)
+def ms_since(t0: float) -> float:
+    return 1000 * (time.perf_counter() - t0)
 
 
 def compare(scale: float, settings: dict[str, dict]) -> dict:
-    """The rows of one scale (module docstring)."""
+    """The rows of one scale (module docstring). The settings take turns, one build and draw
+    each per round, so that a load on the machine weighs on all of them alike."""
     images, depths, cameras = pair(scale)
     left, target, truth = Views(images[:1], cameras[:1], depths[:1]), cameras[1:], images[1]
     warp, mask = forward_warp(images[:1], depths[:1], cameras[:1], target)
     rows = {"source_image": scores(images[0], truth, mask[0]), "forward_warp": scores(warp[0], truth, mask[0])}
-    for name, overrides in settings.items():
-        reconstructor = RGBDReconstructor(**overrides)
-        rec, build_ms = timed(lambda r=reconstructor: r.reconstruct(left))
-        out, render_ms = timed(lambda r=rec: render(r.gaussians, target, backend="fast", **r.render_options))
-        filled = fill_holes(out.rgb, out.alpha)[0]
-        timing = {"build_ms": build_ms, "render_ms": render_ms, "gaussians": len(rec.gaussians)}
-        rows[name] = {"fill": {False: scores(out.rgb[0], truth, mask[0]), True: scores(filled, truth, mask[0])},
-                      **timing}  # fmt: skip
+    reconstructors = {name: RGBDReconstructor(**overrides) for name, overrides in settings.items()}
+    times: dict = {name: ([], []) for name in settings}
+    for _ in range(REPEATS):
+        for name, reconstructor in reconstructors.items():
+            t0 = time.perf_counter()
+            rec = reconstructor.reconstruct(left)
+            times[name][0].append(ms_since(t0))
+            t0 = time.perf_counter()
+            filled = render_scenes(Scenes.of([rec]), target, DRAWN[True])
+            times[name][1].append(ms_since(t0))
+            black = render_scenes(Scenes.of([rec]), target, DRAWN[False])
+            rows[name] = {"fill": {fill: scores(v.rgb[0, 0], truth, mask[0]) for fill, v in ((False, black), (True, filled))},
+                          "gaussians": len(rec.gaussians)}  # fmt: skip
+    for name, (build, draw) in times.items():
+        rows[name].update(build_ms=round(statistics.median(build), 2), render_ms=round(statistics.median(draw), 2))
     return {"size": [images.shape[-1], images.shape[-2]], "warp_coverage": round(float(mask.float().mean()), 4),
             "rows": rows}  # fmt: skip
 

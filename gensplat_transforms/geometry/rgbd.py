@@ -25,8 +25,12 @@ within a fraction of a pixel: at the source pose every pixel shows its own colou
 moved camera still sees a closed surface. Where two cameras saw one surface, the discs of the
 camera whose view is closest to the rendered one are composited in front
 (``view_preference``, :meth:`.views.Reconstruction.seen_from`), instead of a depth-noise
-coin toss between the two. These three settings shape only the render, not what a cache
-holds, so they are not part of the reconstructor's identity.
+coin toss between the two. The footprint is small (k = 0.3 px), so fine real texture stays
+as sharp as the image; a moved camera sees partly covered pixels between such discs, which
+hole filling blends with their surroundings and, where holes are not filled, ``cover``
+shows in the discs' own colour. These settings, and the disc shape itself, say how discs are
+drawn from the depth a cache stores, not what it stores, so they are not part of the
+reconstructor's identity.
 
 Sharp discs suit exact depth. On a depth sensor's noisy depth, neighbouring discs lie at
 scattered depths, and a moved camera sees the cracks and colour speckle between them. Where
@@ -89,12 +93,15 @@ class RGBDConfig:
             saw the surface is that much too far); 0 composites all views alike.
         soften_noise: discs on rough depth (a sensor's noise) are drawn as plain Gaussians
             (module docstring); False keeps every disc sharp.
+        cover: a pixel the discs cover to at least this alpha shows their colour alone
+            (``render``'s; where holes are not filled: the cracks between small discs seen
+            from a moved camera); 1 leaves every pixel as composited.
     """
 
-    sigma_px: float = 0.4
+    sigma_px: float = 0.3
     thickness: float = 0.1
     max_stretch: float = 4.0
-    edge_scale: float = 0.25
+    edge_scale: float = 0.5
     opacity: float = 1.0
     sh_degree: int = 0
     max_depth: float | None = None
@@ -104,6 +111,7 @@ class RGBDConfig:
     saturation: float = 2.0
     view_preference: float = 0.03
     soften_noise: bool = True
+    cover: float = 0.1
 
     def __post_init__(self) -> None:
         checks = {
@@ -114,6 +122,7 @@ class RGBDConfig:
             "dilation": math.isfinite(self.dilation) and self.dilation > 0,
             "saturation": math.isfinite(self.saturation) and self.saturation >= 1,
             "view_preference": 0 <= self.view_preference <= 1,
+            "cover": 0 < self.cover <= 1,
             "soften_noise": isinstance(self.soften_noise, bool),  # not a truthy "false" from a settings file
         }  # fmt: skip
         for name, ok in checks.items():
@@ -157,8 +166,8 @@ class RGBDReconstructor(DepthReconstructor):
         the discs' own ``saturation`` (N,) where some were softened (:func:`own_saturation`),
         else the configured one."""
         saturation = self.cfg.saturation if saturation is None else saturation
-        return {"render_options": {"dilation": self.cfg.dilation, "saturation": saturation},
-                "view_preference": self.cfg.view_preference}  # fmt: skip
+        options = {"dilation": self.cfg.dilation, "saturation": saturation, "cover": self.cfg.cover}
+        return {"render_options": options, "view_preference": self.cfg.view_preference}
 
     def predict_depth(self, views: Views) -> Views:
         """The given depth, 0 where invalid (see :func:`.base.valid_depth`) or beyond
@@ -235,10 +244,15 @@ class RGBDReconstructor(DepthReconstructor):
             rays = source_rays(means, origins)
         sources = Cameras(K.flatten(0, 1), c2w.flatten(0, 1), depths.shape[-1], depths.shape[-2])
         return Scenes(means, quats, scales, torch.full_like(saturation, cfg.opacity), sh, keep, saturation, sources,
-                      rays, cfg.view_preference, {"dilation": cfg.dilation})  # fmt: skip
+                      rays, cfg.view_preference, {"dilation": cfg.dilation, "cover": cfg.cover})  # fmt: skip
 
 #: RGBDConfig fields that shape only what is drawn, not what a cache stores (not part of its identity)
-RENDER_FIELDS = ("dilation", "saturation", "view_preference", "soften_noise")
+RENDER_FIELDS = ("dilation", "saturation", "view_preference", "soften_noise", "cover")
+#: the disc shape: how workers build discs from the depth a cache stores, not what it stores.
+#: A cache's identity lists these fields at these fixed values whatever the configured ones
+#: (the identity's format: caches keyed by them stay valid).
+SHAPE_IDENTITY = {"sigma_px": 0.4, "thickness": 0.1, "max_stretch": 4.0, "edge_scale": 0.25, "opacity": 1.0,
+                  "sh_degree": 0, "stride": 1}  # fmt: skip
 
 #: ``soften_noise``: roughness (in pixel footprints) at which discs start turning into plain
 #: Gaussians, and at which they are plain; second differences beyond ``ROUGH_EDGE`` are depth
@@ -305,8 +319,9 @@ def soften(scales: torch.Tensor, blend: torch.Tensor, footprint: torch.Tensor,
 
 
 def disc_identity(cfg: RGBDConfig) -> dict:
-    """The settings of ``cfg`` that a cache's identity covers: all but ``RENDER_FIELDS``."""
-    return {k: v for k, v in asdict(cfg).items() if k not in RENDER_FIELDS}
+    """The settings of ``cfg`` that a cache's identity covers: all but ``RENDER_FIELDS``, the
+    shape at ``SHAPE_IDENTITY``."""
+    return {**{k: v for k, v in asdict(cfg).items() if k not in RENDER_FIELDS}, **SHAPE_IDENTITY}
 
 
 def grid_pixel_ids(height: int, width: int, stride: int, views: int) -> torch.Tensor:

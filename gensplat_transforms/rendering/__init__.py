@@ -27,7 +27,7 @@ from .gsplat_backend import render_gsplat
 from .projection import DILATION, Projected, precondition, project
 from .reference import rasterize_reference
 
-__all__ = ["BACKENDS", "Projected", "RenderOutput", "auto_backend", "project", "render", "render_size"]
+__all__ = ["BACKENDS", "Projected", "RenderOutput", "auto_backend", "covered", "project", "render", "render_size"]
 
 
 @dataclass
@@ -127,6 +127,7 @@ def render(
     return_alpha: bool = True,
     dilation: float = DILATION,
     saturation: float | torch.Tensor = 1.0,
+    cover: float = 1.0,
     recheck: bool = True,
     **options,
 ) -> RenderOutput:
@@ -154,6 +155,10 @@ def render(
             flat-topped splats that cover their core fully and fall off within a fraction of
             their size (pixel-aligned RGB-D discs, see ``geometry.rgbd``); >= 1, one
             number or one per Gaussian (N,).
+        cover: a pixel whose alpha reaches ``cover`` counts as covered: its colour is the
+            splats' own, divided by alpha as depth is, and its alpha 1 (:func:`covered`; the
+            cracks between small discs seen from a moved camera); 1 leaves every pixel as
+            composited; in (0, 1].
         recheck: False trusts a check the Gaussians passed while torch saw no write to their
             tensors (``Gaussians.check()``), for Gaussians the caller has just built (the
             dataset transform's); writes through ``.data`` or NumPy since then go unseen.
@@ -180,6 +185,7 @@ def render(
         raise ValueError(f"render: near must be a positive finite number, got {near}")
     if not (math.isfinite(dilation) and dilation > 0):
         raise ValueError(f"render: dilation must be a positive finite number of px^2, got {dilation}")
+    cover = check_cover(cover)
     saturation = _saturation(saturation, gaussians)
     if saturation is not None:  # opacities above 1 exist only here, for the backends' alpha
         gaussians = Gaussians(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities * saturation,
@@ -200,10 +206,34 @@ def render(
         if return_depth:
             depth = torch.where(alpha > 0, depth_sum / alpha.clamp_min(1e-10), torch.zeros_like(depth_sum))
             depths.append(depth.reshape(1, H, W))
-        if return_alpha:
+        if return_alpha or cover < 1:
             alphas.append(alpha.reshape(1, H, W))
-    return RenderOutput(
-        rgb=torch.stack(rgbs),
-        depth=torch.stack(depths) if return_depth else None,
-        alpha=torch.stack(alphas) if return_alpha else None,
-    )
+    rgb, alpha = torch.stack(rgbs), torch.stack(alphas) if alphas else None
+    if cover < 1:
+        rgb, alpha = covered(rgb, alpha, bg, cover)
+    return RenderOutput(rgb=rgb, depth=torch.stack(depths) if return_depth else None,
+                        alpha=alpha if return_alpha else None)  # fmt: skip
+
+
+def check_cover(cover: float) -> float:
+    """``cover`` as a float in (0, 1], else a ValueError naming it."""
+    if not 0 < float(cover) <= 1:  # NaN fails too
+        raise ValueError(f"render: cover must be in (0, 1], got {cover}")
+    return float(cover)
+
+
+def covered(rgb: torch.Tensor, alpha: torch.Tensor, background: torch.Tensor, cover: float
+            ) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+    """``render``'s ``cover``: (..., 3, H, W) colour over ``background`` (3,) and (..., 1, H, W)
+    alpha, with every pixel whose alpha reaches ``cover`` shown in its splats' colour alone
+    (colour minus the background's share, divided by alpha) at alpha 1; the others unchanged.
+
+    Example:
+        >>> rgb, alpha = torch.full((1, 3, 1, 2), 0.4), torch.tensor([[[[0.5, 0.2]]]])
+        >>> out, a = covered(rgb, alpha, torch.zeros(3), 0.3)
+        >>> out[0, 0, 0].tolist(), a[0, 0, 0].tolist()
+        ([0.800000011920929, 0.4000000059604645], [1.0, 0.20000000298023224])
+    """
+    seen = alpha >= cover
+    own = (rgb - (1 - alpha) * background.reshape(3, 1, 1).to(rgb)) / alpha.clamp_min(cover)
+    return torch.where(seen, own, rgb), torch.where(seen, torch.ones_like(alpha), alpha)

@@ -23,7 +23,7 @@ from ..core.gaussians import Gaussians
 from ..core.scenes import Scenes
 from ..core.views import preferred_means
 from ..views.perturbation import move_cameras
-from . import RenderOutput, render
+from . import RenderOutput, check_cover, covered, render
 from .gsplat_backend import render_gsplat_batch
 from .holes import fill_holes
 from .projection import DILATION
@@ -87,7 +87,7 @@ def render_scenes(scenes: Scenes, cameras: Cameras, config: GenSplatConfig, *, d
     if len(cameras) != B * C or len(depth) != C or len(sensors) != C:
         raise ValueError(f"render_scenes: {B} scenes need B x C cameras and a depth flag and sensor per camera, got "
                          f"{len(cameras)} cameras, {len(depth)} flags, {len(sensors)} sensors")  # fmt: skip
-    options, saturation = _options(scenes, config)
+    options, saturation = _options(scenes, config, cover=not config.fill_holes)
     view_depth = any(d and s is None for d, s in zip(depth, sensors))
     background = (0.0, 0.0, 0.0) if config.fill_holes else config.background
     backend = _backend(scenes, config, backend)
@@ -113,7 +113,7 @@ def scene_depth(scenes: Scenes, cameras: Cameras, config: GenSplatConfig, backen
     """(B, C, 1, H, W) depth in metres (:func:`seen_depth`) of B ``scenes`` seen by B x C
     ``cameras`` (scene by scene; e.g. depth sensors): the Gaussians where they are (no view
     preference, which would move depth), over nothing, drawn as :func:`render_scenes` draws them."""
-    options, saturation = _options(scenes, config)
+    options, saturation = _options(scenes, config, cover=False)
     backend = _backend(scenes, config, backend)
     draw = _draw_gsplat if backend == "gsplat" else _draw_scene_by_scene
     out = draw(scenes, cameras, (0.0, 0.0, 0.0), options, saturation, True, backend, prefer=False)
@@ -127,10 +127,13 @@ def seen_depth(depth: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
     return torch.where(alpha >= DEPTH_MIN_ALPHA, depth, torch.zeros_like(depth))
 
 
-def _options(scenes: Scenes, config: GenSplatConfig) -> tuple[dict, float | None]:
+def _options(scenes: Scenes, config: GenSplatConfig, cover: bool) -> tuple[dict, float | None]:
     """The ``render`` options the scenes are drawn with (the config's over the scenes' own) but
-    the saturation, and the saturation the config fixes (None: each Gaussian's own)."""
-    options = {"dilation": DILATION, **(scenes.render_options or {}), **config.render_options}
+    the saturation, and the saturation the config fixes (None: each Gaussian's own). ``cover``
+    False leaves partly covered pixels as composited (where holes are filled, the fill blends
+    them with their surroundings; depth reads the render's own alpha)."""
+    options = {"dilation": DILATION, "cover": 1.0, **(scenes.render_options or {}), **config.render_options}
+    options["cover"] = check_cover(options["cover"]) if cover else 1.0
     return options, options.pop("saturation", None)
 
 
@@ -191,4 +194,6 @@ def _draw_gsplat(scenes: Scenes, cameras: Cameras, background, options, saturati
             c2w.flatten(0, 1)[:, None], K.flatten(0, 1)[:, None], *size, bg, return_depth=depth,
             dilation=options["dilation"])  # fmt: skip
         rgb, alpha, d = (None if t is None else t.reshape(B, C, *t.shape[2:]) for t in (rgb, alpha, d))
+    if options["cover"] < 1:
+        rgb, alpha = covered(rgb, alpha, bg, options["cover"])
     return RenderOutput(rgb, d, alpha)

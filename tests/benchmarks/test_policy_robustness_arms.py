@@ -463,3 +463,19 @@ def test_move_table_splits_each_wider_level_by_the_size_of_its_moves():
     assert rows(5)[2][1:] == ["50", "100", "100", "50 |"]
     del result["protocols"]["fov"]  # a result from before the fov protocol: no zoom table
     assert "fov zoom" not in pr.move_markdown(result) and "arc_90deg" in pr.move_markdown(result)
+
+
+def test_the_gensplat_arms_draw_the_study_discs_whatever_the_library_defaults(tmp_path, monkeypatch):
+    """Units of one study run at different commits: their GenSplat arms prepare the same discs,
+    whose cache is the default one (the disc shape is not part of its identity)."""
+    from gensplat_transforms.geometry import RGBDReconstructor, make_reconstructor
+
+    prepared = []
+    monkeypatch.setattr(pr, "prepare", lambda root, repo, config, reconstructor, **kw: prepared.append(reconstructor))
+    args = pr.parse_args([])
+    for arm in ("baseline", "perspective", "gensplat"):
+        pr.prepare_arm(tmp_path, arm, args)
+    assert prepared == [pr.STUDY_RECONSTRUCTOR]
+    study = make_reconstructor(pr.STUDY_RECONSTRUCTOR)
+    assert (study.cfg.sigma_px, study.cfg.edge_scale, study.cfg.cover) == (0.4, 0.25, 1.0)
+    assert study.identity() == RGBDReconstructor().identity()

@@ -408,7 +408,7 @@ def test_resumable_build_skips_valid_episodes(built, source):
 
 def test_stale_cache_is_detected(built):
     cache, _ = built
-    other_rec = GaussianCache(cache.root, RGBDReconstructor(sigma_px=0.3), cache.dataset)
+    other_rec = GaussianCache(cache.root, RGBDReconstructor(max_depth=5.0), cache.dataset)
     other_data = GaussianCache(cache.root, cache.reconstructor, "another-dataset")
     for c in (other_rec, other_data):
         assert c.status(0) == "stale"
@@ -448,7 +448,7 @@ def test_an_index_for_other_settings_or_unreadable_is_not_used(built, monkeypatc
     cache, _ = built
     cache.statuses(range(2))
     index = cache.root / cache_module.INDEX_NAME
-    others = [GaussianCache(cache.root, RGBDReconstructor(sigma_px=0.3), cache.dataset),
+    others = [GaussianCache(cache.root, RGBDReconstructor(max_depth=5.0), cache.dataset),
               GaussianCache(cache.root, cache.reconstructor, "another-dataset")]  # fmt: skip
     for other in others:
         opened = counting_status(other, monkeypatch)

@@ -12,7 +12,7 @@ from gensplat_transforms.core.rotations import quat_to_rotmat
 from gensplat_transforms.core.views import Reconstruction, pixel_rays, preferred_means, source_rays
 from gensplat_transforms.data.scenes import LABEL_TABLE, TabletopScene, default_cameras
 from gensplat_transforms.geometry import RGBDReconstructor, Views
-from gensplat_transforms.geometry.rgbd import RGBDConfig
+from gensplat_transforms.geometry.rgbd import RGBDConfig, disc_identity
 
 SIZE = 96
 
@@ -110,10 +110,15 @@ def test_invalid_depth_pixels_are_skipped_and_stride_thins(scene_views):
     assert RGBDReconstructor(max_depth=0.0).reconstruct(Views(images[:1], cams[0], depths[:1])).gaussians.means.shape[0] == 0
 
 
-def test_identity_tracks_the_configuration():
+def test_identity_tracks_what_the_cache_stores_not_the_disc_shape():
+    """The stored depth depends on max_depth; the disc shape is how workers build discs from it."""
     assert RGBDReconstructor().identity() == RGBDReconstructor().identity()
-    assert RGBDReconstructor().identity() != RGBDReconstructor(sigma_px=0.3).identity()
+    assert RGBDReconstructor().identity() != RGBDReconstructor(max_depth=5.0).identity()
     assert RGBDReconstructor().identity().startswith("rgbd-")
+    shapes = [RGBDReconstructor(**{k: v}) for k, v in [("sigma_px", 0.45), ("thickness", 0.3), ("max_stretch", 2.0),
+              ("edge_scale", 1.0), ("opacity", 0.8), ("sh_degree", 1), ("stride", 2), ("cover", 0.5)]]  # fmt: skip
+    assert {r.identity() for r in shapes} == {RGBDReconstructor().identity()} == {"rgbd-b4a28c8cc49722ec"}
+    assert disc_identity(RGBDConfig(sigma_px=0.45)) == disc_identity(RGBDConfig()) != disc_identity(RGBDConfig(max_depth=2))
 
 
 def test_bad_inputs_raise_clear_errors(scene_views):
@@ -312,13 +317,13 @@ def two_views(size: int = SIZE) -> Views:
 
 
 def test_render_settings_leave_the_identity_and_travel_with_the_reconstruction():
-    """dilation, saturation, view_preference and soften_noise shape only what is drawn:
+    """dilation, saturation, view_preference, soften_noise and cover shape only what is drawn:
     caches stay valid."""
     views = two_views()
-    sharp = RGBDReconstructor(dilation=0.1, saturation=2.0, view_preference=0.05, soften_noise=False)
+    sharp = RGBDReconstructor(dilation=0.1, saturation=2.0, view_preference=0.05, soften_noise=False, cover=0.6)
     assert sharp.identity() == RGBDReconstructor().identity() == "rgbd-b4a28c8cc49722ec"
     rec = sharp(views)
-    assert rec.render_options == {"dilation": 0.1, "saturation": 2.0} and rec.view_preference == 0.05
+    assert rec.render_options == {"dilation": 0.1, "saturation": 2.0, "cover": 0.6} and rec.view_preference == 0.05
     default = RGBDReconstructor()(views)
     assert default.render_options["dilation"] == 0.04 and default.view_preference == 0.03
     per_disc = default.render_options["saturation"]  # the curved objects' discs are softened

@@ -223,14 +223,18 @@ def assert_depth_maps_alike(items: list[dict], got: dict, expected: dict, edges:
         assert (error >= max_mm).float().mean() <= 1e-3 and error.max() < 20 * max_mm, f"max {error.max():.4f} mm"
 
 
-@pytest.mark.parametrize(("render_scale", "depth_maps"), [(1.0, None), (0.5, None), (1.0, "camera"), (1.0, "sensor")])
+@pytest.mark.parametrize(("render_scale", "depth_maps", "fill_holes"),
+                         [(1.0, None, True), (0.5, None, True), (1.0, "camera", True), (1.0, "sensor", True),
+                          (1.0, None, False)])  # fmt: skip
 def test_the_single_gsplat_call_lays_out_scenes_and_cameras_as_the_worker(setup, monkeypatch, render_scale,
-                                                                            depth_maps):  # fmt: skip
+                                                                            depth_maps, fill_holes):  # fmt: skip
+    """Also without hole filling, where the discs' ``cover`` shows partly covered pixels in their colour."""
     cache, ds = setup
     monkeypatch.setattr(gsplat_backend, "_rasterization", lambda: fake_rasterization)
     items, sensors = with_depth_maps([as_uint8(ds[i]) for i in (0, 2, 5, 6)], ds, depth_maps)
     expected, got = both_ways(cache, items, seed=0, backend="gsplat", depth_sensors=sensors, probability=1.0,
-                              views_per_source=3, render_scale=render_scale, depth_unit="mm")  # fmt: skip
+                              views_per_source=3, render_scale=render_scale, depth_unit="mm",
+                              fill_holes=fill_holes)  # fmt: skip
     # the worker's images through gsplat's layout and float32 cameras, but for the disc rule's
     # round-off tipping a level (measured, float32 rule: one pixel of 12288 at render_scale 0.5)
     for key in (LEFT, RIGHT):
