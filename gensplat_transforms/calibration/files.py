@@ -304,6 +304,8 @@ def read_calibration(source: str | Path, sizes: dict[str, tuple[int, int]], conv
 
 def _parsed(source: Path, convention: str) -> tuple[dict, str]:
     """The entries (camera -> fields) of the calibration file ``source`` and its convention."""
+    if source.is_dir():
+        raise ValueError(f"calibration file {source} is a folder, not a file: give the JSON or YAML file in it")
     if not source.is_file():
         raise FileNotFoundError(f"calibration file {source} does not exist")
     data = _load(source)

@@ -162,6 +162,17 @@ def test_cli_reports_malformed_files_as_an_error_line(case, message, truth, tmp_
     assert not calibration_path(root).exists()
 
 
+def test_a_folder_given_as_the_calibration_file_is_named_a_folder(tmp_path, capsys):
+    root = tmp_path / "ds"
+    write_info(root)
+    folder = tmp_path / "calib"
+    folder.mkdir()
+    assert main(["calibrate", "from-file", "--root", str(root), str(folder)]) == 2
+    err = capsys.readouterr().err
+    assert err == f"gensplat: error: calibration file {folder} is a folder, not a file: give the JSON or YAML file in it\n"
+    assert not calibration_path(root).exists()
+
+
 def test_calibrate_refuses_cameras_whose_features_carry_calibration(truth, tmp_path, capsys):
     root = tmp_path / "ds"
     features = write_info(root)
