@@ -118,11 +118,12 @@ def test_output_resized_to_the_item_image_size(setup):
     assert out[LEFT].shape == (3, 64, 80)
     # the content: the scene rendered at 80x64 from the same camera, and like the item's image
     direct = rec(source.views(0, 0))
-    expected = render(direct.gaussians, direct.cameras[:1].resize(80, 64)).rgb[0]
-    # 31 and 27.6 dB (the cache reconstructs at 80x64, not at the source's 48x48); a mirrored
+    camera = direct.cameras[:1].resize(80, 64)
+    expected = render(direct.seen_from(camera), camera, **direct.render_options).rgb[0]
+    # 29.7 and 33.3 dB (the cache reconstructs at 80x64, not at the source's 48x48); a mirrored
     # output gets 20 dB
     assert psnr(out[LEFT], expected) > 28.0
-    assert psnr(out[LEFT], big[LEFT]) > 25.0
+    assert psnr(out[LEFT], big[LEFT]) > 30.0
 
 
 def test_bad_inputs_raise_clear_errors(setup, tmp_path):
@@ -194,7 +195,9 @@ def test_fill_holes_paints_only_what_the_gaussians_leave_uncovered(setup):
     target = PerturbationSampler("extreme", seed=0).sample(0, view=0).move(rec.cameras, 0)
     filled = render_view(rec, target, GenSplatConfig())
     black = render_view(rec, target, GenSplatConfig(fill_holes=False))
-    torch.testing.assert_close(filled.alpha, black.alpha)
+    # the same coverage; without the fill, a pixel covered to the discs' ``cover`` counts as covered
+    cover = rec.render_options["cover"]
+    torch.testing.assert_close(torch.where(filled.alpha >= cover, 1.0, filled.alpha), black.alpha)
     alpha, filled, black = filled.alpha.expand(-1, 3, -1, -1), filled.rgb, black.rgb
     covered, hole = alpha > 0.999, alpha < 1e-3
     assert covered.any() and hole.any()
