@@ -61,7 +61,7 @@ class GenSplatConfig:
             RNG, which DataLoader seeds per worker and per epoch.
         frame_offsets: frames of a temporal stack (T, C, H, W) relative to the item's frame
             (default: the T frames ending at it); clamped to the episode, as LeRobot pads.
-        backend, render_options: renderer (a ``render.BACKENDS`` name, or "auto" as in
+        backend, render_options: renderer (a ``rendering.BACKENDS`` name, or "auto" as in
             ``render``) and its options; "fast" renders with one thread unless
             ``{"threads": n}`` is given.
         background: RGB where nothing was reconstructed (with ``fill_holes``: only where the
@@ -69,10 +69,11 @@ class GenSplatConfig:
         fill_holes: paint the pixels the Gaussians leave uncovered (parts of the new view no
             source camera saw) and soften silhouette edges with the surrounding colours
             (``holes.fill_holes``), instead of ``background``.
-        report: add ``gensplat.*`` keys describing the perturbation to the item.
+        report: add ``gensplat.applied``, ``.axis``, ``.theta_deg``, ``.mu_m`` and ``.move``
+            (the whole move as a ``Perturbation.as_row`` row) to the item.
         render_scale: build and render the augmented views at this fraction of the item's
             image size, in (0, 1], then resize them to the image size (see
-            :func:`.render.render_size`): about scale^2 of the render's time, for some fidelity
+            :func:`.rendering.render_size`): about scale^2 of the render's time, for some fidelity
             also at the size a policy shrinks the frames to (docs/transform.md, "Cost";
             ``benchmarks/render_scale.py``). Render no smaller than the policy reads. Cached
             depth of another size (a geometry cache holds it at the model's input size) is
@@ -80,7 +81,7 @@ class GenSplatConfig:
         depth_unit: the unit of the depth maps an item carries for the replaced cameras, at
             ``<image key>_depth`` (LeRobot's depth-map features: its ``depth_output_unit``,
             "mm" or "m"): those are replaced by the depth of the view at the new pose, 0 where
-            it shows nothing (as a depth camera reports no return; see :func:`.render.output.render_view`).
+            it shows nothing (as a depth camera reports no return; see :func:`.rendering.output.render_view`).
             "keep" leaves them unchanged (then they no longer match an augmented view); None,
             the default, raises for an item that carries one (the LeRobot plugin sets the
             dataset's unit).

@@ -61,9 +61,11 @@ class TrainConfig:
     Attributes:
         out: run directory (log, checkpoint, exported model).
         steps, batch_size: optimiser steps and samples per step.
-        lr: peak learning rate; pretrained_lr_scale multiplies it for Pi3-initialised parameters.
+        lr: peak learning rate.
+        pretrained_lr_scale: multiplies ``lr`` for the parameters initialised from Pi3 weights.
         weight_decay: AdamW decay of weight matrices (not of biases, norms, tokens, embeddings).
         warmup_steps: linear warm-up length; then cosine decay to ``min_lr_ratio * lr``.
+        min_lr_ratio: the learning rate at the end of the cosine decay, as a fraction of ``lr``.
         ema_decay: EMA decay (ramped up as min(decay, (1 + n) / (10 + n)) over the first updates).
         grad_clip: maximum global gradient norm.
         bf16: run the model under bfloat16 autocast (heads, losses and rendering stay float32).

@@ -29,7 +29,15 @@ REPO_ID = "gensplat/sim_pick_place"
 @dataclass
 class DemoConfig:
     """Settings of :func:`run_demo`, each a flag of ``gensplat demo``
-    (:mod:`gensplat_transforms.core.config_flags`)."""
+    (:mod:`gensplat_transforms.core.config_flags`).
+
+    Attributes:
+        out: output folder; it holds the recorded dataset, its cache and the previews.
+        episodes: pick-and-place demonstrations to record.
+        size: side of the square camera images, pixels.
+        seed: seed of the recording and of the perturbations shown.
+        backend: render backend of the previews.
+    """
 
     out: str | Path = field(default="outputs/demo", metadata=flag("output folder", type=str))
     episodes: int = field(default=2, metadata=flag("demonstrations to record"))

@@ -19,8 +19,14 @@ from ...core.config_flags import flag
 
 @dataclass(frozen=True)
 class LossWeights:
-    """l1 and perceptual weigh the terms inside L_rgb; depth, points and camera are l_depth,
-    l_3D and l_cam."""
+    """Weights of the training loss L = L_rgb + l_depth L_depth + l_3D L_3D + l_cam L_cam.
+
+    Attributes:
+        l1, perceptual: the terms inside L_rgb: L1, and LPIPS when a module is given, else 1 - SSIM.
+        depth: l_depth, rendered against predicted depth.
+        points: l_3D, the teacher's point maps distilled.
+        camera: l_cam, the relative camera poses distilled.
+    """
 
     l1: float = field(default=1.0, metadata=flag("L1 weight inside L_rgb"))
     perceptual: float = field(default=0.2, metadata=flag("SSIM (or LPIPS) weight inside L_rgb"))
