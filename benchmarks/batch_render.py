@@ -33,7 +33,7 @@ import torch
 from machine import cpu_model, default_out, out_help, write_result
 from torch.utils.data import Dataset, default_collate
 
-from gensplat_transforms import GaussianCache, GenSplatConfig, RGBDReconstructor
+from gensplat_transforms import GenSplatConfig, RGBDReconstructor, SceneCache
 from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
 from gensplat_transforms.rendering.batched import render_batch
 from gensplat_transforms.transform import GenSplatTransform
@@ -55,7 +55,7 @@ class Stacked(Dataset):
         return {k: torch.stack([previous[k], v]) if k.startswith("observation.images.") else v for k, v in item.items()}
 
 
-def worker_time(worker_tf: GenSplatTransform, cache: GaussianCache, items: list[dict]) -> float:
+def worker_time(worker_tf: GenSplatTransform, cache: SceneCache, items: list[dict]) -> float:
     """CPU ms on one thread for the worker path's transform of ``items`` with the batch's draws."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -104,7 +104,7 @@ def main() -> None:
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     source = SceneEpisodes(num_episodes=2, num_frames=8, size=args.size)
     folder = tempfile.TemporaryDirectory()
-    cache = GaussianCache(folder.name, RGBDReconstructor(), source.fingerprint)
+    cache = SceneCache(folder.name, RGBDReconstructor(), source.fingerprint)
     build_cache(cache, source, range(source.num_episodes), progress=False)
     config = GenSplatConfig(probability=args.probability, cameras=("left", "right"), frame_offsets=(-1, 0))
     batch_tf = GenSplatTransform(replace(config, render_in="batch"), cache)

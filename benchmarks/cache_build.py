@@ -49,7 +49,7 @@ from gensplat_sim.world import WorldConfig
 from machine import cpu_model, default_out, out_help, write_result
 
 from gensplat_transforms.cache.builder import SceneEpisodes
-from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.cache.store import SceneCache
 from gensplat_transforms.data.scenes import default_cameras
 from gensplat_transforms.geometry import (
     GenSplatReconstructor,
@@ -110,7 +110,7 @@ def droid_size(frames: int) -> dict:
     torch.set_num_threads(1)
     source, out = Rendered(320, 180, frames), {}
     for rec in (RGBDReconstructor(), GeometryReconstructor(), GenSplatReconstructor()):
-        cache = GaussianCache(tempfile.mkdtemp(), rec, source.fingerprint)
+        cache = SceneCache(tempfile.mkdtemp(), rec, source.fingerprint)
         t0 = time.perf_counter()
         stats = cache.ensure(0, source)
         out[rec.name] = {"bytes_per_timestep": round(stats.bytes_per_timestep),
@@ -147,7 +147,7 @@ def episode_memory(frames: int) -> float:
     copy) of a :class:`Streamed` episode of ``frames`` frames, sampled every 2 ms against the
     resident memory before (the peak of the imports before does not hide it)."""
     source = Streamed(frames)
-    cache = GaussianCache(tempfile.mkdtemp(), RGBDReconstructor(), source.fingerprint, link_depth=False)
+    cache = SceneCache(tempfile.mkdtemp(), RGBDReconstructor(), source.fingerprint, link_depth=False)
     source.views(0, 0)
     before, peak, done = resident_mb(), [0.0], threading.Event()
 

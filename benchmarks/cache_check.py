@@ -1,12 +1,12 @@
 """What checking a cache before training costs per episode: every header read, against the
-index of files found valid before (``GaussianCache.statuses``).
+index of files found valid before (``SceneCache.statuses``).
 
     python benchmarks/cache_check.py [--quick] [--episodes 2000] [--frames 100] [--repeats 3] [--out FILE]
 
 Builds a depth cache (stored depth, one tensor per frame, as a model reconstructor's or
 ``--copy-depth`` cache) of ``--episodes`` episodes of ``--frames`` frames each (the views of
 one procedural 16x16 episode reused for all of them: the header's size follows the frame
-count, not the pixels), then times, each in a new ``GaussianCache`` object:
+count, not the pixels), then times, each in a new ``SceneCache`` object:
 
 * ``headers``: ``status`` of every episode (reads and checks every file header; what the
   check before training did without an index);
@@ -40,7 +40,7 @@ from machine import cpu_model, default_out, out_help, write_result
 from tqdm.auto import tqdm
 
 from gensplat_transforms.cache.builder import SceneEpisodes
-from gensplat_transforms.cache.store import INDEX_NAME, GaussianCache
+from gensplat_transforms.cache.store import INDEX_NAME, SceneCache
 from gensplat_transforms.geometry import RGBDReconstructor, Views
 
 DROID_EPISODES = 76_000
@@ -83,13 +83,13 @@ def main() -> None:
     args.out = args.out or default_out("cache_check.json", args.quick)
     source = Repeated(args.episodes, args.frames, 16)
     root, rec = Path(tempfile.mkdtemp(prefix="cache_check_")), RGBDReconstructor()
-    cache = GaussianCache(root, rec, source.fingerprint)
+    cache = SceneCache(root, rec, source.fingerprint)
     for episode in tqdm(range(args.episodes), desc="building", unit="episode"):
         cache.ensure(episode, source)
     episodes, index = range(args.episodes), root / INDEX_NAME
 
-    def new() -> GaussianCache:
-        return GaussianCache(root, rec, source.fingerprint)
+    def new() -> SceneCache:
+        return SceneCache(root, rec, source.fingerprint)
 
     def first_check() -> None:
         index.unlink(missing_ok=True)

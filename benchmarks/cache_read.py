@@ -37,7 +37,7 @@ import torch
 from machine import cpu_model, default_out, out_help, write_result
 from tqdm.auto import tqdm
 
-from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.cache.store import SceneCache
 from gensplat_transforms.data.scenes import default_cameras
 from gensplat_transforms.geometry import RGBDReconstructor, Views
 
@@ -90,14 +90,14 @@ def main() -> None:
     torch.set_num_threads(1)
     source, rec = SyntheticDepth(args.episodes, args.frames), RGBDReconstructor()
     root = args.cache or Path(tempfile.mkdtemp(prefix="cache_read_"))
-    cache = GaussianCache(root, rec, source.fingerprint, link_depth=False)
+    cache = SceneCache(root, rec, source.fingerprint, link_depth=False)
     for episode in tqdm(range(args.episodes), desc="building", unit="episode"):
         cache.ensure(episode, source)
     rng = random.Random(0)
     rounds = {f"{mode}_{what}": [] for mode in ("warm", "cold") for what in ("words", "depth")}
     for _ in range(args.repeats):
         for mode, keep in (("warm", 1 << 30), ("cold", 1)):
-            reader = GaussianCache(root, rec, source.fingerprint, keep_bytes=keep, link_depth=False)
+            reader = SceneCache(root, rec, source.fingerprint, keep_bytes=keep, link_depth=False)
             for episode in range(args.episodes):
                 reader.read_depth_words(episode, 0)  # parsed (and kept, when warm) before timing
             picks = [(rng.randrange(args.episodes), rng.randrange(args.frames)) for _ in range(args.reads)]

@@ -46,7 +46,7 @@ from policy_robustness import MORE_OFTEN, PERSPECTIVE_DISTORTION, PROTOCOLS, SAM
 
 from gensplat_transforms.core.cameras import Cameras
 from gensplat_transforms.transform import GenSplatConfig
-from gensplat_transforms.views.perturbation import PerturbationSampler, scale_focal
+from gensplat_transforms.views.perturbation import PaperSampler, scale_focal
 
 
 def workspace_points() -> torch.Tensor:
@@ -117,7 +117,7 @@ def run(episodes: int, size: int) -> dict:
         result[name] = summary([camera_move(left, m.apply(env.nominal_c2w["left"], env.centre["left"]), points, before,
                                             size, getattr(m, "focal_scale", 1.0)) for m in moves])  # fmt: skip
         env.close()
-    samplers = {"gensplat": PerturbationSampler("train", seed=0)}
+    samplers = {"gensplat": PaperSampler("train", seed=0)}
     samplers |= {arm: GenSplatConfig(**settings, seed=0).perturbations() for arm, settings in SAMPLER_ARMS.items()
                  if arm not in MORE_OFTEN}  # those draw another arm's moves  # fmt: skip
     for arm, sampler in samplers.items():

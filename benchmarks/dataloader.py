@@ -44,12 +44,12 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from machine import cpu_model, default_out, out_help, write_result
 from torch.utils.data import DataLoader, RandomSampler
 
-from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.cache.store import SceneCache
 from gensplat_transforms.core.metrics import psnr
 from gensplat_transforms.geometry import Reconstructor, RGBDReconstructor
 from gensplat_transforms.rendering import render
 from gensplat_transforms.transform import GenSplatConfig, render_view
-from gensplat_transforms.views.perturbation import PerturbationSampler
+from gensplat_transforms.views.perturbation import PaperSampler
 
 REPO = "gensplat/bench_pick_place"
 
@@ -111,7 +111,7 @@ class GaussiansOf(Reconstructor):
         return self.inner(views)
 
 
-def cache_fidelity(root: Path, ds, cache: GaussianCache, frames: int) -> dict:
+def cache_fidelity(root: Path, ds, cache: SceneCache, frames: int) -> dict:
     """Mean PSNR against the simulator at Large perturbations: raw vs ``cache``'s Gaussians."""
     source, rgbd, truth = LeRobotSource(root, REPO), RGBDReconstructor(), GroundTruth(root)
     raw_db, cached_db = [], []
@@ -120,7 +120,7 @@ def cache_fidelity(root: Path, ds, cache: GaussianCache, frames: int) -> dict:
         ep, fr = int(item["episode_index"]), int(item["frame_index"])
         views = source.views(ep, fr)
         raw, cached = rgbd(views), cache.read(ep, fr, views.images)
-        target = PerturbationSampler("large", seed=k).sample(ep).move(raw.cameras, 0)
+        target = PaperSampler("large", seed=k).sample(ep).move(raw.cameras, 0)
         true_rgb, _ = truth.render(ep, fr, target)
         a = render(raw.gaussians, target, backend="fast")
         b = render(cached.gaussians, target, backend="fast")
@@ -171,9 +171,9 @@ def main() -> None:
     build_s = time.perf_counter() - t0
     frames = sum(s.num_frames for s in stats.values())
     source = LeRobotSource(root, REPO)
-    gaussians = GaussianCache(Path(tempfile.mkdtemp()), GaussiansOf(RGBDReconstructor()), source.fingerprint)
+    gaussians = SceneCache(Path(tempfile.mkdtemp()), GaussiansOf(RGBDReconstructor()), source.fingerprint)
     gaussian_bytes = sum(gaussians.ensure(ep, source).bytes for ep in stats)
-    copy = GaussianCache(Path(tempfile.mkdtemp()), RGBDReconstructor(), source.fingerprint, link_depth=False)
+    copy = SceneCache(Path(tempfile.mkdtemp()), RGBDReconstructor(), source.fingerprint, link_depth=False)
     copy_bytes = sum(copy.ensure(ep, source).bytes for ep in stats)
 
     plain = LeRobotDataset(REPO, root=root, video_backend=video_backend())

@@ -43,7 +43,7 @@ from gensplat_transforms.data.registration import register_depth
 from gensplat_transforms.data.scenes import TabletopScene, default_cameras
 from gensplat_transforms.geometry import RGBDReconstructor, Views
 from gensplat_transforms.transform import GenSplatConfig, render_depth, render_view
-from gensplat_transforms.views.perturbation import PerturbationSampler
+from gensplat_transforms.views.perturbation import PaperSampler
 
 FIRST_SEED = 900_000
 WIDTH, HEIGHT = 640, 480
@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> dict:
             errors[way].append((float(e.median()), float(e.quantile(0.95)), float(both.float().mean())))
             built = rec.reconstruct(Views(images, colour, depth))
             for level in LEVELS:
-                sampler = PerturbationSampler(level, seed=0)
+                sampler = PaperSampler(level, seed=0)
                 for draw in range(2):
                     moved = sampler.sample(i, view=draw).move(colour, 0)[0]
                     t0 = time.thread_time()

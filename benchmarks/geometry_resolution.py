@@ -42,7 +42,7 @@ from gensplat_transforms.geometry import GeometryReconstructor, Views
 from gensplat_transforms.geometry.base import nearest_pixels
 from gensplat_transforms.geometry.feedforward import model_size
 from gensplat_transforms.transform import GenSplatConfig, render_view
-from gensplat_transforms.views.perturbation import PerturbationSampler
+from gensplat_transforms.views.perturbation import PaperSampler
 
 FIRST_SEED = 900_000
 SETTINGS = {(224, 224): (None, 25_000, 12_544, 8_000),
@@ -59,7 +59,7 @@ def depth_errors(pred: torch.Tensor, truth: torch.Tensor) -> tuple[float, float]
 
 def run(args: argparse.Namespace) -> dict:
     torch.set_num_threads(1)
-    config, sampler = GenSplatConfig(), PerturbationSampler("large", seed=0)
+    config, sampler = GenSplatConfig(), PaperSampler("large", seed=0)
     sizes = {(224, 224): (None, 12_544)} if args.quick else SETTINGS
     rows = []
     for (width, height), caps in sizes.items():

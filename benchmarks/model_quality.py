@@ -12,7 +12,7 @@ model's training size. Per scene:
   of the local point maps against the ray-cast depth, as predicted (metric) and after
   aligning each scene's scale by the median depth ratio;
 * novel views: one source camera (left or right, alternating) is moved by
-  ``PerturbationSampler(level).sample(scene, view=k)`` about the pivot of the true cameras,
+  ``PaperSampler(level).sample(scene, view=k)`` about the pivot of the true cameras,
   and the Gaussians are rendered there and compared with ``TabletopScene.render`` (exact
   ray casting): PSNR over the image, and depth MAE (m) over the pixels the render covers
   (alpha > 0.5) and the truth sees. ``gensplat`` is ``GenSplatReconstructor`` on the RGB
@@ -51,7 +51,7 @@ from gensplat_transforms.geometry.model import GenSplatModel
 from gensplat_transforms.geometry.model.losses import geodesic_angle, relative_poses
 from gensplat_transforms.geometry.model.teacher import camera_points
 from gensplat_transforms.rendering import render
-from gensplat_transforms.views.perturbation import PerturbationSampler, pivot_point
+from gensplat_transforms.views.perturbation import PaperSampler, pivot_point
 from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 
 SIZE = 112
@@ -121,7 +121,7 @@ def evaluate(model: GenSplatModel, scenes: int, draws: int, with_rgbd: bool) -> 
         if with_rgbd:
             gaussians["rgbd"] = RGBDReconstructor()(views).gaussians
         for level in LEVELS:
-            sampler = PerturbationSampler(level, seed=0)
+            sampler = PaperSampler(level, seed=0)
             for k in range(1 if level == "none" else draws):
                 i = (s + k) % 2
                 target = cams[i].with_c2w(

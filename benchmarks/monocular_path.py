@@ -61,7 +61,7 @@ from gensplat_transforms.geometry import (
 )
 from gensplat_transforms.geometry.model.moge import VITL_CONFIG, MoGe2, MoGe2Config, model_config, unproject
 from gensplat_transforms.rendering.warp import forward_warp
-from gensplat_transforms.views.perturbation import EVAL_LEVELS, PerturbationSampler
+from gensplat_transforms.views.perturbation import EVAL_LEVELS, PaperSampler
 
 #: the oracle's network: never run, it only gives MoGe2 its config and weights hash
 ORACLE_CONFIG = model_config("dinov2_vits14", [8, 8, 8, 8, 8], [384, 1], [11])
@@ -170,7 +170,7 @@ def novel_views(calibrated: LeRobotSource, estimated: LeRobotSource, oracle: Ora
                 "monocular_unaligned": rec.assemble(Views(views.images, estimated.cameras, depth[ep, False][fr])),
                 "geometry_small": frame_size_geometry(geometry, views.images, calibrated.cameras)}  # fmt: skip
         for level in EVAL_LEVELS:
-            sampler = PerturbationSampler(level, seed=0)
+            sampler = PaperSampler(level, seed=0)
             for d in range(1 if level == "none" else draws):
                 p = sampler.sample(ep, view=d)
                 target = p.move(calibrated.cameras, 0)

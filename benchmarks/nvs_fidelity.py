@@ -104,7 +104,7 @@ from gensplat_transforms.rendering import RenderOutput
 from gensplat_transforms.rendering.scenes import render_scenes
 from gensplat_transforms.rendering.warp import forward_warp
 from gensplat_transforms.transform import GenSplatConfig
-from gensplat_transforms.views.perturbation import EVAL_LEVELS, PerturbationSampler
+from gensplat_transforms.views.perturbation import EVAL_LEVELS, PaperSampler
 from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 
 REPO = "gensplat/sim_pick_place_heldout"
@@ -124,9 +124,9 @@ def level_samplers(args: argparse.Namespace) -> dict:
     if args.samplers:
         arm = {kind: GenSplatConfig(**SAMPLER_ARMS[f"gensplat-{kind}"], seed=args.seed).perturbations()
                for kind in ("tilt", "arc")}  # fmt: skip
-        return {"none": PerturbationSampler("none", seed=args.seed), **arm,
-                "zoom": PerturbationSampler("none", seed=args.seed, focal_scale=FOV_RANGE)}  # fmt: skip
-    return {level: PerturbationSampler(level, seed=args.seed) for level in EVAL_LEVELS}
+        return {"none": PaperSampler("none", seed=args.seed), **arm,
+                "zoom": PaperSampler("none", seed=args.seed, focal_scale=FOV_RANGE)}  # fmt: skip
+    return {level: PaperSampler(level, seed=args.seed) for level in EVAL_LEVELS}
 
 
 def _plane_to_pixels(cam: Cameras) -> torch.Tensor:

@@ -43,7 +43,7 @@ from nvs_fidelity import PLAIN, _mean, draw, heldout_dataset, sampled_frames, sa
 from gensplat_transforms.core.metrics import psnr
 from gensplat_transforms.geometry import RGBDReconstructor, Views
 from gensplat_transforms.rendering.warp import forward_warp
-from gensplat_transforms.views.perturbation import EVAL_LEVELS, PerturbationSampler
+from gensplat_transforms.views.perturbation import EVAL_LEVELS, PaperSampler
 
 RGBD = {"rgbd": {}, "rgbd_plain": PLAIN, "rgbd_left": {}, "rgbd_no_preference": {"view_preference": 0.0},
         "rgbd_no_soften": {"soften_noise": False},
@@ -65,7 +65,7 @@ def compare_frame(views: Views, truth: GroundTruth, ep: int, fr: int, args, rows
     recs = {name: RGBDReconstructor(**cfg).reconstruct(left if name == "rgbd_left" else views)
             for name, cfg in RGBD.items()}  # fmt: skip
     for level in EVAL_LEVELS:
-        sampler = PerturbationSampler(level, seed=args.seed)
+        sampler = PaperSampler(level, seed=args.seed)
         for d in range(1 if level == "none" else args.draws):
             target = sampler.sample(ep, view=d).move(cams, 0)
             gt, gt_depth = truth.render(ep, fr, target)

@@ -61,7 +61,7 @@ from gensplat_transforms.core.views import nearest_pixels
 from gensplat_transforms.data.format import load_depth, save_depth
 from gensplat_transforms.geometry import GeometryReconstructor, RGBDReconstructor, Views
 from gensplat_transforms.rendering import render
-from gensplat_transforms.views.perturbation import EVAL_LEVELS, PerturbationSampler, pivot_point
+from gensplat_transforms.views.perturbation import EVAL_LEVELS, PaperSampler, pivot_point
 from gensplat_transforms.weights import DEFAULT_MODEL_DIR
 
 REPO = "gensplat/sim_pick_place_heldout"
@@ -129,7 +129,7 @@ def novel_views(calibrated: LeRobotSource, estimated: LeRobotSource, truth: Grou
                                                               nearest_pixels(depth, W, H)))  # fmt: skip
         to_world = calibrated.cameras.c2w[0] @ torch.linalg.inv(estimated.cameras.c2w[0])
         for level in EVAL_LEVELS:
-            sampler = PerturbationSampler(level, seed=0)
+            sampler = PaperSampler(level, seed=0)
             for d in range(1 if level == "none" else draws):
                 p = sampler.sample(ep, view=d)
                 for name in names:

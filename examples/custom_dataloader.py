@@ -13,10 +13,10 @@ from torch.utils.data import DataLoader
 
 from gensplat_transforms import (
     AugmentedDataset,
-    GaussianCache,
     GenSplatConfig,
     GenSplatTransform,
     RGBDReconstructor,
+    SceneCache,
     build_cache,
 )
 from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes
@@ -33,7 +33,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     source = SceneEpisodes(num_episodes=2, num_frames=8, size=args.size)
     dataset = SceneDataset(source)
     with tempfile.TemporaryDirectory() as folder:
-        cache = GaussianCache(folder, RGBDReconstructor(), source.fingerprint)
+        cache = SceneCache(folder, RGBDReconstructor(), source.fingerprint)
         build_cache(cache, source, range(source.num_episodes))
 
         config = GenSplatConfig(cameras=("left", "right"), probability=0.5, level="train", report=True)

@@ -43,7 +43,7 @@ from gensplat_transforms.core.images import save_grid
 from gensplat_transforms.geometry.base import Views
 from gensplat_transforms.geometry.geometry import GeometryReconstructor
 from gensplat_transforms.transform import GenSplatConfig, render_view
-from gensplat_transforms.views.perturbation import EVAL_LEVELS, PerturbationSampler, pivot_point
+from gensplat_transforms.views.perturbation import EVAL_LEVELS, PaperSampler, pivot_point
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = REPO.parent / "shared" / "data" / "droid_sample"
@@ -124,7 +124,7 @@ def main(argv: list[str] | None = None) -> dict:
     source = to_tile(with_depth.images[0])
     rows, labels, levels, renders = [], [], {}, []
     for level in EVAL_LEVELS:
-        p = PerturbationSampler(level, seed=args.seed).sample(0)
+        p = PaperSampler(level, seed=args.seed).sample(0)
         t0 = time.perf_counter()
         out = render_view(rec, p.move(rec.cameras, 0), cfg)
         ms = (time.perf_counter() - t0) * 1e3

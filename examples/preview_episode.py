@@ -11,7 +11,7 @@ import tempfile
 from pathlib import Path
 
 from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
-from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.cache.store import SceneCache
 from gensplat_transforms.geometry import RGBDReconstructor
 from gensplat_transforms.rendering.preview import write_preview
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
@@ -29,7 +29,7 @@ def main(argv: list[str] | None = None) -> dict[str, Path]:
     args = parser.parse_args(argv)
     source = SceneEpisodes(num_episodes=1, num_frames=args.frames, size=args.size)
     with tempfile.TemporaryDirectory() as folder:
-        cache = GaussianCache(folder, RGBDReconstructor(), source.fingerprint)
+        cache = SceneCache(folder, RGBDReconstructor(), source.fingerprint)
         build_cache(cache, source, [0])
         config = GenSplatConfig(probability=1.0, level=args.level, views_per_source=1)
         dataset = SceneDataset(source)

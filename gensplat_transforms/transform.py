@@ -12,7 +12,7 @@ import torch
 from torch.utils.data import Dataset
 
 from .cache.reader import CacheReader
-from .cache.store import EpisodeSource, GaussianCache
+from .cache.store import EpisodeSource, SceneCache
 from .core.counters import SampleCounters
 from .core.views import as_cache_images
 from .data.format import DepthSensor
@@ -46,7 +46,7 @@ class GenSplatTransform:
         >>> from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes
         >>> source = SceneEpisodes(num_episodes=1, num_frames=2, size=16)
         >>> folder = tempfile.TemporaryDirectory()
-        >>> cache = GaussianCache(folder.name, RGBDReconstructor(), source.fingerprint)
+        >>> cache = SceneCache(folder.name, RGBDReconstructor(), source.fingerprint)
         >>> stats = build_cache(cache, source, [0], progress=False)
         >>> transform = GenSplatTransform(GenSplatConfig(probability=1.0, report=True), cache)
         >>> item = transform(SceneDataset(source)[1])
@@ -55,7 +55,7 @@ class GenSplatTransform:
         >>> folder.cleanup()
     """
 
-    def __init__(self, config: GenSplatConfig, cache: GaussianCache, source: EpisodeSource | None = None,
+    def __init__(self, config: GenSplatConfig, cache: SceneCache, source: EpisodeSource | None = None,
                  depth_sensors: dict[str, DepthSensor] | None = None) -> None:  # fmt: skip
         self.cfg = config
         self.cache = cache
@@ -275,7 +275,7 @@ class AugmentedDataset(Dataset):
         >>> from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes
         >>> source = SceneEpisodes(num_episodes=1, num_frames=4, size=16)
         >>> folder = tempfile.TemporaryDirectory()
-        >>> cache = GaussianCache(folder.name, RGBDReconstructor(), source.fingerprint)
+        >>> cache = SceneCache(folder.name, RGBDReconstructor(), source.fingerprint)
         >>> transform = GenSplatTransform(GenSplatConfig(probability=0.5), cache, source)  # builds if missing
         >>> batch = next(iter(DataLoader(AugmentedDataset(SceneDataset(source), transform), batch_size=4)))
         >>> batch["observation.images.left"].shape

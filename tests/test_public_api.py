@@ -1,11 +1,15 @@
 """The public API: ``gensplat_transforms`` exports what users call, each name with a docstring
 example (run by ``--doctest-modules``), and importing it loads neither the simulator nor LeRobot."""
 
+import importlib
 import json
 import subprocess
 import sys
 
+import pytest
+
 import gensplat_transforms
+from gensplat_transforms.core.renamed import RENAMED
 from gensplat_transforms.views import perturbation
 
 
@@ -33,3 +37,24 @@ def test_render_is_the_function_and_the_rendering_stage_a_package():
 
     assert callable(gensplat_transforms.render) and gensplat_transforms.render is gensplat_transforms.rendering.render
     assert fast.__name__ == "gensplat_transforms.rendering.fast"
+
+
+@pytest.mark.parametrize("module", ["gensplat_transforms", "gensplat_transforms.cache", "gensplat_transforms.cache.store",
+                                    "gensplat_transforms.views", "gensplat_transforms.views.perturbation"])  # fmt: skip
+def test_former_names_still_import_and_say_their_new_name(module):
+    """``GaussianCache`` is ``SceneCache`` and ``PerturbationSampler`` ``PaperSampler`` now; code
+    written against the former names runs, with a DeprecationWarning naming the new one."""
+    mod = importlib.import_module(module)
+    for old, new in RENAMED.items():
+        if not hasattr(importlib.import_module(module), new):
+            continue
+        with pytest.warns(DeprecationWarning, match=rf"{module}\.{old} is renamed {module}\.{new}"):
+            assert getattr(mod, old) is getattr(mod, new)
+    with pytest.raises(AttributeError, match="no attribute 'NoSuchName'"):
+        mod.NoSuchName  # noqa: B018
+
+
+def test_a_former_name_in_a_from_import_works():
+    with pytest.warns(DeprecationWarning, match="PaperSampler"):
+        from gensplat_transforms import PerturbationSampler
+    assert PerturbationSampler("large", seed=0).sample(3) == gensplat_transforms.PaperSampler("large", seed=0).sample(3)

@@ -12,7 +12,7 @@ from safetensors.torch import load_file, save_file
 from tiny_model import tiny_model
 
 from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
-from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.cache.store import SceneCache
 from gensplat_transforms.core.gaussians import Gaussians
 from gensplat_transforms.geometry import RGBDReconstructor
 from gensplat_transforms.geometry.model import GenSplatModel
@@ -24,7 +24,7 @@ LEFT = "observation.images.left"
 @pytest.fixture(scope="module")
 def item_and_transform(tmp_path_factory):
     source = SceneEpisodes(num_episodes=2, num_frames=2, size=32)
-    cache = GaussianCache(tmp_path_factory.mktemp("cache"), RGBDReconstructor(), source.fingerprint)
+    cache = SceneCache(tmp_path_factory.mktemp("cache"), RGBDReconstructor(), source.fingerprint)
     build_cache(cache, source, range(2), progress=False)
     return SceneDataset(source)[0], GenSplatTransform(GenSplatConfig(probability=1.0, level="small"), cache)
 

@@ -9,11 +9,11 @@ from torch.utils.data import DataLoader
 
 from gensplat_transforms import render
 from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
-from gensplat_transforms.cache.store import CorruptCacheError, GaussianCache
+from gensplat_transforms.cache.store import CorruptCacheError, SceneCache
 from gensplat_transforms.core.metrics import psnr
 from gensplat_transforms.geometry import RGBDReconstructor
 from gensplat_transforms.transform import AugmentedDataset, GenSplatConfig, GenSplatTransform, render_view
-from gensplat_transforms.views.perturbation import PerturbationRange, PerturbationSampler
+from gensplat_transforms.views.perturbation import PaperSampler, PerturbationRange
 
 LEFT = "observation.images.left"
 RIGHT = "observation.images.right"
@@ -23,7 +23,7 @@ RIGHT = "observation.images.right"
 def setup(tmp_path_factory):
     source = SceneEpisodes(num_episodes=2, num_frames=3, size=48)
     rec = RGBDReconstructor()
-    cache = GaussianCache(tmp_path_factory.mktemp("cache"), rec, source.fingerprint)
+    cache = SceneCache(tmp_path_factory.mktemp("cache"), rec, source.fingerprint)
     build_cache(cache, source, range(2), progress=False)
     return source, rec, cache, SceneDataset(source)
 
@@ -135,7 +135,7 @@ def test_bad_inputs_raise_clear_errors(setup, tmp_path):
         make(cache)({k: v for k, v in item.items() if k != "episode_index"})
     with pytest.raises(ValueError, match=r"\(3, H, W\)"):
         make(cache, replace=("left",))({**item, LEFT: item[LEFT][:2]})
-    empty = GaussianCache(tmp_path, cache.reconstructor, cache.dataset)
+    empty = SceneCache(tmp_path, cache.reconstructor, cache.dataset)
     with pytest.raises(FileNotFoundError, match="no source was given"):
         make(empty)(item)
     with pytest.raises(ValueError, match="replace"):
@@ -168,7 +168,7 @@ def test_config_round_trips_through_a_dict_and_json():
 
 def test_lazy_build_in_the_transform(setup, tmp_path, caplog):
     source, rec, _, ds = setup
-    cache = GaussianCache(tmp_path, rec, source.fingerprint)
+    cache = SceneCache(tmp_path, rec, source.fingerprint)
     tf = GenSplatTransform(GenSplatConfig(probability=1.0, level="small"), cache, source)
     with caplog.at_level("WARNING"):
         out = tf(ds[0])
@@ -192,7 +192,7 @@ def test_spawn_workers(setup):
 def test_fill_holes_paints_only_what_the_gaussians_leave_uncovered(setup):
     source, _, cache, _ = setup
     rec = cache.read(0, 1, source.views(0, 1).images)
-    target = PerturbationSampler("extreme", seed=0).sample(0, view=0).move(rec.cameras, 0)
+    target = PaperSampler("extreme", seed=0).sample(0, view=0).move(rec.cameras, 0)
     filled = render_view(rec, target, GenSplatConfig())
     black = render_view(rec, target, GenSplatConfig(fill_holes=False))
     # the same coverage; without the fill, a pixel covered to the discs' ``cover`` counts as covered
@@ -208,7 +208,7 @@ def test_fill_holes_paints_only_what_the_gaussians_leave_uncovered(setup):
 
 def test_a_cache_file_failing_its_checksum_is_rebuilt_or_reported(setup, tmp_path):
     source, rec, _, ds = setup
-    cache = GaussianCache(tmp_path, rec, source.fingerprint)
+    cache = SceneCache(tmp_path, rec, source.fingerprint)
     build_cache(cache, source, [0], progress=False)
     path = cache.path(0)
     data = bytearray(path.read_bytes())
@@ -217,11 +217,11 @@ def test_a_cache_file_failing_its_checksum_is_rebuilt_or_reported(setup, tmp_pat
     path.write_bytes(bytes(data))
     items = [ds[i] for i in range(3)]  # episode 0, every frame: one of them meets the damage
     assert [int(it["episode_index"]) for it in items] == [0, 0, 0]
-    reader = make(GaussianCache(tmp_path, cache.reconstructor, cache.dataset))
+    reader = make(SceneCache(tmp_path, cache.reconstructor, cache.dataset))
     with pytest.raises(CorruptCacheError, match="checksum"):
         for item in items:
             reader(item)
-    fresh = GaussianCache(tmp_path, cache.reconstructor, cache.dataset)
+    fresh = SceneCache(tmp_path, cache.reconstructor, cache.dataset)
     tf = GenSplatTransform(GenSplatConfig(probability=1.0, level="small"), fresh, source)
     assert all(torch.isfinite(tf(item)[LEFT]).all() for item in items)
     assert cache.verify(0)

@@ -1,7 +1,7 @@
 """Episode sources (where the views of a timestep come from) and cache building.
 
 An :class:`EpisodeSource` gives, for any (episode, frame), the :class:`Views` of the
-cameras to reconstruct. :func:`build_cache` turns a source into a :class:`GaussianCache`.
+cameras to reconstruct. :func:`build_cache` turns a source into a :class:`SceneCache`.
 :class:`SceneEpisodes` is the built-in procedural source: the RGB-D tabletop with one
 object sliding across the table, rendered exactly.
 """
@@ -21,13 +21,13 @@ from ..core.cameras import pivot_point
 from ..data.scenes import TabletopScene, default_cameras
 from ..geometry import Views
 from .distributed import Shard
-from .store import CacheStats, EpisodeSource, GaussianCache
+from .store import CacheStats, EpisodeSource, SceneCache
 
 logger = logging.getLogger(__name__)
 
 
 def build_cache(
-    cache: GaussianCache, source: EpisodeSource, episodes: Iterable[int], progress: bool = True,
+    cache: SceneCache, source: EpisodeSource, episodes: Iterable[int], progress: bool = True,
     shard: Shard | None = None, verify: bool = True,
 ) -> dict[int, CacheStats | None]:
     """Reconstruct and cache every frame of ``episodes`` with the cache's reconstructor.
@@ -36,10 +36,10 @@ def build_cache(
     value in the result is None); stale, corrupt or half-written ones are rebuilt. With
     ``verify=False`` a file whose header is valid is skipped without reading its data (a
     resume that reads kilobytes per episode instead of the whole cache, or only the file's
-    ``stat`` where the cache's index lists it, see :meth:`GaussianCache.statuses`): its data checksums
+    ``stat`` where the cache's index lists it, see :meth:`SceneCache.statuses`): its data checksums
     are still checked on every read, which rebuilds a failing file (transform with a source)
     or raises ``CorruptCacheError``. Several
-    processes may run it on the same episodes at once (see :meth:`GaussianCache.ensure`).
+    processes may run it on the same episodes at once (see :meth:`SceneCache.ensure`).
     With ``shard``, only that shard's share of ``episodes`` is built, longest first (see
     :meth:`~.distributed.Shard.select`); the result holds only those.
 
@@ -48,7 +48,7 @@ def build_cache(
         >>> from gensplat_transforms import RGBDReconstructor
         >>> episodes = SceneEpisodes(num_episodes=2, num_frames=3, size=16)
         >>> folder = tempfile.TemporaryDirectory()
-        >>> cache = GaussianCache(folder.name, RGBDReconstructor(), episodes.fingerprint)
+        >>> cache = SceneCache(folder.name, RGBDReconstructor(), episodes.fingerprint)
         >>> {e: s.num_frames for e, s in build_cache(cache, episodes, range(2), progress=False).items()}
         {0: 3, 1: 3}
         >>> build_cache(cache, episodes, range(2), progress=False)  # a rerun skips valid episodes

@@ -150,7 +150,7 @@ def encode_depth(frames: Iterable[Views], num_frames: int) -> tuple[dict[str, to
         for f in frames:  # Views match their depth maps to their images, not to their cameras
             (h, w), cam = f.depths.shape[-2:], f.cameras
             if (h, w) != (cam.height, cam.width):
-                raise ValueError(f"GaussianCache: depth maps are {w}x{h}, the cameras {cam.width}x{cam.height}")
+                raise ValueError(f"SceneCache: depth maps are {w}x{h}, the cameras {cam.width}x{cam.height}")
             cameras.append(cam)
             yield f.depths[:, 0]  # (V, H, W)
 
@@ -185,12 +185,12 @@ def encode_links(files: DepthFiles, num_frames: int, root: Path) -> tuple[dict[s
     dataset's depth files (paths relative to the cache folder ``root``)."""
     cam = files.cameras
     if len(files.paths) != len(cam):
-        raise ValueError(f"GaussianCache: {len(files.paths)} depth files for {len(cam)} cameras")
+        raise ValueError(f"SceneCache: {len(files.paths)} depth files for {len(cam)} cameras")
     links = []
     for path in map(Path, files.paths):
         shape = tuple(open_depth(path).get_shape())
         if shape != (num_frames, cam.height, cam.width):
-            raise ValueError(f"GaussianCache: {path} holds depth of shape {shape}, expected "
+            raise ValueError(f"SceneCache: {path} holds depth of shape {shape}, expected "
                              f"({num_frames}, {cam.height}, {cam.width}): {num_frames} frames at the cameras' size")  # fmt: skip
         links.append({"path": os.path.relpath(path, root), "bytes": path.stat().st_size, "crc": file_crc(path)})
     meta = {"image_size": json.dumps([cam.width, cam.height]), "num_views": str(len(cam)),
@@ -233,7 +233,7 @@ def _static_mask(frames: Sequence[Reconstruction], qs: list[dict]) -> list[torch
 
 
 class CacheIdentity(Protocol):
-    """What an episode file is checked against (a :class:`.cache.GaussianCache`): its kind
+    """What an episode file is checked against (a :class:`.cache.SceneCache`): its kind
     ("depth" or "gaussians"), reconstructor identity and dataset fingerprint, whether it links
     the dataset's depth, and the reconstructor whose ``clean_depth`` cleans linked depth."""
 
@@ -356,11 +356,11 @@ class EpisodeFile:
     def depth_views(self, frame: int, images: torch.Tensor, size: tuple[int, int] | None = None) -> Views:
         """Views of one frame at ``size`` (width, height; default the cached size): the given
         images, the cached cameras and depth (a linked file's uncleaned: ``assemble`` cleans
-        it), see :meth:`GaussianCache.read`."""
+        it), see :meth:`SceneCache.read`."""
         width, height = size or (self.width, self.height)
         want = (self.num_views, 3, height, width)
         if tuple(images.shape) != want:
-            raise ValueError(f"GaussianCache.read: images of shape {tuple(images.shape)}, expected {want}")
+            raise ValueError(f"SceneCache.read: images of shape {tuple(images.shape)}, expected {want}")
         depth, cameras = self.depth(frame, clean=False), self.cameras(frame)
         if (width, height) != (self.width, self.height):
             depth, cameras = nearest_pixels(depth, width, height), cameras.resize(width, height)

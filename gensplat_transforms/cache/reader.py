@@ -23,7 +23,7 @@ from ..core.views import Reconstruction, nearest_pixels
 from ..geometry import Reconstructor
 from ..geometry.rgbd import RGBDReconstructor
 from .depth_codec import depth_from_words
-from .store import CorruptCacheError, EpisodeSource, GaussianCache
+from .store import CorruptCacheError, EpisodeSource, SceneCache
 
 logger = logging.getLogger(__name__)
 
@@ -56,7 +56,7 @@ class CacheReader:
         >>> from gensplat_transforms.cache.builder import SceneEpisodes
         >>> source = SceneEpisodes(num_episodes=1, num_frames=3, size=16)
         >>> folder = tempfile.TemporaryDirectory()
-        >>> reader = CacheReader(GaussianCache(folder.name, RGBDReconstructor(), source.fingerprint), source)
+        >>> reader = CacheReader(SceneCache(folder.name, RGBDReconstructor(), source.fingerprint), source)
         >>> images = lambda k, offset, frame, size: source.views(0, frame).images
         >>> [stack] = reader.stacks(0, 2, [((-1, 0, 1), (16, 16))], images)  # built on first use
         >>> len(stack), stack[1] is stack[2], len(stack[0].cameras)  # frames 1, 2, 2 (3 clamped): two read
@@ -66,7 +66,7 @@ class CacheReader:
         >>> folder.cleanup()
     """
 
-    def __init__(self, cache: GaussianCache, source: EpisodeSource | None = None) -> None:
+    def __init__(self, cache: SceneCache, source: EpisodeSource | None = None) -> None:
         self.cache = cache
         self.source = source
 
@@ -84,7 +84,7 @@ class CacheReader:
         """The Gaussians and source cameras of each of an item's stacks of frames (one a replaced
         camera): of ``stacks`` = [(offsets, size)], the T timesteps ``frame + offset`` of
         ``episode`` (clamped to it, :func:`_clamped`) at ``size`` = (width, height) (see
-        :meth:`.GaussianCache.read`), each timestep read once, at the size of the first stack
+        :meth:`.SceneCache.read`), each timestep read once, at the size of the first stack
         that has it. ``images(k, offset, frame, size)`` gives the reconstructed cameras' images of
         the k-th frame of that stack, (V, 3, h, w) float in [0, 1] at ``size``, and is called
         only where the cache rebuilds the Gaussians from them."""

@@ -51,6 +51,7 @@ from safetensors.torch import save
 
 from ..core.atomic import atomic_write, read_json_object, replaceable, stat_stamp
 from ..core.cameras import Cameras
+from ..core.renamed import renamed
 from ..geometry import DepthReconstructor, Reconstruction, Reconstructor, Views
 from .format import (
     FORMAT,
@@ -72,7 +73,7 @@ from .format import (
     tensor_crc,
 )
 
-__all__ = ["CacheError", "CacheStats", "CorruptCacheError", "DepthFiles", "EpisodeSource", "GaussianCache",
+__all__ = ["CacheError", "CacheStats", "CorruptCacheError", "DepthFiles", "EpisodeSource", "SceneCache",
            "StaleCacheError", "dequantize", "quantize", "size_text"]  # fmt: skip
 
 logger = logging.getLogger(__name__)
@@ -122,12 +123,14 @@ class CacheStats:
 MAX_KEPT = 1024
 #: ... and the memory their decoded parts (cameras, depth references, static Gaussians) may take
 KEEP_BYTES = 64 << 20
-#: the files found valid, with their stat (see :meth:`GaussianCache.statuses`)
+#: the files found valid, with their stat (see :meth:`SceneCache.statuses`)
 INDEX_NAME = "index.json"
 
 
-class GaussianCache:
-    """Episode files for one (reconstructor, dataset) pair.
+class SceneCache:
+    """What every timestep of a dataset needs to render, one file per episode, for one
+    (reconstructor, dataset) pair: the reconstructor's Gaussians, or (a ``depth`` cache) the
+    depth and cameras from which workers rebuild its RGB-D discs. Formerly ``GaussianCache``.
 
     Args:
         root: folder of the episode files (created on first write).
@@ -150,7 +153,7 @@ class GaussianCache:
         >>> from gensplat_transforms.cache.builder import SceneEpisodes
         >>> source = SceneEpisodes(num_episodes=1, num_frames=2, size=16)
         >>> folder = tempfile.TemporaryDirectory()
-        >>> cache = GaussianCache(folder.name, RGBDReconstructor(), source.fingerprint)
+        >>> cache = SceneCache(folder.name, RGBDReconstructor(), source.fingerprint)
         >>> cache.ensure(0, source).num_frames, cache.status(0)
         (2, 'ok')
         >>> result = cache.read(0, 1, source.views(0, 1).images)  # Gaussians rebuilt from the images
@@ -160,7 +163,7 @@ class GaussianCache:
     def __init__(self, root: str | Path, reconstructor: Reconstructor, dataset: str, keep_bytes: int = KEEP_BYTES,
                  link_depth: bool = True) -> None:
         if not isinstance(reconstructor, Reconstructor):
-            raise TypeError(f"GaussianCache: expected a Reconstructor, got {type(reconstructor).__name__}")
+            raise TypeError(f"SceneCache: expected a Reconstructor, got {type(reconstructor).__name__}")
         self.root = Path(root)
         self.reconstructor = reconstructor
         self.identity = reconstructor.identity()
@@ -209,7 +212,7 @@ class GaussianCache:
             )
         n = source.num_frames(episode)
         if n < 1:
-            raise ValueError(f"GaussianCache: episode {episode} has no frames")
+            raise ValueError(f"SceneCache: episode {episode} has no frames")
         rec = self.reconstructor
         depth_files = getattr(source, "depth_files", None) if getattr(rec, "given_depth", False) else None
         given = depth_files(episode) if depth_files is not None else None
@@ -339,7 +342,7 @@ class GaussianCache:
                 text = json.dumps({"for": identity, "files": listed}, separators=(",", ":"))
                 atomic_write(index_path, lambda tmp: Path(tmp).write_text(text))
             except (OSError, ValueError) as e:  # a read-only folder, a folder in the way
-                logger.info("GaussianCache: cannot write %s (%s): the next check opens every file again", index_path, e)
+                logger.info("SceneCache: cannot write %s (%s): the next check opens every file again", index_path, e)
         return found
 
     def _index_identity(self) -> dict[str, str | bool]:
@@ -392,7 +395,7 @@ class GaussianCache:
             resized = size not in (None, (width, height))
             return Reconstruction(found.gaussians, found.cameras.resize(*size)) if resized else found
         if images is None:
-            raise ValueError(f"GaussianCache.read: a depth cache ({self.identity}) needs the views' images")
+            raise ValueError(f"SceneCache.read: a depth cache ({self.identity}) needs the views' images")
         return self.reconstructor.assemble(self._reading(episode, lambda f: f.depth_views(frame, images, size)))
 
     def read_depth(self, episode: int, frame: int) -> tuple[torch.Tensor, Cameras]:
@@ -410,7 +413,7 @@ class GaussianCache:
         """``read(parsed file of episode)``; a file replaced or removed since this process
         parsed it (rebuilt by another) is parsed again, once. ``depth``: a depth cache's read."""
         if depth and self.kind != "depth":
-            raise ValueError(f"GaussianCache: {self.identity} stores Gaussians, not depth")
+            raise ValueError(f"SceneCache: {self.identity} stores Gaussians, not depth")
         try:
             return self._counted(self._file(episode), read)
         except ReplacedError:
@@ -469,4 +472,4 @@ def _remove_or_wait(tmp: Path) -> None:
     finally:
         os.close(fd)
 
-
+__getattr__ = renamed(__name__)  # the former GaussianCache

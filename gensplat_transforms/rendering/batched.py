@@ -43,11 +43,11 @@ def render_batch(batch: dict, transform: GenSplatTransform, backend: str | None 
     Example: a DataLoader whose workers only prepare the items, then one render per batch
         >>> import tempfile
         >>> from torch.utils.data import DataLoader
-        >>> from gensplat_transforms import AugmentedDataset, GaussianCache, GenSplatConfig, GenSplatTransform, RGBDReconstructor
+        >>> from gensplat_transforms import AugmentedDataset, SceneCache, GenSplatConfig, GenSplatTransform, RGBDReconstructor
         >>> from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes
         >>> source = SceneEpisodes(num_episodes=1, num_frames=4, size=16)
         >>> folder = tempfile.TemporaryDirectory()
-        >>> cache = GaussianCache(folder.name, RGBDReconstructor(), source.fingerprint)
+        >>> cache = SceneCache(folder.name, RGBDReconstructor(), source.fingerprint)
         >>> transform = GenSplatTransform(GenSplatConfig(probability=1.0, render_in="batch"), cache, source)
         >>> batch = next(iter(DataLoader(AugmentedDataset(SceneDataset(source), transform), batch_size=4)))
         >>> batch["gensplat.depth"].shape  # (B, T, V, h, w): what the workers read from the cache

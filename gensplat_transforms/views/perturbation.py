@@ -10,7 +10,7 @@ A novel view is made in up to four steps (:class:`Perturbation`):
 4. scale its focal length by ``focal_scale``, the principal point and image size kept (a
    zoom or another lens; the paper: none).
 
-The samplers draw these per episode (or frame) and view, seeded: :class:`PerturbationSampler`
+The samplers draw these per episode (or frame) and view, seeded: :class:`PaperSampler`
 the paper's levels (rotation about X or Y, forward step), :class:`TiltSampler` turns of the
 camera about a uniformly random axis through its own centre with a position shift, :class:`ArcSampler` turns about the world's
 vertical (+z up) through the pivot, as a camera moved along an arc around the scene,
@@ -42,6 +42,7 @@ import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
 from ..core.cameras import Cameras, _check_rigid, _closest, pivot_point, rigid_tolerance
+from ..core.renamed import renamed
 
 #: world axes a move can turn about by name; the paper's levels use x and y (``PAPER_AXES``)
 AXES = ("x", "y", "z")
@@ -156,7 +157,7 @@ class PerturbationRange:
 
     Example: 5 to 10 degrees either way, up to 1 cm forward
         >>> custom = PerturbationRange(theta_deg=(5.0, 10.0), mu_m=(0.0, 0.01))
-        >>> p = PerturbationSampler(custom, seed=0).sample(episode_index=0)
+        >>> p = PaperSampler(custom, seed=0).sample(episode_index=0)
         >>> 5.0 <= abs(p.theta_deg) <= 10.0 and 0.0 <= p.mu_m <= 0.01
         True
     """
@@ -518,9 +519,9 @@ class _Sampler:
         raise NotImplementedError
 
 
-class PerturbationSampler(_Sampler):
-    """The paper's levels: rotation about world X or Y (``axes``) through the pivot, then a
-    forward step, drawn from ``level``'s ranges.
+class PaperSampler(_Sampler):
+    """The paper's sampler (formerly ``PerturbationSampler``): rotation about world X or Y
+    (``axes``) through the pivot, then a forward step, drawn from ``level``'s ranges.
 
     ``mode="episode"`` (the paper's default) gives every frame of an episode the same
     perturbation, so an augmented trajectory shares one camera; ``mode="frame"`` draws a
@@ -528,7 +529,7 @@ class PerturbationSampler(_Sampler):
     (the paper's saturation study uses about three per trajectory).
 
     Example:
-        >>> s = PerturbationSampler("large", seed=0)
+        >>> s = PaperSampler("large", seed=0)
         >>> s.sample(episode_index=3) == s.sample(episode_index=3, frame_index=10)
         True
     """
@@ -538,7 +539,7 @@ class PerturbationSampler(_Sampler):
         super().__init__(mode, seed, focal_scale)
         bad = [a for a in axes if a not in PAPER_AXES]
         if bad or not axes:
-            raise ValueError(f"PerturbationSampler.axes must be a non-empty subset of {PAPER_AXES}, got {axes}")
+            raise ValueError(f"PaperSampler.axes must be a non-empty subset of {PAPER_AXES}, got {axes}")
         self.range = get_range(level)
         self.axes = tuple(axes)
 
@@ -610,7 +611,7 @@ class MixSampler(_Sampler):
     training mix of the paper's moves, tilts and arcs.
 
     Example:
-        >>> s = MixSampler((PerturbationSampler("train"), TiltSampler(10.0), ArcSampler(45.0)), seed=0)
+        >>> s = MixSampler((PaperSampler("train"), TiltSampler(10.0), ArcSampler(45.0)), seed=0)
         >>> sorted({str(s.sample(ep).axis)[:1] for ep in range(50)})  # x, y (paper), z (arc), ( (tilt)
         ['(', 'x', 'y', 'z']
     """
@@ -625,7 +626,7 @@ class MixSampler(_Sampler):
             raise ValueError("MixSampler: needs at least one sampler")
         wrong = [type(s).__name__ for s in self.samplers if not isinstance(s, _Sampler)]
         if wrong:
-            raise TypeError(f"MixSampler: samplers must be samplers (PerturbationSampler, TiltSampler, ...), got {wrong}")
+            raise TypeError(f"MixSampler: samplers must be samplers (PaperSampler, TiltSampler, ...), got {wrong}")
 
     @property
     def about_pivot(self) -> bool:
@@ -674,9 +675,11 @@ def make_sampler(kind: str = "paper", level: str | PerturbationRange = "train", 
     _non_negative("tilt_deg", tilt_deg, 180.0), _non_negative("arc_deg", arc_deg, 180.0)
     _non_negative("shift_m", shift_m), _focal_range("focal_scale", focal_scale)
     kinds = sampler_kinds(kind)
-    make = {"paper": lambda **kw: PerturbationSampler(level, **kw), "tilt": lambda **kw: TiltSampler(tilt_deg, shift_m, **kw),
+    make = {"paper": lambda **kw: PaperSampler(level, **kw), "tilt": lambda **kw: TiltSampler(tilt_deg, shift_m, **kw),
             "arc": lambda **kw: ArcSampler(arc_deg, shift_m, **kw)}  # fmt: skip
     settings = {"mode": mode, "seed": seed, "focal_scale": focal_scale}
     if len(kinds) == 1:
         return make[kinds[0]](**settings)
     return MixSampler([make[k]() for k in kinds], **settings)
+
+__getattr__ = renamed(__name__)  # the former PerturbationSampler

@@ -11,7 +11,7 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from safetensors import SafetensorError, safe_open
 
 from gensplat_transforms.cache.distributed import OnDevice, Shard
-from gensplat_transforms.cache.store import GaussianCache, StaleCacheError
+from gensplat_transforms.cache.store import SceneCache, StaleCacheError
 from gensplat_transforms.core.atomic import atomic_write_json, read_json_object
 from gensplat_transforms.data.format import GENSPLAT_DIR
 from gensplat_transforms.data.outputs import gensplat_subfolder
@@ -86,14 +86,14 @@ def default_reconstructor(source: LeRobotSource) -> dict:
 
 
 def dataset_cache(root: str | Path, reconstructor, source: LeRobotSource, link_depth: bool | None = None
-                  ) -> GaussianCache:  # fmt: skip
+                  ) -> SceneCache:  # fmt: skip
     """The cache of a dataset: ``<root>/gensplat/cache/<reconstructor identity>/`` (refused with
     ``ValueError`` where a symbolic link leads it out of ``gensplat/``); it links the
     depth sidecars unless ``link_depth`` is False (None: as ``gensplat cache`` stored it, so that
     episodes built later, e.g. by training, are stored as the others)."""
     if link_depth is None:
         link_depth = read_json_object(settings_path(root)).get("link_depth", True) is not False
-    return GaussianCache(gensplat_subfolder(root, "cache", reconstructor.identity()), reconstructor,
+    return SceneCache(gensplat_subfolder(root, "cache", reconstructor.identity()), reconstructor,
                          source.fingerprint, link_depth=link_depth)  # fmt: skip
 
 
@@ -234,7 +234,7 @@ def prepare(root: str | Path, repo_id: str, config: GenSplatConfig, reconstructo
     rank>`` when CUDA is available). ``verify=False`` skips episodes whose header is valid
     without reading their data (see :func:`~gensplat_transforms.cache.builder.build_cache`).
     ``link_depth=False`` stores a compressed copy of the depth sidecars instead of linking them
-    (see :class:`~gensplat_transforms.cache.store.GaussianCache`). ``batch_timesteps``: the geometry
+    (see :class:`~gensplat_transforms.cache.store.SceneCache`). ``batch_timesteps``: the geometry
     reconstructor's timesteps per forward pass (default: automatic; not stored in the settings,
     it does not change the cache). Returns per-episode
     :class:`~gensplat_transforms.cache.store.CacheStats` of this process's episodes (None when the

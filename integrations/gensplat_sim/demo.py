@@ -20,7 +20,7 @@ from gensplat_transforms.data.format import GENSPLAT_DIR
 from gensplat_transforms.data.outputs import check_output
 from gensplat_transforms.rendering.preview import write_preview
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform, render_view
-from gensplat_transforms.views.perturbation import EVAL_LEVELS, PerturbationSampler
+from gensplat_transforms.views.perturbation import EVAL_LEVELS, PaperSampler
 
 #: the simulated dataset's repo id, as ``gensplat record`` names it and ``policies/*.json`` use it
 REPO_ID = "gensplat/sim_pick_place"
@@ -104,7 +104,7 @@ def _levels(tf: GenSplatTransform, truth, item: dict, path: Path, log) -> dict:
     rec = tf.cache.read(ep, fr, tf.source.views(ep, fr).images)
     rows, labels, out = [], [], {}
     for level in EVAL_LEVELS:
-        p = PerturbationSampler(level, seed=tf.cfg.seed).sample(ep)
+        p = PaperSampler(level, seed=tf.cfg.seed).sample(ep)
         target = p.move(rec.cameras, 0)
         true_rgb, _ = truth.render(ep, fr, target)
         t0 = time.perf_counter()

@@ -4,14 +4,14 @@
 external cameras are moved, once per episode, by one of three protocols (``EvalConfig.protocol``):
 
 * ``"paper"`` (the default; the paper's RQ1 protocol): the perturbation that
-  ``PerturbationSampler(level, seed=seed).sample(episode_index)`` draws, about the pivot of
+  ``PaperSampler(level, seed=seed).sample(episode_index)`` draws, about the pivot of
   the two external cameras' nominal poses; levels none / small / medium / large / extreme;
 * ``"vista"``: VISTA's samplers (:mod:`.vista`), levels ``small_perturb`` and ``arc_90deg``:
   ``VistaSampler(level, seed=seed).sample(episode_index)``, about the point each camera
   looks at in the scene layout;
 * ``"fov"``: level ``zoom``, the camera kept in place with its focal length scaled by a factor
   drawn log-uniformly in :data:`FOV_RANGE` (another lens or a zoom, as LIBERO-plus and
-  robosuite's camera randomisation vary it): ``PerturbationSampler("none", seed=seed,
+  robosuite's camera randomisation vary it): ``PaperSampler("none", seed=seed,
   focal_scale=FOV_RANGE).sample(episode_index)``.
 
 Observations use the recorded datasets' keys and the library's conventions, so a policy
@@ -45,7 +45,7 @@ import numpy as np
 import torch
 
 from gensplat_transforms.data.format import IMAGE_KEY_PREFIX
-from gensplat_transforms.views.perturbation import Perturbation, PerturbationSampler, pivot_point
+from gensplat_transforms.views.perturbation import PaperSampler, Perturbation, pivot_point
 
 from .control import ACTION_HIGH, ACTION_LOW
 from .scene import mat_to_quat
@@ -100,7 +100,7 @@ class PerturbedCameraEnv(gym.Env):
         if protocol == "fov" and self.config.level != "zoom":
             raise ValueError(f"the fov protocol has one level, 'zoom', got {self.config.level!r}")
         self.sampler = (VistaSampler(self.config.level, seed=self.config.seed) if protocol == "vista" else
-                        PerturbationSampler("none" if protocol == "fov" else self.config.level, seed=self.config.seed,
+                        PaperSampler("none" if protocol == "fov" else self.config.level, seed=self.config.seed,
                                             focal_scale=FOV_RANGE if protocol == "fov" else (1.0, 1.0)))  # fmt: skip
         self.world = SimWorld(self.config.task, self.config.world)
         self.max_steps = self.config.max_steps or self.world.task.max_steps

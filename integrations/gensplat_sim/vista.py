@@ -13,7 +13,7 @@ s-tian/VISTA), not from its code:
 
 Poses are OpenCV camera-to-world (4, 4) float64 tensors (x right, y down, z forward) in a
 world whose +z is up; the centre is a (3,) tensor. A move is drawn once per episode,
-reproducibly from (seed, episode index), as ``PerturbationSampler`` draws the paper's levels.
+reproducibly from (seed, episode index), as ``PaperSampler`` draws the paper's levels.
 
 Example:
     >>> from gensplat_transforms.core.cameras import look_at

@@ -18,7 +18,7 @@ from gensplat_transforms.cache import store as cache_module
 from gensplat_transforms.cache.builder import SceneEpisodes, build_cache
 from gensplat_transforms.cache.store import (
     CorruptCacheError,
-    GaussianCache,
+    SceneCache,
     StaleCacheError,
     dequantize,
     quantize,
@@ -67,7 +67,7 @@ class CountingSource:
 
 @pytest.fixture
 def built(tmp_path, source):
-    cache = GaussianCache(tmp_path / "cache", RGBDReconstructor(), source.fingerprint)
+    cache = SceneCache(tmp_path / "cache", RGBDReconstructor(), source.fingerprint)
     stats = build_cache(cache, source, range(2), progress=False)
     return cache, stats
 
@@ -75,13 +75,13 @@ def built(tmp_path, source):
 @pytest.fixture
 def built_gaussians(tmp_path, source):
     frames = [RGBDReconstructor()(source.views(0, t)) for t in range(3)]
-    cache = GaussianCache(tmp_path / "gcache", Replay(frames), source.fingerprint)
+    cache = SceneCache(tmp_path / "gcache", Replay(frames), source.fingerprint)
     cache.ensure(0, source)
     return cache, frames
 
 
 def fresh(cache):
-    return GaussianCache(cache.root, cache.reconstructor, cache.dataset)
+    return SceneCache(cache.root, cache.reconstructor, cache.dataset)
 
 
 # ---------------------------------------------------------------------------- depth codec
@@ -150,16 +150,16 @@ def test_a_depth_build_holds_one_frames_views_at_a_time(tmp_path, source):
                 yield views
 
     streaming = Streaming(source)
-    cache = GaussianCache(tmp_path / "a", RGBDReconstructor(), source.fingerprint)
+    cache = SceneCache(tmp_path / "a", RGBDReconstructor(), source.fingerprint)
     cache.ensure(0, streaming)
     assert streaming.calls == source.num_frames(0) > 2 and max(streaming.alive) <= 1
-    plain = GaussianCache(tmp_path / "b", RGBDReconstructor(), source.fingerprint)
+    plain = SceneCache(tmp_path / "b", RGBDReconstructor(), source.fingerprint)
     plain.ensure(0, source)
     from safetensors.torch import load_file
 
     streamed, listed = load_file(cache.path(0)), load_file(plain.path(0))
     assert streamed.keys() == listed.keys() and all(torch.equal(streamed[k], listed[k]) for k in listed)
-    short = GaussianCache(tmp_path / "c", RGBDReconstructor(), source.fingerprint)
+    short = SceneCache(tmp_path / "c", RGBDReconstructor(), source.fingerprint)
     with pytest.raises(ValueError, match=f"{source.num_frames(0) - 1} frames, {source.num_frames(0)} announced"):
         short.ensure(0, Streaming(source, frames=source.num_frames(0) - 1))
     assert short.status(0) == "missing" and not list((tmp_path / "c").glob("*.tmp"))
@@ -244,7 +244,7 @@ def test_a_cache_written_with_zlib_still_reads(tmp_path, source, built, monkeypa
     with monkeypatch.context() as m:
         m.setattr(dc, "_pack", zlib_pack)
         m.setattr(cache_module, "encode_depth", old_header)
-        old = GaussianCache(tmp_path / "old", RGBDReconstructor(), source.fingerprint)
+        old = SceneCache(tmp_path / "old", RGBDReconstructor(), source.fingerprint)
         build_cache(old, source, range(1), progress=False)
     assert "compression" not in old.path(0).read_bytes()[:4096].decode(errors="replace")
     new = built[0]
@@ -325,15 +325,15 @@ def test_kept_episodes_stay_within_the_memory_budget(linked, built):
     assert all(n > 2 * 48 * 48 * 2 for n in sizes.values())  # the decoded reference counts
     assert stored._kept_bytes == sum(sizes.values())
     one = max(sizes.values()) + 1  # room for one stored episode
-    stored = GaussianCache(stored.root, stored.reconstructor, stored.dataset, keep_bytes=one)
+    stored = SceneCache(stored.root, stored.reconstructor, stored.dataset, keep_bytes=one)
     for e in (0, 1, 0):
         stored.read_depth(e, 2)
     assert list(stored._kept) == [0] and stored._kept_bytes == stored._kept[0].nbytes
-    stored = GaussianCache(stored.root, stored.reconstructor, stored.dataset, keep_bytes=1)  # room for none:
+    stored = SceneCache(stored.root, stored.reconstructor, stored.dataset, keep_bytes=1)  # room for none:
     stored.read_depth(1, 0)  # the file being read stays
     assert list(stored._kept) == [1]
     cache = linked[0]
-    linked_cache = GaussianCache(cache.root, cache.reconstructor, cache.dataset, keep_bytes=one)
+    linked_cache = SceneCache(cache.root, cache.reconstructor, cache.dataset, keep_bytes=one)
     for e in (0, 1, 0):
         linked_cache.read_depth(e, 1)
     assert list(linked_cache._kept) == [1, 0] and linked_cache._kept_bytes < 4000
@@ -408,8 +408,8 @@ def test_resumable_build_skips_valid_episodes(built, source):
 
 def test_stale_cache_is_detected(built):
     cache, _ = built
-    other_rec = GaussianCache(cache.root, RGBDReconstructor(max_depth=5.0), cache.dataset)
-    other_data = GaussianCache(cache.root, cache.reconstructor, "another-dataset")
+    other_rec = SceneCache(cache.root, RGBDReconstructor(max_depth=5.0), cache.dataset)
+    other_data = SceneCache(cache.root, cache.reconstructor, "another-dataset")
     for c in (other_rec, other_data):
         assert c.status(0) == "stale"
         with pytest.raises(StaleCacheError):
@@ -448,8 +448,8 @@ def test_an_index_for_other_settings_or_unreadable_is_not_used(built, monkeypatc
     cache, _ = built
     cache.statuses(range(2))
     index = cache.root / cache_module.INDEX_NAME
-    others = [GaussianCache(cache.root, RGBDReconstructor(max_depth=5.0), cache.dataset),
-              GaussianCache(cache.root, cache.reconstructor, "another-dataset")]  # fmt: skip
+    others = [SceneCache(cache.root, RGBDReconstructor(max_depth=5.0), cache.dataset),
+              SceneCache(cache.root, cache.reconstructor, "another-dataset")]  # fmt: skip
     for other in others:
         opened = counting_status(other, monkeypatch)
         assert other.statuses(range(2)) == {0: "stale", 1: "stale"} and opened == [0, 1]
@@ -475,7 +475,7 @@ def test_an_index_that_cannot_be_written_only_costs_the_speed_up(built, monkeypa
 
 
 def test_a_source_of_another_dataset_is_refused(tmp_path, source):
-    cache = GaussianCache(tmp_path, RGBDReconstructor(), "not-this-dataset")
+    cache = SceneCache(tmp_path, RGBDReconstructor(), "not-this-dataset")
     with pytest.raises(StaleCacheError, match="fingerprint"):
         cache.ensure(0, source)
 
@@ -483,7 +483,7 @@ def test_a_source_of_another_dataset_is_refused(tmp_path, source):
 def test_the_compiled_and_reference_rgbd_share_a_cache(built):
     cache, _ = built
     assert fresh(cache).status(0) == "ok"
-    assert GaussianCache(cache.root, RGBDReconstructor(fast=False), cache.dataset).status(0) == "ok"
+    assert SceneCache(cache.root, RGBDReconstructor(fast=False), cache.dataset).status(0) == "ok"
 
 
 # ---------------------------------------------------------------------------- gaussians cache
@@ -518,7 +518,7 @@ def test_two_gaussians_at_one_pixel_are_never_static(tmp_path, source):
     a, b, c = (g[i : i + 1] for i in (0, 100, 200))
     frames = [_frame(Gaussians.cat([a, b]), cams, [0, 0]), _frame(Gaussians.cat([c, b]), cams, [0, 0])]
     two = SceneEpisodes(num_episodes=1, num_frames=2, size=48)
-    cache = GaussianCache(tmp_path, Replay(frames), two.fingerprint)
+    cache = SceneCache(tmp_path, Replay(frames), two.fingerprint)
     cache.ensure(0, two)
     for t, f in enumerate(frames):
         torch.testing.assert_close(cache.read(0, t).gaussians.means, f.gaussians.means, atol=1e-3, rtol=0)
@@ -526,7 +526,7 @@ def test_two_gaussians_at_one_pixel_are_never_static(tmp_path, source):
 
 def test_an_empty_frame_is_stored_and_read_back(tmp_path, source):
     full = RGBDReconstructor()(source.views(0, 0))
-    cache = GaussianCache(tmp_path, Replay([full, _frame(Gaussians.empty(), full.cameras, []), full]), source.fingerprint)
+    cache = SceneCache(tmp_path, Replay([full, _frame(Gaussians.empty(), full.cameras, []), full]), source.fingerprint)
     cache.ensure(0, source)
     assert len(cache.read(0, 1).gaussians) == 0
     assert len(cache.read(0, 2).gaussians) == len(full.gaussians)
@@ -751,7 +751,7 @@ def test_written_files_follow_the_umask(built):
 
 def test_concurrent_builders_build_once(tmp_path, source):
     counting = CountingSource(source)
-    cache = GaussianCache(tmp_path, RGBDReconstructor(), source.fingerprint)
+    cache = SceneCache(tmp_path, RGBDReconstructor(), source.fingerprint)
     threads = [threading.Thread(target=lambda: fresh(cache).ensure(0, counting)) for _ in range(3)]
     for t in threads:
         t.start()
@@ -765,7 +765,7 @@ def test_concurrent_builders_build_once(tmp_path, source):
 def test_concurrent_builds_with_verify_build_once(tmp_path, source):
     """Two `gensplat cache` runs at once: the second re-checks inside the lock and skips."""
     counting = CountingSource(source, sleep=0.05)
-    cache = GaussianCache(tmp_path, RGBDReconstructor(), source.fingerprint)
+    cache = SceneCache(tmp_path, RGBDReconstructor(), source.fingerprint)
     threads = [threading.Thread(target=lambda: build_cache(fresh(cache), counting, [0], progress=False))
                for _ in range(2)]  # fmt: skip
     for t in threads:
@@ -777,13 +777,13 @@ def test_concurrent_builds_with_verify_build_once(tmp_path, source):
 
 KILLED_BUILDER = """
 import sys, time
-from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.cache.store import SceneCache
 from gensplat_transforms.cache.builder import SceneEpisodes
 from gensplat_transforms.geometry import RGBDReconstructor
 src = SceneEpisodes(num_episodes=2, num_frames=3, size=48)
 slow = type("Slow", (), {"camera_names": src.camera_names, "fingerprint": src.fingerprint,
                          "num_frames": src.num_frames, "views": lambda self, e, t: time.sleep(60)})()
-GaussianCache(sys.argv[1], RGBDReconstructor(), src.fingerprint).ensure(0, slow)
+SceneCache(sys.argv[1], RGBDReconstructor(), src.fingerprint).ensure(0, slow)
 """
 
 
@@ -795,7 +795,7 @@ def test_a_killed_builders_temporary_file_is_removed(tmp_path, source):
     proc.kill()  # SIGKILL in the middle of the build
     proc.wait()
     assert len(list(tmp_path.glob("*.tmp"))) == 1
-    cache = GaussianCache(tmp_path, RGBDReconstructor(), source.fingerprint)
+    cache = SceneCache(tmp_path, RGBDReconstructor(), source.fingerprint)
     cache.ensure(0, source)
     assert cache.status(0) == "ok"
     assert not list(tmp_path.glob("*.tmp"))
@@ -803,7 +803,7 @@ def test_a_killed_builders_temporary_file_is_removed(tmp_path, source):
 
 def test_deleting_the_lock_file_of_a_running_build_does_not_let_a_second_builder_in(tmp_path, source):
     slow = CountingSource(source, sleep=0.3)
-    cache = GaussianCache(tmp_path, RGBDReconstructor(), source.fingerprint)
+    cache = SceneCache(tmp_path, RGBDReconstructor(), source.fingerprint)
     first = threading.Thread(target=lambda: fresh(cache).ensure(0, slow))
     first.start()
     lock = tmp_path / ".episode_000000.lock"
@@ -855,7 +855,7 @@ class SidecarSource:
 @pytest.fixture
 def linked(tmp_path, source):
     sidecars = SidecarSource(source, tmp_path / "dataset")
-    cache = GaussianCache(tmp_path / "dataset" / "gensplat" / "cache", RGBDReconstructor(), source.fingerprint)
+    cache = SceneCache(tmp_path / "dataset" / "gensplat" / "cache", RGBDReconstructor(), source.fingerprint)
     return cache, sidecars, build_cache(cache, sidecars, range(2), progress=False)
 
 
@@ -866,7 +866,7 @@ def test_the_datasets_own_depth_is_linked_not_copied(linked, tmp_path):
     assert [link["path"] for link in links] == [os.path.join("..", "..", "depth", n, "episode_000000.safetensors")
                                                 for n in ("left", "right")]  # fmt: skip
     assert stats[0].bytes < 2000 and not any(k.startswith("depth.") for k in header)  # cameras and header only
-    copy = GaussianCache(tmp_path / "copy", RGBDReconstructor(), sidecars.fingerprint, link_depth=False)
+    copy = SceneCache(tmp_path / "copy", RGBDReconstructor(), sidecars.fingerprint, link_depth=False)
     copy.ensure(0, sidecars)
     assert copy.path(0).stat().st_size > 4 * stats[0].bytes
     for t in range(3):
@@ -884,7 +884,7 @@ def test_a_linked_cache_moves_with_its_dataset(linked, tmp_path):
     cache, sidecars, _ = linked
     want = RGBDReconstructor().clean_depth(sidecars.views(0, 1).depths)
     (tmp_path / "dataset").rename(tmp_path / "moved")
-    moved = GaussianCache(tmp_path / "moved" / "gensplat" / "cache", cache.reconstructor, cache.dataset)
+    moved = SceneCache(tmp_path / "moved" / "gensplat" / "cache", cache.reconstructor, cache.dataset)
     assert moved.status(0) == "ok" and moved.verify(0)
     assert torch.equal(moved.read_depth(0, 1)[0], want)
 
@@ -908,7 +908,7 @@ def test_a_changed_or_missing_depth_file_makes_the_episode_stale(linked):
 
 def test_a_copy_cache_rebuilds_linked_episodes_and_a_link_cache_reads_copies(linked):
     cache, sidecars, _ = linked
-    copy = GaussianCache(cache.root, cache.reconstructor, cache.dataset, link_depth=False)
+    copy = SceneCache(cache.root, cache.reconstructor, cache.dataset, link_depth=False)
     assert copy.status(0) == "stale"
     copy.ensure(0, sidecars)
     header, _ = read_header(cache.path(0))

@@ -7,7 +7,7 @@ import torch
 
 from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
 from gensplat_transforms.cache.reader import CacheReader
-from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.cache.store import SceneCache
 from gensplat_transforms.core.views import as_cache_images
 from gensplat_transforms.geometry import GenSplatReconstructor, RGBDReconstructor
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
@@ -20,13 +20,13 @@ def source():
 
 @pytest.fixture(scope="module")
 def depth_cache(source, tmp_path_factory):
-    cache = GaussianCache(tmp_path_factory.mktemp("depth"), RGBDReconstructor(), source.fingerprint)
+    cache = SceneCache(tmp_path_factory.mktemp("depth"), RGBDReconstructor(), source.fingerprint)
     build_cache(cache, source, range(2), progress=False)
     return cache
 
 
 def test_a_missing_episode_is_built_from_the_source_or_says_there_is_none(source, tmp_path):
-    cache = GaussianCache(tmp_path, RGBDReconstructor(), source.fingerprint)
+    cache = SceneCache(tmp_path, RGBDReconstructor(), source.fingerprint)
     with pytest.raises(FileNotFoundError, match="episode 1 is missing .* no source was given"):
         CacheReader(cache).depth(1, 0, (0,), (8, 8), read=False)
     assert CacheReader(cache, source).depth(1, 2, (0,), (8, 8), read=False).words.shape == (1, 2, 8, 8)
@@ -58,7 +58,7 @@ def test_each_timestep_is_read_once_and_images_asked_for_only_where_the_storage_
     assert asked == [(0, 0, 1, (24, 24)), (1, 1, 2, (24, 24)), (1, -1, 0, (12, 12))]
     assert left[1] is left[2] is right[0] and left[0].gaussians.means.shape == (2 * 24 * 24, 3)
     assert right[1].gaussians.means.shape == (2 * 12 * 12, 3)
-    reader = CacheReader(GaussianCache(tmp_path, GenSplatReconstructor(), source.fingerprint), source)
+    reader = CacheReader(SceneCache(tmp_path, GenSplatReconstructor(), source.fingerprint), source)
     [found] = reader.stacks(0, 1, [((0,), (12, 12))], images)
     assert len(asked) == 3 and not reader.batchable  # stored Gaussians: never asked
     assert (found[0].cameras.width, found[0].cameras.height) == (12, 12)
@@ -84,7 +84,7 @@ def test_depth_at_the_render_size_or_the_stored_one_and_zeros_without_reading(de
 
 
 def test_a_gaussian_cache_cannot_serve_the_batch_path(source, tmp_path):
-    cache = GaussianCache(tmp_path, GenSplatReconstructor(), source.fingerprint)
+    cache = SceneCache(tmp_path, GenSplatReconstructor(), source.fingerprint)
     with pytest.raises(ValueError, match="stores Gaussians, not depth"):
         CacheReader(cache, source).depth(0, 0, (0,), (8, 8))
     with pytest.raises(ValueError, match=r"render_in='batch' needs a depth cache .* stores Gaussians"):

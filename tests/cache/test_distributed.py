@@ -16,7 +16,7 @@ from tiny_model import TINY
 
 from gensplat_transforms.cache.builder import SceneEpisodes, build_cache
 from gensplat_transforms.cache.distributed import OnDevice, Shard, gather
-from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.cache.store import SceneCache
 from gensplat_transforms.geometry import GenSplatReconstructor, RGBDReconstructor
 from gensplat_transforms.geometry.model import GenSplatModel
 
@@ -60,7 +60,7 @@ def test_gather_without_a_launcher_returns_its_own_value(monkeypatch):
 
 def test_build_cache_builds_only_its_shard_and_resumes(tmp_path):
     source = SceneEpisodes(num_episodes=3, num_frames=2, size=24)
-    cache = GaussianCache(tmp_path, RGBDReconstructor(), source.fingerprint)
+    cache = SceneCache(tmp_path, RGBDReconstructor(), source.fingerprint)
     first = build_cache(cache, source, range(3), progress=False, shard=Shard(0, 2))
     assert set(first) == set(Shard(0, 2).select(range(3), source.num_frames)) and None not in first.values()
     second = build_cache(cache, source, range(3), progress=False, shard=Shard(1, 2))

@@ -79,7 +79,7 @@ def test_a_removed_lock_file_lets_no_second_builder_in(tmp_path):
     """A builder holds an episode's lock; the lock file is deleted; a second builder gets a
     new lock file and builds the episode: the first, resumed, finds it built."""
     from gensplat_transforms import RGBDReconstructor
-    from gensplat_transforms.cache.store import GaussianCache
+    from gensplat_transforms.cache.store import SceneCache
 
     source = SceneEpisodes(num_episodes=1, num_frames=2, size=16)
     entered, resume = threading.Event(), threading.Event()
@@ -95,7 +95,7 @@ def test_a_removed_lock_file_lets_no_second_builder_in(tmp_path):
             return source.num_frames(episode)
 
     def builder():
-        return GaussianCache(tmp_path, RGBDReconstructor(), source.fingerprint)
+        return SceneCache(tmp_path, RGBDReconstructor(), source.fingerprint)
 
     results = []
     first = threading.Thread(target=lambda: results.append(builder().ensure(0, Paused())))

@@ -7,10 +7,10 @@ from torch.utils.data import DataLoader
 
 from gensplat_transforms import (
     AugmentedDataset,
-    GaussianCache,
     GenSplatConfig,
     GenSplatTransform,
     RGBDReconstructor,
+    SceneCache,
 )
 from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes
 from gensplat_transforms.core.counters import SampleCounters
@@ -19,7 +19,7 @@ from gensplat_transforms.core.counters import SampleCounters
 def test_counts_from_spawned_workers_reach_the_main_process():
     source = SceneEpisodes(num_episodes=1, num_frames=8, size=16)
     with tempfile.TemporaryDirectory() as folder:
-        cache = GaussianCache(folder, RGBDReconstructor(), source.fingerprint)
+        cache = SceneCache(folder, RGBDReconstructor(), source.fingerprint)
         transform = GenSplatTransform(GenSplatConfig(probability=0.5, report=True), cache, source)
         transform.counters = SampleCounters(rows=2)
         loader = DataLoader(AugmentedDataset(SceneDataset(source), transform), batch_size=2, num_workers=2,

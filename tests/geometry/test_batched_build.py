@@ -5,7 +5,7 @@ import torch
 from tiny_model import tiny_model
 
 from gensplat_transforms.cache.builder import SceneEpisodes
-from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.cache.store import SceneCache
 from gensplat_transforms.data.scenes import TabletopScene, default_cameras
 from gensplat_transforms.geometry import GeometryReconstructor, RGBDReconstructor, Views
 from gensplat_transforms.geometry.feedforward import INT_MAX, pixel_channels, timesteps_per_pass
@@ -94,7 +94,7 @@ def test_a_batched_cache_build_stores_what_one_at_a_time_does(tmp_path):
     one, three = (GeometryReconstructor(tiny_model(), batch_timesteps=b) for b in (1, 3))
     assert one.identity() == three.identity()  # batching is no part of the cache's identity
     sizes = counting(three)
-    caches = [GaussianCache(tmp_path / name, rec, source.fingerprint) for name, rec in (("a", one), ("b", three))]
+    caches = [SceneCache(tmp_path / name, rec, source.fingerprint) for name, rec in (("a", one), ("b", three))]
     for cache in caches:
         cache.ensure(0, source)
     assert sizes == [3, 2]

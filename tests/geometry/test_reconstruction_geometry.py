@@ -8,7 +8,7 @@ from safetensors.torch import save_file
 from tiny_model import TINY, tiny_model
 
 from gensplat_transforms.cache.builder import SceneEpisodes
-from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.cache.store import SceneCache
 from gensplat_transforms.data.scenes import TabletopScene, default_cameras
 from gensplat_transforms.geometry import (
     RECONSTRUCTORS,
@@ -109,7 +109,7 @@ def test_registry_names_every_reconstructor():
 def test_geometry_cache_stores_depth_and_rebuilds_the_same_gaussians(tmp_path):
     source = SceneEpisodes(num_episodes=1, num_frames=2, size=42)
     rec = GeometryReconstructor(tiny_model())
-    cache = GaussianCache(tmp_path, rec, source.fingerprint)
+    cache = SceneCache(tmp_path, rec, source.fingerprint)
     assert cache.kind == "depth"
     cache.ensure(0, source)
     for t in range(2):
@@ -129,7 +129,7 @@ def test_frames_missing_from_a_stacked_item_come_from_the_source_at_the_cache_si
     from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
 
     source = SceneEpisodes(num_episodes=1, num_frames=2, size=40)
-    cache = GaussianCache(tmp_path, GeometryReconstructor(tiny_model()), source.fingerprint)
+    cache = SceneCache(tmp_path, GeometryReconstructor(tiny_model()), source.fingerprint)
     cache.ensure(0, source)
     assert cache.image_size(0) == (42, 42)
     ds, left = SceneDataset(source), "observation.images.left"
@@ -153,7 +153,7 @@ def test_views_from_a_geometry_cache_keep_the_images_detail(tmp_path, render_in)
     from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform, render_view
 
     source = SceneEpisodes(num_episodes=1, num_frames=1, size=56)
-    cache = GaussianCache(tmp_path, GeometryReconstructor(tiny_model(), max_pixels=196), source.fingerprint)
+    cache = SceneCache(tmp_path, GeometryReconstructor(tiny_model(), max_pixels=196), source.fingerprint)
     cache.ensure(0, source)
     assert cache.image_size(0) == (14, 14)
     item, left = SceneDataset(source)[0], "observation.images.left"

@@ -6,7 +6,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from gensplat_transforms import Cameras, PerturbationSampler, pivot_point, render
+from gensplat_transforms import Cameras, PaperSampler, pivot_point, render
 from gensplat_transforms.core.metrics import psnr
 from gensplat_transforms.core.rotations import quat_to_rotmat
 from gensplat_transforms.core.views import Reconstruction, pixel_rays, preferred_means, source_rays
@@ -72,7 +72,7 @@ def test_novel_view_beats_the_unchanged_image_at_large_level(scene_views):
     scene, cams, images, depths = scene_views
     g = RGBDReconstructor().reconstruct(Views(images[:2], cams[:2], depths[:2])).gaussians
     pivot = pivot_point(cams.c2w[0], cams.c2w[1])
-    p = PerturbationSampler("large", seed=0).sample(0)
+    p = PaperSampler("large", seed=0).sample(0)
     target = cams[0].with_c2w(p.apply(cams.c2w[:1], pivot))
     truth, _ = scene.render(target)
     out = render(g, target)

@@ -13,7 +13,7 @@ from torch.utils.data import default_collate
 from gensplat_transforms import render
 from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
 from gensplat_transforms.cache.reader import disc_builder
-from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.cache.store import SceneCache
 from gensplat_transforms.core.cameras import Cameras, rigid_inverse
 from gensplat_transforms.core.gaussians import Gaussians
 from gensplat_transforms.data.format import DepthSensor
@@ -29,7 +29,7 @@ IMAGES = (LEFT, RIGHT, "observation.images.front")
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):
     source = SceneEpisodes(num_episodes=2, num_frames=4, size=32)
-    cache = GaussianCache(tmp_path_factory.mktemp("cache"), RGBDReconstructor(), source.fingerprint)
+    cache = SceneCache(tmp_path_factory.mktemp("cache"), RGBDReconstructor(), source.fingerprint)
     build_cache(cache, source, range(2), progress=False)
     return cache, SceneDataset(source)
 
@@ -92,13 +92,13 @@ def test_depth_holes_filled_before_the_discs_match_the_worker(tmp_path, device):
             return Views(views.images, views.cameras, depth)
 
     source = Holed(num_episodes=1, num_frames=2, size=32)
-    cache = GaussianCache(tmp_path, RGBDReconstructor(fill_depth_px=2), source.fingerprint)
+    cache = SceneCache(tmp_path, RGBDReconstructor(fill_depth_px=2), source.fingerprint)
     build_cache(cache, source, range(1), progress=False)
     assert not cache.read_depth(0, 0)[0][..., 11, :].any()  # stored as measured
     items = [SceneDataset(source)[i] for i in range(2)]
     expected, got = both_ways(cache, items, seed=0, backend="fast", device=device, probability=1.0)
     assert_same_batch(expected, got, atol=1e-4)
-    unfilled = GaussianCache(tmp_path / "plain", RGBDReconstructor(), source.fingerprint)
+    unfilled = SceneCache(tmp_path / "plain", RGBDReconstructor(), source.fingerprint)
     build_cache(unfilled, source, range(1), progress=False)
     assert not torch.equal(both_ways(unfilled, items, seed=0, backend="fast", device=device,
                                      probability=1.0)[1][LEFT], got[LEFT])  # fmt: skip
@@ -146,7 +146,7 @@ def test_gaussians_caches_and_unlike_stacks_are_refused(setup, tmp_path):
     tf = GenSplatTransform(GenSplatConfig(probability=1.0, render_in="batch"), cache)
     with pytest.raises(ValueError, match="stacked alike"):
         tf({**item, LEFT: torch.stack([ds[0][LEFT], item[LEFT]])})
-    gaussians = GaussianCache(tmp_path, GaussiansOnly(), cache.dataset)
+    gaussians = SceneCache(tmp_path, GaussiansOnly(), cache.dataset)
     with pytest.raises(ValueError, match="needs a depth cache"):
         GenSplatTransform(GenSplatConfig(probability=1.0, render_in="batch"), gaussians)
     with pytest.raises(TypeError, match="use render_in='worker'"):
@@ -286,7 +286,7 @@ def test_every_sampler_and_depth_setting_renders_the_worker_views(tmp_path, samp
     the batch path's images and depth maps are the worker's to float round-off, for every
     sampler (a focal-length change: "zoom") and every kind of depth map."""
     source = SceneEpisodes(num_episodes=1, num_frames=4, size=24)
-    cache = GaussianCache(tmp_path, RGBDReconstructor(fast=False), source.fingerprint)
+    cache = SceneCache(tmp_path, RGBDReconstructor(fast=False), source.fingerprint)
     build_cache(cache, source, range(1), progress=False)
     ds = SceneDataset(source)
     items, sensors = with_depth_maps([ds[i] for i in range(4)], ds, depth_maps)

@@ -9,7 +9,7 @@ from torch.utils.data import default_collate
 
 from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
 from gensplat_transforms.cache.depth_codec import depth_from_words
-from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.cache.store import SceneCache
 from gensplat_transforms.core.rotations import covariance_3d
 from gensplat_transforms.geometry import RGBDReconstructor
 from gensplat_transforms.geometry import rgbd as rule
@@ -22,7 +22,7 @@ LEFT = "observation.images.left"
 @pytest.fixture(scope="module")
 def prepared(tmp_path_factory):
     source = SceneEpisodes(num_episodes=1, num_frames=3, size=24)
-    cache = GaussianCache(tmp_path_factory.mktemp("cache"), RGBDReconstructor(), source.fingerprint)
+    cache = SceneCache(tmp_path_factory.mktemp("cache"), RGBDReconstructor(), source.fingerprint)
     build_cache(cache, source, range(1), progress=False)
     transform = GenSplatTransform(GenSplatConfig(probability=1.0, render_in="batch", level="large"), cache)
     ds = SceneDataset(source)

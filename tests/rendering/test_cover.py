@@ -16,7 +16,7 @@ from gensplat_transforms.data.scenes import TabletopScene, default_cameras
 from gensplat_transforms.geometry import RGBDConfig, RGBDReconstructor, Views
 from gensplat_transforms.rendering import covered
 from gensplat_transforms.rendering.scenes import render_scenes
-from gensplat_transforms.views.perturbation import PerturbationSampler
+from gensplat_transforms.views.perturbation import PaperSampler
 
 
 def one_splat(opacity: float, dtype=torch.float32) -> tuple[Gaussians, Cameras]:
@@ -71,7 +71,7 @@ def moved_views(fill_holes: bool, **render_options):
     cams = default_cameras(32, 32)[:2]
     images, depths = TabletopScene(seed=2).render(cams)
     rec = RGBDReconstructor()(Views(images, cams, depths))
-    target = PerturbationSampler("large", seed=0).sample(0).move(cams, 0)[:1]
+    target = PaperSampler("large", seed=0).sample(0).move(cams, 0)[:1]
     config = GenSplatConfig(fill_holes=fill_holes, render_options=render_options)
     return render_scenes(Scenes.of([rec]), target, config)
 

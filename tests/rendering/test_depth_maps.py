@@ -9,7 +9,7 @@ import torch
 from torch.utils.data import default_collate
 
 from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
-from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.cache.store import SceneCache
 from gensplat_transforms.data.format import DepthSensor
 from gensplat_transforms.geometry import RGBDReconstructor
 from gensplat_transforms.rendering.batched import render_batch
@@ -23,7 +23,7 @@ LEFT_DEPTH, RIGHT_DEPTH = LEFT + "_depth", RIGHT + "_depth"
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):
     source = SceneEpisodes(num_episodes=2, num_frames=4, size=48)
-    cache = GaussianCache(tmp_path_factory.mktemp("cache"), RGBDReconstructor(), source.fingerprint)
+    cache = SceneCache(tmp_path_factory.mktemp("cache"), RGBDReconstructor(), source.fingerprint)
     build_cache(cache, source, range(2), progress=False)
     return source, cache, SceneDataset(source)
 
@@ -34,7 +34,7 @@ def with_depth(source: SceneEpisodes, item: dict, scale: float = 1.0, dtype=torc
     return {**item, LEFT_DEPTH: (depth[0] * scale).to(dtype), RIGHT_DEPTH: (depth[1] * scale).to(dtype)}
 
 
-def moved_truth(source: SceneEpisodes, cache: GaussianCache, out: dict, item: dict, camera: int) -> torch.Tensor:
+def moved_truth(source: SceneEpisodes, cache: SceneCache, out: dict, item: dict, camera: int) -> torch.Tensor:
     """(1, H, W) true depth in metres at the pose ``out``'s report says camera ``camera`` moved to."""
     p = Perturbation(AXES[int(out["gensplat.axis"][camera])], float(out["gensplat.theta_deg"][camera]),
                      float(out["gensplat.mu_m"][camera]))  # fmt: skip

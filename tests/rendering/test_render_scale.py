@@ -10,7 +10,7 @@ import torch.nn.functional as F
 from torch.utils.data import default_collate
 
 from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
-from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.cache.store import SceneCache
 from gensplat_transforms.core.metrics import psnr
 from gensplat_transforms.geometry import Reconstructor, RGBDReconstructor, Views
 from gensplat_transforms.geometry.base import nearest_pixels
@@ -24,7 +24,7 @@ LEFT, RIGHT = "observation.images.left", "observation.images.right"
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):
     source = SceneEpisodes(num_episodes=1, num_frames=3, size=48)
-    cache = GaussianCache(tmp_path_factory.mktemp("cache"), RGBDReconstructor(), source.fingerprint)
+    cache = SceneCache(tmp_path_factory.mktemp("cache"), RGBDReconstructor(), source.fingerprint)
     build_cache(cache, source, [0], progress=False)
     return cache, source
 
@@ -119,7 +119,7 @@ def test_batch_path_at_a_scale_matches_the_worker(setup):
 
 def test_gaussian_caches_render_at_the_scale(setup, tmp_path, monkeypatch):
     _, source = setup
-    cache = GaussianCache(tmp_path, StoredRGBD(), source.fingerprint)
+    cache = SceneCache(tmp_path, StoredRGBD(), source.fingerprint)
     build_cache(cache, source, [0], progress=False)
     read = cache.read(0, 1, size=(24, 12))
     assert (read.cameras.width, read.cameras.height) == (24, 12)

@@ -14,7 +14,7 @@ import torch
 from torch.utils.data import default_collate
 
 from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache, scene_depth
-from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.cache.store import SceneCache
 from gensplat_transforms.core.cameras import look_at
 from gensplat_transforms.data.scenes import default_cameras
 from gensplat_transforms.geometry import RGBDReconstructor, Views
@@ -44,7 +44,7 @@ class LeftOnly:
 @pytest.fixture(scope="module")
 def one(tmp_path_factory):
     source = LeftOnly(SceneEpisodes(num_episodes=2, num_frames=4, size=32))
-    cache = GaussianCache(tmp_path_factory.mktemp("one"), RGBDReconstructor(), source.fingerprint)
+    cache = SceneCache(tmp_path_factory.mktemp("one"), RGBDReconstructor(), source.fingerprint)
     build_cache(cache, source, range(2), progress=False)
     return source, cache, SceneDataset(source.source)
 

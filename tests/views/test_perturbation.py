@@ -17,9 +17,9 @@ from gensplat_transforms.views.perturbation import (
     ROW,
     ArcSampler,
     Moves,
+    PaperSampler,
     Perturbation,
     PerturbationRange,
-    PerturbationSampler,
     TiltSampler,
     axis_rotation,
     closest_points_between_axes,
@@ -86,7 +86,7 @@ def test_droid_pivot_lies_in_front_of_both_cameras(droid):
 
 def _large_perturbations() -> list[Perturbation]:
     """Seeded Large samples over both axes plus the extreme corners of the Large range."""
-    out = [PerturbationSampler("large", seed=seed).sample(ep) for seed in range(3) for ep in range(100)]
+    out = [PaperSampler("large", seed=seed).sample(ep) for seed in range(3) for ep in range(100)]
     lo, hi = LEVELS["large"].theta_deg
     m_lo, m_hi = LEVELS["large"].mu_m
     out += [
@@ -228,7 +228,7 @@ def test_levels_match_the_paper():
 @pytest.mark.parametrize("level", sorted(LEVELS))
 def test_samples_stay_within_the_level_range(level):
     rng = LEVELS[level]
-    samples = [PerturbationSampler(level, seed=7).sample(ep) for ep in range(300)]
+    samples = [PaperSampler(level, seed=7).sample(ep) for ep in range(300)]
     thetas = torch.tensor([s.theta_deg for s in samples], dtype=DTYPE)
     mus = torch.tensor([s.mu_m for s in samples], dtype=DTYPE)
     lo, hi = rng.theta_deg
@@ -244,14 +244,14 @@ def test_samples_stay_within_the_level_range(level):
 
 
 def test_train_level_draws_signed_angles_directly():
-    samples = [PerturbationSampler("train", seed=0).sample(ep) for ep in range(400)]
+    samples = [PaperSampler("train", seed=0).sample(ep) for ep in range(400)]
     thetas = torch.tensor([s.theta_deg for s in samples])
     assert thetas.min() >= -30 and thetas.max() <= 30
     assert (thetas.abs() < 3).any()  # small angles occur: it is not a magnitude range mirrored
 
 
 def test_episode_mode_shares_one_perturbation_per_episode():
-    s = PerturbationSampler("large", mode="episode", seed=0)
+    s = PaperSampler("large", mode="episode", seed=0)
     for ep in range(5):
         first = s.sample(ep, 0)
         assert all(s.sample(ep, frame) == first for frame in range(1, 50))
@@ -259,21 +259,21 @@ def test_episode_mode_shares_one_perturbation_per_episode():
 
 
 def test_frame_mode_differs_per_frame_but_is_repeatable():
-    s = PerturbationSampler("large", mode="frame", seed=0)
+    s = PaperSampler("large", mode="frame", seed=0)
     frames = [s.sample(3, frame) for frame in range(50)]
     assert len(set(frames)) == 50
     assert [s.sample(3, frame) for frame in range(50)] == frames
 
 
 def test_views_give_different_perturbations_of_the_same_episode():
-    s = PerturbationSampler("train", seed=0)
+    s = PaperSampler("train", seed=0)
     views = [s.sample(0, view=v) for v in range(3)]
     assert len(set(views)) == 3
     assert s.sample(0, view=1) == views[1]
 
 
 def test_seeding_is_deterministic_and_seeds_differ():
-    a, b, c = (PerturbationSampler("medium", seed=s) for s in (11, 11, 12))
+    a, b, c = (PaperSampler("medium", seed=s) for s in (11, 11, 12))
     seq = [a.sample(ep, view=v) for ep in range(10) for v in range(2)]
     assert seq == [b.sample(ep, view=v) for ep in range(10) for v in range(2)]
     assert seq != [c.sample(ep, view=v) for ep in range(10) for v in range(2)]
@@ -283,27 +283,27 @@ def test_seeding_is_deterministic_and_seeds_differ():
 
 
 def test_single_axis_sampler():
-    s = PerturbationSampler("small", axes=("x",), seed=0)
+    s = PaperSampler("small", axes=("x",), seed=0)
     assert {s.sample(ep).axis for ep in range(50)} == {"x"}
 
 
 def test_none_and_extreme_levels_are_fixed():
-    assert PerturbationSampler("none").sample(4).is_identity
-    e = PerturbationSampler("extreme").sample(4)
+    assert PaperSampler("none").sample(4).is_identity
+    e = PaperSampler("extreme").sample(4)
     assert abs(e.theta_deg) == 60.0 and e.mu_m == 0.12
 
 
 @pytest.mark.parametrize(
     ("make", "match"),
     [
-        (lambda: PerturbationSampler("huge"), "unknown perturbation level 'huge'; choose one of"),
+        (lambda: PaperSampler("huge"), "unknown perturbation level 'huge'; choose one of"),
         (lambda: get_range("Large "), "unknown perturbation level"),
-        (lambda: PerturbationSampler("large", mode="step"), "mode must be 'episode' or 'frame', got 'step'"),
-        (lambda: PerturbationSampler("large", axes=("z",)), "axes must be a non-empty subset"),
-        (lambda: PerturbationSampler("large", axes=()), "axes must be a non-empty subset"),
-        (lambda: PerturbationSampler("large", seed=-1), r"seed must be in \[0, 2\*\*32\), got -1"),
-        (lambda: PerturbationSampler("large").sample(-1), r"indices must be in \[0, 2\*\*32\)"),
-        (lambda: PerturbationSampler("large", mode="frame").sample(0, -2), r"indices must be in \[0, 2\*\*32\)"),
+        (lambda: PaperSampler("large", mode="step"), "mode must be 'episode' or 'frame', got 'step'"),
+        (lambda: PaperSampler("large", axes=("z",)), "axes must be a non-empty subset"),
+        (lambda: PaperSampler("large", axes=()), "axes must be a non-empty subset"),
+        (lambda: PaperSampler("large", seed=-1), r"seed must be in \[0, 2\*\*32\), got -1"),
+        (lambda: PaperSampler("large").sample(-1), r"indices must be in \[0, 2\*\*32\)"),
+        (lambda: PaperSampler("large", mode="frame").sample(0, -2), r"indices must be in \[0, 2\*\*32\)"),
         (lambda: Perturbation(axis="w"), "axis must be one of"),
         (lambda: Perturbation(axis=(0.0, 0.0, 0.0)), "a direction needs 3 finite values, not all 0"),
         (lambda: Perturbation(axis=(1.0, math.nan, 0.0)), "a direction needs 3 finite values"),
@@ -446,7 +446,7 @@ def test_arc_sampler_turns_about_the_vertical_and_keeps_the_pivot_in_view():
 def test_a_focal_length_change_keeps_the_move_the_principal_point_and_the_image_size():
     """focal_scale is drawn log-uniformly after the move, so the paper's draws are unchanged;
     the moved camera's focal lengths scale, its principal point and size stay."""
-    plain, zoom = PerturbationSampler("large", seed=2), PerturbationSampler("large", seed=2, focal_scale=(0.8, 1.25))
+    plain, zoom = PaperSampler("large", seed=2), PaperSampler("large", seed=2, focal_scale=(0.8, 1.25))
     for ep in range(20):
         a, b = plain.sample(ep), zoom.sample(ep)
         assert (a.axis, a.theta_deg, a.mu_m) == (b.axis, b.theta_deg, b.mu_m) and 0.8 <= b.focal_scale <= 1.25
@@ -462,7 +462,7 @@ def test_a_focal_length_change_keeps_the_move_the_principal_point_and_the_image_
 def test_make_sampler_and_the_config_choose_the_sampler():
     from gensplat_transforms.settings import GenSplatConfig
 
-    assert isinstance(make_sampler("paper"), PerturbationSampler)
+    assert isinstance(make_sampler("paper"), PaperSampler)
     config = GenSplatConfig(sampler="arc", arc_deg=30.0, shift_m=0.01, focal_scale=[0.9, 1.1])
     sampler = config.perturbations()
     assert isinstance(sampler, ArcSampler) and sampler.limit_deg == 30.0 and sampler.focal_scale == (0.9, 1.1)

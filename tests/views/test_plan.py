@@ -7,7 +7,7 @@ import torch
 from torch.utils.data import default_collate
 
 from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
-from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.cache.store import SceneCache
 from gensplat_transforms.geometry import RGBDReconstructor
 from gensplat_transforms.rendering.batched import render_batch
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform, render_view
@@ -20,7 +20,7 @@ LEFT, RIGHT = "observation.images.left", "observation.images.right"
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):
     source = SceneEpisodes(num_episodes=1, num_frames=3, size=24)
-    cache = GaussianCache(tmp_path_factory.mktemp("cache"), RGBDReconstructor(), source.fingerprint)
+    cache = SceneCache(tmp_path_factory.mktemp("cache"), RGBDReconstructor(), source.fingerprint)
     build_cache(cache, source, range(1), progress=False)
     return cache, SceneDataset(source)
 

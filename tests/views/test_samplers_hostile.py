@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from gensplat_transforms.cache.builder import SceneEpisodes, build_cache
-from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.cache.store import SceneCache
 from gensplat_transforms.core.cameras import FOCAL_MAX_PX, Cameras, look_at
 from gensplat_transforms.geometry import RGBDReconstructor
 from gensplat_transforms.rendering.output import render_view
@@ -20,9 +20,9 @@ from gensplat_transforms.views.perturbation import (
     SAMPLERS,
     MixSampler,
     Moves,
+    PaperSampler,
     Perturbation,
     PerturbationRange,
-    PerturbationSampler,
     TiltSampler,
     _move_rig,
     make_sampler,
@@ -40,7 +40,7 @@ CAMS = Cameras.from_intrinsics(100.0, 90.0, 48.0, 40.0, RIG, 96, 80)
 def scene(tmp_path_factory):
     """One cached reconstruction of the procedural scene (24x24) and the transform's settings."""
     source = SceneEpisodes(num_episodes=1, num_frames=1, size=24)
-    cache = GaussianCache(tmp_path_factory.mktemp("cache"), RGBDReconstructor(), source.fingerprint)
+    cache = SceneCache(tmp_path_factory.mktemp("cache"), RGBDReconstructor(), source.fingerprint)
     build_cache(cache, source, range(1), progress=False)
     return cache.read(0, 0, source.views(0, 0).images), GenSplatConfig()
 
@@ -204,8 +204,8 @@ def test_a_batch_through_move_rig_is_perturbation_move_one_at_a_time(dtype):
 
 def test_seeds_and_indices_from_2_to_the_32_are_refused_rather_than_drawn_like_smaller_ones():
     # NumPy splits a key integer into 32-bit words: (2**32, 5, 0, 1) would be the key (0, 1, 5, 0, 1)
-    for make in (lambda: PerturbationSampler("large", seed=KEY_LIMIT), lambda: GenSplatConfig(seed=2**63),
-                 lambda: PerturbationSampler("large").sample(KEY_LIMIT), lambda: TiltSampler(10.0).sample(0, view=2**40),
+    for make in (lambda: PaperSampler("large", seed=KEY_LIMIT), lambda: GenSplatConfig(seed=2**63),
+                 lambda: PaperSampler("large").sample(KEY_LIMIT), lambda: TiltSampler(10.0).sample(0, view=2**40),
                  lambda: TiltSampler(10.0, mode="frame").sample(0, KEY_LIMIT)):  # fmt: skip
         with pytest.raises(ValueError, match=r"must be in \[0, 2\*\*32\)"):
             make()

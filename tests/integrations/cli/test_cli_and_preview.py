@@ -11,7 +11,7 @@ from gensplat_cli import build_parser, main
 from PIL import Image
 
 from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
-from gensplat_transforms.cache.store import GaussianCache
+from gensplat_transforms.cache.store import SceneCache
 from gensplat_transforms.geometry import RGBDReconstructor
 from gensplat_transforms.rendering.preview import write_preview
 from gensplat_transforms.transform import GenSplatConfig, GenSplatTransform
@@ -42,7 +42,7 @@ def test_demo_records_caches_and_previews(tmp_path, capfd, caplog):
 def test_preview_png_and_mp4(tmp_path):
     source = SceneEpisodes(num_episodes=1, num_frames=4, size=32)
     rec = RGBDReconstructor()
-    cache = GaussianCache(tmp_path / "c", rec, source.fingerprint)
+    cache = SceneCache(tmp_path / "c", rec, source.fingerprint)
     build_cache(cache, source, [0], progress=False)
     ds = SceneDataset(source)
     tf = GenSplatTransform(GenSplatConfig(probability=1.0, level="medium"), cache)

@@ -23,7 +23,7 @@ from gensplat_sim.world import CAMERA_NAMES, SimWorld, WorldConfig
 
 from gensplat_transforms.calibration.files import load_calibration
 from gensplat_transforms.data.format import load_depth
-from gensplat_transforms.views.perturbation import Perturbation, PerturbationSampler, pivot_point
+from gensplat_transforms.views.perturbation import PaperSampler, Perturbation, pivot_point
 
 SIZE = 96
 
@@ -274,7 +274,7 @@ def test_perturbed_camera_env():
     assert first == again  # unseeded, the noise (and the arm) would differ between the two runs
 
     obs, info = env.reset(options={"episode_index": 0})
-    p = PerturbationSampler("large", seed=2).sample(0)
+    p = PaperSampler("large", seed=2).sample(0)
     assert info["perturbation"] == p.as_dict() and abs(p.theta_deg) >= 18
     moved = env.world.cameras(("left", "right"))
     torch.testing.assert_close(moved.c2w[0], p.apply(env.nominal_c2w["left"], env.pivot), atol=1e-6, rtol=0)

@@ -12,7 +12,7 @@ import torch
 from gensplat_sim.vista import ArcMove, SmallPerturb, VistaSampler
 
 from gensplat_transforms.core.cameras import look_at
-from gensplat_transforms.views.perturbation import PerturbationSampler
+from gensplat_transforms.views.perturbation import PaperSampler
 
 EYE, CENTRE = (
     (1.05, 0.40, 0.50),
@@ -120,7 +120,7 @@ def test_perturbed_camera_env_protocols():
     arc = PerturbedCameraEnv(EvalConfig("reach_solo", "arc_90deg", seed=5, world=world, protocol="vista"))
     for i in range(2):
         _, info = paper.reset(options={"episode_index": i})
-        assert info["perturbation"] == PerturbationSampler("medium", seed=5).sample(i).as_dict()
+        assert info["perturbation"] == PaperSampler("medium", seed=5).sample(i).as_dict()
         obs, info = arc.reset(options={"episode_index": i})
         move = VistaSampler("arc_90deg", seed=5).sample(i)
         assert info["perturbation"] == move.as_dict()
@@ -136,7 +136,7 @@ def test_perturbed_camera_env_protocols():
     nominal = zoom.world.cameras(("left", "right"))
     for i in range(3):
         _, info = zoom.reset(options={"episode_index": i})
-        scale = PerturbationSampler("none", seed=5, focal_scale=(0.8, 1.25)).sample(i).focal_scale
+        scale = PaperSampler("none", seed=5, focal_scale=(0.8, 1.25)).sample(i).focal_scale
         assert info["perturbation"]["focal_scale"] == scale and 0.8 <= scale <= 1.25
         seen = zoom.world.cameras(("left", "right"))
         torch.testing.assert_close(seen.K[0, :2, :2], nominal.K[0, :2, :2] * scale, atol=1e-4, rtol=0)

@@ -1,0 +1,35 @@
+"""Former public names that still import, with a DeprecationWarning naming the new one.
+
+A module that held a renamed name sets ``__getattr__ = renamed(__name__, {"Old": "New"})``
+(PEP 562: called only for names the module does not have).
+
+Example:
+    >>> import warnings
+    >>> import gensplat_transforms
+    >>> with warnings.catch_warnings(record=True) as caught:
+    ...     warnings.simplefilter("always")
+    ...     gensplat_transforms.GaussianCache is gensplat_transforms.SceneCache
+    True
+    >>> str(caught[0].message)
+    'gensplat_transforms.GaussianCache is renamed gensplat_transforms.SceneCache'
+"""
+
+from __future__ import annotations
+
+import sys
+import warnings
+
+#: former name -> current name, for every module that exported the former one
+RENAMED = {"GaussianCache": "SceneCache", "PerturbationSampler": "PaperSampler"}
+
+
+def renamed(module: str, names: dict[str, str] = RENAMED):
+    """A module ``__getattr__`` resolving the former ``names`` of ``module`` to the current ones."""
+
+    def __getattr__(name: str):
+        if name not in names:
+            raise AttributeError(f"module {module!r} has no attribute {name!r}")
+        warnings.warn(f"{module}.{name} is renamed {module}.{names[name]}", DeprecationWarning, stacklevel=2)
+        return getattr(sys.modules[module], names[name])
+
+    return __getattr__
