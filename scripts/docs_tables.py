@@ -9,8 +9,7 @@ A table sits in a Markdown file of ``docs/`` between two markers that name its c
     ...generated...
     <!-- /options -->
 
-The integrations' configs need their packages importable (``PYTHONPATH=integrations``, as
-the tests have it).
+The integrations' configs are imported too (``scripts/setup.sh`` installs them).
 """
 
 from __future__ import annotations
