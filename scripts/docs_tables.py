@@ -23,7 +23,7 @@ from pathlib import Path
 from gensplat_transforms.core.config_docs import options_table
 
 DOCS = Path(__file__).resolve().parent.parent / "docs"
-BLOCK = re.compile(r"(<!-- options: ([\w.]+):(\w+) -->\n)(.*?)(<!-- /options -->)", re.DOTALL)
+BLOCK = re.compile(r"^(<!-- options: ([\w.]+):(\w+) -->\n)(.*?)^(<!-- /options -->)", re.DOTALL | re.MULTILINE)
 
 
 def render(text: str) -> str:
@@ -33,16 +33,23 @@ def render(text: str) -> str:
         cls = getattr(importlib.import_module(match[2]), match[3])
         return f"{match[1]}{options_table(cls)}\n{match[5]}"
 
+    opened, closed = (len(re.findall(rf"^{m}", text, re.MULTILINE)) for m in ("<!-- options:", "<!-- /options -->"))
+    if opened != closed or len(BLOCK.findall(text)) != opened:
+        raise ValueError(f"{opened} '<!-- options: module:Class -->' markers and {closed} '<!-- /options -->': "
+                         "each table needs both, on lines of their own")  # fmt: skip
     return BLOCK.sub(table, text)
 
 
 def stale(docs: Path | None = None) -> dict[Path, str]:
     """The Markdown files under ``docs`` (default: the repository's) whose tables are out of
-    date, with their new text."""
+    date, with their new text; a file whose markers do not pair raises ValueError naming it."""
     out = {}
     for path in sorted((docs or DOCS).glob("*.md")):
         text = path.read_text()
-        new = render(text)
+        try:
+            new = render(text)
+        except ValueError as e:
+            raise ValueError(f"{path}: {e}") from None
         if new != text:
             out[path] = new
     return out

@@ -45,3 +45,13 @@ def test_a_marker_naming_a_missing_class_fails_loudly(tmp_path):
     (tmp_path / "x.md").write_text("<!-- options: gensplat_transforms.settings:NoSuchConfig -->\n<!-- /options -->\n")
     with pytest.raises(AttributeError, match="NoSuchConfig"):
         docs_tables.stale(tmp_path)
+
+
+@pytest.mark.parametrize("text", ["<!-- options: gensplat_transforms.settings:GenSplatConfig -->\n| left open |\n",
+                                  "<!-- /options -->\n",
+                                  "<!-- options: gensplat_transforms.settings:GenSplatConfig --> <!-- /options -->\n",
+                                  "<!-- options: gensplat_transforms.settings:GenSplat Config -->\n<!-- /options -->\n"])
+def test_markers_that_do_not_pair_are_refused_with_the_file_named(tmp_path, text):
+    (tmp_path / "y.md").write_text(text)
+    with pytest.raises(ValueError, match=r"y\.md: .*each table needs both"):
+        docs_tables.stale(tmp_path)
