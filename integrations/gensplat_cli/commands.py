@@ -446,8 +446,7 @@ def _cache(args) -> None:
     sensed = [n for n in cameras if n in source.depth_features and not depth_path(args.root, n, 0).exists()]
     if sensed and not args.fill_depth and spec["name"] == "rgbd":
         print(f"tip: the depth of {', '.join(sensed)} is a sensor's (LeRobot depth maps): --fill-depth 8 gives its "
-              "small holes depth before the discs are built (+5.01 dB PSNR at the source pose, +0.67 dB at large "
-              "moves on a simulated RealSense; docs/reconstruction.md)")  # fmt: skip
+              "small holes depth before the discs are built (what it gains: docs/reconstruction.md)")
 
 
 #: what each reconstructor's cache is made of (``gensplat cache`` says which path built it)
