@@ -120,3 +120,20 @@ def test_a_batch_items_walk_is_short(setup):
     functions, climbs = walk(lambda: render_batch(batch, transform))
     assert len(functions) <= 14 and climbs <= 4, (len(functions), climbs, functions)
     assert f"{render_scenes.__module__}.render_scenes" in functions  # the worker's render
+
+
+def test_a_worker_items_walk_does_not_grow(setup):
+    """A worker item (a stack of two timesteps, with a depth cache, its episode file already
+    open) visits at most 25 functions in 15 modules and climbs back up at most 5 times (the
+    figures in docs/layout.md)."""
+    cache, item = setup
+    config = GenSplatConfig(probability=1.0, report=True, frame_offsets=(-1, 0), depth_unit="m")
+    transform = GenSplatTransform(config, cache)
+    transform(item)  # the episode file opened and kept: the walk of every later item
+    functions, climbs = walk(lambda: transform(item))
+    modules = set()
+    for name in functions:  # the longest prefix that is a module
+        while name not in sys.modules:
+            name = name.rsplit(".", 1)[0]
+        modules.add(name)
+    assert len(functions) <= 25 and len(modules) <= 15 and climbs <= 5, (len(functions), len(modules), climbs, functions)
