@@ -24,12 +24,14 @@ RENAMED = {"GaussianCache": "SceneCache", "PerturbationSampler": "PaperSampler"}
 
 
 def renamed(module: str, names: dict[str, str] = RENAMED):
-    """A module ``__getattr__`` resolving the former ``names`` of ``module`` to the current ones."""
+    """A module ``__getattr__`` resolving the former ``names`` of ``module`` to the current ones
+    (those the module holds: a name it never exported stays an AttributeError)."""
 
     def __getattr__(name: str):
-        if name not in names:
+        new = names.get(name)
+        if new is None or new not in vars(sys.modules[module]):
             raise AttributeError(f"module {module!r} has no attribute {name!r}")
-        warnings.warn(f"{module}.{name} is renamed {module}.{names[name]}", DeprecationWarning, stacklevel=2)
-        return getattr(sys.modules[module], names[name])
+        warnings.warn(f"{module}.{name} is renamed {module}.{new}", DeprecationWarning, stacklevel=2)
+        return getattr(sys.modules[module], new)
 
     return __getattr__
