@@ -20,6 +20,7 @@ import re
 import sys
 from pathlib import Path
 
+from gensplat_transforms.core.atomic import atomic_write
 from gensplat_transforms.core.config_docs import options_table
 
 DOCS = Path(__file__).resolve().parent.parent / "docs"
@@ -63,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
     for path, text in changed.items():
         print(f"{'out of date' if args.check else 'wrote'}: {path.relative_to(DOCS.parent)}")
         if not args.check:
-            path.write_text(text)
+            atomic_write(path, lambda tmp, text=text: Path(tmp).write_text(text))
     return 1 if args.check and changed else 0
 
 
