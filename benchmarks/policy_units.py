@@ -16,9 +16,11 @@ recorded dataset, the checkpoints and the evaluated levels stay between runs.
 
 The result of a unit is ``benchmarks/results/policy/<task>/<arm>@s<seed>.json``: the unit, the
 settings that shape it, the commit it ran on, success % per protocol and level, the
-per-episode records, the training and evaluation times and the unit's wall time (the sum of
+per-episode records, the training and evaluation times, the unit's wall time (the sum of
 its stages; evaluated levels kept from a stopped run count their process time shared by the
-evaluation processes). ``run`` skips a unit whose file holds the current settings, and with ``--commit``
+evaluation processes) and the share of the machine's cores its processes had over the run
+(their CPU time over the run's wall time times the cores: well below 1 where other work shared
+the machine). ``run`` skips a unit whose file holds the current settings, and with ``--commit``
 commits each file the moment its unit ends (that file only). ``summary`` reads the unit files
 alone: per arm the success over its seeds, and each arm against the baseline and against the
 best 2D arm, paired on the same seeds and episodes, with a bootstrap 95 % interval over seeds
@@ -29,6 +31,8 @@ benchmarks/README.md between the ``policy-units`` markers.
 from __future__ import annotations
 
 import argparse
+import os
+import resource
 import subprocess
 import sys
 import time
@@ -108,12 +112,25 @@ def head_commit() -> str:
     return commit + ("+changes" if git("status", "--porcelain", "--untracked-files=no") else "")
 
 
+def cpu_seconds() -> float:
+    """CPU seconds (user + system) of this process and of its children that have ended."""
+    own, children = (resource.getrusage(who) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN))
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
+def machine_share(cpu: float, wall: float, cores: int | None = None) -> float:
+    """The share of the machine's ``cores`` (default: all) that ``cpu`` seconds over ``wall``
+    seconds are, rounded to 0.01."""
+    return round(cpu / (max(wall, 1e-9) * (cores or os.cpu_count() or 1)), 2)
+
+
 def run_unit(unit: Unit, args) -> dict:
     """Record (once per task), prepare, train and evaluate ``unit``; its result (see the module docstring)."""
     work, name = args.work, unit.name
     lock = pr.lock_work(work)  # noqa: F841  (held until the unit ends)
     pr.check_work(work, (name,), args)
     stages = {}
+    cpu, start = cpu_seconds(), time.perf_counter()
     t0 = time.perf_counter()
     pr.record_dataset(work, args)
     stages["record_seconds"] = round(time.perf_counter() - t0, 1)
@@ -129,6 +146,7 @@ def run_unit(unit: Unit, args) -> dict:
     # levels kept from a stopped run count their process time shared by the evaluation processes
     evaluation = max(stages["eval_seconds"], stages["eval_process_seconds"] / args.eval_jobs)
     wall = stages["record_seconds"] + stages["prepare_seconds"] + train.get("seconds", 0.0) + evaluation
+    stages["machine_share"] = machine_share(cpu_seconds() - cpu, time.perf_counter() - start)
     return {
         "unit": {"task": unit.task, "arm": unit.arm, "seed": unit.seed, "name": name},
         "settings": unit_settings(unit, args), "commit": head_commit(), "machine": cpu_model(),
@@ -219,6 +237,7 @@ def summarise(task: str, units: Path = UNITS, seed: int = 0) -> dict:
         "units": {name: {"wall_seconds": t["wall_seconds"], "within_limit": t["wall_seconds"] <= UNIT_LIMIT_S}
                   | ({"resumed_from_step": t["train"]["resumed_from_step"]}
                      if "resumed_from_step" in t.get("train", {}) else {})
+                  | ({"machine_share": t["machine_share"]} if "machine_share" in t else {})
                   for name, t in walls.items()},
         "commits": sorted({f["commit"] for arm in arms for f in found[arm].values()}),
         "episodes_per_level": sorted({f["settings"]["episodes"] for arm in arms for f in found[arm].values()}),
@@ -253,9 +272,12 @@ def markdown(summary: dict) -> str:
         longest = max(walls.values(), key=lambda u: u["wall_seconds"])["wall_seconds"]
         over = sum(not u["within_limit"] for u in walls.values())
         resumed = [name for name, u in walls.items() if "resumed_from_step" in u]
+        shares = sorted(u["machine_share"] for u in walls.values() if not u["within_limit"] and "machine_share" in u)
         lines += ["", f"Units: {len(walls)}; the longest took {longest / 60:.0f} min ({over} over {UNIT_LIMIT_S // 60} min)"
                   + (f"; {', '.join(resumed)} resumed a stopped training, and its wall time counts only the steps "
-                     "after the resume" if resumed else "") + "."]  # fmt: skip
+                     "after the resume" if resumed else "")
+                  + (f"; the units over the limit that recorded it had {shares[0]:.0%}-{shares[-1]:.0%} of the "
+                     "machine's cores (other work had the rest)" if shares else "") + "."]  # fmt: skip
     return "\n".join(lines) + "\n"
 
 

@@ -3,6 +3,8 @@ other is run and written; the summary's statistics, read from made-up unit files
 
 from __future__ import annotations
 
+import os
+import subprocess
 import sys
 from pathlib import Path
 
@@ -23,7 +25,7 @@ LEVELS = [(p, lv) for p, levels in pr.PROTOCOLS.items() for lv in levels]
 
 
 def unit_file(unit: pu.Unit, wins: dict, episodes: int = 4, wall: float = 100.0, settings: dict | None = None,
-              train: dict | None = None) -> dict:
+              train: dict | None = None, share: float | None = None) -> dict:
     """A made-up unit file: ``wins`` {(protocol, level): (episodes,) successes}, 0 where absent."""
     success = {p: {} for p in pr.PROTOCOLS}
     records = {p: [] for p in pr.PROTOCOLS}
@@ -33,7 +35,8 @@ def unit_file(unit: pu.Unit, wins: dict, episodes: int = 4, wall: float = 100.0,
         records[p] += [{"level": lv, "episode": i, "success": bool(w)} for i, w in enumerate(won)]
     return {"unit": {"task": unit.task, "arm": unit.arm, "seed": unit.seed, "name": unit.name},
             "settings": settings or {"episodes": episodes}, "commit": "c0ffee", "success": success,
-            "episodes": records, "timing": {"wall_seconds": wall, **({"train": train} if train else {})}}  # fmt: skip
+            "episodes": records, "timing": {"wall_seconds": wall, **({"train": train} if train else {}),
+                                            **({"machine_share": share} if share is not None else {})}}  # fmt: skip
 
 
 def write(results: Path, unit: pu.Unit, **kwargs) -> None:
@@ -108,6 +111,27 @@ def test_summary_statistics_paired_over_seeds_and_episodes(tmp_path):
     s = pu.summarise(TASK, results)
     assert s["units"]["gensplat-tilt@s1"] == {"wall_seconds": 100.0, "within_limit": True, "resumed_from_step": 1500}
     assert "gensplat-tilt@s1 resumed a stopped training" in pu.markdown(s)
+
+
+def test_the_summary_says_what_share_of_the_machine_the_slow_units_had(tmp_path):
+    results = tmp_path / "results"
+    write(results, pu.Unit(TASK, "baseline", 0), wins={}, wall=7000.0, share=0.6)
+    write(results, pu.Unit(TASK, "baseline", 1), wins={}, wall=5000.0, share=0.45)
+    write(results, pu.Unit(TASK, "gensplat", 0), wins={}, wall=3000.0, share=0.9)  # within the limit: not counted
+    write(results, pu.Unit(TASK, "gensplat", 1), wins={}, wall=8000.0)  # an older file without it
+    s = pu.summarise(TASK, results)
+    assert s["units"]["baseline@s1"] == {"wall_seconds": 5000.0, "within_limit": False, "machine_share": 0.45}
+    assert "machine_share" not in s["units"]["gensplat@s1"]
+    assert "(3 over 60 min); the units over the limit that recorded it had 45%-60% of the machine's cores" in pu.markdown(s)
+
+
+def test_cpu_seconds_count_ended_children_and_the_share_is_of_all_cores():
+    before = pu.cpu_seconds()
+    subprocess.run([sys.executable, "-c", "import time\nt = time.process_time()\nwhile time.process_time() - t < 0.3: pass"],
+                   check=True)  # fmt: skip
+    assert pu.cpu_seconds() - before >= 0.25
+    assert pu.machine_share(60.0, 60.0, cores=2) == 0.5 and pu.machine_share(0.0, 0.0, cores=2) == 0.0
+    assert pu.machine_share(120.0, 60.0) == round(2.0 / os.cpu_count(), 2)
 
 
 def test_the_bootstrap_interval_covers_the_truth_at_its_rate():
