@@ -19,7 +19,7 @@ from .data.format import DepthSensor
 from .rendering import render_size
 from .rendering.output import render_depth, render_view, render_views
 from .settings import GenSplatConfig
-from .views.perturbation import AXES, ROW, Moves
+from .views.perturbation import AXES, ROW
 from .views.plan import BATCH_KEYS, ViewPlan
 
 __all__ = ["BATCH_KEYS", "AugmentedDataset", "GenSplatConfig", "GenSplatTransform", "ViewPlan", "render_depth",
@@ -210,11 +210,11 @@ def _report(plan: ViewPlan) -> dict[str, torch.Tensor]:
     if not plan.applied:
         return {"gensplat.applied": torch.zeros(R, dtype=torch.bool), "gensplat.axis": torch.zeros(R, dtype=torch.long),
                 "gensplat.theta_deg": torch.zeros(R), "gensplat.mu_m": torch.zeros(R), "gensplat.move": torch.zeros(R, ROW)}  # fmt: skip
-    rows = torch.tensor(plan.rows)
-    moves = Moves.of_rows(rows)
     axis = [AXES.index(p.axis) if isinstance(p.axis, str) else -1 for p in plan.moves]
     return {"gensplat.applied": torch.ones(R, dtype=torch.bool), "gensplat.axis": torch.tensor(axis),
-            "gensplat.theta_deg": moves.theta_deg.float(), "gensplat.mu_m": moves.mu_m.float(), "gensplat.move": rows}  # fmt: skip
+            "gensplat.theta_deg": torch.tensor([p.theta_deg for p in plan.moves], dtype=torch.float32),
+            "gensplat.mu_m": torch.tensor([p.mu_m for p in plan.moves], dtype=torch.float32),
+            "gensplat.move": torch.tensor(plan.rows)}  # fmt: skip
 
 
 def _check_images(item: dict, keys: dict[str, str], cameras: tuple[str, ...]) -> None:

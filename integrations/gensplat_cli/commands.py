@@ -23,15 +23,24 @@ def build_parser() -> argparse.ArgumentParser:
     """The ``gensplat`` parser and its subcommands."""
     parser = argparse.ArgumentParser(prog="gensplat", description="GenSplat camera-pose augmentation tools")
     sub = parser.add_subparsers(dest="command", required=True)
+    for add in (_demo_parser, _record_parser, _cache_parser, _import_depth_parser, _calibrate_parser,
+                _train_model_parser, _preview_parser, _export_ply_parser):  # fmt: skip
+        add(sub)
+    return parser
 
+
+def _demo_parser(sub) -> None:
+    """`gensplat demo`: the main job on built-in data."""
     from gensplat_sim.demo import DemoConfig
 
     from gensplat_transforms.core.config_flags import add_flags
-    from gensplat_transforms.settings import add_config_arguments
 
     demo = sub.add_parser("demo", help="the main job: simulated dataset -> Gaussian cache -> augmentation preview")
     add_flags(demo, DemoConfig)
 
+
+def _record_parser(sub) -> None:
+    """`gensplat record`: its flags are RecordConfig's (the sim extra)."""
     record = sub.add_parser("record", help="record scripted demonstrations of the simulated tabletop (LeRobot v3)")
     try:
         from gensplat_sim.record import add_record_flags
@@ -39,6 +48,11 @@ def build_parser() -> argparse.ArgumentParser:
         record.description = f"needs the sim extra: pip install 'gensplat-transforms[sim]' ({e})"
     else:
         add_record_flags(record)
+
+
+def _cache_parser(sub) -> None:
+    """`gensplat cache`: the transform's settings (GenSplatConfig's flags) and how to build the cache."""
+    from gensplat_transforms.settings import add_config_arguments
 
     cache = sub.add_parser(
         "cache", help="write GenSplat settings beside a LeRobot dataset and build its Gaussian cache",
@@ -78,6 +92,9 @@ def build_parser() -> argparse.ArgumentParser:
                             "that no tensor reaches 2**31 elements; default: on CUDA as many as that allows, up to "
                             "32, on the CPU 1)")
 
+
+def _import_depth_parser(sub) -> None:
+    """`gensplat import-depth`: one camera's recorded depth as the dataset's depth sidecars."""
     depth = sub.add_parser(
         "import-depth", help="write a camera's recorded depth (16-bit PNG, float TIFF, .npy/.npz) as the depth "
                              "sidecars of a LeRobot dataset",
@@ -99,6 +116,9 @@ def build_parser() -> argparse.ArgumentParser:
     _episodes_argument(depth)
     depth.add_argument("--overwrite", action="store_true", help="replace existing depth sidecars")
 
+
+def _calibrate_parser(sub) -> None:
+    """`gensplat calibrate`: one subcommand per source of the calibration, each with its own options."""
     calibrate = sub.add_parser(
         "calibrate", help="store camera calibration beside a LeRobot dataset whose features carry none",
         description="Write the external cameras' intrinsics and poses to ROOT/gensplat/calibration.json (the "
@@ -163,8 +183,13 @@ def build_parser() -> argparse.ArgumentParser:
                           help="without depth: the distance from the first camera down to the table, metres (sets "
                                "the scale)")
 
-    train = sub.add_parser("train-model", help="train the GenSplat model with 3D-prior distillation")
+
+def _train_model_parser(sub) -> None:
+    """`gensplat train-model`: TrainConfig's flags and the data and model to train on."""
+    from gensplat_transforms.core.config_flags import add_flags
     from gensplat_transforms.training import TrainConfig
+
+    train = sub.add_parser("train-model", help="train the GenSplat model with 3D-prior distillation")
 
     add_flags(train, TrainConfig)  # the run's settings: one flag per TrainConfig (and LossWeights) field with one
     train.add_argument("--size", type=int, default=112, help="image side, a multiple of 14 (default: 112)")
@@ -186,6 +211,9 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--teacher-weights", default=None, help="Pi3 model.safetensors for --teacher pi3 (default: none)")
     train.add_argument("--no-distill", action="store_true", help="L_rgb only (l_depth = l_3D = l_cam = 0)")
 
+
+def _preview_parser(sub) -> None:
+    """`gensplat preview`: what the policy gets from a dataset, as PNG and MP4."""
     preview = sub.add_parser(
         "preview", help="grid PNG and MP4 of what the policy gets from a LeRobot dataset (GenSplat forced on)",
         description="Write preview.png (original versus policy input per camera, a few perturbation draws per "
@@ -206,6 +234,9 @@ def build_parser() -> argparse.ArgumentParser:
     preview.add_argument("--seed", type=int, default=0, help="torch seed of the draws (default: 0)")
     preview.add_argument("--out", required=True, help="output folder, outside the dataset (created; files replaced)")
 
+
+def _export_ply_parser(sub) -> None:
+    """`gensplat export-ply`: one cached timestep's Gaussians as a 3DGS PLY."""
     export = sub.add_parser(
         "export-ply", help="write the cached Gaussians of one timestep of a LeRobot dataset as a 3DGS PLY",
         description="Write the Gaussians GenSplat renders one timestep from as a standard 3DGS binary PLY "
@@ -216,8 +247,6 @@ def build_parser() -> argparse.ArgumentParser:
     export.add_argument("--episode", type=int, required=True, help="episode index")
     export.add_argument("--frame", type=int, required=True, help="frame index within the episode")
     export.add_argument("--out", required=True, help="PLY file to write, outside the dataset (replaced when it exists)")
-
-    return parser
 
 
 def _dataset_arguments(parser: argparse.ArgumentParser, root_note: str = "", *, repo_id: str | None = "",
