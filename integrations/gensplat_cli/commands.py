@@ -21,7 +21,10 @@ def _pixel_point(text: str) -> tuple[float, float]:
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``gensplat`` parser and its subcommands."""
+    from gensplat_transforms import __version__
+
     parser = argparse.ArgumentParser(prog="gensplat", description="GenSplat camera-pose augmentation tools")
+    parser.add_argument("--version", action="version", version=f"gensplat-transforms {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     for add in (_demo_parser, _record_parser, _cache_parser, _import_depth_parser, _calibrate_parser,
                 _train_model_parser, _preview_parser, _export_ply_parser):  # fmt: skip

@@ -1,15 +1,19 @@
 """The command-line demo and help, and the episode preview."""
 
 import argparse
+import importlib.metadata
 import importlib.util
 import json
 import os
 import subprocess
+import tomllib
 from pathlib import Path
 
+import pytest
 from gensplat_cli import build_parser, main
 from PIL import Image
 
+import gensplat_transforms
 from gensplat_transforms.cache.builder import SceneDataset, SceneEpisodes, build_cache
 from gensplat_transforms.cache.store import SceneCache
 from gensplat_transforms.geometry import RGBDReconstructor
@@ -54,6 +58,18 @@ def test_preview_png_and_mp4(tmp_path):
 
     with av.open(str(paths["mp4"])) as f:
         assert sum(1 for _ in f.decode(video=0)) == 4
+
+
+def test_version_has_one_source(capsys):
+    """``gensplat --version``, the installed distribution's metadata and pyproject.toml all read
+    ``gensplat_transforms.__version__``."""
+    with pytest.raises(SystemExit) as exit_:
+        main(["--version"])
+    assert exit_.value.code == 0 and capsys.readouterr().out == f"gensplat-transforms {gensplat_transforms.__version__}\n"
+    project = tomllib.loads((Path(__file__).parents[3] / "pyproject.toml").read_text())
+    assert "version" not in project["project"] and project["project"]["dynamic"] == ["version"]
+    assert project["tool"]["setuptools"]["dynamic"]["version"] == {"attr": "gensplat_transforms.__version__"}
+    assert importlib.metadata.version("gensplat-transforms") == gensplat_transforms.__version__
 
 
 def _default_text(default) -> str:
