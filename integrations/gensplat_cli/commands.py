@@ -33,7 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _demo_parser(sub) -> None:
-    """`gensplat demo`: the main job on built-in data."""
+    """``gensplat demo``: the main job on built-in data."""
     from gensplat_sim.demo import DemoConfig
 
     from gensplat_transforms.core.config_flags import add_flags
@@ -43,7 +43,7 @@ def _demo_parser(sub) -> None:
 
 
 def _record_parser(sub) -> None:
-    """`gensplat record`: its flags are RecordConfig's (the sim extra)."""
+    """``gensplat record``: its flags are RecordConfig's (the sim extra)."""
     record = sub.add_parser("record", help="record scripted demonstrations of the simulated tabletop (LeRobot v3)")
     try:
         from gensplat_sim.record import add_record_flags
@@ -54,7 +54,7 @@ def _record_parser(sub) -> None:
 
 
 def _cache_parser(sub) -> None:
-    """`gensplat cache`: the transform's settings (GenSplatConfig's flags) and how to build the cache."""
+    """``gensplat cache``: the transform's settings (GenSplatConfig's flags) and how to build the cache."""
     from gensplat_transforms.settings import add_config_arguments
 
     cache = sub.add_parser(
@@ -97,7 +97,7 @@ def _cache_parser(sub) -> None:
 
 
 def _import_depth_parser(sub) -> None:
-    """`gensplat import-depth`: one camera's recorded depth as the dataset's depth sidecars."""
+    """``gensplat import-depth``: one camera's recorded depth as the dataset's depth sidecars."""
     depth = sub.add_parser(
         "import-depth", help="write a camera's recorded depth (16-bit PNG, float TIFF, .npy/.npz) as the depth "
                              "sidecars of a LeRobot dataset",
@@ -121,7 +121,7 @@ def _import_depth_parser(sub) -> None:
 
 
 def _calibrate_parser(sub) -> None:
-    """`gensplat calibrate`: one subcommand per source of the calibration, each with its own options."""
+    """``gensplat calibrate``: one subcommand per source of the calibration, each with its own options."""
     calibrate = sub.add_parser(
         "calibrate", help="store camera calibration beside a LeRobot dataset whose features carry none",
         description="Write the external cameras' intrinsics and poses to ROOT/gensplat/calibration.json (the "
@@ -188,7 +188,7 @@ def _calibrate_parser(sub) -> None:
 
 
 def _train_model_parser(sub) -> None:
-    """`gensplat train-model`: TrainConfig's flags and the data and model to train on."""
+    """``gensplat train-model``: TrainConfig's flags and the data and model to train on."""
     from gensplat_transforms.core.config_flags import add_flags
     from gensplat_transforms.training import TrainConfig
 
@@ -216,7 +216,7 @@ def _train_model_parser(sub) -> None:
 
 
 def _preview_parser(sub) -> None:
-    """`gensplat preview`: what the policy gets from a dataset, as PNG and MP4."""
+    """``gensplat preview``: what the policy gets from a dataset, as PNG and MP4."""
     preview = sub.add_parser(
         "preview", help="grid PNG and MP4 of what the policy gets from a LeRobot dataset (GenSplat forced on)",
         description="Write preview.png (original versus policy input per camera, a few perturbation draws per "
@@ -239,7 +239,7 @@ def _preview_parser(sub) -> None:
 
 
 def _export_ply_parser(sub) -> None:
-    """`gensplat export-ply`: one cached timestep's Gaussians as a 3DGS PLY."""
+    """``gensplat export-ply``: one cached timestep's Gaussians as a 3DGS PLY."""
     export = sub.add_parser(
         "export-ply", help="write the cached Gaussians of one timestep of a LeRobot dataset as a 3DGS PLY",
         description="Write the Gaussians GenSplat renders one timestep from as a standard 3DGS binary PLY "
