@@ -125,9 +125,18 @@ def machine_share(cpu: float, wall: float, cores: int | None = None) -> float:
 
 
 def run_unit(unit: Unit, args) -> dict:
-    """Record (once per task), prepare, train and evaluate ``unit``; its result (see the module docstring)."""
+    """Record (once per task), prepare, train and evaluate ``unit``; its result (see the module
+    docstring). Holds the task's work folder for the unit's time only, so that the next unit of
+    the same task, in this process or another, can take it."""
+    lock = pr.lock_work(args.work)
+    try:
+        return _run_unit(unit, args)
+    finally:
+        os.close(lock)
+
+
+def _run_unit(unit: Unit, args) -> dict:
     work, name = args.work, unit.name
-    lock = pr.lock_work(work)  # noqa: F841  (held until the unit ends)
     pr.check_work(work, (name,), args)
     stages = {}
     cpu, start = cpu_seconds(), time.perf_counter()

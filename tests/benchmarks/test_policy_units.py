@@ -71,6 +71,29 @@ def test_units_done_are_skipped_and_the_others_run(tmp_path, monkeypatch, capsys
     assert "none 75 %" in capsys.readouterr().out
 
 
+def test_a_unit_holds_its_task_folder_only_while_it_runs(tmp_path, monkeypatch):
+    """Units of one task run one after another in one process (``run --arms baseline,gensplat``):
+    each takes the task's work folder, and gives it back when it ends, also when it fails."""
+    ran = []
+
+    def fake(unit, args):
+        with pytest.raises(SystemExit, match="in use by another"):
+            pr.lock_work(args.work)  # held while the unit runs
+        ran.append(unit.name)
+        if unit.arm == "perspective":
+            raise RuntimeError("training failed")
+        return {}
+
+    monkeypatch.setattr(pu, "_run_unit", fake)
+    units = [pu.Unit(TASK, arm, 1) for arm in ("baseline", "gensplat", "perspective")]
+    for unit in units[:2]:
+        assert pu.run_unit(unit, pu.unit_args(unit, tmp_path / "work")) == {}
+    with pytest.raises(RuntimeError, match="training failed"):
+        pu.run_unit(units[2], pu.unit_args(units[2], tmp_path / "work"))
+    assert ran == [u.name for u in units]
+    os.close(pr.lock_work(tmp_path / "work" / TASK))  # free after each
+
+
 @pytest.mark.parametrize("argv, message", [
     (["run", "--tasks", "fly"], "--tasks: unknown"), (["run", "--arms", "magic"], "--arms: unknown"),
     (["run", "--seeds", "x"], "--seeds: integers"), (["run", "--seeds", "-1"], "each in 0-99"),
