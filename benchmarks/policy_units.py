@@ -282,11 +282,13 @@ def markdown(summary: dict) -> str:
         over = sum(not u["within_limit"] for u in walls.values())
         resumed = [name for name, u in walls.items() if "resumed_from_step" in u]
         shares = sorted(u["machine_share"] for u in walls.values() if not u["within_limit"] and "machine_share" in u)
+        share = "-".join(dict.fromkeys(f"{v:.0%}" for v in shares[:1] + shares[-1:]))  # "45%", "45%-60%"
+        counts = "its wall time counts" if len(resumed) == 1 else "their wall times count"
         lines += ["", f"Units: {len(walls)}; the longest took {longest / 60:.0f} min ({over} over {UNIT_LIMIT_S // 60} min)"
-                  + (f"; {', '.join(resumed)} resumed a stopped training, and its wall time counts only the steps "
-                     "after the resume" if resumed else "")
-                  + (f"; the units over the limit that recorded it had {shares[0]:.0%}-{shares[-1]:.0%} of the "
-                     "machine's cores (other work had the rest)" if shares else "") + "."]  # fmt: skip
+                  + (f"; {', '.join(resumed)} resumed a stopped training, and {counts} only the steps after the "
+                     "resume" if resumed else "")
+                  + (f"; the units over the limit that recorded it had {share} of the machine's cores" if shares else "")
+                  + "."]  # fmt: skip
     return "\n".join(lines) + "\n"
 
 
