@@ -21,7 +21,8 @@ its stages; evaluated levels kept from a stopped run count their process time sh
 evaluation processes) and the share of the machine's cores its processes had over the run
 (their CPU time over the run's wall time times the cores: well below 1 where other work shared
 the machine). ``run`` skips a unit whose file holds the current settings, and with ``--commit``
-commits each file the moment its unit ends (that file only). ``summary`` reads the unit files
+commits each file the moment its unit ends (that file only); a unit that fails is reported and
+the run goes on to the next (the run ends with an error naming the failed units). ``summary`` reads the unit files
 alone: per arm the success over its seeds, and each arm against the baseline and against the
 best 2D arm, paired on the same seeds and episodes, with a bootstrap 95 % interval over seeds
 and episodes; it writes ``summary.json`` and ``summary.png`` per task, and the tables in
@@ -354,7 +355,7 @@ def main(argv: list[str] | None = None) -> None:
             print(tables[-1])
         write_readme("\n".join(tables))
         return
-    units = [Unit(t, a, s) for t in args.tasks for s in args.seeds for a in args.arms]
+    units, failed = [Unit(t, a, s) for t in args.tasks for s in args.seeds for a in args.arms], []
     for unit in units:
         u_args = unit_args(unit, args.work)
         status = state(unit, unit_settings(unit, u_args), args.results)
@@ -362,7 +363,12 @@ def main(argv: list[str] | None = None) -> None:
         if args.command == "status" or status == "done":
             continue
         t0 = time.perf_counter()
-        result = run_unit(unit, u_args)
+        try:
+            result = run_unit(unit, u_args)
+        except (Exception, SystemExit) as e:  # noqa: BLE001  (any failure: the other units go on)
+            print(f"{unit.task} {unit.name}: failed: {type(e).__name__}: {e}", file=sys.stderr, flush=True)
+            failed.append(f"{unit.task} {unit.name}")
+            continue
         path = atomic_write_json(unit.path(args.results), result)
         s = result["success"]
         print(f"{unit.task} {unit.name}: none {s['paper']['none']:.0f} %, large {s['paper']['large']:.0f} %, "
@@ -371,6 +377,8 @@ def main(argv: list[str] | None = None) -> None:
         if args.commit:
             commit_file(path, f"policy unit {unit.task} {unit.arm} seed {unit.seed}: none "
                         f"{s['paper']['none']:.0f} %, large {s['paper']['large']:.0f} %")  # fmt: skip
+    if failed:
+        raise SystemExit(f"policy_units: {len(failed)} unit(s) failed: {', '.join(failed)}")
 
 
 if __name__ == "__main__":

@@ -71,6 +71,27 @@ def test_units_done_are_skipped_and_the_others_run(tmp_path, monkeypatch, capsys
     assert "none 75 %" in capsys.readouterr().out
 
 
+def test_a_failed_unit_does_not_stop_the_others(tmp_path, monkeypatch, capsys):
+    """A unit that fails (an error, or its task's folder held by another run) is reported and the
+    run goes on to the next units; it ends with an error naming the failed ones."""
+    results, work, ran = tmp_path / "results", tmp_path / "work", []
+
+    def run_unit(unit, args):
+        ran.append(unit.name)
+        if unit.arm == "baseline":
+            raise SystemExit(f"{args.work} is in use by another policy_robustness.py run")
+        if unit.arm == "gensplat":
+            raise RuntimeError("evaluation crashed")
+        return unit_file(unit, wins={}, settings=pu.unit_settings(unit, args))
+
+    monkeypatch.setattr(pu, "run_unit", run_unit)
+    with pytest.raises(SystemExit, match="2 unit\\(s\\) failed: reach_solo baseline@s1, reach_solo gensplat@s1"):
+        pu.main(["run", "--tasks", TASK, "--seeds", "1", "--results", str(results), "--work", str(work)])
+    assert ran == ["baseline@s1", "perspective@s1", "gensplat@s1", "gensplat-tilt@s1"]
+    assert pu.Unit(TASK, "gensplat-tilt", 1).path(results).exists() and not pu.Unit(TASK, "gensplat", 1).path(results).exists()
+    assert "gensplat@s1: failed: RuntimeError: evaluation crashed" in capsys.readouterr().err
+
+
 def test_a_unit_holds_its_task_folder_only_while_it_runs(tmp_path, monkeypatch):
     """Units of one task run one after another in one process (``run --arms baseline,gensplat``):
     each takes the task's work folder, and gives it back when it ends, also when it fails."""
