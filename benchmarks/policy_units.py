@@ -294,14 +294,17 @@ def markdown(summary: dict) -> str:
 
 
 def plot(summary: dict, path: Path) -> None:
-    """Success % against the level, a panel per protocol, a line per arm (mean over its seeds)."""
+    """Success % against the level, a panel per protocol, a line per arm (mean over its seeds,
+    which its legend entry names)."""
+    names = {a: f"{a} (seeds {','.join(map(str, summary['success'][a]['paper']['none']['per_seed']))})"
+             for a in summary["arms"]}  # fmt: skip
     panels = []
     for p, levels in pr.PROTOCOLS.items():
         ticks = list(enumerate(levels))
-        series = {a: [(j, summary["success"][a][p][lv]["mean"], "") for j, lv in ticks] for a in summary["arms"]}
+        series = {names[a]: [(j, summary["success"][a][p][lv]["mean"], "") for j, lv in ticks] for a in summary["arms"]}
         panels.append(Panel(f"success (%), {p}", series, (-0.5, len(levels) - 0.5), (0, 100), ticks,
                             [(t, str(t)) for t in range(0, 101, 20)]))  # fmt: skip
-    line_panels(path, panels, {a: pr.colour(a) for a in summary["arms"]},
+    line_panels(path, panels, {names[a]: pr.colour(a) for a in summary["arms"]},
                 f"{summary['task']}, Diffusion Policy, mean over seeds", panel_size=(360, 300))  # fmt: skip
 
 

@@ -198,3 +198,18 @@ def test_summary_rewrites_only_the_readme_between_its_markers(tmp_path):
     readme.write_text(f"# B\n\nbefore\n{pu.MARKERS[0]}\nold table\n{pu.MARKERS[1]}\nafter\n")
     pu.write_readme("| new |\n", readme)
     assert readme.read_text() == f"# B\n\nbefore\n{pu.MARKERS[0]}\n| new |\n{pu.MARKERS[1]}\nafter\n"
+
+
+def test_the_plot_names_each_arms_seeds(tmp_path, monkeypatch):
+    results = tmp_path / "results"
+    for arm, seed in (("baseline", 0), ("baseline", 1), ("gensplat", 1)):
+        write(results, pu.Unit(TASK, arm, seed), wins={("paper", "large"): [1, 0, 1, 1]})
+    summary = pu.summarise(TASK, results)
+    pu.plot(summary, tmp_path / "summary.png")
+    assert (tmp_path / "summary.png").read_bytes().startswith(b"\x89PNG")
+    drawn = {}
+    monkeypatch.setattr(pu, "line_panels", lambda path, panels, colours, *a, **k: drawn.update(colours=colours, panels=panels))
+    pu.plot(summary, tmp_path / "again.png")
+    assert list(drawn["colours"]) == ["baseline (seeds 0,1)", "gensplat (seeds 1)"]
+    large = drawn["panels"][0].series["gensplat (seeds 1)"][pr.PROTOCOLS["paper"].index("large")]
+    assert large[1] == 75.0  # the mean over the arm's seeds
