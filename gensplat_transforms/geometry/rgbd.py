@@ -49,12 +49,13 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import torch
 import torch.nn.functional as F
 
 from ..core.cameras import Cameras
+from ..core.config_flags import flag
 from ..core.gaussians import Gaussians
 from ..core.rotations import rotmat_to_quat
 from ..core.scenes import Scenes
@@ -106,7 +107,9 @@ class RGBDConfig:
     sh_degree: int = 0
     max_depth: float | None = None
     stride: int = 1
-    fill_depth_px: int = 0
+    fill_depth_px: int = field(default=0, metadata=flag(
+        "rgbd: give pixels without depth within PIXELS of measured depth the farthest depth around them before "
+        "the discs are built, for a depth sensor's holes (e.g. 8; 0: none)", flag="--fill-depth", metavar="PIXELS"))
     dilation: float = 0.04
     saturation: float = 2.0
     view_preference: float = 0.03

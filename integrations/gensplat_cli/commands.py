@@ -54,7 +54,10 @@ def _record_parser(sub) -> None:
 
 
 def _cache_parser(sub) -> None:
-    """``gensplat cache``: the transform's settings (GenSplatConfig's flags) and how to build the cache."""
+    """``gensplat cache``: the transform's settings (GenSplatConfig's flags), the RGB-D discs' flags
+    and how to build the cache."""
+    from gensplat_transforms.core.config_flags import add_flags
+    from gensplat_transforms.geometry.rgbd import RGBDConfig
     from gensplat_transforms.settings import add_config_arguments
 
     cache = sub.add_parser(
@@ -74,10 +77,7 @@ def _cache_parser(sub) -> None:
     cache.add_argument("--copy-depth", dest="link_depth", action="store_false",
                        help="rgbd: store a compressed copy of the dataset's depth (4-17 kB per timestep) instead of "
                             "linking its depth files, e.g. when the dataset is on slow network storage (default: link)")
-    cache.add_argument("--fill-depth", type=int, default=0, metavar="PIXELS",
-                       help="rgbd: give pixels without depth within PIXELS of measured depth the farthest depth "
-                            "around them before the discs are built, for a depth sensor's holes (e.g. 8; "
-                            "benchmarks/nvs_fidelity.py, rgbd_sensor_depth_fill; default: 0, none)")
+    add_flags(cache, RGBDConfig)  # --fill-depth
     cache.add_argument("--reconstructor", choices=["rgbd", "geometry", "gensplat", "monocular"], default=None,
                        help="rgbd: the dataset's depth; geometry: depth from a Pi3-compatible model, RGB-D discs; "
                             "gensplat: the model's own Gaussian head; monocular: each image's metric depth from "
@@ -426,11 +426,11 @@ def _cache(args) -> None:
     cameras = source.camera_names
     config = config_from_arguments(args, cameras=cameras)
     spec = None if args.reconstructor is None else {"name": args.reconstructor}
-    if args.fill_depth:
+    if args.fill_depth_px:
         if args.reconstructor not in (None, "rgbd") or not source.has_depth():
             raise ValueError("--fill-depth fills the holes of measured depth: it needs the rgbd "
                              "reconstructor and cameras with depth")  # fmt: skip
-        spec = {"name": "rgbd", "config": {"fill_depth_px": args.fill_depth}}
+        spec = {"name": "rgbd", "config": {"fill_depth_px": args.fill_depth_px}}
     if args.reconstructor == "monocular" and (not args.model or args.max_pixels is not None):
         raise ValueError("--reconstructor monocular needs --model <MoGe-2 checkpoint folder> "
                          "(model.pt as published) and takes no --max-pixels")  # fmt: skip
@@ -476,7 +476,7 @@ def _cache(args) -> None:
 
         print(f"model weights {spec.get('model') or DEFAULT_MODEL_DIR}: licence {licence}")
     sensed = [n for n in cameras if n in source.depth_features and not depth_path(args.root, n, 0).exists()]
-    if sensed and not args.fill_depth and spec["name"] == "rgbd":
+    if sensed and not args.fill_depth_px and spec["name"] == "rgbd":
         print(f"tip: the depth of {', '.join(sensed)} is a sensor's (LeRobot depth maps): --fill-depth 8 gives its "
               "small holes depth before the discs are built (what it gains: docs/reconstruction.md)")
 

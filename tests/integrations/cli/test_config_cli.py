@@ -16,6 +16,7 @@ from gensplat_cli.commands import CALIBRATE_WAYS, _current_spelling
 
 from gensplat_transforms.core import config_flags
 from gensplat_transforms.core.config_flags import config_from_flags, field_default, flag_fields, flag_options
+from gensplat_transforms.geometry.rgbd import RGBDConfig
 from gensplat_transforms.settings import GenSplatConfig, add_config_arguments, config_from_arguments
 
 BASE = ["cache", "--root", "r", "--repo-id", "x/y"]
@@ -57,14 +58,16 @@ def test_a_bad_choice_or_type_is_a_usage_error():
             build_parser().parse_args([*BASE, *bad])
 
 
-def _configs() -> dict:
-    """Each command's config dataclass: its fields with a flag (nested ones included) are flags."""
+def _configs() -> list[tuple[str, type]]:
+    """(command, config dataclass) pairs: the config's fields with a flag (nested ones included)
+    are flags of the command."""
     from gensplat_sim.demo import DemoConfig
     from gensplat_sim.record import RecordConfig
 
     from gensplat_transforms.training import TrainConfig
 
-    return {"cache": GenSplatConfig, "demo": DemoConfig, "record": RecordConfig, "train-model": TrainConfig}
+    return [("cache", GenSplatConfig), ("cache", RGBDConfig), ("demo", DemoConfig), ("record", RecordConfig),
+            ("train-model", TrainConfig)]  # fmt: skip
 
 
 def _commands(parser: argparse.ArgumentParser, path: tuple = ()) -> dict:
@@ -107,7 +110,7 @@ SAME_NAME_OTHER_SETTING = {
 
 def test_each_field_with_a_flag_has_exactly_one_with_the_fields_default():
     commands = _commands(build_parser())
-    for command, config in _configs().items():
+    for command, config in _configs():
         parser = commands[(command,)]
         for f in flag_fields(config):
             flag, _options = flag_options(f)
@@ -116,12 +119,14 @@ def test_each_field_with_a_flag_has_exactly_one_with_the_fields_default():
             stated = "default" in f.metadata["cli"] or actions[0].required  # the flag states another default
             assert stated or actions[0].default == field_default(f), (command, f.name)
     parse = lambda *argv: commands[argv[:1]].parse_args(argv[1:])
-    demo, train = _configs()["demo"], _configs()["train-model"]
+    demo, train = dict(_configs())["demo"], dict(_configs())["train-model"]
     assert config_from_flags(parse("demo"), demo) == demo()
     assert config_from_flags(parse("train-model", "--out", "run", "--steps", "5"), train) == train(out="run", steps=5)
     changed = config_from_flags(parse("train-model", "--out", "r", "--steps", "5", "--warmup", "3", "--l-3d", "0.5"),
                                 train)  # fmt: skip
     assert changed.warmup_steps == 3 and changed.loss.points == 0.5 and changed.loss.depth == 0.1
+    cache = parse("cache", "--root", "r", "--repo-id", "x", "--fill-depth", "8")
+    assert config_from_flags(cache, RGBDConfig) == RGBDConfig(fill_depth_px=8)
 
 
 def test_derived_flags_keep_their_help_and_defaults():
@@ -148,7 +153,7 @@ def test_no_flag_is_declared_twice():
             per_command[prog, name] = per_command.get((prog, name), 0) + 1
     assert {k: n for k, n in per_command.items() if n > 1} == {}
     generated = {(prog, names[0]) for prog, names, file, _ in declared if file == Path(config_flags.__file__).resolve()}
-    for command, config in _configs().items():
+    for command, config in _configs():
         for f in flag_fields(config):
             assert (f"gensplat {command}", flag_options(f)[0]) in generated, (command, f.name)
     sources = {file for _, _, file, _ in declared if file != Path(config_flags.__file__).resolve()}
