@@ -1,7 +1,9 @@
 """RGB-D reconstruction: pixel-aligned Gaussians reproduce their source views."""
 
+import re
 from dataclasses import replace
 
+import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
@@ -141,6 +143,22 @@ def test_bad_inputs_raise_clear_errors(scene_views):
         Views(images, cams, depths[..., :-1])
     with pytest.raises(ValueError, match="sigma_px"):
         RGBDReconstructor(sigma_px=0.0)
+
+
+@pytest.mark.parametrize("field, value, what", [
+    ("sigma_px", "0.3", "a number > 0"), ("sigma_px", float("nan"), "a number > 0"), ("thickness", -0.1, ">= 0"),
+    ("edge_scale", 0.0, "in (0, 1]"), ("opacity", True, "in [0, 1]"), ("sh_degree", 1.5, "whole number"),
+    ("max_depth", -1.0, "None or a number >= 0"), ("max_depth", "2", "None or a number >= 0"),
+    ("stride", 2.0, "whole number >= 1"), ("fill_depth_px", -1, "whole number >= 0"),
+    ("fill_depth_px", True, "whole number >= 0"), ("dilation", float("inf"), "> 0"), ("saturation", 0.5, ">= 1"),
+    ("view_preference", None, "in [0, 1]"), ("cover", 0.0, "in (0, 1]"), ("soften_noise", "false", "True or False"),
+])  # fmt: skip
+def test_disc_settings_refuse_what_they_cannot_use_and_say_what_they_need(field, value, what):
+    """Wrong types (a string from a hand-edited settings file, a bool) and values out of range are
+    refused with the field, what it must be and the value given, never a TypeError from deep inside."""
+    with pytest.raises(ValueError, match=re.escape(f"RGBDConfig.{field} must be") + ".*" + re.escape(what)):
+        RGBDConfig(**{field: value})
+    assert RGBDConfig(sigma_px=np.float32(0.3), stride=np.int64(2), max_depth=3).stride == 2  # NumPy numbers are numbers
 
 
 @pytest.mark.parametrize("fast", [True, False])
