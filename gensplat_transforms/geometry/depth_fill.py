@@ -56,6 +56,8 @@ def _fill(z, steps):
                 else:
                     holes[left] = holes[k]
                     left += 1
+            if left == holes.shape[0]:  # nothing filled: no later round can fill more (no depth in reach)
+                break
             holes = holes[:left]
 
 

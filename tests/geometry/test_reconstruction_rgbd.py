@@ -303,6 +303,12 @@ def test_fill_depth_gives_small_holes_the_farthest_depth_around():
     assert filled[:, 2:5].eq(BEHIND).all() and filled[:, 6:9].eq(BEHIND).all() and not filled[:, 5].any()
     assert torch.equal(filled[:, :2], wide[:, :2])
     assert fill_depth(wide, 0) is wide and fill_depth(torch.ones(4, 4), 5).eq(1).all()
+    # holes no depth can reach end the rounds at once, whatever the steps (a frame without depth)
+    empty = torch.zeros(2, 64, 64)
+    assert torch.equal(fill_depth(empty, 10**8), empty)
+    island = torch.zeros(64, 64)
+    island[0, 0] = 1.0
+    assert fill_depth(island, 10**8).gt(0).all()  # one measured pixel fills a whole map, then the rounds end
     with pytest.raises(ValueError, match="steps must be >= 0"):
         fill_depth(wide, -1)
 
