@@ -304,6 +304,11 @@ def test_cache_command_writes_settings_and_cache(dataset_root, capsys):
     assert main(["cache", "--root", str(dataset_root), "--repo-id", REPO, "--fill-depth", "8", "--reconstructor",
                  "geometry"]) == 2  # fmt: skip
     assert capsys.readouterr().err.startswith("gensplat: error: --fill-depth fills the holes of measured depth")
+    before = load_settings(dataset_root)
+    assert main(["cache", "--root", str(dataset_root), "--repo-id", REPO, "--fill-depth", "-1"]) == 2
+    assert capsys.readouterr().err == ("gensplat: error: RGBDConfig.fill_depth_px must be a whole number >= 0 "
+                                       "(pixels), got -1\n")  # fmt: skip
+    assert load_settings(dataset_root) == before  # refused before anything is written
 
 
 def test_missing_settings_or_depth_raise_clear_errors(dataset_root):
