@@ -22,11 +22,11 @@ evaluation processes) and the share of the machine's cores its processes had ove
 (their CPU time over the run's wall time times the cores: well below 1 where other work shared
 the machine). ``run`` skips a unit whose file holds the current settings, and with ``--commit``
 commits each file the moment its unit ends (that file only); a unit that fails is reported and
-the run goes on to the next (the run ends with an error naming the failed units). ``summary`` reads the unit files
-alone: per arm the success over its seeds, and each arm against the baseline and against the
-best 2D arm, paired on the same seeds and episodes, with a bootstrap 95 % interval over seeds
-and episodes; it writes ``summary.json`` and ``summary.png`` per task, and the tables in
-benchmarks/README.md between the ``policy-units`` markers.
+the run goes on to the next (the run ends with an error naming the failed units). ``summary``
+reads the unit files alone: per arm the success over its seeds, and each arm against the
+baseline and against the best 2D arm, paired on the same seeds and episodes, with a bootstrap
+95 % interval over seeds and episodes; it writes ``summary.json`` and ``summary.png`` per task,
+and the tables in benchmarks/README.md between the ``policy-units`` markers.
 """
 
 from __future__ import annotations

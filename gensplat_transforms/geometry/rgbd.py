@@ -140,7 +140,6 @@ class RGBDConfig:
                 raise ValueError(f"RGBDConfig.{name} must be {what}, got {getattr(self, name)!r}")
 
 
-
 def _real(value) -> bool:
     """A finite real number (not a bool)."""
     return isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
@@ -149,6 +148,7 @@ def _real(value) -> bool:
 def _whole(value) -> bool:
     """An integer (not a bool)."""
     return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
 
 class RGBDReconstructor(DepthReconstructor):
     """Calibrated RGB + metric depth -> one Gaussian per valid pixel (see module docstring).
