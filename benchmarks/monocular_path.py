@@ -52,6 +52,7 @@ from machine import cpu_model, default_out, write_result
 from nvs_fidelity import draw, frame_size_geometry, score
 from self_calibration import NAMES, REPO, errors, heldout_parser, heldout_run, uncalibrated_copy
 
+from gensplat_transforms.calibration.estimate import EstimateConfig
 from gensplat_transforms.core.cameras import Cameras
 from gensplat_transforms.geometry import (
     GeometryReconstructor,
@@ -229,8 +230,8 @@ def main() -> None:
         oracle = OracleMoGe2(calibrated, index, noise)
         copy = uncalibrated_copy(root, work / variant, "none")
         t0 = time.perf_counter()
-        rig = estimate_calibration(copy, REPO, NAMES, timesteps, progress=False,
-                                   model=MonocularReconstructor(oracle))  # fmt: skip
+        config = EstimateConfig(timesteps=timesteps, model=MonocularReconstructor(oracle))
+        rig = estimate_calibration(copy, REPO, NAMES, config, progress=False)
         seconds = time.perf_counter() - t0
         estimated = LeRobotSource(copy, REPO, NAMES)
         result[variant] = {

@@ -54,7 +54,7 @@ from gensplat_sim.truth import GroundTruth
 from gensplat_sim.world import WorldConfig
 from machine import cpu_model, default_out, out_help, write_result
 
-from gensplat_transforms.calibration.estimate import rotation_angle_deg
+from gensplat_transforms.calibration.estimate import EstimateConfig, rotation_angle_deg
 from gensplat_transforms.core.cameras import Cameras
 from gensplat_transforms.core.metrics import psnr, ssim
 from gensplat_transforms.core.views import nearest_pixels
@@ -195,7 +195,7 @@ def main() -> None:
     for variant, (depth, given) in variants.items():
         copy = uncalibrated_copy(root, work / variant, depth)
         t0, cpu0 = time.perf_counter(), time.process_time()
-        rig = estimate_calibration(copy, REPO, NAMES, timesteps, progress=False, **given)
+        rig = estimate_calibration(copy, REPO, NAMES, EstimateConfig(timesteps=timesteps, **given), progress=False)
         seconds, cpu = time.perf_counter() - t0, time.process_time() - cpu0
         estimated = LeRobotSource(copy, REPO, NAMES)
         result[variant] = {

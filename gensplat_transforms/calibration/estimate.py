@@ -27,15 +27,19 @@ cameras static over the sampled frames.
 
 from __future__ import annotations
 
+import argparse
 import math
-from dataclasses import dataclass
-from typing import NamedTuple
+import numbers
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix, rotation_matrix_to_axis_angle
 
 from ..core.cameras import pivot_point
+from ..core.config_flags import flag
 
 #: horizontal fields of view searched for a camera's focal length, degrees
 FOV_RANGE_DEG = (15.0, 150.0)
@@ -45,6 +49,95 @@ MIN_MATCHES = 30
 #: views cannot tell the focal length from the distance (a rectified stereo pair's fit; the
 #: figures: docs/calibration.md, "Limits")
 FOCAL_SD_MAX = 0.01
+
+
+#: the distances (m) ``baseline_m`` and ``table_m`` may give: a millimetre to 100 m
+DISTANCE_RANGE_M = (1e-3, 100.0)
+
+
+def pixel_point(text: str) -> tuple[float, float]:
+    """``CX,CY`` -> (cx, cy), the type of ``--principal-point`` (checked against the image where
+    it is used: :func:`check_principal_points`)."""
+    try:
+        cx, cy = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected CX,CY in pixels (e.g. 311.7,255.4), got {text!r}") from None
+    return cx, cy
+
+
+@dataclass(frozen=True)
+class EstimateConfig:
+    """What the calibration estimate is given (``gensplat calibrate estimate``'s options; the
+    intrinsics flags also ``calibrate from-features``'s).
+
+    Attributes:
+        timesteps: timesteps sampled across the episodes (at least 2).
+        fov_deg: every camera's horizontal field of view in degrees, for cameras without depth or
+            one camera alone; None: from depth or ``model``.
+        focal_px: as ``fov_deg``, every camera's focal length in pixels.
+        model: without depth, a geometry model predicts the focal lengths and, when it is metric
+            and no distance is given, the scale: a checkpoint directory or hub id (a MoGe-2 folder,
+            a Pi3-compatible model) or such a reconstructor; ``--model`` alone: the shipped small
+            model.
+        baseline_m: without depth, the distance between the first two cameras in metres (sets the
+            scale).
+        table_m: without depth, the distance from the first camera down to the table in metres
+            (sets the scale).
+        principal_point: (cx, cy) in pixels instead of the image centre (cropped images), one for
+            every camera or one per camera; the image centre is (W / 2, H / 2), OpenCV's cx + 0.5.
+        per_episode: cameras that move between episodes: every episode is estimated apart from
+            ``timesteps`` of its own frames and gets its own poses.
+
+    Raises ValueError naming the field and its flag for a value out of range, or for more than
+    one source of the focal lengths (``fov_deg``, ``focal_px``, ``model``) or of the scale.
+    """
+
+    timesteps: int = field(default=16, metadata=flag("timesteps sampled across the episodes"))
+    fov_deg: float | None = field(default=None, metadata=flag(
+        "every camera's horizontal field of view in degrees (square pixels, principal point at the image centre)",
+        flag="--fov", type=float, metavar="DEG", shown="none"))
+    focal_px: float | None = field(default=None, metadata=flag(
+        "as --fov, every camera's focal length in pixels", flag="--focal", type=float, metavar="PX", shown="none"))
+    model: str | Path | Any | None = field(default=None, metadata=flag(
+        "without depth: a geometry model predicts the focal lengths and, when it is metric and neither --baseline "
+        "nor --table-distance is given, the scale; a checkpoint directory or hub id (a MoGe-2 folder, MIT: metric, "
+        "nothing else needed; Depth Anything 3: Apache-2.0; Pi3: CC BY-NC 4.0, non-commercial), or alone the "
+        "shipped small model (trained on simulated tabletops only)",
+        nargs="?", const="shipped", metavar="DIR_OR_HUB_ID", shown="none"))
+    baseline_m: float | None = field(default=None, metadata=flag(
+        "without depth: the distance between the first two cameras, metres (sets the scale)", flag="--baseline",
+        type=float, metavar="M", shown="none"))
+    table_m: float | None = field(default=None, metadata=flag(
+        "without depth: the distance from the first camera down to the table, metres (sets the scale)",
+        flag="--table-distance", type=float, metavar="M", shown="none"))
+    principal_point: tuple[tuple[float, float], ...] | None = field(default=None, metadata=flag(
+        "the principal point in pixels instead of the image centre (cropped images), one for every camera or one "
+        "per camera in --cameras order; the image centre is W/2,H/2 (OpenCV's cx, cy + 0.5)",
+        type=pixel_point, nargs="+", metavar="CX,CY", shown="the image centres"))
+    per_episode: bool = field(default=False, metadata=flag(
+        "cameras that move between episodes; every episode is estimated apart from --timesteps of its own frames "
+        "and gets its own poses", action="store_true"))
+
+    def __post_init__(self):
+        if isinstance(self.timesteps, bool) or not isinstance(self.timesteps, numbers.Integral) or self.timesteps < 2:
+            raise ValueError(f"EstimateConfig.timesteps (--timesteps) must be a whole number >= 2, got {self.timesteps!r}")
+        for name, option, top in (("fov_deg", "--fov", 180.0), ("focal_px", "--focal", math.inf)):
+            value = getattr(self, name)
+            if value is not None and not (isinstance(value, numbers.Real) and 0 < value < top):
+                below = " below 180 degrees" if top < math.inf else ""
+                raise ValueError(f"EstimateConfig.{name} ({option}) must be a positive number{below}, got {value!r}")
+        low, high = DISTANCE_RANGE_M
+        for name, option in (("baseline_m", "--baseline"), ("table_m", "--table-distance")):
+            value = getattr(self, name)
+            if value is not None and not (isinstance(value, numbers.Real) and low <= value <= high):
+                raise ValueError(f"EstimateConfig.{name} ({option}) is a distance in metres between a camera and "
+                                 f"another camera or the table: {low:g} to {high:g} m, got {value!r}")  # fmt: skip
+        if sum(v is not None for v in (self.fov_deg, self.focal_px, self.model)) > 1:
+            raise ValueError("EstimateConfig: give one of fov_deg (--fov), focal_px (--focal) and model (--model)")
+        if self.baseline_m is not None and self.table_m is not None:
+            raise ValueError("EstimateConfig: give one of baseline_m (--baseline) and table_m (--table-distance)")
+        if self.principal_point is not None:
+            object.__setattr__(self, "principal_point", tuple(tuple(float(v) for v in p) for p in self.principal_point))
 
 
 @dataclass

@@ -81,14 +81,20 @@ def flag_options(f: Field) -> tuple[str, dict]:
     return name, {"dest": f.name, "default": default, **options}
 
 
-def add_flags(parser: argparse.ArgumentParser, cls) -> None:
+def add_flags(parser: argparse.ArgumentParser, cls, only: tuple[str, ...] | None = None) -> None:
     """Add a flag for every field of dataclass ``cls`` that has one (:func:`flag`), nested
-    configs' included: the command line and the config cannot drift apart."""
+    configs' included, or for the fields named in ``only`` (a command that takes some of a
+    config's settings): the command line and the config cannot drift apart."""
     dests = [f.name for f in flag_fields(cls)]
     twice = sorted({d for d in dests if dests.count(d) > 1})
     if twice:
         raise ValueError(f"{cls.__name__}: fields {twice} would share a flag's destination")
+    unknown = sorted(set(only or ()) - set(dests))
+    if unknown:
+        raise ValueError(f"{cls.__name__}: no field with a flag named {unknown}")
     for f in flag_fields(cls):
+        if only is not None and f.name not in only:
+            continue
         name, options = flag_options(f)
         parser.add_argument(name, **options)
 

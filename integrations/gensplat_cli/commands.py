@@ -10,15 +10,6 @@ from dataclasses import replace
 from pathlib import Path
 
 
-def _pixel_point(text: str) -> tuple[float, float]:
-    """``CX,CY`` -> (cx, cy) (checked against the image where it is used)."""
-    try:
-        cx, cy = (float(v) for v in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected CX,CY in pixels (e.g. 311.7,255.4), got {text!r}") from None
-    return cx, cy
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The ``gensplat`` parser and its subcommands."""
     from gensplat_transforms import __version__
@@ -122,6 +113,9 @@ def _import_depth_parser(sub) -> None:
 
 def _calibrate_parser(sub) -> None:
     """``gensplat calibrate``: one subcommand per source of the calibration, each with its own options."""
+    from gensplat_transforms.calibration.estimate import EstimateConfig
+    from gensplat_transforms.core.config_flags import add_flags
+
     calibrate = sub.add_parser(
         "calibrate", help="store camera calibration beside a LeRobot dataset whose features carry none",
         description="Write the external cameras' intrinsics and poses to ROOT/gensplat/calibration.json (the "
@@ -153,7 +147,7 @@ def _calibrate_parser(sub) -> None:
     _dataset_arguments(features, repo_id=None)
     features.add_argument("--intrinsics", metavar="FILE", default=None,
                           help="a calibration file giving each camera's K (no poses needed)")
-    _field_of_view_arguments(features, "")
+    add_flags(features, EstimateConfig, only=("fov_deg", "focal_px"))
     _cameras_argument(features, "the external cameras", "those with a camera_extrinsics.<camera> feature")
     estimate = way.add_parser(
         "estimate", help="the external cameras' intrinsics and poses estimated from the dataset's own frames",
@@ -162,29 +156,9 @@ def _calibrate_parser(sub) -> None:
                     "(docs/calibration.md).",
     )  # fmt: skip
     _dataset_arguments(estimate, repo_id="local/<root name>")
-    _field_of_view_arguments(estimate, "without depth or of one camera: ")
-    estimate.add_argument("--model", nargs="?", const="shipped", default=None, metavar="DIR_OR_HUB_ID",
-                          help="without depth: a geometry model predicts the focal lengths and, when it is metric "
-                               "and neither --baseline nor --table-distance is given, the scale; a checkpoint "
-                               "directory or hub id (a MoGe-2 folder, MIT: metric, nothing else needed; Depth "
-                               "Anything 3: Apache-2.0; Pi3: CC BY-NC 4.0, non-commercial), or alone the shipped "
-                               "small model (trained on simulated tabletops only)")
-    estimate.add_argument("--per-episode", action="store_true",
-                          help="cameras that move between episodes; every episode is estimated apart from "
-                               "--timesteps of its own frames and gets its own poses")
-    estimate.add_argument("--principal-point", type=_pixel_point, nargs="+", default=None, metavar="CX,CY",
-                          help="the principal point in pixels instead of the image centre (cropped images), one for "
-                               "every camera or one per camera in --cameras order; the image centre is W/2,H/2 "
-                               "(OpenCV's cx, cy + 0.5)")
     _cameras_argument(estimate, "the external cameras, the first the reference",
                       "every colour camera whose name does not contain 'wrist'")
-    estimate.add_argument("--timesteps", type=int, default=16,
-                          help="timesteps sampled across the episodes (default: 16)")
-    estimate.add_argument("--baseline", type=float, default=None,
-                          help="without depth: the distance between the first two cameras, metres (sets the scale)")
-    estimate.add_argument("--table-distance", type=float, default=None,
-                          help="without depth: the distance from the first camera down to the table, metres (sets "
-                               "the scale)")
+    add_flags(estimate, EstimateConfig)  # what the estimate is given: one flag per EstimateConfig field
 
 
 def _train_model_parser(sub) -> None:
@@ -272,15 +246,6 @@ def _cameras_argument(parser: argparse.ArgumentParser, what: str, default: str) 
 def _episodes_argument(parser: argparse.ArgumentParser) -> None:
     """--episodes: only these episodes of the dataset."""
     parser.add_argument("--episodes", type=int, nargs="+", default=None, help="only these episodes (default: all)")
-
-
-def _field_of_view_arguments(parser: argparse.ArgumentParser, when: str) -> None:
-    """--fov and --focal: every camera's intrinsics from a field of view or a focal length."""
-    parser.add_argument("--fov", type=float, default=None, metavar="DEG",
-                        help=f"{when}every camera's horizontal field of view in degrees (square pixels, principal "
-                             "point at the image centre)")
-    parser.add_argument("--focal", type=float, default=None, metavar="PX",
-                        help="as --fov, every camera's focal length in pixels")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -380,7 +345,7 @@ def _dispatch(args) -> int:
         from gensplat_transforms.calibration.files import calibrate_from_features
         from gensplat_transforms.data.format import calibration_path
 
-        cameras = calibrate_from_features(args.root, args.intrinsics, args.fov, args.focal, args.cameras)
+        cameras = calibrate_from_features(args.root, args.intrinsics, args.fov_deg, args.focal_px, args.cameras)
         print(f"calibrated {', '.join(f'{n} ({len(c.episodes)} episodes)' for n, c in cameras.items())} from the "
               f"camera_extrinsics features; written to {calibration_path(args.root)} (the dataset is not modified)")  # fmt: skip
     elif args.command == "calibrate":
@@ -547,15 +512,15 @@ def _preview(args) -> None:
 
 
 def _estimate(args) -> None:
+    from gensplat_transforms.calibration.estimate import EstimateConfig
+    from gensplat_transforms.core.config_flags import config_from_flags
     from gensplat_transforms.data.format import calibration_path
 
     estimate = _lerobot_module("estimate", "calibrate estimate")
     repo_id = args.repo_id or f"local/{Path(args.root).name}"
-    rig = estimate.estimate_calibration(args.root, repo_id, tuple(args.cameras) if args.cameras else None,
-                                        args.timesteps, fov_deg=args.fov, focal_px=args.focal,
-                                        baseline_m=args.baseline, table_m=args.table_distance,
-                                        principal_point=args.principal_point, model=_model_source(args.model),
-                                        per_episode=args.per_episode)  # fmt: skip
+    config = config_from_flags(args, EstimateConfig)
+    config = replace(config, model=_model_source(config.model))
+    rig = estimate.estimate_calibration(args.root, repo_id, tuple(args.cameras) if args.cameras else None, config)
     print("\n".join(estimate.report(rig)))
     print(f"estimated {', '.join(rig.names)}; written to {calibration_path(args.root)} (the dataset is not modified)")
 

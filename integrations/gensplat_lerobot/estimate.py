@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from gensplat_transforms.calibration.estimate import (
+    EstimateConfig,
     RigEstimate,
     check_principal_points,
     estimate_rig,
@@ -56,50 +57,46 @@ def assumptions(rig: RigEstimate) -> str:
     return ASSUMPTIONS.replace("principal point at the image centre", f"principal point given: {given} px")
 
 
-#: The distances (m) ``--baseline`` and ``--table-distance`` may give: a millimetre to 100 m.
-DISTANCE_RANGE_M = (1e-3, 100.0)
-
-
 def estimate_calibration(root: str | Path, repo_id: str, cameras: tuple[str, ...] | None = None,
-                         timesteps: int = 16, progress: bool = True, fov_deg: float | None = None,
-                         focal_px: float | None = None, baseline_m: float | None = None,
-                         table_m: float | None = None, principal_point: list | None = None,
-                         model: str | Path | DepthReconstructor | None = None,
-                         per_episode: bool = False) -> RigEstimate:
+                         config: EstimateConfig | None = None, progress: bool = True) -> RigEstimate:
     """Estimate the external ``cameras`` (default: every colour camera whose name does not
-    contain "wrist"; the first is the reference) of the dataset at ``root`` from ``timesteps``
-    frames spread over its episodes and write ``<root>/gensplat/calibration.json``.
+    contain "wrist"; the first is the reference) of the dataset at ``root`` from
+    ``config.timesteps`` frames spread over its episodes and write
+    ``<root>/gensplat/calibration.json``. ``config``: what is given
+    (:class:`~gensplat_transforms.calibration.estimate.EstimateConfig`; default: nothing).
 
     With metric depth registered to every camera's images (depth sidecars, or LeRobot
     depth-map features without a ``camera.depth`` sensor block), two or more cameras get their
     focal lengths (unless given) and metric poses from it. Otherwise the focal length is given
-    (``fov_deg``, the horizontal field of view, or ``focal_px``) and so is one distance for the
-    scale (``baseline_m`` between the first two cameras, or ``table_m`` from the first camera
-    down to the table), or ``model``, a geometry model's checkpoint directory or hub id
+    (``fov_deg`` or ``focal_px``) and so is one distance for the scale (``baseline_m`` or
+    ``table_m``), or ``model``, a geometry model's checkpoint directory or hub id
     (:class:`~gensplat_transforms.geometry.GeometryReconstructor`; a MoGe-2 folder:
     :class:`~gensplat_transforms.geometry.MonocularReconstructor`) or such a reconstructor, predicts the focal
     lengths (:func:`~gensplat_transforms.calibration.estimate.predict_cameras`) and, where it is
-    metric and no distance is given, the scale (and one camera's table). ``principal_point``:
-    (cx, cy) in pixels (pixel centres at +0.5, the image centre (W / 2, H / 2); OpenCV's cx +
-    0.5), one for every camera or one per camera, used instead of the image centres (cropped
-    images). One camera needs depth and its focal length. ``per_episode``: cameras that move
-    between episodes; every episode is estimated apart from ``timesteps`` of its own frames
-    (:func:`per_episode_rig`) and gets its own poses. Raises ValueError naming what is missing
-    or wrong (see :func:`~gensplat_transforms.calibration.estimate.estimate_rig`)."""
-    root = Path(root)
+    metric and no distance is given, the scale (and one camera's table). One camera needs depth
+    and its focal length. ``per_episode``: every episode is estimated apart
+    (:func:`per_episode_rig`). Raises ValueError naming what is missing or wrong (see
+    :func:`~gensplat_transforms.calibration.estimate.estimate_rig`).
+
+    Example:
+        >>> rig = estimate_calibration("data/my_set", "me/my_set", config=EstimateConfig(fov_deg=69.4,
+        ...                            baseline_m=0.3))  # doctest: +SKIP
+    """
+    root, config = Path(root), config or EstimateConfig()
     features = read_info(root)["features"]
     names = _chosen_cameras(root, features, cameras)
-    _check_options(timesteps, fov_deg, focal_px, baseline_m, table_m, model)
     sizes = [(features[IMAGE_KEY_PREFIX + n]["shape"][1], features[IMAGE_KEY_PREFIX + n]["shape"][0]) for n in names]
-    principal_point = _principal_points(names, sizes, principal_point)
+    principal_point = _principal_points(names, sizes, config.principal_point)
     gensplat_folder(root)  # before minutes of matching, not after
     _check_uncalibrated(root, features, names)
     frames = _Frames.open(root, repo_id, features, names)
-    geometry = _geometry_for(root, names, model, frames.depth, scaled=baseline_m is not None or table_m is not None)
-    scale = ("baseline", baseline_m) if baseline_m is not None else ("table", table_m) if table_m is not None else None
-    estimator = _Estimator(frames, sizes, _given_focals(names, sizes, fov_deg, focal_px), scale, principal_point,
-                           geometry, model)  # fmt: skip
-    rig = estimator.per_episode(timesteps, progress) if per_episode else estimator.pooled(timesteps, progress)
+    scale = ("baseline", config.baseline_m) if config.baseline_m is not None else \
+        ("table", config.table_m) if config.table_m is not None else None
+    geometry = _geometry_for(root, names, config.model, frames.depth, scaled=scale is not None)
+    estimator = _Estimator(frames, sizes, _given_focals(names, sizes, config.fov_deg, config.focal_px), scale,
+                           principal_point, geometry, config.model)  # fmt: skip
+    run = estimator.per_episode if config.per_episode else estimator.pooled
+    rig = run(config.timesteps, progress)
     write_estimate(root, rig)
     return rig
 
@@ -116,24 +113,6 @@ def _chosen_cameras(root: Path, features: dict, cameras: tuple[str, ...] | None)
     if not names:
         raise ValueError(f"{root}: no external camera to estimate among {colour} (choose them with --cameras)")
     return names
-
-
-def _check_options(timesteps: int, fov_deg: float | None, focal_px: float | None, baseline_m: float | None,
-                   table_m: float | None, model) -> None:
-    """ValueError for fewer than 2 ``timesteps``, a field of view, focal length or distance out
-    of range, or more than one source of the focal lengths or of the scale."""
-    if timesteps < 2:
-        raise ValueError(f"--timesteps must be at least 2, got {timesteps}")
-    for option, value in (("--fov", fov_deg), ("--focal", focal_px)):
-        if value is not None and not (0 < value < math.inf and (option != "--fov" or value < 180)):
-            raise ValueError(f"{option} must be a positive number{' below 180 degrees' if option == '--fov' else ''}, "
-                             f"got {value}")  # fmt: skip
-    for option, value in (("--baseline", baseline_m), ("--table-distance", table_m)):
-        if value is not None and not DISTANCE_RANGE_M[0] <= value <= DISTANCE_RANGE_M[1]:
-            raise ValueError(f"{option} is a distance in metres between a camera and another camera or the table: "
-                             f"{DISTANCE_RANGE_M[0]:g} to {DISTANCE_RANGE_M[1]:g} m, got {value:g}")  # fmt: skip
-    if sum(v is not None for v in (fov_deg, focal_px, model)) > 1 or baseline_m is not None and table_m is not None:
-        raise ValueError("give one of --fov, --focal and --model, and one of --baseline and --table-distance")
 
 
 def _principal_points(names: tuple[str, ...], sizes: list[tuple[int, int]], given: list | None) -> list | None:

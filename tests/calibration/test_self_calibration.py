@@ -485,15 +485,15 @@ def test_estimate_refuses_what_it_cannot_do(simulated, tmp_path, capsys):
     _strip_calibration(root)
     assert "its focal length is not observable" in error(root, "--cameras", "left")
     assert "not colour image features" in error(root, "--cameras", "left", "nope")
-    assert "--timesteps must be at least 2" in error(root, "--timesteps", "1")
+    assert "EstimateConfig.timesteps (--timesteps) must be a whole number >= 2, got 1" in error(root, "--timesteps", "1")
     assert "depth gives the scale: leave out --baseline" in error(root, "--baseline", "0.8")
-    assert "--fov must be a positive number" in error(root, "--fov", "180")
+    assert "EstimateConfig.fov_deg (--fov) must be a positive number below 180 degrees" in error(root, "--fov", "180")
     for option, value in (("--baseline", "0"), ("--baseline", "-1"), ("--table-distance", "nan")):
-        assert f"{option} is a distance in metres" in error(root, option, value)
+        assert f"({option}) is a distance in metres" in error(root, option, value)
     assert "cameras ['left', 'right'] have depth, from which the estimate takes" in error(root, "--model")
     shutil.rmtree(root / "depth" / "right")  # one camera without depth: RGB only, which needs more
     assert "needs the cameras' focal length (--fov or --focal) and one distance" in error(root)
-    assert "give one of --fov, --focal and --model" in error(root, "--model", "--fov", "60")
+    assert "give one of fov_deg (--fov), focal_px (--focal) and model (--model)" in error(root, "--model", "--fov", "60")
     assert "--model /nonexistent: cannot load a geometry model from it" in error(root, "--model", "/nonexistent")
     assert not calibration_path(root).exists()
 

@@ -1,6 +1,6 @@
 """The commands' flags come from their config dataclasses' fields (gensplat cache: GenSplatConfig;
 record: RecordConfig and WorldConfig; demo: DemoConfig; train-model: TrainConfig and
-LossWeights): defaults, types and parsing agree with the configs, no flag is declared twice, and
+LossWeights; calibrate estimate: EstimateConfig): defaults, types and parsing agree with the configs, no flag is declared twice, and
 ``gensplat calibrate``'s old spelling still works."""
 
 import argparse
@@ -14,6 +14,7 @@ import pytest
 from gensplat_cli import build_parser, main
 from gensplat_cli.commands import CALIBRATE_WAYS, _current_spelling
 
+from gensplat_transforms.calibration.estimate import EstimateConfig
 from gensplat_transforms.core import config_flags
 from gensplat_transforms.core.config_flags import config_from_flags, field_default, flag_fields, flag_options
 from gensplat_transforms.geometry.rgbd import RGBDConfig
@@ -67,7 +68,7 @@ def _configs() -> list[tuple[str, type]]:
     from gensplat_transforms.training import TrainConfig
 
     return [("cache", GenSplatConfig), ("cache", RGBDConfig), ("demo", DemoConfig), ("record", RecordConfig),
-            ("train-model", TrainConfig)]  # fmt: skip
+            ("train-model", TrainConfig), ("calibrate estimate", EstimateConfig)]  # fmt: skip
 
 
 def _commands(parser: argparse.ArgumentParser, path: tuple = ()) -> dict:
@@ -111,7 +112,7 @@ SAME_NAME_OTHER_SETTING = {
 def test_each_field_with_a_flag_has_exactly_one_with_the_fields_default():
     commands = _commands(build_parser())
     for command, config in _configs():
-        parser = commands[(command,)]
+        parser = commands[tuple(command.split())]
         for f in flag_fields(config):
             flag, _options = flag_options(f)
             actions = [a for a in parser._actions if a.dest == f.name]
@@ -127,6 +128,23 @@ def test_each_field_with_a_flag_has_exactly_one_with_the_fields_default():
     assert changed.warmup_steps == 3 and changed.loss.points == 0.5 and changed.loss.depth == 0.1
     cache = parse("cache", "--root", "r", "--repo-id", "x", "--fill-depth", "8")
     assert config_from_flags(cache, RGBDConfig) == RGBDConfig(fill_depth_px=8)
+    estimate = commands["calibrate", "estimate"]
+    assert config_from_flags(estimate.parse_args(["--root", "r"]), EstimateConfig) == EstimateConfig()
+    given = estimate.parse_args(["--root", "r", "--fov", "69.4", "--table-distance", "0.5", "--timesteps", "4",
+                                 "--principal-point", "311.7,255.4", "--per-episode"])  # fmt: skip
+    assert config_from_flags(given, EstimateConfig) == EstimateConfig(
+        timesteps=4, fov_deg=69.4, table_m=0.5, principal_point=((311.7, 255.4),), per_episode=True)
+    assert estimate.parse_args(["--root", "r", "--model"]).model == "shipped"  # alone: the shipped model
+
+
+def test_from_features_takes_the_estimates_intrinsics_flags():
+    """``calibrate from-features``'s --fov and --focal are EstimateConfig's, made by the generator."""
+    declared = _declarations()
+    generated = Path(config_flags.__file__).resolve()
+    mine = {names[0]: file for prog, names, file, _ in declared if prog == "gensplat calibrate from-features"}
+    assert mine["--fov"] == generated and mine["--focal"] == generated
+    args = _commands(build_parser())["calibrate", "from-features"].parse_args(["--root", "r", "--focal", "600"])
+    assert (args.fov_deg, args.focal_px) == (None, 600.0)
 
 
 def test_derived_flags_keep_their_help_and_defaults():
