@@ -23,7 +23,8 @@ evaluation processes) and the share of the machine's cores its processes had ove
 the machine). ``run`` skips a unit whose file holds the current settings, and with ``--commit``
 commits each file the moment its unit ends (that file only); a unit that fails is reported and
 the run goes on to the next (the run ends with an error naming the failed units). ``summary``
-reads the unit files alone: per arm the success over its seeds, and each arm against the
+reads the unit files alone (those made with the current settings; others are named as left
+out): per arm the success over its seeds, and each arm against the
 baseline and against the best 2D arm, paired on the same seeds and episodes, with a bootstrap
 95 % interval over seeds and episodes; it writes ``summary.json`` and ``summary.png`` per task,
 and the tables in benchmarks/README.md between the ``policy-units`` markers.
@@ -37,6 +38,7 @@ import resource
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -209,19 +211,31 @@ def paired(a: dict[int, np.ndarray], b: dict[int, np.ndarray], rng: np.random.Ge
             "seeds": seeds}  # fmt: skip
 
 
-def load_units(task: str, units: Path = UNITS) -> dict[str, dict[int, dict]]:
-    """{arm: {seed: unit file}} of the readable unit files of ``task``."""
+def load_units(task: str, units: Path = UNITS, current: Callable[[Unit], dict] | None = None
+               ) -> tuple[dict[str, dict[int, dict]], dict[str, str]]:  # fmt: skip
+    """{arm: {seed: unit file}} of ``task``'s unit files that are readable and, where
+    ``current`` gives a unit's current settings, hold them; and {file name: why} of the files
+    left out (``unreadable``, or ``stale``: made with other settings, so not comparable)."""
     out: dict[str, dict[int, dict]] = {}
+    left_out: dict[str, str] = {}
     for path in sorted((units / task).glob("*@s*.json")):
         data = read_json_object(path)
-        if {"unit", "settings", "success", "episodes"} <= data.keys():
-            out.setdefault(data["unit"]["arm"], {})[int(data["unit"]["seed"])] = data
-    return out
+        if not {"unit", "settings", "success", "episodes"} <= data.keys():
+            left_out[path.name] = "unreadable"
+            continue
+        unit = Unit(task, data["unit"]["arm"], int(data["unit"]["seed"]))
+        if current is not None and data["settings"] != current(unit):
+            left_out[path.name] = "stale"
+            continue
+        out.setdefault(unit.arm, {})[unit.seed] = data
+    return out, left_out
 
 
-def summarise(task: str, units: Path = UNITS, seed: int = 0) -> dict:
-    """The summary of ``task``'s unit files (see the module docstring); ``seed`` seeds the bootstrap."""
-    found = load_units(task, units)
+def summarise(task: str, units: Path = UNITS, seed: int = 0, current: Callable[[Unit], dict] | None = None) -> dict:
+    """The summary of ``task``'s unit files (see the module docstring); ``seed`` seeds the
+    bootstrap; ``current``: a unit's current settings, files with others are left out and named
+    (:func:`load_units`)."""
+    found, left_out = load_units(task, units, current)
     arms = list(pr.ordered(found))
     rng = np.random.default_rng(seed)
     success = {arm: {p: {lv: {"mean": round(float(np.mean([f["success"][p][lv] for f in found[arm].values()])), 2),
@@ -251,6 +265,7 @@ def summarise(task: str, units: Path = UNITS, seed: int = 0) -> dict:
                   for name, t in walls.items()},
         "commits": sorted({f["commit"] for arm in arms for f in found[arm].values()}),
         "episodes_per_level": sorted({f["settings"]["episodes"] for arm in arms for f in found[arm].values()}),
+        "left_out": left_out,
     }  # fmt: skip
 
 
@@ -290,6 +305,9 @@ def markdown(summary: dict) -> str:
                      "resume" if resumed else "")
                   + (f"; the units over the limit that recorded it had {share} of the machine's cores" if shares else "")
                   + "."]  # fmt: skip
+    if summary.get("left_out"):
+        lines += ["", "Left out (not comparable with the current settings, or unreadable): "
+                  + ", ".join(f"{name} ({why})" for name, why in summary["left_out"].items()) + "."]  # fmt: skip
     return "\n".join(lines) + "\n"
 
 
@@ -348,8 +366,11 @@ def main(argv: list[str] | None = None) -> None:
     args = parse_args(argv)
     if args.command == "summary":
         tables = []
+        current = lambda unit: unit_settings(unit, unit_args(unit, args.work))  # noqa: E731  (what `run` compares)
         for task in STUDY:
-            summary = summarise(task, args.results)
+            summary = summarise(task, args.results, current=current)
+            for name, why in summary["left_out"].items():
+                print(f"policy_units: {task}/{name} left out of the summary: {why}", file=sys.stderr)
             if not summary["arms"]:
                 continue
             atomic_write_json(args.results / task / "summary.json", summary)

@@ -157,6 +157,25 @@ def test_summary_statistics_paired_over_seeds_and_episodes(tmp_path):
     assert "gensplat-tilt@s1 resumed a stopped training" in pu.markdown(s)
 
 
+def test_the_summary_leaves_out_stale_and_unreadable_unit_files_and_names_them(tmp_path):
+    """A unit file made with other settings (the study changed since) is not comparable: the
+    summary leaves it out and says so, as it does an unreadable one; without ``current`` every
+    readable file counts."""
+    results = tmp_path / "results"
+    for seed in (0, 1):
+        write(results, pu.Unit(TASK, "baseline", seed), wins={("paper", "none"): [1, 1, 1, 1]},
+              settings={"episodes": 4, "steps": 5000 if seed == 0 else 2500})  # fmt: skip
+    atomic_write_json(pu.Unit(TASK, "gensplat", 0).path(results), {"unit": {"arm": "gensplat", "seed": 0}})
+    current = lambda unit: {"episodes": 4, "steps": 5000}  # noqa: E731
+    s = pu.summarise(TASK, results, current=current)
+    assert s["success"]["baseline"]["paper"]["none"]["per_seed"] == {0: 100.0}
+    assert s["left_out"] == {"baseline@s1.json": "stale", "gensplat@s0.json": "unreadable"}
+    assert "baseline@s1.json (stale), gensplat@s0.json (unreadable)." in pu.markdown(s)
+    everything = pu.summarise(TASK, results)
+    assert set(everything["success"]["baseline"]["paper"]["none"]["per_seed"]) == {0, 1}
+    assert everything["left_out"] == {"gensplat@s0.json": "unreadable"}
+
+
 def test_the_summary_says_what_share_of_the_machine_the_slow_units_had(tmp_path):
     results = tmp_path / "results"
     write(results, pu.Unit(TASK, "baseline", 0), wins={}, wall=7000.0, share=0.6)
