@@ -366,7 +366,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parse_args(argv)
     if args.command == "summary":
         tables = []
-        current = lambda unit: unit_settings(unit, unit_args(unit, args.work))  # noqa: E731  (what `run` compares)
+        current = lambda unit: unit_settings(unit, unit_args(unit, args.work))  # what `run` compares
         for task in STUDY:
             summary = summarise(task, args.results, current=current)
             for name, why in summary["left_out"].items():

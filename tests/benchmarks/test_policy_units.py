@@ -166,7 +166,7 @@ def test_the_summary_leaves_out_stale_and_unreadable_unit_files_and_names_them(t
         write(results, pu.Unit(TASK, "baseline", seed), wins={("paper", "none"): [1, 1, 1, 1]},
               settings={"episodes": 4, "steps": 5000 if seed == 0 else 2500})  # fmt: skip
     atomic_write_json(pu.Unit(TASK, "gensplat", 0).path(results), {"unit": {"arm": "gensplat", "seed": 0}})
-    current = lambda unit: {"episodes": 4, "steps": 5000}  # noqa: E731
+    current = lambda unit: {"episodes": 4, "steps": 5000}
     s = pu.summarise(TASK, results, current=current)
     assert s["success"]["baseline"]["paper"]["none"]["per_seed"] == {0: 100.0}
     assert s["left_out"] == {"baseline@s1.json": "stale", "gensplat@s0.json": "unreadable"}
