@@ -49,8 +49,6 @@ MIN_MATCHES = 30
 #: views cannot tell the focal length from the distance (a rectified stereo pair's fit; the
 #: figures: docs/calibration.md, "Limits")
 FOCAL_SD_MAX = 0.01
-
-
 #: the distances (m) ``baseline_m`` and ``table_m`` may give: a millimetre to 100 m
 DISTANCE_RANGE_M = (1e-3, 100.0)
 
@@ -123,13 +121,13 @@ class EstimateConfig:
             raise ValueError(f"EstimateConfig.timesteps (--timesteps) must be a whole number >= 2, got {self.timesteps!r}")
         for name, option, top in (("fov_deg", "--fov", 180.0), ("focal_px", "--focal", math.inf)):
             value = getattr(self, name)
-            if value is not None and not (isinstance(value, numbers.Real) and 0 < value < top):
+            if value is not None and not (_number(value) and 0 < value < top):
                 below = " below 180 degrees" if top < math.inf else ""
                 raise ValueError(f"EstimateConfig.{name} ({option}) must be a positive number{below}, got {value!r}")
         low, high = DISTANCE_RANGE_M
         for name, option in (("baseline_m", "--baseline"), ("table_m", "--table-distance")):
             value = getattr(self, name)
-            if value is not None and not (isinstance(value, numbers.Real) and low <= value <= high):
+            if value is not None and not (_number(value) and low <= value <= high):
                 raise ValueError(f"EstimateConfig.{name} ({option}) is a distance in metres between a camera and "
                                  f"another camera or the table: {low:g} to {high:g} m, got {value!r}")  # fmt: skip
         if sum(v is not None for v in (self.fov_deg, self.focal_px, self.model)) > 1:
@@ -137,7 +135,18 @@ class EstimateConfig:
         if self.baseline_m is not None and self.table_m is not None:
             raise ValueError("EstimateConfig: give one of baseline_m (--baseline) and table_m (--table-distance)")
         if self.principal_point is not None:
-            object.__setattr__(self, "principal_point", tuple(tuple(float(v) for v in p) for p in self.principal_point))
+            points = self.principal_point
+            pairs = isinstance(points, (list, tuple)) and len(points) > 0 and all(
+                isinstance(p, (list, tuple)) and len(p) == 2 and all(map(_number, p)) for p in points)  # fmt: skip
+            if not pairs:
+                raise ValueError("EstimateConfig.principal_point (--principal-point) must be one or more (cx, cy) "
+                                 f"pairs of numbers in pixels, got {points!r}")  # fmt: skip
+            object.__setattr__(self, "principal_point", tuple((float(cx), float(cy)) for cx, cy in points))
+
+
+def _number(value) -> bool:
+    """A real number (NumPy's too), not a bool."""
+    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
 
 
 @dataclass

@@ -30,6 +30,11 @@ def test_defaults_give_nothing_and_sample_16_timesteps():
     ({"fov_deg": 60.0, "focal_px": 500.0}, "give one of fov_deg (--fov), focal_px (--focal) and model (--model)"),
     ({"focal_px": 500.0, "model": "shipped"}, "give one of fov_deg (--fov), focal_px (--focal) and model"),
     ({"baseline_m": 0.8, "table_m": 0.5}, "give one of baseline_m (--baseline) and table_m (--table-distance)"),
+    ({"fov_deg": True}, "EstimateConfig.fov_deg (--fov) must be a positive number below 180 degrees, got True"),
+    ({"principal_point": (311.7, 255.4)}, "must be one or more (cx, cy) pairs of numbers in pixels"),
+    ({"principal_point": [(1.0, 2.0, 3.0)]}, "must be one or more (cx, cy) pairs of numbers in pixels"),
+    ({"principal_point": []}, "EstimateConfig.principal_point (--principal-point) must be one or more (cx, cy)"),
+    ({"principal_point": [("311", 255)]}, "must be one or more (cx, cy) pairs of numbers in pixels"),
 ])  # fmt: skip
 def test_a_value_out_of_range_or_two_sources_are_refused_naming_the_field_and_flag(fields, message):
     with pytest.raises(ValueError) as error:
