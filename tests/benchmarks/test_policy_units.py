@@ -176,6 +176,22 @@ def test_the_summary_leaves_out_stale_and_unreadable_unit_files_and_names_them(t
     assert everything["left_out"] == {"gensplat@s0.json": "unreadable"}
 
 
+def test_the_summary_command_compares_each_file_with_the_current_settings(tmp_path, monkeypatch, capsys):
+    """``summary`` leaves out the files ``run`` would call stale, as ``run`` computes the
+    settings, and says so on stderr."""
+    results, work = tmp_path / "results", tmp_path / "work"
+    units = [pu.Unit(TASK, "baseline", 0), pu.Unit(TASK, "baseline", 1)]
+    current = [pu.unit_settings(u, pu.unit_args(u, work)) for u in units]
+    write(results, units[0], wins={("paper", "none"): [1, 1, 1, 0]}, settings=current[0])
+    write(results, units[1], wins={}, settings={**current[1], "steps": 2500})
+    tables = []
+    monkeypatch.setattr(pu, "write_readme", tables.append)
+    pu.main(["summary", "--results", str(results), "--work", str(work)])
+    assert f"policy_units: {TASK}/baseline@s1.json left out of the summary: stale" in capsys.readouterr().err
+    summary = (results / TASK / "summary.json").read_text()
+    assert '"baseline@s1.json": "stale"' in summary and "| baseline | 0 | 75 |" in tables[0]
+
+
 def test_the_summary_says_what_share_of_the_machine_the_slow_units_had(tmp_path):
     results = tmp_path / "results"
     write(results, pu.Unit(TASK, "baseline", 0), wins={}, wall=7000.0, share=0.6)
