@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import numbers
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -39,7 +38,7 @@ import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix, rotation_matrix_to_axis_angle
 
 from ..core.cameras import pivot_point
-from ..core.config_flags import flag
+from ..core.config_flags import flag, real_number, whole_number
 
 #: horizontal fields of view searched for a camera's focal length, degrees
 FOV_RANGE_DEG = (15.0, 150.0)
@@ -117,17 +116,17 @@ class EstimateConfig:
         "and gets its own poses", action="store_true"))
 
     def __post_init__(self):
-        if isinstance(self.timesteps, bool) or not isinstance(self.timesteps, numbers.Integral) or self.timesteps < 2:
+        if not whole_number(self.timesteps) or self.timesteps < 2:
             raise ValueError(f"EstimateConfig.timesteps (--timesteps) must be a whole number >= 2, got {self.timesteps!r}")
         for name, option, top in (("fov_deg", "--fov", 180.0), ("focal_px", "--focal", math.inf)):
             value = getattr(self, name)
-            if value is not None and not (_number(value) and 0 < value < top):
+            if value is not None and not (real_number(value) and 0 < value < top):
                 below = " below 180 degrees" if top < math.inf else ""
                 raise ValueError(f"EstimateConfig.{name} ({option}) must be a positive number{below}, got {value!r}")
         low, high = DISTANCE_RANGE_M
         for name, option in (("baseline_m", "--baseline"), ("table_m", "--table-distance")):
             value = getattr(self, name)
-            if value is not None and not (_number(value) and low <= value <= high):
+            if value is not None and not (real_number(value) and low <= value <= high):
                 raise ValueError(f"EstimateConfig.{name} ({option}) is a distance in metres between a camera and "
                                  f"another camera or the table: {low:g} to {high:g} m, got {value!r}")  # fmt: skip
         if sum(v is not None for v in (self.fov_deg, self.focal_px, self.model)) > 1:
@@ -137,16 +136,12 @@ class EstimateConfig:
         if self.principal_point is not None:
             points = self.principal_point
             pairs = isinstance(points, (list, tuple)) and len(points) > 0 and all(
-                isinstance(p, (list, tuple)) and len(p) == 2 and all(map(_number, p)) for p in points)  # fmt: skip
+                isinstance(p, (list, tuple)) and len(p) == 2 and all(map(real_number, p)) for p in points)  # fmt: skip
             if not pairs:
                 raise ValueError("EstimateConfig.principal_point (--principal-point) must be one or more (cx, cy) "
                                  f"pairs of numbers in pixels, got {points!r}")  # fmt: skip
             object.__setattr__(self, "principal_point", tuple((float(cx), float(cy)) for cx, cy in points))
 
-
-def _number(value) -> bool:
-    """A real number (NumPy's too), not a bool."""
-    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
 
 
 @dataclass

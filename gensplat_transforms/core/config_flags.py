@@ -3,7 +3,8 @@
 A field whose metadata is :func:`flag` gets one argparse option, with the field's default and
 type; a field whose metadata is :func:`nested` lends the flags of its own dataclass's fields.
 :func:`add_flags` adds the options, :func:`config_from_flags` builds the config
-back from the parsed namespace.
+back from the parsed namespace. :func:`real_number` and :func:`whole_number` are the checks the
+configs' ``__post_init__`` apply to their fields.
 
 Example:
     >>> import argparse
@@ -24,6 +25,8 @@ Example:
 from __future__ import annotations
 
 import argparse
+import math
+import numbers
 from collections.abc import Iterator
 from dataclasses import MISSING, Field, fields
 
@@ -111,3 +114,13 @@ def config_from_flags(args: argparse.Namespace, cls, **fixed):
         elif "cli" in f.metadata:
             values[f.name] = getattr(args, f.name)
     return cls(**values, **fixed)
+
+
+def real_number(value) -> bool:
+    """A finite real number, NumPy's included (not a bool)."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def whole_number(value) -> bool:
+    """An integer, NumPy's included (not a bool)."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)

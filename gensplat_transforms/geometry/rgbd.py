@@ -47,8 +47,6 @@ its simulated RealSense depth (``gensplat_sim.sensor``) and 0.02 on exact depth 
 
 from __future__ import annotations
 
-import math
-import numbers
 import warnings
 from dataclasses import asdict, dataclass, field
 
@@ -56,7 +54,7 @@ import torch
 import torch.nn.functional as F
 
 from ..core.cameras import Cameras
-from ..core.config_flags import flag
+from ..core.config_flags import flag, real_number, whole_number
 from ..core.gaussians import Gaussians
 from ..core.rotations import rotmat_to_quat
 from ..core.scenes import Scenes
@@ -119,35 +117,25 @@ class RGBDConfig:
 
     def __post_init__(self) -> None:
         checks = {  # field: (valid, what it must be)
-            "sigma_px": (_real(self.sigma_px) and self.sigma_px > 0, "a number > 0 (pixels)"),
-            "thickness": (_real(self.thickness) and self.thickness >= 0, "a number >= 0"),
-            "max_stretch": (_real(self.max_stretch) and self.max_stretch >= 1, "a number >= 1"),
-            "edge_scale": (_real(self.edge_scale) and 0 < self.edge_scale <= 1, "a number in (0, 1]"),
-            "opacity": (_real(self.opacity) and 0 <= self.opacity <= 1, "a number in [0, 1]"),
-            "sh_degree": (_whole(self.sh_degree) and self.sh_degree >= 0, "a whole number >= 0"),
-            "max_depth": (self.max_depth is None or _real(self.max_depth) and self.max_depth >= 0,
+            "sigma_px": (real_number(self.sigma_px) and self.sigma_px > 0, "a number > 0 (pixels)"),
+            "thickness": (real_number(self.thickness) and self.thickness >= 0, "a number >= 0"),
+            "max_stretch": (real_number(self.max_stretch) and self.max_stretch >= 1, "a number >= 1"),
+            "edge_scale": (real_number(self.edge_scale) and 0 < self.edge_scale <= 1, "a number in (0, 1]"),
+            "opacity": (real_number(self.opacity) and 0 <= self.opacity <= 1, "a number in [0, 1]"),
+            "sh_degree": (whole_number(self.sh_degree) and self.sh_degree >= 0, "a whole number >= 0"),
+            "max_depth": (self.max_depth is None or real_number(self.max_depth) and self.max_depth >= 0,
                           "None or a number >= 0 (metres; 0 keeps no pixel)"),
-            "stride": (_whole(self.stride) and self.stride >= 1, "a whole number >= 1"),
-            "fill_depth_px": (_whole(self.fill_depth_px) and self.fill_depth_px >= 0, "a whole number >= 0 (pixels)"),
-            "dilation": (_real(self.dilation) and self.dilation > 0, "a number > 0 (px^2)"),
-            "saturation": (_real(self.saturation) and self.saturation >= 1, "a number >= 1"),
-            "view_preference": (_real(self.view_preference) and 0 <= self.view_preference <= 1, "a number in [0, 1]"),
-            "cover": (_real(self.cover) and 0 < self.cover <= 1, "a number in (0, 1]"),
+            "stride": (whole_number(self.stride) and self.stride >= 1, "a whole number >= 1"),
+            "fill_depth_px": (whole_number(self.fill_depth_px) and self.fill_depth_px >= 0, "a whole number >= 0 (pixels)"),
+            "dilation": (real_number(self.dilation) and self.dilation > 0, "a number > 0 (px^2)"),
+            "saturation": (real_number(self.saturation) and self.saturation >= 1, "a number >= 1"),
+            "view_preference": (real_number(self.view_preference) and 0 <= self.view_preference <= 1, "a number in [0, 1]"),
+            "cover": (real_number(self.cover) and 0 < self.cover <= 1, "a number in (0, 1]"),
             "soften_noise": (isinstance(self.soften_noise, bool), "True or False"),  # not a truthy "false" from a file
         }  # fmt: skip
         for name, (valid, what) in checks.items():
             if not valid:
                 raise ValueError(f"RGBDConfig.{name} must be {what}, got {getattr(self, name)!r}")
-
-
-def _real(value) -> bool:
-    """A finite real number (not a bool)."""
-    return isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
-
-
-def _whole(value) -> bool:
-    """An integer (not a bool)."""
-    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
 class RGBDReconstructor(DepthReconstructor):
