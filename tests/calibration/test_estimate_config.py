@@ -35,6 +35,7 @@ def test_defaults_give_nothing_and_sample_16_timesteps():
     ({"principal_point": [(1.0, 2.0, 3.0)]}, "must be one or more (cx, cy) pairs of numbers in pixels"),
     ({"principal_point": []}, "EstimateConfig.principal_point (--principal-point) must be one or more (cx, cy)"),
     ({"principal_point": [("311", 255)]}, "must be one or more (cx, cy) pairs of numbers in pixels"),
+    ({"principal_point": [(float("nan"), 255.0)]}, "must be one or more (cx, cy) pairs of numbers in pixels"),
 ])  # fmt: skip
 def test_a_value_out_of_range_or_two_sources_are_refused_naming_the_field_and_flag(fields, message):
     with pytest.raises(ValueError) as error:
