@@ -26,7 +26,8 @@ the run goes on to the next (the run ends with an error naming the failed units)
 reads the unit files alone (those made with the current settings; others are named as left
 out): per arm the success over its seeds, and each arm against the
 baseline and against the best 2D arm, paired on the same seeds and episodes, with a bootstrap
-95 % interval over seeds and episodes; it writes ``summary.json`` and ``summary.png`` per task,
+95 % interval over seeds and episodes, and the study's ``TARGETS`` read from them (met, missed or
+not measured, on the seeds in so far); it writes ``summary.json`` and ``summary.png`` per task,
 and the tables in benchmarks/README.md between the ``policy-units`` markers.
 """
 
@@ -65,6 +66,36 @@ MARKERS = ("<!-- policy-units:begin -->", "<!-- policy-units:end -->")
 RESAMPLES = 2000
 #: A unit's wall-time limit (s): recorded against each unit in the summary.
 UNIT_LIMIT_S = 3600
+
+
+@dataclass(frozen=True)
+class Target:
+    """What the study is read against: ``arm``'s success % at ``level`` of the paper's protocol
+    (``reference`` None), or its paired difference in points from ``reference`` ("baseline" or
+    "best_2d"), at least ``at_least``; with ``interval``, the difference's 95 % interval must
+    lie above zero too."""
+
+    text: str
+    arm: str
+    level: str
+    at_least: float
+    reference: str | None = None
+    interval: bool = False
+
+
+#: The study's targets per task (each summary says which are met, on which seeds).
+TARGETS = {
+    "reach_solo": (
+        Target("baseline >= 80 % at the training camera", "baseline", "none", 80),
+        Target("GenSplat >= baseline + 20 points at Large, interval above zero", "gensplat", "large", 20, "baseline", True),
+        Target("GenSplat >= baseline - 3 points at the training camera", "gensplat", "none", -3, "baseline"),
+    ),
+    "reach_marked": (
+        Target("baseline >= 60 % at the training camera", "baseline", "none", 60),
+        Target("GenSplat >= best 2D arm + 10 points at Large, interval above zero", "gensplat", "large", 10, "best_2d",
+               True),
+    ),
+}  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -254,7 +285,7 @@ def summarise(task: str, units: Path = UNITS, seed: int = 0, current: Callable[[
                       for p, levels in pr.PROTOCOLS.items()} for arm in arms if arm != reference}  # fmt: skip
 
     walls = {f"{arm}@s{s}": f["timing"] for arm in arms for s, f in sorted(found[arm].items())}
-    return {
+    summary = {
         "task": task, "arms": arms, "success": success, "best_2d": best_2d,
         "difference": {"vs_baseline": against("baseline" if "baseline" in found else None),
                        "vs_best_2d": against(best_2d)},
@@ -267,6 +298,36 @@ def summarise(task: str, units: Path = UNITS, seed: int = 0, current: Callable[[
         "episodes_per_level": sorted({f["settings"]["episodes"] for arm in arms for f in found[arm].values()}),
         "left_out": left_out,
     }  # fmt: skip
+    return summary | {"targets": targets(summary)}
+
+
+def targets(summary: dict) -> list[dict]:
+    """Each of the task's ``TARGETS`` read from ``summary``: its figure (success % or paired
+    points), interval, the seeds it rests on, and ``status`` "met", "missed" or "not measured"
+    (an arm it needs has no unit yet) and ``final``: every seed of ``SEEDS`` is in. Last, the
+    unit-time target: ``figure`` of the ``units`` over ``UNIT_LIMIT_S`` (final with every unit in)."""
+    out = []
+    for t in TARGETS.get(summary["task"], ()):
+        row = {"target": t.text, "figure": None, "ci95": None, "seeds": [], "status": "not measured"}
+        if t.reference is None:
+            found = summary["success"].get(t.arm, {}).get("paper", {}).get(t.level)
+            if found:
+                row.update(figure=found["mean"], seeds=sorted(int(s) for s in found["per_seed"]))
+        else:
+            key = "vs_baseline" if t.reference == "baseline" else "vs_best_2d"
+            found = summary["difference"][key].get(t.arm, {}).get("paper", {}).get(t.level)
+            if found:
+                row.update(figure=found["points"], ci95=found["ci95"], seeds=[int(s) for s in found["seeds"]])
+        if row["figure"] is not None:
+            met = row["figure"] >= t.at_least and (not t.interval or row["ci95"][0] > 0)
+            row["status"] = "met" if met else "missed"
+        out.append(row | {"final": row["seeds"] == sorted(SEEDS)})
+    units = summary["units"]
+    over = sum(not u["within_limit"] for u in units.values())
+    out.append({"target": f"every unit within {UNIT_LIMIT_S // 60} min of wall time", "figure": over,
+                "ci95": None, "seeds": [], "status": ("missed" if over else "met") if units else "not measured",
+                "units": len(units), "final": len(units) == len(ARMS) * len(SEEDS)})  # fmt: skip
+    return out
 
 
 def cell(summary: dict, arm: str, protocol: str, level: str) -> str:
@@ -305,10 +366,26 @@ def markdown(summary: dict) -> str:
                      "resume" if resumed else "")
                   + (f"; the units over the limit that recorded it had {share} of the machine's cores" if shares else "")
                   + "."]  # fmt: skip
+    if summary.get("targets"):
+        lines += ["", f"Targets (read on the seeds in so far; final once all of {','.join(map(str, SEEDS))} are):", ""]
+        lines += [f"- {t['target']}: {target_figure(t)}: {t['status']}" for t in summary["targets"]]
     if summary.get("left_out"):
         lines += ["", "Left out (not comparable with the current settings, or unreadable): "
                   + ", ".join(f"{name} ({why})" for name, why in summary["left_out"].items()) + "."]  # fmt: skip
     return "\n".join(lines) + "\n"
+
+
+def target_figure(t: dict) -> str:
+    """A target's figure as the table writes it: "87 % (seeds 0,1)", "+46 [+35, +57] (seeds 0,1)",
+    "8 of 9 units over", or "no unit yet"."""
+    if "units" in t:
+        return f"{t['figure']} of {t['units']} units over"
+    if t["figure"] is None:
+        return "no unit yet"
+    seeds = f"(seeds {','.join(map(str, t['seeds']))})"
+    if t["ci95"] is None:
+        return f"{t['figure']:.0f} % {seeds}"
+    return f"{t['figure']:+.0f} [{t['ci95'][0]:+.0f}, {t['ci95'][1]:+.0f}] {seeds}"
 
 
 def plot(summary: dict, path: Path) -> None:

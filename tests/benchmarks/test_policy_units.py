@@ -248,3 +248,52 @@ def test_the_plot_names_each_arms_seeds(tmp_path, monkeypatch):
     assert list(drawn["colours"]) == ["baseline (seeds 0,1)", "gensplat (seeds 1)"]
     large = drawn["panels"][0].series["gensplat (seeds 1)"][pr.PROTOCOLS["paper"].index("large")]
     assert large[1] == 75.0  # the mean over the arm's seeds
+
+
+def test_the_summary_reads_each_target_met_missed_or_not_measured(tmp_path, monkeypatch):
+    """Each of the study's targets is read from the summary with its figure and the seeds it
+    rests on: met, missed (a figure below it, or an interval reaching zero), or not measured
+    while an arm it needs has no unit; final only once every seed is in."""
+    results = tmp_path / "results"
+    n = 10
+    for seed in (0, 1):  # baseline: 90 % at none, 20 % at large; GenSplat: 80 % at none, 60 % at large
+        write(results, pu.Unit(TASK, "baseline", seed), wins={("paper", "none"): [1] * 9 + [0],
+              ("paper", "large"): [1] * 2 + [0] * 8}, episodes=n, wall=100.0 if seed else 5000.0)  # fmt: skip
+        write(results, pu.Unit(TASK, "gensplat", seed), wins={("paper", "none"): [1] * 8 + [0] * 2,
+              ("paper", "large"): [1] * 6 + [0] * 4}, episodes=n)  # fmt: skip
+    base, large, none, time = pu.summarise(TASK, results)["targets"]
+    assert [base["target"], large["target"], none["target"]] == [t.text for t in pu.TARGETS[TASK]]
+    assert base == {"target": base["target"], "figure": 90.0, "ci95": None, "seeds": [0, 1], "status": "met", "final": False}
+    assert large["figure"] == 40.0 and large["ci95"][0] > 0 and large["status"] == "met"
+    assert none["figure"] == -10.0 and none["status"] == "missed"  # below baseline - 3
+    assert time["figure"] == 1 and time["units"] == 4 and time["status"] == "missed" and not time["final"]
+    table = pu.markdown(pu.summarise(TASK, results))
+    assert "- baseline >= 80 % at the training camera: 90 % (seeds 0,1): met" in table
+    assert "- every unit within 60 min of wall time: 1 of 4 units over: missed" in table
+
+    write(results, pu.Unit(TASK, "gensplat", 1), wins={("paper", "large"): [1] * 5 + [0] * 5}, episodes=n)  # +30 on seed 1
+    large = pu.summarise(TASK, results)["targets"][1]
+    assert large["figure"] == 35.0 and large["ci95"][0] > 0 and large["status"] == "met"
+    write(results, pu.Unit(TASK, "gensplat", 0), wins={("paper", "large"): [1] * 2 + [0] * 8}, episodes=n)  # +0 on seed 0
+    large = pu.summarise(TASK, results)["targets"][1]
+    assert large["figure"] == 15.0 and large["status"] == "missed"  # under +20
+    for seed in (0, 1):  # +30 on seed 0 as well, but the interval reaches below zero: missed all the same
+        write(results, pu.Unit(TASK, "baseline", seed), wins={("paper", "large"): [1] * 7 + [0] * 3}, episodes=n)
+        write(results, pu.Unit(TASK, "gensplat", seed), wins={("paper", "large"): [0] * 7 + [1] * 3}, episodes=n)
+    flip = pu.Target("made up", "gensplat", "large", -100, "baseline", interval=True)
+    monkeypatch.setitem(pu.TARGETS, TASK, (flip,))
+    row = pu.summarise(TASK, results)["targets"][0]
+    assert row["figure"] == -40.0 and row["ci95"][0] < 0 and row["status"] == "missed"
+    monkeypatch.undo()
+
+    write(results, pu.Unit(TASK, "baseline", 2), wins={("paper", "none"): [1] * n}, episodes=n)
+    base = pu.summarise(TASK, results)["targets"][0]
+    assert base["seeds"] == [0, 1, 2] and base["final"]
+
+    marked = tmp_path / "marked"
+    write(marked, pu.Unit("reach_marked", "gensplat", 0), wins={("paper", "large"): [1] * n}, episodes=n)
+    rows = pu.summarise("reach_marked", marked)["targets"]
+    assert [r["status"] for r in rows] == ["not measured", "not measured", "met"]  # no baseline, no 2D arm yet
+    assert "- baseline >= 60 % at the training camera: no unit yet: not measured" in pu.markdown(pu.summarise("reach_marked", marked))
+    write(marked, pu.Unit("reach_marked", "perspective", 0), wins={("paper", "large"): [1] * 5 + [0] * 5}, episodes=n)
+    assert pu.summarise("reach_marked", marked)["targets"][1]["figure"] == 50.0  # GenSplat - the best 2D arm
