@@ -321,7 +321,7 @@ def targets(summary: dict) -> list[dict]:
         if row["figure"] is not None:
             met = row["figure"] >= t.at_least and (not t.interval or row["ci95"][0] > 0)
             row["status"] = "met" if met else "missed"
-        out.append(row | {"final": row["seeds"] == sorted(SEEDS)})
+        out.append(row | {"final": set(SEEDS) <= set(row["seeds"])})  # an extra seed does not unsettle it
     units = summary["units"]
     over = sum(not u["within_limit"] for u in units.values())
     out.append({"target": f"every unit within {UNIT_LIMIT_S // 60} min of wall time", "figure": over,

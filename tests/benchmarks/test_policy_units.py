@@ -289,6 +289,9 @@ def test_the_summary_reads_each_target_met_missed_or_not_measured(tmp_path, monk
     write(results, pu.Unit(TASK, "baseline", 2), wins={("paper", "none"): [1] * n}, episodes=n)
     base = pu.summarise(TASK, results)["targets"][0]
     assert base["seeds"] == [0, 1, 2] and base["final"]
+    write(results, pu.Unit(TASK, "baseline", 7), wins={("paper", "none"): [1] * n}, episodes=n)  # a seed beyond the study's
+    base = pu.summarise(TASK, results)["targets"][0]
+    assert base["seeds"] == [0, 1, 2, 7] and base["final"]
 
     marked = tmp_path / "marked"
     write(marked, pu.Unit("reach_marked", "gensplat", 0), wins={("paper", "large"): [1] * n}, episodes=n)
