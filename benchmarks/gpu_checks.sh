@@ -40,6 +40,6 @@ if [ -z "$QUICK" ]; then
     step "CUDA tests"
     timeout 300 python3 -m pytest -q -p no:cacheprovider -o addopts="-ra" tests/rendering/test_batched.py \
         tests/rendering/test_batched_compiled.py tests/rendering/test_gsplat_backend.py \
-        tests/rendering/test_render_reference.py::test_auto_backend_on_cuda_is_gsplat_when_installed
+        tests/rendering/test_reference.py::test_auto_backend_on_cuda_is_gsplat_when_installed
 fi
 step done

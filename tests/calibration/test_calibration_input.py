@@ -7,16 +7,16 @@ import re
 import time
 
 import pytest
-import test_calibrate
+import test_files
 import torch
 import yaml
 from gensplat_cli import main
-from test_calibrate import HEIGHT, WIDTH, entry, nerfstudio, write_info
+from test_files import HEIGHT, WIDTH, entry, nerfstudio, write_info
 
 from gensplat_transforms.calibration.files import MAX_FILE_BYTES, calibrate, load_calibration
 from gensplat_transforms.data.format import calibration_path
 
-truth = test_calibrate.truth  # its fixture
+truth = test_files.truth  # its fixture
 
 
 def billion_laughs(levels: int = 9) -> str:
