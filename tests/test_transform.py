@@ -40,7 +40,7 @@ def test_identity_perturbation_reproduces_the_source_image(setup):
     camera = direct.cameras[:1]
     expected = render(direct.seen_from(camera), camera, **direct.render_options).rgb[0]
     # Same camera, same Gaussians: only the cache quantisation differs (> 45 dB, see
-    # test_cache), and the sharp discs reproduce the source image
+    # cache/test_store.py), and the sharp discs reproduce the source image
     assert psnr(out[LEFT], expected) > 45.0
     assert psnr(out[LEFT], item[LEFT]) > 30.0  # 33.4 dB; plain Gaussians (dilation 0.3, unsaturated, no preference): 27.2
     assert out[LEFT].shape == item[LEFT].shape and out[LEFT].dtype == item[LEFT].dtype
