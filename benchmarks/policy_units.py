@@ -334,7 +334,12 @@ def cell(summary: dict, arm: str, protocol: str, level: str) -> str:
     """A table cell: mean success % over the arm's seeds, and its paired difference from the baseline."""
     text = f"{summary['success'][arm][protocol][level]['mean']:.0f}"
     d = summary["difference"]["vs_baseline"].get(arm, {}).get(protocol, {}).get(level)
-    return text + (f" ({d['points']:+.0f} [{d['ci95'][0]:+.0f}, {d['ci95'][1]:+.0f}])" if d else "")
+    return text + (f" ({difference(d['points'], d['ci95'])})" if d else "")
+
+
+def difference(points: float, ci95: list[float]) -> str:
+    """A paired difference as the tables write it: "+46 [+35, +57]"."""
+    return f"{points:+.0f} [{ci95[0]:+.0f}, {ci95[1]:+.0f}]"
 
 
 def markdown(summary: dict) -> str:
@@ -352,7 +357,7 @@ def markdown(summary: dict) -> str:
         if pr.arm_kind(arm) in pr.GENSPLAT_ARMS:
             row = [diffs[p][lv] for p, lv in columns]
             lines.append(f"| {arm} - {best} | | " + " | ".join(
-                f"{d['points']:+.0f} [{d['ci95'][0]:+.0f}, {d['ci95'][1]:+.0f}]" if d else "" for d in row) + " |")  # fmt: skip
+                difference(d["points"], d["ci95"]) if d else "" for d in row) + " |")  # fmt: skip
     walls = summary["units"]
     if walls:
         longest = max(walls.values(), key=lambda u: u["wall_seconds"])["wall_seconds"]
@@ -385,7 +390,7 @@ def target_figure(t: dict) -> str:
     seeds = f"(seeds {','.join(map(str, t['seeds']))})"
     if t["ci95"] is None:
         return f"{t['figure']:.0f} % {seeds}"
-    return f"{t['figure']:+.0f} [{t['ci95'][0]:+.0f}, {t['ci95'][1]:+.0f}] {seeds}"
+    return f"{difference(t['figure'], t['ci95'])} {seeds}"
 
 
 def plot(summary: dict, path: Path) -> None:
