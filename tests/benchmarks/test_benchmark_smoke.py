@@ -310,6 +310,18 @@ def test_training_step(tmp_path):
     assert row["fast_rows"] and positive(row["item_ms"], row["updt_s"], row["s_per_step"])
 
 
+def test_policy_update(tmp_path):
+    needs_lerobot()
+    result = quick("policy_update.py", tmp_path)
+    rows = result["rows"]
+    assert [r["name"] for r in rows][:3] == ["the study (96 px)", "80 px", "64 px"] and len(rows) == 5
+    assert rows[0]["of_study"] == 1.0 and not any(r["compiled"] for r in rows)  # --compile not given
+    for r in rows:
+        assert positive(r["encoder_forward_s"], r["unet_forward_s"], r["backward_s"], r["optimiser_s"])
+        assert r["encoder_forward_s"] + r["unet_forward_s"] <= r["forward_s"]
+        assert r["update_s"] == pytest.approx(r["forward_s"] + r["backward_s"] + r["optimiser_s"])
+
+
 def test_training_throughput(tmp_path):
     needs_sim()
     needs_lerobot()

@@ -1,0 +1,142 @@
+"""Where the policy study's update step goes (``updt_s`` of ``training_step.py``): the
+Diffusion Policy of the study (one 96x96 camera, ResNet-18 encoder with group norm, U-Net of
+64/128/256 channels, batch 32, one observation step, 16 actions), one AdamW update on a random
+batch split into the encoder's forward, the U-Net's forward, the backward pass and the optimiser
+step, for the variants a unit's time could be cut with: smaller images, channels-last tensors,
+batch norm, ``torch.compile`` (``--compile``: several minutes of compiling).
+
+    python benchmarks/policy_update.py [--steps 15] [--compile] [--quick] [--out FILE]
+
+Stop other work on the machine first: the figures are wall-clock seconds of both cores. Writes
+``benchmarks/results/policy_update.json`` (``--quick``: every variant at 64 px, one step, figures that mean
+nothing, under outputs/benchmarks_quick/).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as the study trains (policy_robustness.py)
+
+import torch
+from machine import cpu_model, default_out, out_help
+
+from gensplat_transforms.core.atomic import atomic_write_json
+
+BATCH, HORIZON, STATE, ACTION = 32, 16, 12, 5
+
+
+@dataclass(frozen=True)
+class Variant:
+    """One way to build and run the study's policy."""
+
+    name: str
+    size: int = 96
+    group_norm: bool = True
+    channels_last: bool = False
+    compiled: bool = False
+
+
+VARIANTS = (Variant("the study (96 px)"), Variant("80 px", size=80), Variant("64 px", size=64),
+            Variant("channels-last", channels_last=True), Variant("batch norm", group_norm=False))  # fmt: skip
+COMPILED = Variant("torch.compile (encoder, U-Net)", compiled=True)
+
+
+def build(variant: Variant, size: int):
+    """The study's Diffusion Policy for ``variant`` at ``size`` px, its optimiser and a batch."""
+    from lerobot.configs.types import FeatureType, PolicyFeature
+    from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
+    from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
+
+    torch.manual_seed(0)
+    features = {"observation.images.left": PolicyFeature(FeatureType.VISUAL, (3, size, size)),
+                "observation.state": PolicyFeature(FeatureType.STATE, (STATE,))}  # fmt: skip
+    config = DiffusionConfig(n_obs_steps=1, horizon=HORIZON, n_action_steps=8, crop_shape=None,
+                             pretrained_backbone_weights=None, use_group_norm=variant.group_norm,
+                             down_dims=(64, 128, 256), noise_scheduler_type="DDIM", num_inference_steps=10,
+                             device="cpu", input_features=features,
+                             output_features={"action": PolicyFeature(FeatureType.ACTION, (ACTION,))})  # fmt: skip
+    policy = DiffusionPolicy(config).train()
+    batch = {"observation.images.left": torch.rand(BATCH, 1, 3, size, size),
+             "observation.state": torch.randn(BATCH, 1, STATE), "action": torch.randn(BATCH, HORIZON, ACTION),
+             "action_is_pad": torch.zeros(BATCH, HORIZON, dtype=torch.bool)}  # fmt: skip
+    if variant.channels_last:
+        policy = policy.to(memory_format=torch.channels_last)  # the weights; convolutions follow them
+    encoders = list(policy.diffusion.rgb_encoder)  # one per camera (LeRobot's default)
+    if variant.compiled:
+        for module in [*encoders, policy.diffusion.unet]:
+            module.compile()  # in place: the state dict keeps its names
+    return policy, torch.optim.AdamW(policy.parameters(), lr=1e-4, weight_decay=1e-6), batch, encoders
+
+
+def measure(variant: Variant, size: int, steps: int, warmup: int = 3) -> dict:
+    """Mean seconds per update of each part over ``steps`` updates, after ``warmup`` updates
+    (``warmup_s``: their time, which includes compiling where ``variant.compiled``)."""
+    policy, optimiser, batch, encoders = build(variant, size)
+    forward = {"encoder": 0.0, "unet": 0.0}
+
+    def timed(module, part):
+        start = {}
+        module.register_forward_pre_hook(lambda *_: start.__setitem__("t", time.perf_counter()))
+        module.register_forward_hook(lambda *_: forward.__setitem__(part, forward[part] + time.perf_counter() - start["t"]))
+
+    for encoder in encoders:
+        timed(encoder, "encoder")
+    timed(policy.diffusion.unet, "unet")
+
+    def update() -> tuple[float, float, float]:
+        t0 = time.perf_counter()
+        loss, _ = policy.forward(batch)
+        t1 = time.perf_counter()
+        loss.backward()
+        t2 = time.perf_counter()
+        torch.nn.utils.clip_grad_norm_(policy.parameters(), 10.0)  # lerobot-train's default grad_clip_norm
+        optimiser.step()
+        optimiser.zero_grad()
+        return t1 - t0, t2 - t1, time.perf_counter() - t2
+
+    t = time.perf_counter()
+    for _ in range(warmup):
+        update()
+    warmup_s = time.perf_counter() - t
+    forward.update(encoder=0.0, unet=0.0)
+    parts = [sum(p) / steps for p in zip(*(update() for _ in range(steps)))]
+    return {"name": variant.name, "size": size, "group_norm": variant.group_norm, "channels_last": variant.channels_last,
+            "compiled": variant.compiled, "forward_s": parts[0], "encoder_forward_s": forward["encoder"] / steps,
+            "unet_forward_s": forward["unet"] / steps, "backward_s": parts[1], "optimiser_s": parts[2],
+            "update_s": sum(parts), "warmup_s": warmup_s}  # fmt: skip
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=15, help="timed updates per variant (default 15)")
+    parser.add_argument("--compile", action="store_true", help="also the torch.compile variant (minutes to compile)")
+    parser.add_argument("--quick", action="store_true", help="seconds-long check: every variant at 64 px, one step, figures that mean nothing")
+    parser.add_argument("--out", help=out_help("policy_update.json"))
+    args = parser.parse_args()
+    if args.steps < 1:
+        parser.error(f"--steps {args.steps}: at least one timed update")
+    steps, warmup, size = (1, 1, 64) if args.quick else (args.steps, 3, None)
+    variants = VARIANTS + ((COMPILED,) if args.compile else ())
+    rows = []
+    print(f"{'variant':>32} {'encoder fwd':>11} {'U-Net fwd':>9} {'forward':>8} {'backward':>8} {'optimiser':>9} "
+          f"{'update s':>8} {'x study':>7}")  # fmt: skip
+    for variant in variants:
+        row = measure(variant, size or variant.size, steps, warmup)
+        row["of_study"] = row["update_s"] / (rows[0]["update_s"] if rows else row["update_s"])
+        rows.append(row)
+        print(f"{variant.name:>32} {row['encoder_forward_s']:11.3f} {row['unet_forward_s']:9.3f} {row['forward_s']:8.3f} "
+              f"{row['backward_s']:8.3f} {row['optimiser_s']:9.3f} {row['update_s']:8.3f} {row['of_study']:7.2f}")  # fmt: skip
+    out = Path(args.out) if args.out else default_out("policy_update.json", args.quick)
+    atomic_write_json(out, {"machine": cpu_model(), "threads": torch.get_num_threads(), "batch_size": BATCH,
+                            "steps": steps, "quick": args.quick, "rows": rows})  # fmt: skip
+    print("wrote", out)
+
+
+if __name__ == "__main__":
+    main()
