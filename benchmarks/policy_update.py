@@ -3,7 +3,8 @@ Diffusion Policy of the study (one 96x96 camera, ResNet-18 encoder with group no
 64/128/256 channels, batch 32, one observation step, 16 actions), one AdamW update on a random
 batch split into the encoder's forward, the U-Net's forward, the backward pass and the optimiser
 step, for the variants a unit's time could be cut with: smaller images, channels-last tensors,
-batch norm, ``torch.compile`` (``--compile``: several minutes of compiling).
+batch norm, ``torch.compile`` (``--compile``: several minutes of compiling). The variants'
+updates are taken in turns, so that the machine's drift falls on all of them alike.
 
     python benchmarks/policy_update.py [--steps 15] [--compile] [--quick] [--out FILE]
 
@@ -74,47 +75,67 @@ def build(variant: Variant, size: int):
     return policy, torch.optim.AdamW(policy.parameters(), lr=1e-4, weight_decay=1e-6), batch, encoders
 
 
-def measure(variant: Variant, size: int, steps: int, warmup: int = 3) -> dict:
-    """Mean seconds per update of each part over ``steps`` updates, after ``warmup`` updates
-    (``warmup_s``: their time, which includes compiling where ``variant.compiled``)."""
-    policy, optimiser, batch, encoders = build(variant, size)
-    forward = {"encoder": 0.0, "unet": 0.0}
+class Timed:
+    """A variant's policy, optimiser and batch, and the seconds its updates spent in each part."""
 
-    def timed(module, part):
+    def __init__(self, variant: Variant, size: int) -> None:
+        self.variant, self.size = variant, size
+        self.policy, self.optimiser, self.batch, encoders = build(variant, size)
+        self.seconds = dict.fromkeys(("encoder_forward_s", "unet_forward_s", "forward_s", "backward_s", "optimiser_s"), 0.0)
+        for module, part in [*((e, "encoder_forward_s") for e in encoders), (self.policy.diffusion.unet, "unet_forward_s")]:
+            self._time(module, part)
+
+    def _time(self, module, part: str) -> None:
         start = {}
         module.register_forward_pre_hook(lambda *_: start.__setitem__("t", time.perf_counter()))
-        module.register_forward_hook(lambda *_: forward.__setitem__(part, forward[part] + time.perf_counter() - start["t"]))
+        module.register_forward_hook(lambda *_: self._add(part, time.perf_counter() - start["t"]))
 
-    for encoder in encoders:
-        timed(encoder, "encoder")
-    timed(policy.diffusion.unet, "unet")
+    def _add(self, part: str, seconds: float) -> None:
+        self.seconds[part] += seconds
 
-    def update() -> tuple[float, float, float]:
+    def update(self) -> None:
+        """One training update, its parts' seconds added up."""
         t0 = time.perf_counter()
-        loss, _ = policy.forward(batch)
+        loss, _ = self.policy.forward(self.batch)
         t1 = time.perf_counter()
         loss.backward()
         t2 = time.perf_counter()
-        torch.nn.utils.clip_grad_norm_(policy.parameters(), 10.0)  # lerobot-train's default grad_clip_norm
-        optimiser.step()
-        optimiser.zero_grad()
-        return t1 - t0, t2 - t1, time.perf_counter() - t2
+        torch.nn.utils.clip_grad_norm_(self.policy.parameters(), 10.0)  # lerobot-train's default grad_clip_norm
+        self.optimiser.step()
+        self.optimiser.zero_grad()
+        for part, seconds in (("forward_s", t1 - t0), ("backward_s", t2 - t1), ("optimiser_s", time.perf_counter() - t2)):
+            self._add(part, seconds)
 
-    t = time.perf_counter()
-    for _ in range(warmup):
-        update()
-    warmup_s = time.perf_counter() - t
-    forward.update(encoder=0.0, unet=0.0)
-    parts = [sum(p) / steps for p in zip(*(update() for _ in range(steps)))]
-    return {"name": variant.name, "size": size, "group_norm": variant.group_norm, "channels_last": variant.channels_last,
-            "compiled": variant.compiled, "forward_s": parts[0], "encoder_forward_s": forward["encoder"] / steps,
-            "unet_forward_s": forward["unet"] / steps, "backward_s": parts[1], "optimiser_s": parts[2],
-            "update_s": sum(parts), "warmup_s": warmup_s}  # fmt: skip
+    def row(self, steps: int, warmup_s: float) -> dict:
+        """Mean seconds per update of each part over ``steps`` updates."""
+        parts = {k: v / steps for k, v in self.seconds.items()}
+        v = self.variant
+        return {"name": v.name, "size": self.size, "group_norm": v.group_norm, "channels_last": v.channels_last,
+                "compiled": v.compiled, **parts, "update_s": parts["forward_s"] + parts["backward_s"] + parts["optimiser_s"],
+                "warmup_s": warmup_s}  # fmt: skip
+
+
+def measure(variants: tuple[Variant, ...], size: int | None, steps: int, warmup: int = 3) -> list[dict]:
+    """Each variant's mean seconds per update (at ``size``, default its own) over ``steps``
+    updates taken in turns, one of each variant per round, so that the machine's drift falls
+    on every variant alike; after ``warmup`` updates each (``warmup_s``: their time, which
+    includes compiling where the variant is compiled)."""
+    runs, warmups = [Timed(v, size or v.size) for v in variants], []
+    for run in runs:
+        t = time.perf_counter()
+        for _ in range(warmup):
+            run.update()
+        warmups.append(time.perf_counter() - t)
+        run.seconds = dict.fromkeys(run.seconds, 0.0)
+    for _ in range(steps):
+        for run in runs:
+            run.update()
+    return [run.row(steps, w) for run, w in zip(runs, warmups)]
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--steps", type=int, default=15, help="timed updates per variant (default 15)")
+    parser.add_argument("--steps", type=int, default=15, help="timed updates per variant, in turns (default 15)")
     parser.add_argument("--compile", action="store_true", help="also the torch.compile variant (minutes to compile)")
     parser.add_argument("--quick", action="store_true", help="seconds-long check: every variant at 64 px, one step, figures that mean nothing")
     parser.add_argument("--out", help=out_help("policy_update.json"))
@@ -123,18 +144,16 @@ def main() -> None:
         parser.error(f"--steps {args.steps}: at least one timed update")
     steps, warmup, size = (1, 1, 64) if args.quick else (args.steps, 3, None)
     variants = VARIANTS + ((COMPILED,) if args.compile else ())
-    rows = []
+    rows = measure(variants, size, steps, warmup)
     print(f"{'variant':>32} {'encoder fwd':>11} {'U-Net fwd':>9} {'forward':>8} {'backward':>8} {'optimiser':>9} "
           f"{'update s':>8} {'x study':>7}")  # fmt: skip
-    for variant in variants:
-        row = measure(variant, size or variant.size, steps, warmup)
-        row["of_study"] = row["update_s"] / (rows[0]["update_s"] if rows else row["update_s"])
-        rows.append(row)
-        print(f"{variant.name:>32} {row['encoder_forward_s']:11.3f} {row['unet_forward_s']:9.3f} {row['forward_s']:8.3f} "
+    for row in rows:
+        row["of_study"] = row["update_s"] / rows[0]["update_s"]
+        print(f"{row['name']:>32} {row['encoder_forward_s']:11.3f} {row['unet_forward_s']:9.3f} {row['forward_s']:8.3f} "
               f"{row['backward_s']:8.3f} {row['optimiser_s']:9.3f} {row['update_s']:8.3f} {row['of_study']:7.2f}")  # fmt: skip
     out = Path(args.out) if args.out else default_out("policy_update.json", args.quick)
-    atomic_write_json(out, {"machine": cpu_model(), "threads": torch.get_num_threads(), "batch_size": BATCH,
-                            "steps": steps, "quick": args.quick, "rows": rows})  # fmt: skip
+    atomic_write_json(out, {"machine": cpu_model(), "torch": torch.__version__, "threads": torch.get_num_threads(),
+                            "batch_size": BATCH, "steps": steps, "quick": args.quick, "rows": rows})  # fmt: skip
     print("wrote", out)
 
 
