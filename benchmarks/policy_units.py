@@ -3,7 +3,7 @@ is trained, evaluated and written to its own file, so a stopped run loses only t
 flight.
 
     python benchmarks/policy_units.py run [--tasks T,..] [--arms A,..] [--seeds 0,1,2] [--commit]
-    python benchmarks/policy_units.py status     # each unit: done, stale, unreadable or to run
+    python benchmarks/policy_units.py status     # each unit: done, stale, unreadable or to run (and its checkpoint)
     python benchmarks/policy_units.py summary    # summary.json, plot and README table from the unit files
 
 A unit trains Diffusion Policy on one task with one arm's augmentation and one training seed,
@@ -135,6 +135,18 @@ def state(unit: Unit, settings: dict, units: Path = UNITS) -> str:
     if not {"unit", "settings", "success", "episodes"} <= data.keys():
         return "unreadable"
     return "done" if data["settings"] == settings else "stale"
+
+
+def left_in_work(unit: Unit, args) -> str:
+    """What a stopped run of ``unit`` left in its work folder ``args.work`` for the next run to
+    resume: its training's last checkpoint, or a finished training; "" when nothing."""
+    try:
+        steps = pr.trained_steps(args.work / unit.name)
+    except SystemExit as e:  # a step file without a step: the run stops there, say so here
+        return f" ({e})"
+    if steps >= args.steps:
+        return " (trained; its evaluation is left)"
+    return f" (trained to step {steps} of {args.steps}; the next run resumes there)" if steps else ""
 
 
 def head_commit() -> str:
@@ -465,7 +477,8 @@ def main(argv: list[str] | None = None) -> None:
     for unit in units:
         u_args = unit_args(unit, args.work)
         status = state(unit, unit_settings(unit, u_args), args.results)
-        print(f"{unit.task:>13} {unit.name:>18}: {status}", flush=True)
+        print(f"{unit.task:>13} {unit.name:>18}: {status}{'' if status == 'done' else left_in_work(unit, u_args)}",
+              flush=True)  # fmt: skip
         if args.command == "status" or status == "done":
             continue
         t0 = time.perf_counter()

@@ -71,6 +71,30 @@ def test_units_done_are_skipped_and_the_others_run(tmp_path, monkeypatch, capsys
     assert "none 75 %" in capsys.readouterr().out
 
 
+def test_status_says_what_a_stopped_run_left_to_resume(tmp_path, capsys):
+    """``status`` names each unfinished unit's last checkpoint in the work folder (what the next
+    ``run`` resumes from), a finished training left to evaluate, and a damaged step file."""
+    work = tmp_path / "work"
+
+    def checkpoint(arm: str, text: str) -> None:
+        last = work / TASK / f"{arm}@s1" / "checkpoints" / "last"
+        (last / "pretrained_model").mkdir(parents=True)
+        (last / "training_state").mkdir()
+        (last / "pretrained_model" / "train_config.json").write_text("{}")
+        (last / "training_state" / "training_step.json").write_text(text)
+
+    checkpoint("perspective", '{"step": 1500}')
+    checkpoint("gensplat", '{"step": 5000}')
+    checkpoint("gensplat-tilt", '{"step": "500"}')
+    pu.main(["status", "--tasks", TASK, "--seeds", "1", "--results", str(tmp_path / "results"), "--work", str(work)])
+    said = dict(line.split(": ", 1) for line in capsys.readouterr().out.splitlines())
+    said = {name.split()[-1]: state for name, state in said.items()}  # by unit
+    assert said["baseline@s1"] == "missing"
+    assert said["perspective@s1"] == "missing (trained to step 1500 of 5000; the next run resumes there)"
+    assert said["gensplat@s1"] == "missing (trained; its evaluation is left)"
+    assert said["gensplat-tilt@s1"].startswith("missing (") and "no step count" in said["gensplat-tilt@s1"]
+
+
 def test_a_failed_unit_does_not_stop_the_others(tmp_path, monkeypatch, capsys):
     """A unit that fails (an error, or its task's folder held by another run) is reported and the
     run goes on to the next units; it ends with an error naming the failed ones."""
