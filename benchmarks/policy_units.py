@@ -15,7 +15,8 @@ replicate ``<arm>@s<N>``). Training and evaluation are ``policy_robustness.py``'
 recorded dataset, the checkpoints and the evaluated levels stay between runs.
 
 The result of a unit is ``benchmarks/results/policy/<task>/<arm>@s<seed>.json``: the unit, the
-settings that shape it, the commit it ran on, success % per protocol and level, the
+settings that shape it, the commit it ran on (and the machine and the versions of torch and
+LeRobot that ran it), success % per protocol and level, the
 per-episode records, the training and evaluation times, the unit's wall time (the sum of
 its stages; evaluated levels kept from a stopped run count their process time shared by the
 evaluation processes) and the share of the machine's cores its processes had over the run
@@ -158,6 +159,15 @@ def head_commit() -> str:
     return commit + ("+changes" if git("status", "--porcelain", "--untracked-files=no") else "")
 
 
+def versions() -> dict[str, str]:
+    """The versions of the libraries that set a unit's numbers and pace: torch (with its build),
+    LeRobot."""
+    import lerobot
+    import torch
+
+    return {"torch": torch.__version__, "lerobot": lerobot.__version__}
+
+
 def cpu_seconds() -> float:
     """CPU seconds (user + system) of this process and of its children that have ended."""
     own, children = (resource.getrusage(who) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN))
@@ -205,6 +215,7 @@ def _run_unit(unit: Unit, args) -> dict:
     return {
         "unit": {"task": unit.task, "arm": unit.arm, "seed": unit.seed, "name": name},
         "settings": unit_settings(unit, args), "commit": head_commit(), "machine": cpu_model(),
+        "versions": versions(),
         "reconstructor": pr.STUDY_RECONSTRUCTOR if pr.arm_kind(name) in pr.GENSPLAT_ARMS else None,
         "success": {p: {lv: r["success"] for lv, r in evaluated[p][name].items()} for p in pr.PROTOCOLS},
         "progress": {p: {lv: r["progress"] for lv, r in evaluated[p][name].items()} for p in pr.PROTOCOLS},

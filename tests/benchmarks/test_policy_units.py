@@ -239,6 +239,13 @@ def test_cpu_seconds_count_ended_children_and_the_share_is_of_all_cores():
     assert pu.machine_share(120.0, 60.0) == round(2.0 / os.cpu_count(), 2)
 
 
+def test_a_unit_records_the_torch_and_lerobot_that_ran_it():
+    import lerobot
+    import torch
+
+    assert pu.versions() == {"torch": torch.__version__, "lerobot": lerobot.__version__}
+
+
 def test_the_bootstrap_interval_covers_the_truth_at_its_rate():
     """Paired seeds x episodes with a true difference of +20 points: the 95 % interval holds it
     in about 95 % of repeated studies."""
