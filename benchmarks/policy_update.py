@@ -1,7 +1,7 @@
 """Where the policy study's update step goes (``updt_s`` of ``training_step.py``): the
-Diffusion Policy of the study (one 96x96 camera, ResNet-18 encoder with group norm, U-Net of
-64/128/256 channels, batch 32, one observation step, 16 actions), one AdamW update on a random
-batch split into the encoder's forward, the U-Net's forward, the backward pass and the optimiser
+study's Diffusion Policy (``policies/diffusion.json`` with ``policy_robustness.py``'s defaults:
+one 96x96 camera, ResNet-18 encoder with group norm, U-Net of 64/128/256 channels, batch 32,
+one observation step, 16 actions), one AdamW update on a random batch split into the encoder's forward, the U-Net's forward, the backward pass and the optimiser
 step, for the variants a unit's time could be cut with: smaller images, channels-last tensors,
 batch norm, ``torch.compile`` (``--compile``: several minutes of compiling). The variants'
 updates are taken in turns, so that the machine's drift falls on all of them alike.
@@ -16,6 +16,7 @@ nothing, under outputs/benchmarks_quick/).
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import time
 from dataclasses import dataclass
@@ -24,12 +25,17 @@ from pathlib import Path
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as the study trains (policy_robustness.py)
 
+import policy_robustness as pr
 import torch
+from gensplat_sim.control import ACTION_NAMES
+from gensplat_sim.world import STATE_NAMES
 from machine import cpu_model, default_out, out_help
 
 from gensplat_transforms.core.atomic import atomic_write_json
 
-BATCH, HORIZON, STATE, ACTION = 32, 16, 12, 5
+#: the study's settings (policy_robustness.py's defaults) and its policy (policies/diffusion.json)
+STUDY = pr.parse_args([])
+POLICY = json.loads((pr.ROOT / "policies" / "diffusion.json").read_text())["policy"]
 
 
 @dataclass(frozen=True)
@@ -37,13 +43,13 @@ class Variant:
     """One way to build and run the study's policy."""
 
     name: str
-    size: int = 96
+    size: int = STUDY.size
     group_norm: bool = True
     channels_last: bool = False
     compiled: bool = False
 
 
-VARIANTS = (Variant("the study (96 px)"), Variant("80 px", size=80), Variant("64 px", size=64),
+VARIANTS = (Variant(f"the study ({STUDY.size} px)"), Variant("80 px", size=80), Variant("64 px", size=64),
             Variant("channels-last", channels_last=True), Variant("batch norm", group_norm=False))  # fmt: skip
 COMPILED = Variant("torch.compile (encoder, U-Net)", compiled=True)
 
@@ -55,17 +61,19 @@ def build(variant: Variant, size: int):
     from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
 
     torch.manual_seed(0)
-    features = {"observation.images.left": PolicyFeature(FeatureType.VISUAL, (3, size, size)),
-                "observation.state": PolicyFeature(FeatureType.STATE, (STATE,))}  # fmt: skip
-    config = DiffusionConfig(n_obs_steps=1, horizon=HORIZON, n_action_steps=8, crop_shape=None,
-                             pretrained_backbone_weights=None, use_group_norm=variant.group_norm,
-                             down_dims=(64, 128, 256), noise_scheduler_type="DDIM", num_inference_steps=10,
-                             device="cpu", input_features=features,
-                             output_features={"action": PolicyFeature(FeatureType.ACTION, (ACTION,))})  # fmt: skip
+    features = {f"observation.images.{c}": PolicyFeature(FeatureType.VISUAL, (3, size, size)) for c in STUDY.cameras}
+    features["observation.state"] = PolicyFeature(FeatureType.STATE, (len(STATE_NAMES),))
+    fields = {k: v for k, v in POLICY.items() if k not in ("type", "push_to_hub")}  # the study sets the rest:
+    fields |= {"use_group_norm": variant.group_norm, "n_obs_steps": STUDY.n_obs_steps, "device": "cpu",
+               "down_dims": tuple(int(d) for d in STUDY.down_dims.split(",")), "noise_scheduler_type": "DDIM",
+               "num_inference_steps": STUDY.inference_steps, "input_features": features,
+               "output_features": {"action": PolicyFeature(FeatureType.ACTION, (len(ACTION_NAMES),))}}  # fmt: skip
+    config = DiffusionConfig(**fields)
     policy = DiffusionPolicy(config).train()
-    batch = {"observation.images.left": torch.rand(BATCH, 1, 3, size, size),
-             "observation.state": torch.randn(BATCH, 1, STATE), "action": torch.randn(BATCH, HORIZON, ACTION),
-             "action_is_pad": torch.zeros(BATCH, HORIZON, dtype=torch.bool)}  # fmt: skip
+    batch_size, horizon = STUDY.batch_size, config.horizon
+    batch = {k: torch.rand(batch_size, STUDY.n_obs_steps, *f.shape) for k, f in features.items()}
+    batch |= {"action": torch.randn(batch_size, horizon, len(ACTION_NAMES)),
+              "action_is_pad": torch.zeros(batch_size, horizon, dtype=torch.bool)}  # fmt: skip
     if variant.channels_last:
         policy = policy.to(memory_format=torch.channels_last)  # the weights; convolutions follow them
     encoders = list(policy.diffusion.rgb_encoder)  # one per camera (LeRobot's default)
@@ -153,7 +161,7 @@ def main() -> None:
               f"{row['backward_s']:8.3f} {row['optimiser_s']:9.3f} {row['update_s']:8.3f} {row['of_study']:7.2f}")  # fmt: skip
     out = Path(args.out) if args.out else default_out("policy_update.json", args.quick)
     atomic_write_json(out, {"machine": cpu_model(), "torch": torch.__version__, "threads": torch.get_num_threads(),
-                            "batch_size": BATCH, "steps": steps, "quick": args.quick, "rows": rows})  # fmt: skip
+                            "batch_size": STUDY.batch_size, "steps": steps, "quick": args.quick, "rows": rows})  # fmt: skip
     print("wrote", out)
 
 

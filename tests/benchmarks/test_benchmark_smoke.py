@@ -311,6 +311,7 @@ def test_training_step(tmp_path):
 
 
 def test_policy_update(tmp_path):
+    needs_sim()
     needs_lerobot()
     result = quick("policy_update.py", tmp_path)
     rows = result["rows"]
