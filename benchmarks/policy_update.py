@@ -1,16 +1,17 @@
 """Where the policy study's update step goes (``updt_s`` of ``training_step.py``): the
 study's Diffusion Policy (``policies/diffusion.json`` with ``policy_robustness.py``'s defaults:
 one 96x96 camera, ResNet-18 encoder with group norm, U-Net of 64/128/256 channels, batch 32,
-one observation step, 16 actions), one AdamW update on a random batch split into the encoder's forward, the U-Net's forward, the backward pass and the optimiser
-step, for the variants a unit's time could be cut with: smaller images, channels-last tensors,
-batch norm, ``torch.compile`` (``--compile``: several minutes of compiling). The variants'
-updates are taken in turns, so that the machine's drift falls on all of them alike.
+one observation step, 16 actions), one AdamW update on a random batch split into the encoder's
+forward, the U-Net's forward, the backward pass and the optimiser step, for the variants a
+unit's time could be cut with: smaller images, channels-last tensors, batch norm,
+``torch.compile`` (``--compile``: several minutes of compiling). The variants' updates are
+taken in turns, so that the machine's drift falls on all of them alike.
 
     python benchmarks/policy_update.py [--steps 15] [--compile] [--quick] [--out FILE]
 
-Stop other work on the machine first: the figures are wall-clock seconds of both cores. Writes
-``benchmarks/results/policy_update.json`` (``--quick``: every variant at 64 px, one step, figures that mean
-nothing, under outputs/benchmarks_quick/).
+Stop other work on the machine first: the figures are wall-clock seconds of both cores.
+Writes ``benchmarks/results/policy_update.json`` (``--quick``: every variant at 64 px, one
+step, figures that mean nothing, under outputs/benchmarks_quick/).
 """
 
 from __future__ import annotations

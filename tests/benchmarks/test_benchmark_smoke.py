@@ -35,9 +35,10 @@ LEVELS = {"none", "small", "medium", "large", "extreme"}
 pytestmark = pytest.mark.slow
 
 
-def smoke(script: str, *args: str, tmp: Path | None = None,
-          env: dict | None = None) -> subprocess.CompletedProcess:
-    """Run ``benchmarks/<script> args`` from the repository root; it must succeed. Temporary
+def smoke(script: str, *args: str, tmp: Path | None = None, env: dict | None = None,
+          returncode: int = 0) -> subprocess.CompletedProcess:
+    """Run ``benchmarks/<script> args`` from the repository root; it must exit with
+    ``returncode`` (default: succeed). Temporary
     folders go under ``tmp``. OpenMP (torch's default threads) gets one thread: beside another
     busy process, two threads waiting on each other made a 4 s script take 24 s (what a script
     sets explicitly still holds)."""
@@ -47,7 +48,7 @@ def smoke(script: str, *args: str, tmp: Path | None = None,
            **({"TMPDIR": str(tmp)} if tmp else {}), **(env or {})}  # fmt: skip
     cmd = ["bash" if script.endswith(".sh") else sys.executable, str(ROOT / "benchmarks" / script), *args]
     run = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=ROOT, timeout=600, check=False)
-    assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-3000:]
+    assert run.returncode == returncode, run.stdout[-2000:] + run.stderr[-3000:]
     return run
 
 
@@ -321,6 +322,13 @@ def test_policy_update(tmp_path):
         assert positive(r["encoder_forward_s"], r["unet_forward_s"], r["backward_s"], r["optimiser_s"])
         assert r["encoder_forward_s"] + r["unet_forward_s"] <= r["forward_s"]
         assert r["update_s"] == pytest.approx(r["forward_s"] + r["backward_s"] + r["optimiser_s"])
+
+
+def test_policy_update_refuses_no_timed_update(tmp_path):
+    needs_sim()
+    needs_lerobot()
+    run = smoke("policy_update.py", "--steps", "0", "--out", str(tmp_path / "r.json"), tmp=tmp_path, returncode=2)
+    assert "--steps 0: at least one timed update" in run.stderr and not (tmp_path / "r.json").exists()
 
 
 def test_training_throughput(tmp_path):
